@@ -1,0 +1,307 @@
+"""The `keo` command line (DESIGN.md section 6). argparse from the standard library: it gives
+sub-commands, typed options, --help and exit code 2 on bad usage with no extra dependency.
+
+Exit codes: 0 success, 2 bad usage or bad config (the message names the key or argument),
+1 other failures. `--json` prints one JSON document on stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from keo_service.errors import ConfigError, DataFormatError, KeoError
+
+EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
+
+
+def _finite_or_none(doc: Any) -> Any:
+    """JSON has no NaN: absent numbers become null."""
+    if isinstance(doc, float):
+        return doc if math.isfinite(doc) else None
+    if isinstance(doc, dict):
+        return {k: _finite_or_none(v) for k, v in doc.items()}
+    if isinstance(doc, list | tuple):
+        return [_finite_or_none(v) for v in doc]
+    return doc
+
+
+def _print_json(doc: Any) -> None:
+    sys.stdout.write(
+        json.dumps(_finite_or_none(doc), indent=2, allow_nan=False, default=float) + "\n"
+    )
+
+
+def _config(path: str) -> Any:
+    from keo_service.config import load_config
+
+    return load_config(path)
+
+
+def _parse_sets(values: Sequence[str] | None) -> dict[str, str]:
+    out = {}
+    for item in values or ():
+        if "=" not in item:
+            raise ConfigError("--set", item, "expected KEY=VALUE")
+        key, value = item.split("=", 1)
+        out[key.strip()] = value.strip()
+    return out
+
+
+# ---- commands ---------------------------------------------------------------------------------
+
+
+def cmd_gain(args: argparse.Namespace) -> int:
+    from keo_service import observer as ob
+
+    if args.rate <= 0:
+        raise ConfigError("--rate", "rate", "must be > 0 (Hz)")
+    rows: list[dict[str, Any]] = []
+    gains = list(args.gain or [])
+    best = None
+    if args.noise is not None or args.drift is not None:
+        if args.noise is None or args.drift is None:
+            raise ConfigError("--noise/--drift", "noise", "give both --noise and --drift")
+        if args.noise <= 0 or args.drift <= 0:
+            raise ConfigError("--noise/--drift", "noise", "both must be > 0")
+        best = ob.best_gain(args.noise, args.drift, args.rate)
+        gains.append(best)
+    if not gains:
+        raise ConfigError("--gain", "gain", "give --gain L [L ...] and/or --noise N --drift D")
+    for gain in gains:
+        if not gain > 0:
+            raise ConfigError("--gain", "gain", f"{gain} is not > 0")
+        rep = ob.describe_gain(gain, args.rate)
+        row: dict[str, Any] = {
+            "gain": gain,
+            "rate_hz": args.rate,
+            "time_constant_s": rep.time_constant_s,
+            "settling_time_s": rep.settling_time_s,
+            "settling_time_sampled_s": rep.discrete_settling_time_s,
+            "step_alpha": rep.step_alpha,
+            "noise_gain": rep.noise_gain,
+        }
+        if args.noise is not None and args.drift is not None:
+            mse = ob.steady_state_mse(rep.step_alpha, args.noise, args.drift, 1.0 / args.rate)
+            row["rms_error"] = mse**0.5
+            row["best"] = gain == best
+        rows.append(row)
+    if args.json:
+        _print_json({"gains": rows})
+        return EXIT_OK
+    head = (
+        f"{'L [1/s]':>10} {'tau [s]':>9} {'2% settle [s]':>14} {'at rate [s]':>12} "
+        f"{'noise gain':>11}"
+    )
+    if args.noise is not None:
+        head += f" {'rms error':>11}"
+    print(f"rate {args.rate:g} Hz; noise gain = estimate std / measurement noise std")
+    print(head)
+    for r in rows:
+        line = (
+            f"{r['gain']:>10.4g} {r['time_constant_s']:>9.4g} {r['settling_time_s']:>14.4g} "
+            f"{r['settling_time_sampled_s']:>12.4g} {r['noise_gain']:>11.4g}"
+        )
+        if "rms_error" in r:
+            line += f" {r['rms_error']:>11.4g}" + (
+                "  <- best (steady-state Kalman)" if r["best"] else ""
+            )
+        print(line)
+    return EXIT_OK
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from keo_service.kinematics import cell_from_config
+    from keo_service.simulate import make_scenario, simulate, write_run
+
+    config = _config(args.config)
+    overrides = _parse_sets(args.set)
+    if args.position_only:
+        overrides["position_only"] = "true"
+    scenario = make_scenario(args.scenario, overrides)
+    run = simulate(cell_from_config(config), scenario, seed=args.seed)
+    write_run(run, args.out)
+    summary = {
+        "out": str(args.out),
+        "scenario": scenario.name,
+        "seed": args.seed,
+        "encoder_rows": int(run.encoder.t.size),
+        "tracker_rows": int(run.tracker.t.size),
+        "duration_s": float(run.truth_t[-1]) if run.truth_t.size else 0.0,
+        "channels": list(run.channels),
+    }
+    if args.json:
+        _print_json(summary)
+    else:
+        print(
+            f"wrote {args.out}/encoder.csv ({summary['encoder_rows']} rows), tracker.csv "
+            f"({summary['tracker_rows']} rows), truth.csv; "
+            f"scenario {scenario.name}, seed {args.seed}"
+        )
+    return EXIT_OK
+
+
+def cmd_estimate(args: argparse.Namespace) -> int:
+    from keo_service.offline import estimate_files, write_estimates
+
+    config = _config(args.config)
+    result = estimate_files(config, args.encoder, args.tracker)
+    write_estimates(args.out, result)
+    held = sum(1 for e in result.estimates if e.held)
+    summary = {
+        "out": str(args.out),
+        "estimates": len(result.estimates),
+        "held": held,
+        "channels": list(result.channels),
+        "counters": result.counters,
+        "messages": result.messages[-10:],
+    }
+    if args.json:
+        _print_json(summary)
+    else:
+        print(f"wrote {len(result.estimates)} estimates ({held} held) to {args.out}")
+        skipped = {
+            k: v
+            for k, v in result.counters.items()
+            if k.startswith(("encoder_", "tracker_")) and not k.endswith("samples")
+        }
+        if skipped:
+            print("skipped rows: " + ", ".join(f"{k}={v}" for k, v in sorted(skipped.items())))
+            for m in result.messages[-5:]:
+                print(f"  {m}")
+    return EXIT_OK
+
+
+def cmd_paper(args: argparse.Namespace) -> int:
+    from keo_service.paper import paper_markdown, paper_report
+
+    config = _config(args.config)
+    report = paper_report(config, seed=args.seed)
+    if args.json:
+        _print_json(report)
+    else:
+        sys.stdout.write(paper_markdown(report))
+    return EXIT_OK
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from keo_service.demo import run_demo
+
+    return run_demo(args)
+
+
+def cmd_not_yet(args: argparse.Namespace) -> int:
+    print(f"keo {args.command}: not implemented yet in this version", file=sys.stderr)
+    return EXIT_FAILURE
+
+
+# ---- parser -----------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from keo_service.resources import demo_config_path
+
+    parser = argparse.ArgumentParser(prog="keo", description="Kinematic Error Observer")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add(
+        name: str, func: Callable[[argparse.Namespace], int], help_text: str, config: bool = True
+    ) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(func=func)
+        if config:
+            p.add_argument("--config", required=True, help="keo config (TOML)")
+        return p
+
+    p = add(
+        "demo",
+        cmd_demo,
+        "mock devices, adapters and service on loopback; prints a summary",
+        config=False,
+    )
+    p.add_argument("--config", default=str(demo_config_path()), help="default: the demo cell")
+    p.add_argument("--duration", type=float, default=18.0, help="seconds of scenario to play")
+    p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--seed", type=int, default=1)
+
+    p = add(
+        "gain",
+        cmd_gain,
+        "time constant, 2%% settling time and noise gain of observer gains",
+        config=False,
+    )
+    p.add_argument("--gain", type=float, nargs="+", metavar="L", help="gains in 1/s")
+    p.add_argument("--rate", type=float, required=True, help="sample rate in Hz")
+    p.add_argument("--noise", type=float, help="measurement noise std (m or rad)")
+    p.add_argument(
+        "--drift",
+        type=float,
+        help="random-walk drift of the true error: std of its change over 1 s (per sqrt(s))",
+    )
+    p.add_argument("--json", action="store_true")
+
+    p = add("simulate", cmd_simulate, "write encoder.csv, tracker.csv and truth.csv for a scenario")
+    p.add_argument("--scenario", required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--set", action="append", metavar="KEY=VALUE", help="override a scenario parameter"
+    )
+    p.add_argument("--position-only", action="store_true", help="a single-reflector tracker")
+    p.add_argument("--json", action="store_true")
+
+    p = add("estimate", cmd_estimate, "the service's alignment and observer over recorded files")
+    p.add_argument("--encoder", type=Path, required=True)
+    p.add_argument("--tracker", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--json", action="store_true")
+
+    p = add(
+        "paper",
+        cmd_paper,
+        "the reference paper's experiments reproduced in simulation",
+        config=False,
+    )
+    p.add_argument("--config", default=str(demo_config_path()))
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--json", action="store_true")
+
+    for name, text in (
+        ("calibrate-delay", "the delay between the streams"),
+        ("analyze", "residual analysis"),
+        ("record", "record raw streams"),
+        ("replay", "replay recorded streams"),
+        ("bench", "benchmarks"),
+    ):
+        p = add(name, cmd_not_yet, text, config=False)
+        p.add_argument("rest", nargs=argparse.REMAINDER)
+
+    from keo_service import live_cli
+
+    live_cli.add_live_commands(sub, add)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except (ConfigError, DataFormatError) as exc:
+        print(f"keo {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeoError as exc:
+        print(f"keo {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    except KeyboardInterrupt:
+        return EXIT_OK
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,41 @@
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from keo_service.config import Config, load_config
+from keo_service.kinematics import Cell, cell_from_config
+
+REPO = Path(__file__).resolve().parent.parent
+CONFIGS = REPO / "configs"
+DEMO = CONFIGS / "demo.toml"
+
+
+@pytest.fixture(scope="session")
+def demo_config() -> Config:
+    return load_config(DEMO)
+
+
+@pytest.fixture(scope="session")
+def demo_cell(demo_config: Config) -> Cell:
+    return cell_from_config(demo_config)
+
+
+def write_config(tmp_path: Path, body: str, name: str = "c.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(body.replace("@ROBOTS@", str(CONFIGS / "robots")), encoding="utf-8")
+    return path
+
+
+def keo(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
+    """Run the installed CLI as a real process."""
+    return subprocess.run(
+        [sys.executable, "-m", "keo_service.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
