@@ -151,7 +151,7 @@ def load_config(path: str | Path) -> Config:
 def config_to_toml(config: Config) -> str:
     """Write a config back as TOML (used for model.toml); paths stay absolute."""
     lines = [f'cell = "{config.cell}"']
-    sections = msgspec.structs.asdict(config)
+    sections = msgspec.to_builtins(config)
     for name, section in sections.items():
         if not isinstance(section, dict):
             continue

@@ -3,9 +3,238 @@
 from __future__ import annotations
 
 import argparse
+import asyncio
+import json
+import logging
+import signal
+import sys
+import time
 from collections.abc import Callable
 from typing import Any
 
+from keo_service.errors import ConfigError
+
+
+def _setup_logging(verbose: bool = False) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        stream=sys.stderr,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+
+
+def _config(path: str) -> Any:
+    from keo_service.config import load_config
+
+    return load_config(path)
+
+
+def _install_stop(stop: Callable[[], None]) -> None:
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from keo_service.service import run_service
+
+    config = _config(args.config)
+    _setup_logging(args.verbose)
+    asyncio.run(run_service(config))
+    return 0
+
+
+def cmd_adapter(args: argparse.Namespace) -> int:
+    from adapters.devices import EncoderAdapter, TrackerAdapter
+    from keo_service.kinematics import load_robot
+
+    config = _config(args.config)
+    _setup_logging(args.verbose)
+    nq = load_robot(
+        config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
+    ).nq
+    kind = {"encoder": EncoderAdapter, "tracker": TrackerAdapter}[args.device]
+
+    async def main() -> None:
+        async with kind(config, nq) as adapter:
+            _install_stop(adapter.stop)
+            await adapter.wait()
+
+    asyncio.run(main())
+    return 0
+
+
+def cmd_mock(args: argparse.Namespace) -> int:
+    from adapters.mock_devices import MockRobot, MockTracker
+    from keo_service.cli import _parse_sets
+    from keo_service.kinematics import cell_from_config
+    from keo_service.simulate import make_scenario, simulate
+
+    config = _config(args.config)
+    _setup_logging(args.verbose)
+    overrides = _parse_sets(args.set)
+    if args.duration is not None:
+        overrides["duration_s"] = repr(args.duration)
+    if getattr(args, "position_only", False):
+        overrides["position_only"] = "true"
+    run = simulate(
+        cell_from_config(config), make_scenario(args.scenario, overrides), seed=args.seed
+    )
+    server: MockRobot | MockTracker
+    if args.device == "robot":
+        server = MockRobot(
+            run.encoder,
+            args.host or config.robot.host,
+            args.port or config.robot.port,
+            config.robot.byte_order,
+            args.t0,
+            args.loop,
+        )
+    else:
+        server = MockTracker(
+            run.tracker,
+            args.host or config.tracker.host,
+            args.port or config.tracker.port,
+            args.t0,
+            args.loop,
+        )
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        _install_stop(stop.set)
+        await server.start()
+        await stop.wait()
+        await server.close()
+
+    asyncio.run(main())
+    return 0
+
+
+def cmd_echo(args: argparse.Namespace) -> int:
+    import msgspec
+
+    from keo_service.bus import AsyncSubscription, session_for_client
+    from keo_service.messages import decode
+
+    config = _config(args.config)
+    if args.count is not None and args.count < 1:
+        raise ConfigError("--count", "count", "must be >= 1")
+
+    async def main() -> None:
+        session = session_for_client(config)
+        sub = AsyncSubscription(session, [args.key])
+        stop = asyncio.Event()
+        _install_stop(lambda: (stop.set(), sub.close()))
+        seen = 0
+        try:
+            async for key, payload in sub:
+                try:
+                    msg: Any = decode(payload)
+                    doc = msgspec.to_builtins(msg)
+                except msgspec.DecodeError as exc:
+                    doc = {
+                        "key": key,
+                        "error": f"undecodable payload: {exc}",
+                        "bytes": len(payload),
+                    }
+                if args.json:
+                    sys.stdout.write(json.dumps(doc, allow_nan=False, default=str) + "\n")
+                else:
+                    sys.stdout.write(f"{key}: {_human(doc)}\n")
+                sys.stdout.flush()
+                seen += 1
+                if args.count is not None and seen >= args.count:
+                    break
+        finally:
+            sub.close()
+            session.close()
+
+    asyncio.run(main())
+    return 0
+
+
+def _human(doc: dict[str, Any]) -> str:
+    if "estimate" in doc and "stamp" in doc:
+        est = ", ".join(f"{v * 1e3:+.4f}" for v in doc["estimate"])
+        flags = f" [{','.join(doc['flags'])}]" if doc.get("flags") else ""
+        return f"t={doc['stamp']:.4f} estimate(mm/mrad)=[{est}]{flags}"
+    return json.dumps(doc, default=str)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    import msgspec
+
+    from keo_service.bus import session_for_client
+    from keo_service.messages import decode, topic
+
+    config = _config(args.config)
+    session = session_for_client(config)
+    try:
+        deadline = time.monotonic() + args.timeout
+        while time.monotonic() < deadline:
+            replies = [r.ok for r in session.get(topic(config.cell, "status"), timeout=1.0) if r.ok]
+            if replies:
+                doc = msgspec.to_builtins(decode(replies[0].payload.to_bytes()))
+                sys.stdout.write(json.dumps(doc, indent=2, default=str) + "\n")
+                return 0
+            time.sleep(0.2)
+    finally:
+        session.close()
+    print(f"keo status: no service answered on {topic(config.cell, 'status')}", file=sys.stderr)
+    return 1
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from keo_service.bus import open_session
+
+    _setup_logging()
+    session = open_session("router", listen=args.listen, connect=args.connect or ())
+    logging.getLogger("keo.router").info("zenoh router listening on %s", args.listen)
+    stop = asyncio.Event()
+
+    async def main() -> None:
+        _install_stop(stop.set)
+        await stop.wait()
+
+    try:
+        asyncio.run(main())
+    finally:
+        session.close()
+    return 0
+
 
 def add_live_commands(sub: Any, add: Callable[..., argparse.ArgumentParser]) -> None:
-    """Registered by the live modules once they exist."""
+    p = add("run", cmd_run, "the service (daemon)")
+    p.add_argument("-v", "--verbose", action="store_true")
+
+    p = add("adapter", cmd_adapter, "a device adapter (its own process)", config=False)
+    p.add_argument("device", choices=["encoder", "tracker"])
+    p.add_argument("--config", required=True)
+    p.add_argument("-v", "--verbose", action="store_true")
+
+    p = add("mock", cmd_mock, "a device simulator speaking the real wire format", config=False)
+    p.add_argument("device", choices=["robot", "tracker"])
+    p.add_argument("--config", required=True)
+    p.add_argument("--scenario", required=True)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--t0", type=float, help="wall time (epoch s) of scenario time 0")
+    p.add_argument("--duration", type=float, help="play only this many seconds of the scenario")
+    p.add_argument("--loop", action="store_true", help="play the scenario again and again")
+    p.add_argument("--host", help="bind address (default: the config's, loopback)")
+    p.add_argument("--port", type=int)
+    p.add_argument("--set", action="append", metavar="KEY=VALUE")
+    p.add_argument("--position-only", action="store_true", help="a single-reflector tracker")
+    p.add_argument("-v", "--verbose", action="store_true")
+
+    p = add("echo", cmd_echo, "print what arrives on a key expression", config=False)
+    p.add_argument("key")
+    p.add_argument("--config", required=True)
+    p.add_argument("--json", action="store_true", help="one JSON document per line")
+    p.add_argument("--count", type=int)
+
+    p = add("status", cmd_status, "query a service's status")
+    p.add_argument("--timeout", type=float, default=5.0)
+
+    p = add("router", cmd_router, "a Zenoh router for setups without zenohd", config=False)
+    p.add_argument("--listen", action="append", required=True, metavar="ENDPOINT")
+    p.add_argument("--connect", action="append", metavar="ENDPOINT")

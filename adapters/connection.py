@@ -1,0 +1,84 @@
+"""Reconnecting TCP client loop shared by the adapters. Bytes only; no parsing here.
+
+A hand-written backoff (stdlib): we need the delay reset after every good connection and the
+attempt count in the adapter's status, which a generic retry decorator hides.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import random
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+
+log = logging.getLogger("keo.adapter")
+
+
+@dataclass
+class Backoff:
+    """Exponential delay between reconnects, bounded by `maximum`, with +-20 % jitter."""
+
+    initial: float = 0.1
+    maximum: float = 5.0
+    factor: float = 2.0
+    _current: float = 0.0
+
+    def next_delay(self) -> float:
+        self._current = (
+            self.initial if self._current == 0 else min(self._current * self.factor, self.maximum)
+        )
+        return self._current * random.uniform(0.8, 1.2)
+
+    def reset(self) -> None:
+        self._current = 0.0
+
+
+async def run_tcp_client(
+    name: str,
+    host: str,
+    port: int,
+    handle: Callable[[asyncio.StreamReader], Awaitable[None]],
+    stop: asyncio.Event,
+    counters: dict[str, int],
+    backoff: Backoff | None = None,
+) -> None:
+    """Connect, hand the reader to `handle` until the connection ends, reconnect; until `stop`."""
+    backoff = backoff or Backoff()
+    while not stop.is_set():
+        try:
+            reader, writer = await asyncio.open_connection(host, port, limit=1 << 16)
+        except OSError as exc:
+            counters["connect_failures"] = counters.get("connect_failures", 0) + 1
+            delay = backoff.next_delay()
+            log.warning(
+                "%s: cannot connect to %s:%d (%s); retrying in %.2f s",
+                name,
+                host,
+                port,
+                exc.strerror or exc,
+                delay,
+            )
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), delay)
+            continue
+        counters["connections"] = counters.get("connections", 0) + 1
+        log.info("%s: connected to %s:%d", name, host, port)
+        backoff.reset()
+        reading = asyncio.create_task(handle(reader))
+        stopping = asyncio.create_task(stop.wait())
+        try:
+            await asyncio.wait({reading, stopping}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for task in (reading, stopping):
+                task.cancel()
+            writer.close()
+            with contextlib.suppress(OSError):
+                await writer.wait_closed()
+        if reading.done() and not reading.cancelled() and reading.exception() is not None:
+            log.warning("%s: connection error: %s", name, reading.exception())
+        if not stop.is_set():
+            counters["disconnects"] = counters.get("disconnects", 0) + 1
+            log.warning("%s: connection to %s:%d lost; reconnecting", name, host, port)
+            await asyncio.sleep(backoff.next_delay())

@@ -1,0 +1,200 @@
+"""`keo run`: the live service. It only moves data: Zenoh samples in, the Estimator (all the
+math), estimates and status out. An async context manager that owns its session and tasks."""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import time
+from typing import Any
+
+import msgspec
+import zenoh
+
+from keo_service.bus import AsyncSubscription, open_session
+from keo_service.config import Config
+from keo_service.kinematics import cell_from_config
+from keo_service.messages import (
+    EstimateMessage,
+    JointSample,
+    ServiceStatus,
+    TrackerSample,
+    decode,
+    encode,
+    topic,
+)
+from keo_service.pipeline import Estimate, Estimator, EstimatorSettings
+
+log = logging.getLogger("keo.service")
+STATUS_PERIOD_S = 0.25
+STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "stale"
+
+
+class RateMeter:
+    """Samples per second over the last `window` arrivals (bounded)."""
+
+    def __init__(self, window: int = 200) -> None:
+        self._times: collections.deque[float] = collections.deque(maxlen=window)
+
+    def tick(self, now: float) -> None:
+        self._times.append(now)
+
+    def rate(self, now: float) -> float:
+        if len(self._times) < 2 or now - self._times[-1] > 2.0:
+            return 0.0
+        return (len(self._times) - 1) / (self._times[-1] - self._times[0])
+
+
+class KeoService:
+    def __init__(self, config: Config, session: zenoh.Session | None = None) -> None:
+        self.config = config
+        self.cell = config.cell
+        self.estimator = Estimator(cell_from_config(config), EstimatorSettings.from_config(config))
+        self._own_session = session is None
+        self._session = session
+        self._stop = asyncio.Event()
+        self._tasks: list[asyncio.Task[None]] = []
+        self._started = time.monotonic()
+        self._rates = {"encoder": RateMeter(), "tracker": RateMeter(), "estimate": RateMeter()}
+        self._status_bytes = b""
+        self._last_estimate_wall = 0.0
+        self._seq = 0
+        self.published = 0
+        self.decode_errors = 0
+
+    async def __aenter__(self) -> KeoService:
+        if self._session is None:
+            bus = self.config.bus
+            self._session = open_session(bus.mode, bus.listen, bus.connect, bus.multicast_scouting)
+        s = self._session
+        self._estimate_pub = s.declare_publisher(topic(self.cell, "estimate"), express=True)
+        self._status_q = s.declare_queryable(topic(self.cell, "status"), self._on_status_query)
+        self._token = s.liveliness().declare_token(topic(self.cell, "alive/service"))
+        self._sub = AsyncSubscription(s, [topic(self.cell, "encoder"), topic(self.cell, "tracker")])
+        self._refresh_status()
+        self._tasks = [
+            asyncio.create_task(self._consume(), name="keo.service.consume"),
+            asyncio.create_task(self._status_loop(), name="keo.service.status"),
+        ]
+        log.info("keo service for cell %s up; listening on %s", self.cell, self.config.bus.listen)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._sub.close()
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._token.undeclare()
+        self._status_q.undeclare()
+        self._estimate_pub.undeclare()
+        if self._own_session and self._session is not None:
+            self._session.close()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    async def wait(self) -> None:
+        await self._stop.wait()
+
+    # ---- data path ------------------------------------------------------------------------
+
+    async def _consume(self) -> None:
+        async for key, payload in self._sub:
+            now = time.monotonic()
+            try:
+                msg = decode(payload)
+            except msgspec.DecodeError as exc:
+                self.decode_errors += 1
+                self.estimator.messages.append(f"undecodable payload on {key}: {exc}")
+                continue
+            if isinstance(msg, JointSample):
+                self._rates["encoder"].tick(now)
+                out = self.estimator.on_encoder(msg.t, msg.q)
+            elif isinstance(msg, TrackerSample):
+                self._rates["tracker"].tick(now)
+                out = self.estimator.on_tracker(msg.t, msg.p, msg.q, ok=msg.status == "ok")
+            else:
+                self.estimator.counters["unexpected_message"] += 1
+                continue
+            for estimate in out:
+                self._publish(estimate, now)
+
+    def _publish(self, estimate: Estimate, now: float) -> None:
+        self._seq += 1
+        msg = self.to_message(estimate)
+        self._estimate_pub.put(encode(msg))
+        self.published += 1
+        self._rates["estimate"].tick(now)
+        if not estimate.held:
+            self._last_estimate_wall = now
+
+    def to_message(self, estimate: Estimate) -> EstimateMessage:
+        return EstimateMessage(
+            stamp=estimate.t,
+            host_ns=time.time_ns(),
+            channels=list(estimate.channels),
+            measured=None if estimate.measured is None else estimate.measured.tolist(),
+            estimate=estimate.estimate.tolist(),
+            flags=list(estimate.flags),
+            delay_s=self.estimator.delay.at(estimate.t),
+            seq=self._seq,
+        )
+
+    # ---- status -----------------------------------------------------------------------------
+
+    def health(self, now: float) -> str:
+        last = self.estimator.last
+        if last is None:
+            return "waiting"
+        if now - self._last_estimate_wall > STALE_AFTER_S or last.held:
+            return "stale"
+        return "ok"
+
+    def status(self) -> ServiceStatus:
+        now = time.monotonic()
+        counters = dict(self.estimator.counters)
+        counters["published"] = self.published
+        counters["decode_errors"] = self.decode_errors
+        counters["queue_dropped"] = self._sub.dropped
+        last = self.estimator.last
+        delay = self.estimator.delay
+        return ServiceStatus(
+            cell=self.cell,
+            health=self.health(now),
+            host_ns=time.time_ns(),
+            uptime_s=now - self._started,
+            rates_hz={k: round(v.rate(now), 3) for k, v in self._rates.items()},
+            delay_s=delay.offset_s,
+            drift=delay.drift,
+            gains=list(self.estimator.settings.gains),
+            alignment=self.estimator.settings.alignment,
+            counters=counters,
+            last_estimate=None if last is None else self.to_message(last),
+            messages=list(self.estimator.messages)[-10:],
+        )
+
+    def _refresh_status(self) -> None:
+        self._status_bytes = encode(self.status())
+
+    async def _status_loop(self) -> None:
+        while not self._stop.is_set():
+            self._refresh_status()
+            await asyncio.sleep(STATUS_PERIOD_S)
+
+    def _on_status_query(self, query: zenoh.Query) -> None:  # zenoh thread: reply with a snapshot
+        query.reply(query.key_expr, self._status_bytes)
+
+
+async def run_service(config: Config, ready: Any = None) -> None:
+    """Run until SIGINT/SIGTERM."""
+    import signal
+
+    loop = asyncio.get_running_loop()
+    async with KeoService(config) as service:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, service.stop)
+        if ready is not None:
+            ready()
+        await service.wait()
