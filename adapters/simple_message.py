@@ -82,6 +82,7 @@ class SimpleMessageDecoder:
         self._other = ">" if self._pre == "<" else "<"
         self._buf = bytearray()
         self._max_buffer = max_buffer
+        self._skipped = 0
         self.counters: Counter[str] = Counter()
         self.messages: deque[str] = deque(maxlen=16)
 
@@ -95,6 +96,7 @@ class SimpleMessageDecoder:
         if self._buf:
             self._reject("truncated", f"connection ended inside a frame ({len(self._buf)} bytes)")
         self._buf.clear()
+        self._skipped = 0
 
     def feed(self, data: bytes) -> list[JointFeedback | RobotStatusFrame]:
         self._buf += data
@@ -105,11 +107,19 @@ class SimpleMessageDecoder:
         out: list[JointFeedback | RobotStatusFrame] = []
         while len(self._buf) >= 16:
             length, msg_type, comm, _reply = struct.unpack_from(f"{self._pre}iiii", self._buf)
-            if not self._plausible_header(length, msg_type, comm):
-                self._buf = self._buf[1:]  # resynchronise one byte on
+            problem = self._header_problem(length, msg_type, comm)
+            if problem is not None:
+                if self._skipped == 0:  # one report per bad stretch, not one per byte
+                    self._reject(*problem)
+                self._skipped += 1
+                self.counters["skipped_bytes"] += 1
+                del self._buf[:1]  # resynchronise one byte on
                 continue
             if len(self._buf) < 4 + length:
                 break
+            if self._skipped:
+                self.messages.append(f"resynchronised after skipping {self._skipped} bytes")
+                self._skipped = 0
             frame = bytes(self._buf[4 : 4 + length])
             del self._buf[: 4 + length]
             item = self._parse(msg_type, frame)
@@ -117,7 +127,7 @@ class SimpleMessageDecoder:
                 out.append(item)
         return out
 
-    def _plausible_header(self, length: int, msg_type: int, comm: int) -> bool:
+    def _header_problem(self, length: int, msg_type: int, comm: int) -> tuple[str, str] | None:
         if length < 12 or length > MAX_FRAME_LENGTH:
             swapped = struct.unpack(f"{self._other}i", struct.pack(f"{self._pre}i", length))[0]
             hint = (
@@ -125,19 +135,17 @@ class SimpleMessageDecoder:
                 if swapped in (JOINT_FEEDBACK_LENGTH, ROBOT_STATUS_LENGTH)
                 else ""
             )
-            self._reject(
-                "bad_length", f"impossible length {length}, expected 12..{MAX_FRAME_LENGTH}{hint}"
+            return (
+                "bad_length",
+                f"impossible length {length}, expected 12..{MAX_FRAME_LENGTH}{hint}",
             )
-            return False
         if (msg_type == JOINT_FEEDBACK and length != JOINT_FEEDBACK_LENGTH) or (
             msg_type == ROBOT_STATUS and length != ROBOT_STATUS_LENGTH
         ):
-            self._reject("bad_length", f"type {msg_type} with length {length}")
-            return False
+            return "bad_length", f"type {msg_type} with length {length}"
         if comm not in COMM_TYPES:
-            self._reject("bad_header", f"comm_type {comm}, expected one of {COMM_TYPES}")
-            return False
-        return True
+            return "bad_header", f"comm_type {comm}, expected one of {COMM_TYPES}"
+        return None
 
     def _parse(self, msg_type: int, frame: bytes) -> JointFeedback | RobotStatusFrame | None:
         body = frame[12:]

@@ -1,0 +1,132 @@
+"""Wire codecs: MotoROS simple message and the tracker line protocol."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+
+import msgspec
+import pytest
+
+from adapters.line_protocol import LineProtocolParser, format_hello, format_pose
+from adapters.simple_message import (
+    JointFeedback,
+    RobotStatusFrame,
+    SimpleMessageDecoder,
+    encode_joint_feedback,
+    encode_robot_status,
+)
+from keo_service.messages import EstimateMessage, JointSample, TrackerSample, decode, encode
+
+Q = [0.1, -0.2, 0.3, -0.4, 0.5, -0.6]
+
+
+@pytest.mark.parametrize("order", ["little", "big"])
+def test_joint_feedback_roundtrip_in_both_byte_orders(order):
+    frame = encode_joint_feedback(Q, order, velocities=[0.01] * 6)
+    assert len(frame) == 148  # length field 144 + itself
+    prefix = "<" if order == "little" else ">"
+    assert struct.unpack(f"{prefix}iiii", frame[:16]) == (144, 15, 1, 0)
+    dec = SimpleMessageDecoder(order)
+    (fb,) = dec.feed(frame)
+    assert isinstance(fb, JointFeedback)
+    assert fb.positions[:6] == pytest.approx(Q, abs=1e-7)  # float32 on the wire
+    assert fb.velocities is not None and fb.velocities[0] == pytest.approx(0.01)
+
+
+def test_frames_split_anywhere_are_reassembled():
+    data = encode_joint_feedback(Q) + encode_robot_status() + encode_joint_feedback(Q)
+    dec = SimpleMessageDecoder()
+    out = []
+    for i in range(len(data)):
+        out += dec.feed(data[i : i + 1])
+    assert [type(f) for f in out] == [JointFeedback, RobotStatusFrame, JointFeedback]
+
+
+def test_garbage_between_frames_is_skipped_and_counted():
+    garbage = bytes(range(200, 256)) * 3
+    data = (
+        encode_joint_feedback(Q)
+        + garbage
+        + encode_joint_feedback(Q)
+        + b"\x00" * 5
+        + encode_robot_status()
+    )
+    dec = SimpleMessageDecoder()
+    out = dec.feed(data)
+    assert [type(f) for f in out] == [JointFeedback, JointFeedback, RobotStatusFrame]
+    assert dec.counters["rejected"] > 0
+    assert all(
+        f.positions[:6] == pytest.approx(Q, abs=1e-7) for f in out if isinstance(f, JointFeedback)
+    )
+
+
+def test_wrong_byte_order_is_refused_with_a_hint():
+    dec = SimpleMessageDecoder("big")
+    assert dec.feed(encode_joint_feedback(Q, "little") * 3) == []
+    assert dec.counters["bad_length"] > 0
+    assert any("robot.byte_order" in m for m in dec.messages)
+
+
+def test_unknown_type_is_skipped_and_truncated_frame_counted():
+    unknown = struct.pack("<iiii", 12 + 8, 99, 1, 0) + b"\x00" * 8
+    dec = SimpleMessageDecoder()
+    out = dec.feed(unknown + encode_joint_feedback(Q) + encode_joint_feedback(Q)[:50])
+    assert len(out) == 1 and dec.counters["unknown_type"] == 1
+    dec.reset()
+    assert dec.counters["truncated"] == 1
+
+
+def test_impossible_positions_are_refused():
+    dec = SimpleMessageDecoder()
+    bad = encode_joint_feedback([math.nan, 0, 0, 0, 0, 0])
+    assert dec.feed(bad + encode_joint_feedback(Q))[0].positions[0] == pytest.approx(0.1)
+    assert dec.counters["bad_value"] == 1
+
+
+def test_line_protocol_converts_units_and_refuses_bad_poses():
+    p = LineProtocolParser()
+    assert p.parse(format_pose(1, 0.0, [1.0, 2.0, 3.0], [1, 0, 0, 0])) is None  # before hello
+    assert p.counters["no_hello"] == 1
+    p.parse(format_hello("mm"))
+    pose = p.parse(format_pose(2, 0.1, [1000.0, 2000.0, -500.0], [1, 0, 0, 0]))
+    assert pose is not None and pose.p == pytest.approx((1.0, 2.0, -0.5))
+    assert p.parse(format_pose(3, 0.2, [1.0, 2.0, 3.0], [0.9, 0, 0, 0])) is None
+    assert p.counters["not_unit_quaternion"] == 1
+    assert (
+        p.parse(b'{"type": "pose", "seq": 4, "t": 0.3, "p": [NaN, 0, 0], "q": [1, 0, 0, 0]}')
+        is None
+    )
+    assert p.parse(b'{"type": "pose", "seq": 5, "t": Infinity, "p": [0, 0, 0]}') is None
+    assert p.counters["non_finite"] == 2
+    assert p.parse(format_pose(1, 0.4, [1, 2, 3], [1, 0, 0, 0])) is None  # seq went back
+    assert p.counters["out_of_order"] == 1
+    gap = p.parse(format_pose(6, 0.5, None, None, status="beam_broken"))
+    assert gap is not None and gap.status == "beam_broken" and gap.p is None
+    reflector = p.parse(format_pose(7, 0.6, [1.0, 0.0, 0.0], None))
+    assert reflector is not None and reflector.q is None
+    assert p.parse(b"{not json") is None and p.counters["malformed"] == 1
+    assert p.parse(json.dumps({"type": "hello", "length_unit": "inch"}).encode()) is None
+    assert p.counters["bad_hello"] == 1
+
+
+def test_messages_roundtrip_and_refuse_other_versions():
+    js = JointSample(t=1.5, host_ns=1_500_000_000, seq=3, q=Q)
+    assert decode(encode(js)) == js
+    ts = TrackerSample(t=1.6, host_ns=1, seq=1, status="beam_broken")
+    assert decode(encode(ts)) == ts
+    est = EstimateMessage(
+        stamp=1.0,
+        host_ns=1,
+        channels=["px", "py", "pz"],
+        measured=None,
+        estimate=[0.0, 0.0, 0.0],
+        flags=["encoder_stale"],
+        delay_s=0.0,
+        seq=1,
+    )
+    assert decode(encode(est)) == est
+    foreign = msgspec.msgpack.encode({"type": "keo.joint/2", "t": 1.0})
+    with pytest.raises(msgspec.DecodeError, match="keo.joint/2"):
+        decode(foreign)
