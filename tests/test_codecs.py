@@ -32,7 +32,8 @@ def test_joint_feedback_roundtrip_in_both_byte_orders(order):
     (fb,) = dec.feed(frame)
     assert isinstance(fb, JointFeedback)
     assert fb.positions[:6] == pytest.approx(Q, abs=1e-7)  # float32 on the wire
-    assert fb.velocities is not None and fb.velocities[0] == pytest.approx(0.01)
+    assert fb.velocities is not None
+    assert fb.velocities[0] == pytest.approx(0.01)
 
 
 def test_frames_split_anywhere_are_reassembled():
@@ -73,7 +74,8 @@ def test_unknown_type_is_skipped_and_truncated_frame_counted():
     unknown = struct.pack("<iiii", 12 + 8, 99, 1, 0) + b"\x00" * 8
     dec = SimpleMessageDecoder()
     out = dec.feed(unknown + encode_joint_feedback(Q) + encode_joint_feedback(Q)[:50])
-    assert len(out) == 1 and dec.counters["unknown_type"] == 1
+    assert len(out) == 1
+    assert dec.counters["unknown_type"] == 1
     dec.reset()
     assert dec.counters["truncated"] == 1
 
@@ -91,7 +93,8 @@ def test_line_protocol_converts_units_and_refuses_bad_poses():
     assert p.counters["no_hello"] == 1
     p.parse(format_hello("mm"))
     pose = p.parse(format_pose(2, 0.1, [1000.0, 2000.0, -500.0], [1, 0, 0, 0]))
-    assert pose is not None and pose.p == pytest.approx((1.0, 2.0, -0.5))
+    assert pose is not None
+    assert pose.p == pytest.approx((1.0, 2.0, -0.5))
     assert p.parse(format_pose(3, 0.2, [1.0, 2.0, 3.0], [0.9, 0, 0, 0])) is None
     assert p.counters["not_unit_quaternion"] == 1
     assert (
@@ -103,10 +106,14 @@ def test_line_protocol_converts_units_and_refuses_bad_poses():
     assert p.parse(format_pose(1, 0.4, [1, 2, 3], [1, 0, 0, 0])) is None  # seq went back
     assert p.counters["out_of_order"] == 1
     gap = p.parse(format_pose(6, 0.5, None, None, status="beam_broken"))
-    assert gap is not None and gap.status == "beam_broken" and gap.p is None
+    assert gap is not None
+    assert gap.status == "beam_broken"
+    assert gap.p is None
     reflector = p.parse(format_pose(7, 0.6, [1.0, 0.0, 0.0], None))
-    assert reflector is not None and reflector.q is None
-    assert p.parse(b"{not json") is None and p.counters["malformed"] == 1
+    assert reflector is not None
+    assert reflector.q is None
+    assert p.parse(b"{not json") is None
+    assert p.counters["malformed"] == 1
     assert p.parse(json.dumps({"type": "hello", "length_unit": "inch"}).encode()) is None
     assert p.counters["bad_hello"] == 1
 
@@ -128,5 +135,5 @@ def test_messages_roundtrip_and_refuse_other_versions():
     )
     assert decode(encode(est)) == est
     foreign = msgspec.msgpack.encode({"type": "keo.joint/2", "t": 1.0})
-    with pytest.raises(msgspec.DecodeError, match="keo.joint/2"):
+    with pytest.raises(msgspec.DecodeError, match=r"keo\.joint/2"):
         decode(foreign)

@@ -134,7 +134,7 @@ def test_chain_as_processes(live_config, demo_cell, tmp_path):
             replies = [
                 r.ok for r in client.get(topic(live_config.cell, "status"), timeout=3.0) if r.ok
             ]
-            tokens = [s.key_expr for s in iter(lambda: alive.try_recv(), None)]
+            tokens = [s.key_expr for s in iter(alive.try_recv, None)]
         finally:
             client.close()
         started = time.monotonic()
@@ -146,7 +146,8 @@ def test_chain_as_processes(live_config, demo_cell, tmp_path):
     check_converged(estimates, truth, t0)
     status = decode(replies[0].payload.to_bytes())
     assert isinstance(status, ServiceStatus)
-    assert status.cell == live_config.cell and status.delay_s == pytest.approx(0.028)
+    assert status.cell == live_config.cell
+    assert status.delay_s == pytest.approx(0.028)
     assert status.gains == [GAIN] * 6
     assert status.counters["tracker_samples"] >= len(estimates) - 5
     assert status.last_estimate is not None

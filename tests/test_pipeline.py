@@ -1,4 +1,4 @@
-"""The estimator's plumbing-free behaviour: holds, flags, counters and delivery-order independence."""
+"""The estimator without plumbing: holds, flags, counters, delivery-order independence."""
 
 from __future__ import annotations
 
@@ -44,7 +44,8 @@ def test_delivery_order_does_not_change_estimates(demo_cell, run):
     bursty += est.flush()
     assert len(bursty) == len(ordered)
     for a, b in zip(ordered, bursty, strict=True):
-        assert a.t == b.t and a.flags == b.flags
+        assert a.t == b.t
+        assert a.flags == b.flags
         assert np.array_equal(a.estimate, b.estimate)
 
 
@@ -60,7 +61,8 @@ def test_missing_encoder_holds_and_flags(demo_cell, run):
     )
     good = [e for e in out if not e.held]
     held = [e for e in out if e.held and e.t > good[0].t]  # before any encoder data: too_old
-    assert good and held
+    assert good
+    assert held
     assert all(e.flags == ("encoder_stale",) for e in held)
     assert all(e.measured is None for e in held)
     # the observer holds: every held estimate equals the last good one
@@ -111,16 +113,20 @@ def test_tracker_gap_and_bad_samples(demo_cell):
         1,
         1,
     )
-    assert len(est.messages) > 0 and "t=0.11" in " ".join(est.messages)
+    assert len(est.messages) > 0
+    assert "t=0.11" in " ".join(est.messages)
 
 
 def test_encoder_buffer_is_bounded_and_interpolates_linearly():
     buf = EncoderBuffer(2, capacity=8)
     for k in range(20):
         buf.push(float(k), np.array([k, -2.0 * k]))
-    assert len(buf) == 8 and buf.oldest_t == 12.0 and buf.newest_t == 19.0
+    assert len(buf) == 8
+    assert buf.oldest_t == 12.0
+    assert buf.newest_t == 19.0
     status, q = buf.interpolate(15.25, max_gap=2.0)
-    assert status.value == "ok" and np.allclose(q, [15.25, -30.5])
+    assert status.value == "ok"
+    assert np.allclose(q, [15.25, -30.5])
     assert buf.interpolate(11.0, 2.0)[0].value == "too_old"
     assert buf.interpolate(19.5, 2.0)[0].value == "not_yet"
     assert buf.interpolate(15.5, 0.5)[0].value == "gap"
