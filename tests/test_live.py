@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
+import subprocess
+import sys
 import time
 
 import msgspec
@@ -24,6 +27,7 @@ from keo_service.observer import noise_gain
 from keo_service.procs import process_group
 from keo_service.service import KeoService
 from keo_service.simulate import make_scenario, simulate
+from tests.conftest import REPO
 
 GAIN = 5.0  # time constant 0.2 s
 POSITION_NOISE = 20e-6
@@ -51,6 +55,14 @@ def check_converged(estimates: list[EstimateMessage], truth: np.ndarray, t_start
     assert np.all(np.abs(err) < limit), (np.abs(err).max(axis=0), limit)
     assert np.max(np.abs(truth[:3])) > 5e-4  # the injected error is large against the band
     assert t_start < first
+
+
+def readme_snippet(endpoint: str, cell: str) -> str:
+    """The README's subscriber example, pointed at this test's service."""
+    readme = (REPO / "README.md").read_text()
+    code = re.search(r"```python\n(.*?)```", readme, re.S).group(1)
+    code = code.replace("tcp/127.0.0.1:7447", endpoint).replace("keo/demo/", f"keo/{cell}/")
+    return code.replace("time.sleep(10)", "time.sleep(9)")
 
 
 async def collect(session, key: str, until: float) -> list[EstimateMessage]:
@@ -178,7 +190,19 @@ def test_echo_prints_estimates_as_json(live_config, demo_cell, tmp_path):
                 "20",
             ],
         )
+        snippet = readme_snippet(live_config.bus.listen[0], live_config.cell)
+        example = subprocess.Popen(
+            [sys.executable, "-c", snippet],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         echo.wait(timeout=30)
+        example_out, example_err = example.communicate(timeout=30)
+    assert example.returncode == 0, example_err
+    example_lines = [ln for ln in example_out.splitlines() if ln.strip()]
+    assert len(example_lines) > 50
+    assert "ok" in example_lines[-1]
     lines = procs.log("echo").strip().splitlines()
     assert len(lines) == 20
     docs = [json.loads(line) for line in lines]
