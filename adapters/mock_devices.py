@@ -55,6 +55,9 @@ class _MockServer:
             await reader.read()  # stay connected, as a device does, until the client leaves
         except (ConnectionError, OSError):
             pass
+        except asyncio.CancelledError:
+            # shutting down; ending normally keeps asyncio from logging the cancelled handler
+            pass
         finally:
             writer.close()
 

@@ -11,13 +11,25 @@ import asyncio
 import collections
 import contextlib
 import json
+import logging
 import threading
+import time
 from collections.abc import AsyncIterator, Sequence
 from typing import Any
 
 import zenoh
 
+from keo_service.errors import KeoError
+
+log = logging.getLogger("keo.bus")
+
 DEFAULT_QUEUE = 10_000
+
+
+# A DROP publisher waits this long on a full transmit queue before dropping (Zenoh's default
+# is 1 ms, which loses samples in ordinary bursts such as a replay); it still never blocks the
+# event loop for longer than this.
+DROP_WAIT_US = 50_000
 
 
 def make_zenoh_config(
@@ -31,6 +43,9 @@ def make_zenoh_config(
     cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
     cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(multicast))
+    cfg.insert_json5(
+        "transport/link/tx/queue/congestion_control/drop/wait_before_drop", json.dumps(DROP_WAIT_US)
+    )
     return cfg
 
 
@@ -43,14 +58,41 @@ def open_session(
     return zenoh.open(make_zenoh_config(mode, listen, connect, multicast))
 
 
-def session_for_client(config: Any) -> zenoh.Session:
-    """A session for adapters and clients: connects to bus.connect (or bus.listen)."""
-    return open_session(config.bus.mode, (), config.bus_endpoints(), config.bus.multicast_scouting)
+def session_for_client(config: Any, retry_for: float | None = None) -> zenoh.Session:
+    """A session for adapters and clients: a Zenoh client of bus.connect (or bus.listen).
+
+    Leaf processes are clients, not peers: a listening peer (the service) or a router
+    forwards between its clients, while two peers that do not listen never meet. A Zenoh
+    client cannot open without reaching an endpoint, so this retries with a bounded backoff
+    (0.1 s doubling to 2 s) for `retry_for` seconds (None: until it succeeds). Once open, Zenoh
+    itself reconnects when the service or router restarts.
+    """
+    endpoints = config.bus_endpoints()
+    deadline = None if retry_for is None else time.monotonic() + retry_for
+    delay = 0.1
+    started = time.monotonic()
+    while True:
+        try:
+            return open_session("client", (), endpoints, config.bus.multicast_scouting)
+        except zenoh.ZError as exc:
+            if deadline is not None and time.monotonic() + delay > deadline:
+                raise KeoError(f"cannot reach the bus at {endpoints}: {exc}") from None
+            # a service starting beside us is normal for a few seconds; longer is worth a warning
+            level = logging.WARNING if time.monotonic() - started > 5.0 else logging.DEBUG
+            log.log(level, "bus not reachable at %s; retrying in %.1f s", endpoints, delay)
+            time.sleep(delay)
+            delay = min(2 * delay, 2.0)
 
 
 class AsyncSubscription:
     """Samples of several key expressions, in arrival order, as an async iterator of
-    (key, payload bytes)."""
+    (key, payload bytes).
+
+    Zenoh runs each subscriber's callback on its own thread, so two subscribers can deliver
+    out of order relative to each other. To keep the publisher's order across keys (replay
+    relies on it), several keys under one prefix share one wildcard subscriber and are
+    filtered here.
+    """
 
     def __init__(
         self, session: zenoh.Session, keys: Sequence[str], maxlen: int = DEFAULT_QUEUE
@@ -61,12 +103,21 @@ class AsyncSubscription:
         self._scheduled = threading.Event()
         self._closed = False
         self.dropped = 0
+        self._wanted: frozenset[str] | None = None
+        keys = list(keys)
+        prefixes = {k.rsplit("/", 1)[0] for k in keys}
+        if len(keys) > 1 and len(prefixes) == 1 and not any("*" in k for k in keys):
+            self._wanted = frozenset(keys)
+            keys = [f"{prefixes.pop()}/*"]
         self._subs = [session.declare_subscriber(k, self._on_sample) for k in keys]
 
     def _on_sample(self, sample: zenoh.Sample) -> None:  # zenoh thread: no zenoh calls, no blocking
+        key = str(sample.key_expr)
+        if self._wanted is not None and key not in self._wanted:
+            return
         if len(self._buf) == self._buf.maxlen:
             self.dropped += 1
-        self._buf.append((str(sample.key_expr), sample.payload.to_bytes()))
+        self._buf.append((key, sample.payload.to_bytes()))
         if not self._scheduled.is_set():
             self._scheduled.set()
             with contextlib.suppress(RuntimeError):  # the loop closed during shutdown

@@ -275,8 +275,6 @@ def build_parser() -> argparse.ArgumentParser:
     for name, text in (
         ("calibrate-delay", "the delay between the streams"),
         ("analyze", "residual analysis"),
-        ("record", "record raw streams"),
-        ("replay", "replay recorded streams"),
         ("bench", "benchmarks"),
     ):
         p = add(name, cmd_not_yet, text, config=False)

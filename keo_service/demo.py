@@ -16,7 +16,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from keo_service.bus import AsyncSubscription, open_session
+from keo_service.bus import AsyncSubscription, session_for_client
 from keo_service.config import Config, config_to_toml, load_config
 from keo_service.kinematics import cell_from_config
 from keo_service.messages import EstimateMessage, ServiceStatus, decode, topic
@@ -39,7 +39,7 @@ def loopback_config(config: Config) -> Config:
 
 
 async def _collect(config: Config, until: float) -> list[EstimateMessage]:
-    session = open_session("peer", connect=config.bus.listen)
+    session = session_for_client(config, retry_for=20)
     sub = AsyncSubscription(session, [topic(config.cell, "estimate")])
     out: list[EstimateMessage] = []
 
@@ -60,7 +60,7 @@ async def _collect(config: Config, until: float) -> list[EstimateMessage]:
 
 
 def _query_status(config: Config) -> ServiceStatus | None:
-    session = open_session("peer", connect=config.bus.listen)
+    session = session_for_client(config, retry_for=20)
     try:
         for reply in session.get(topic(config.cell, "status"), timeout=2.0):
             if reply.ok:
@@ -91,7 +91,8 @@ def run_demo(args: argparse.Namespace) -> int:
     ]
     status = None
     with process_group(work) as procs:
-        procs.start("service", ["run", "--config", str(cfg_path)])
+        rrd = ["--rrd", str(args.rrd.resolve())] if args.rrd is not None else []
+        procs.start("service", ["run", "--config", str(cfg_path), *rrd])
         procs.start("mock-robot", ["mock", "robot", "--config", str(cfg_path), *play])
         procs.start("mock-tracker", ["mock", "tracker", "--config", str(cfg_path), *play])
         procs.start("adapter-encoder", ["adapter", "encoder", "--config", str(cfg_path)])
@@ -107,9 +108,6 @@ def run_demo(args: argparse.Namespace) -> int:
         codes = procs.close()
     summary = _summary(config, args, estimates, status, codes, t0, work)
     if args.rrd is not None:
-        from keo_service.viz import log_estimates
-
-        log_estimates(args.rrd, estimates)
         summary["rrd"] = str(args.rrd)
     if args.json:
         sys.stdout.write(json.dumps(summary, indent=2) + "\n")

@@ -10,6 +10,7 @@ import signal
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from keo_service.errors import ConfigError
@@ -40,7 +41,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     config = _config(args.config)
     _setup_logging(args.verbose)
-    asyncio.run(run_service(config))
+    asyncio.run(run_service(config, rrd=args.rrd, viewer=args.viewer))
     return 0
 
 
@@ -205,6 +206,12 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 def add_live_commands(sub: Any, add: Callable[..., argparse.ArgumentParser]) -> None:
     p = add("run", cmd_run, "the service (daemon)")
+    p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
+    p.add_argument(
+        "--viewer",
+        metavar="URL",
+        help="stream to a running Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy",
+    )
     p.add_argument("-v", "--verbose", action="store_true")
 
     p = add("adapter", cmd_adapter, "a device adapter (its own process)", config=False)
@@ -235,6 +242,75 @@ def add_live_commands(sub: Any, add: Callable[..., argparse.ArgumentParser]) -> 
     p = add("status", cmd_status, "query a service's status")
     p.add_argument("--timeout", type=float, default=5.0)
 
+    add_recording_commands(sub, add)
+
     p = add("router", cmd_router, "a Zenoh router for setups without zenohd", config=False)
     p.add_argument("--listen", action="append", required=True, metavar="ENDPOINT")
     p.add_argument("--connect", action="append", metavar="ENDPOINT")
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from keo_service.bus import session_for_client
+    from keo_service.kinematics import load_robot
+    from keo_service.recorder import record
+
+    config = _config(args.config)
+    _setup_logging()
+    nq = load_robot(
+        config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
+    ).nq
+
+    async def main() -> dict[str, Any]:
+        stop = asyncio.Event()
+        _install_stop(stop.set)
+        session = session_for_client(config)
+        try:
+            stats = await record(session, config.cell, args.out, nq, stop, args.duration)
+        finally:
+            session.close()
+        return stats.__dict__
+
+    stats = asyncio.run(main())
+    print(json.dumps({"out": str(args.out), **stats}))
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from keo_service.bus import session_for_client
+    from keo_service.kinematics import load_robot
+    from keo_service.recorder import replay
+
+    config = _config(args.config)
+    nq = load_robot(
+        config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
+    ).nq
+
+    async def main() -> dict[str, Any]:
+        stop = asyncio.Event()
+        _install_stop(stop.set)
+        session = session_for_client(config)
+        try:
+            await asyncio.sleep(0.5)  # let the declarations reach the service
+            return await replay(
+                session, config.cell, args.directory, nq, args.as_fast_as_possible, stop
+            )
+        finally:
+            session.close()
+
+    print(json.dumps(asyncio.run(main())))
+    return 0
+
+
+def add_recording_commands(sub: Any, add: Callable[..., argparse.ArgumentParser]) -> None:
+    p = add("record", cmd_record, "raw encoder and tracker streams to the interchange files")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+
+    p = add("replay", cmd_replay, "recorded interchange files back onto the bus", config=False)
+    p.add_argument("--config", required=True)
+    p.add_argument("directory", type=Path)
+    p.add_argument(
+        "--as-fast-as-possible",
+        action="store_true",
+        help="as fast as the service takes them (paced by its status)",
+    )

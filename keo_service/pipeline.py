@@ -64,6 +64,7 @@ class Estimate:
     flags: tuple[str, ...]
     encoder_t: float | None  # stream time at which the joints were evaluated
     channels: tuple[str, ...]
+    joints: np.ndarray | None = None  # the joints the measured error was computed with
 
     @property
     def held(self) -> bool:
@@ -195,6 +196,17 @@ class Estimator:
         self.counters["tracker_samples"] += 1
         return self._enqueue(_TrackerSample(t, p_arr, q_arr))
 
+    @property
+    def has_pending(self) -> bool:
+        """Tracker samples wait for encoder data (or "latest" ticks wait to be run)."""
+        if self.settings.alignment == "interpolate":
+            return bool(self._pending)
+        return (
+            self._next_tick is not None
+            and bool(self._recent_tracker)
+            and self._next_tick <= self._recent_tracker[-1].t
+        )
+
     def flush(self) -> list[Estimate]:
         """End of input: resolve what still waits (their encoder data will never come)."""
         out: list[Estimate] = []
@@ -260,9 +272,11 @@ class Estimator:
             }[coverage]
             return self._held(sample.t, reason, target)
         measured = measured_error(self.cell, self._data, q, sample.p, sample.quat)
-        return self._update(sample.t, measured, target)
+        return self._update(sample.t, measured, target, q)
 
-    def _update(self, t: float, measured: np.ndarray, encoder_t: float) -> Estimate:
+    def _update(
+        self, t: float, measured: np.ndarray, encoder_t: float, joints: np.ndarray
+    ) -> Estimate:
         assert self.observer is not None
         assert self.channels is not None
         if self._last_update_t is None:
@@ -279,7 +293,7 @@ class Estimator:
                 return self._held(t, "observer_rejected", encoder_t)
         self._last_update_t = t
         self.counters["estimates"] += 1
-        est = Estimate(t, measured, self.observer.estimate, (), encoder_t, self.channels)
+        est = Estimate(t, measured, self.observer.estimate, (), encoder_t, self.channels, joints)
         self.last = est
         return est
 
@@ -328,7 +342,7 @@ class Estimator:
         if tau - trk.t > stale:
             return self._held(tau, "tracker_stale", target)
         measured = measured_error(self.cell, self._data, enc[1], trk.p, trk.quat)
-        return self._update(tau, measured, enc[0])
+        return self._update(tau, measured, enc[0], enc[1])
 
 
 def run_offline(

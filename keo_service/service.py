@@ -7,7 +7,8 @@ import asyncio
 import collections
 import logging
 import time
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 import zenoh
@@ -26,8 +27,12 @@ from keo_service.messages import (
 )
 from keo_service.pipeline import Estimate, Estimator, EstimatorSettings
 
+if TYPE_CHECKING:
+    from keo_service.viz import RerunSink
+
 log = logging.getLogger("keo.service")
-STATUS_PERIOD_S = 0.25
+VIZ_PERIOD_S = 0.1  # Rerun gets batches at display rate, never one call per sample
+STATUS_PERIOD_S = 0.1
 STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "stale"
 
 
@@ -47,10 +52,22 @@ class RateMeter:
 
 
 class KeoService:
-    def __init__(self, config: Config, session: zenoh.Session | None = None) -> None:
+    def __init__(
+        self,
+        config: Config,
+        session: zenoh.Session | None = None,
+        rrd: Path | None = None,
+        viewer: str | None = None,
+    ) -> None:
         self.config = config
         self.cell = config.cell
-        self.estimator = Estimator(cell_from_config(config), EstimatorSettings.from_config(config))
+        cell = cell_from_config(config)
+        self.estimator = Estimator(cell, EstimatorSettings.from_config(config))
+        self._viz: RerunSink | None = None
+        if rrd is not None or viewer is not None:
+            from keo_service.viz import RerunSink
+
+            self._viz = RerunSink(cell, rrd=rrd, viewer=viewer)
         self._own_session = session is None
         self._session = session
         self._stop = asyncio.Event()
@@ -61,6 +78,8 @@ class KeoService:
         self._last_estimate_wall = 0.0
         self._seq = 0
         self.published = 0
+        self.received = 0
+        self._last_arrival = time.monotonic()
         self.decode_errors = 0
 
     async def __aenter__(self) -> KeoService:
@@ -77,6 +96,8 @@ class KeoService:
             asyncio.create_task(self._consume(), name="keo.service.consume"),
             asyncio.create_task(self._status_loop(), name="keo.service.status"),
         ]
+        if self._viz is not None:
+            self._tasks.append(asyncio.create_task(self._viz_loop(), name="keo.service.viz"))
         log.info("keo service for cell %s up; listening on %s", self.cell, self.config.bus.listen)
         return self
 
@@ -89,6 +110,8 @@ class KeoService:
         self._token.undeclare()
         self._status_q.undeclare()
         self._estimate_pub.undeclare()
+        if self._viz is not None:
+            self._viz.close()
         if self._own_session and self._session is not None:
             self._session.close()
 
@@ -109,6 +132,8 @@ class KeoService:
                 self.decode_errors += 1
                 self.estimator.messages.append(f"undecodable payload on {key}: {exc}")
                 continue
+            self.received += 1
+            self._last_arrival = now
             if isinstance(msg, JointSample):
                 self._rates["encoder"].tick(now)
                 out = self.estimator.on_encoder(msg.t, msg.q)
@@ -127,6 +152,8 @@ class KeoService:
         self._estimate_pub.put(encode(msg))
         self.published += 1
         self._rates["estimate"].tick(now)
+        if self._viz is not None:
+            self._viz.add(estimate)
         if not estimate.held:
             self._last_estimate_wall = now
 
@@ -156,6 +183,7 @@ class KeoService:
         now = time.monotonic()
         counters = dict(self.estimator.counters)
         counters["published"] = self.published
+        counters["received"] = self.received
         counters["decode_errors"] = self.decode_errors
         counters["queue_dropped"] = self._sub.dropped
         last = self.estimator.last
@@ -175,24 +203,42 @@ class KeoService:
             messages=list(self.estimator.messages)[-10:],
         )
 
+    def _resolve_if_quiet(self) -> None:
+        """Both streams quiet for stale_after_s: what still waits for encoder data will not
+        get it; publish those steps as held (flagged) instead of leaving them unanswered."""
+        now = time.monotonic()
+        quiet = now - self._last_arrival > self.config.timing.stale_after_s
+        if quiet and self.estimator.has_pending:
+            for estimate in self.estimator.flush():
+                self._publish(estimate, now)
+
     def _refresh_status(self) -> None:
         self._status_bytes = encode(self.status())
 
     async def _status_loop(self) -> None:
         while not self._stop.is_set():
+            self._resolve_if_quiet()
             self._refresh_status()
             await asyncio.sleep(STATUS_PERIOD_S)
+
+    async def _viz_loop(self) -> None:
+        assert self._viz is not None
+        while not self._stop.is_set():
+            await asyncio.sleep(VIZ_PERIOD_S)
+            self._viz.flush(msgspec.to_builtins(self.status()))
 
     def _on_status_query(self, query: zenoh.Query) -> None:  # zenoh thread: reply with a snapshot
         query.reply(query.key_expr, self._status_bytes)
 
 
-async def run_service(config: Config, ready: Any = None) -> None:
+async def run_service(
+    config: Config, rrd: Path | None = None, viewer: str | None = None, ready: Any = None
+) -> None:
     """Run until SIGINT/SIGTERM."""
     import signal
 
     loop = asyncio.get_running_loop()
-    async with KeoService(config) as service:
+    async with KeoService(config, rrd=rrd, viewer=viewer) as service:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, service.stop)
         if ready is not None:

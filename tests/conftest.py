@@ -2,12 +2,15 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
+from keo_service.bus import session_for_client
 from keo_service.config import Config, load_config
 from keo_service.kinematics import Cell, cell_from_config
+from keo_service.messages import topic
 
 REPO = Path(__file__).resolve().parent.parent
 CONFIGS = REPO / "configs"
@@ -39,3 +42,16 @@ def keo(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
         timeout=timeout,
         check=False,
     )
+
+
+def wait_for_status(config, timeout: float = 20.0) -> None:
+    session = session_for_client(config, retry_for=timeout)
+    try:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if any(r.ok for r in session.get(topic(config.cell, "status"), timeout=0.5)):
+                return
+            time.sleep(0.2)
+    finally:
+        session.close()
+    raise AssertionError("the service did not come up")
