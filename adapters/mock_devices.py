@@ -123,9 +123,12 @@ class MockTracker(_MockServer):
         t0: float | None = None,
         loop_play: bool = False,
         length_unit: str = "mm",
+        wall_clock: bool = False,
     ) -> None:
         super().__init__(host, port, t0, loop_play)
         self.tracker = tracker
+        # device time = wall clock at sending (for latency measurements), else time since connect
+        self.wall_clock = wall_clock
         self.length_unit = length_unit
         self.scale = 1e3 if length_unit == "mm" else 1.0
 
@@ -138,6 +141,7 @@ class MockTracker(_MockServer):
             seq[0] += 1
             p = (self.tracker.p[i] * self.scale).tolist()
             q = None if self.tracker.quat is None else self.tracker.quat[i].tolist()
-            return format_pose(seq[0], round(time.monotonic() - device_t0, 6), p, q)
+            device_t = time.time() if self.wall_clock else round(time.monotonic() - device_t0, 6)
+            return format_pose(seq[0], device_t, p, q)
 
         await self._play_rows(writer, self.tracker.t, frame)

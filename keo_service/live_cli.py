@@ -98,6 +98,7 @@ def cmd_mock(args: argparse.Namespace) -> int:
             args.port or config.tracker.port,
             args.t0,
             args.loop,
+            wall_clock=args.wall_clock_device_time,
         )
 
     async def main() -> None:
@@ -231,6 +232,11 @@ def add_live_commands(sub: Any, add: Callable[..., argparse.ArgumentParser]) -> 
     p.add_argument("--port", type=int)
     p.add_argument("--set", action="append", metavar="KEY=VALUE")
     p.add_argument("--position-only", action="store_true", help="a single-reflector tracker")
+    p.add_argument(
+        "--wall-clock-device-time",
+        action="store_true",
+        help="tracker: send the wall clock as device time (latency benchmarks)",
+    )
     p.add_argument("-v", "--verbose", action="store_true")
 
     p = add("echo", cmd_echo, "print what arrives on a key expression", config=False)

@@ -63,6 +63,8 @@ class EstimateMessage(_Message, tag=_tag("estimate")):
     flags: list[str]
     delay_s: float
     seq: int
+    # device time of the tracker sample behind this estimate, when the tracker gives one
+    tracker_device_t: float | None = None
 
 
 class ServiceStatus(_Message, tag=_tag("status")):

@@ -65,7 +65,7 @@ class KinematicErrorObserver:
         if (
             not (dt > 0.0 and math.isfinite(dt))
             or measured.shape != self._gain.shape
-            or not np.all(np.isfinite(measured))
+            or not np.isfinite(measured).all()
         ):
             self.rejected += 1
             return False

@@ -8,6 +8,7 @@ input gives the same output however it is delivered. No I/O here.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import Counter, deque
 from collections.abc import Sequence
@@ -65,6 +66,7 @@ class Estimate:
     encoder_t: float | None  # stream time at which the joints were evaluated
     channels: tuple[str, ...]
     joints: np.ndarray | None = None  # the joints the measured error was computed with
+    source: object = None  # passed through from on_tracker(tag=...), e.g. the device time
 
     @property
     def held(self) -> bool:
@@ -76,6 +78,7 @@ class _TrackerSample:
     t: float
     p: np.ndarray | None  # None: a gap reported by the tracker
     quat: np.ndarray | None
+    tag: object = None
 
 
 class Estimator:
@@ -124,7 +127,7 @@ class Estimator:
                 "encoder_wrong_length",
                 f"encoder sample at t={t!r}: {q_arr.size} joints, expected {self._nq}",
             )
-        if not (math.isfinite(t) and np.all(np.isfinite(q_arr))):
+        if not (math.isfinite(t) and np.isfinite(q_arr).all()):
             return self._reject(
                 "encoder_non_finite", f"encoder sample at t={t!r}: non-finite time or joint value"
             )
@@ -146,6 +149,7 @@ class Estimator:
         p: Sequence[float] | np.ndarray | None,
         quat: Sequence[float] | np.ndarray | None = None,
         ok: bool = True,
+        tag: object = None,
     ) -> list[Estimate]:
         """A tracker sample; `ok=False` (or p None) is a gap the tracker reported."""
         if not math.isfinite(t):
@@ -161,7 +165,7 @@ class Estimator:
         if not ok or p is None:
             self._last_tracker_t = t
             self.counters["tracker_gaps"] += 1
-            return self._enqueue(_TrackerSample(t, None, None))
+            return self._enqueue(_TrackerSample(t, None, None, tag))
         p_arr = np.asarray(p, dtype=float)
         q_arr = None if quat is None else np.asarray(quat, dtype=float)
         if p_arr.shape != (3,) or (q_arr is not None and q_arr.shape != (4,)):
@@ -169,7 +173,7 @@ class Estimator:
                 "tracker_wrong_length",
                 f"tracker sample at t={t!r}: expected 3 position and 4 quaternion values",
             )
-        if not np.all(np.isfinite(p_arr)) or (q_arr is not None and not np.all(np.isfinite(q_arr))):
+        if not np.isfinite(p_arr).all() or (q_arr is not None and not np.isfinite(q_arr).all()):
             return self._reject(
                 "tracker_non_finite", f"tracker sample at t={t!r}: non-finite value"
             )
@@ -194,7 +198,7 @@ class Estimator:
             )
         self._last_tracker_t = t
         self.counters["tracker_samples"] += 1
-        return self._enqueue(_TrackerSample(t, p_arr, q_arr))
+        return self._enqueue(_TrackerSample(t, p_arr, q_arr, tag))
 
     @property
     def has_pending(self) -> bool:
@@ -257,6 +261,13 @@ class Estimator:
         return out
 
     def _resolve(self, sample: _TrackerSample, final: bool) -> Estimate:
+        est = self._resolve_untagged(sample)
+        if sample.tag is None:
+            return est
+        self.last = dataclasses.replace(est, source=sample.tag)
+        return self.last
+
+    def _resolve_untagged(self, sample: _TrackerSample) -> Estimate:
         if sample.p is None:
             return self._held(sample.t, "tracker_gap", None)
         target = self._delay.encoder_time(sample.t)
@@ -342,7 +353,10 @@ class Estimator:
         if tau - trk.t > stale:
             return self._held(tau, "tracker_stale", target)
         measured = measured_error(self.cell, self._data, enc[1], trk.p, trk.quat)
-        return self._update(tau, measured, enc[0], enc[1])
+        est = self._update(tau, measured, enc[0], enc[1])
+        if trk.tag is not None and not est.held:
+            self.last = est = dataclasses.replace(est, source=trk.tag)
+        return est
 
 
 def run_offline(

@@ -139,7 +139,9 @@ class KeoService:
                 out = self.estimator.on_encoder(msg.t, msg.q)
             elif isinstance(msg, TrackerSample):
                 self._rates["tracker"].tick(now)
-                out = self.estimator.on_tracker(msg.t, msg.p, msg.q, ok=msg.status == "ok")
+                out = self.estimator.on_tracker(
+                    msg.t, msg.p, msg.q, ok=msg.status == "ok", tag=msg.device_t
+                )
             else:
                 self.estimator.counters["unexpected_message"] += 1
                 continue
@@ -167,6 +169,7 @@ class KeoService:
             flags=list(estimate.flags),
             delay_s=self.estimator.delay.at(estimate.t),
             seq=self._seq,
+            tracker_device_t=estimate.source if isinstance(estimate.source, float) else None,
         )
 
     # ---- status -----------------------------------------------------------------------------

@@ -2,7 +2,7 @@
 estimates and sends them at display rate so logging never sits in the estimator's path.
 
 Entities (values in mm and mrad, on the `stream_time` timeline of the samples):
-    keo/error/<px|py|pz|rx|ry|rz>/measured, .../estimate    time series
+    keo/error/<px|py|pz|rx|ry|rz>     time series of [measured, estimate]
     world/robot/links (line strip of joint origins), world/tool, world/sensor, world/tracker
     keo/status/delay_ms, keo/status/rate_hz/<stream>, keo/status/counters/<name>
 """
@@ -120,28 +120,19 @@ class RerunSink:
                 entity = error_entity(c)
                 if entity not in self._static_done:
                     self._rec.log(
-                        f"{entity}/measured",
-                        rr.SeriesLines(names=[f"{c} measured"], colors=[COLORS["measured"]]),
-                        static=True,
-                    )
-                    self._rec.log(
-                        f"{entity}/estimate",
+                        entity,
                         rr.SeriesLines(
-                            names=[f"{c} estimate"], colors=[COLORS["estimate"]], widths=[2.0]
+                            names=[f"{c} measured", f"{c} estimate"],
+                            colors=[COLORS["measured"], COLORS["estimate"]],
+                            widths=[1.0, 2.0],
                         ),
                         static=True,
                     )
                     self._static_done.add(entity)
                 k = display_scale(c)
+                both = np.column_stack([meas[:, i], est[:, i]]) * k
                 self._rec.send_columns(
-                    f"{entity}/measured",
-                    indexes=times,
-                    columns=rr.Scalars.columns(scalars=meas[:, i] * k),
-                )
-                self._rec.send_columns(
-                    f"{entity}/estimate",
-                    indexes=times,
-                    columns=rr.Scalars.columns(scalars=est[:, i] * k),
+                    entity, indexes=times, columns=rr.Scalars.columns(scalars=both)
                 )
             self.rows_logged += len(self._t)
             last_t = self._t[-1]

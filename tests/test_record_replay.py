@@ -109,8 +109,10 @@ def test_replay_through_the_service_equals_estimate_on_files(
 
     # the Rerun recording holds exactly what was published, in mm / mrad
     for i, channel in enumerate(["px", "py", "pz", "rx", "ry", "rz"]):
-        tbl = read_entity(rrd, f"/keo/error/{channel}/estimate")
-        values = np.array(tbl.column("Scalars:scalars").to_pylist())[:, 0]
+        tbl = read_entity(rrd, f"/keo/error/{channel}")
+        both = np.array(tbl.column("Scalars:scalars").to_pylist())
+        assert np.allclose(both[:, 0], meas[:, i] * 1e3, rtol=0, atol=1e-9, equal_nan=True)
+        values = both[:, 1]
         assert values.size == len(live)
         assert np.allclose(values, est[:, i] * 1e3, rtol=0, atol=1e-9)
         stamps = tbl.column("stream_time").cast(pa.int64()).to_numpy() * 1e-9
@@ -122,7 +124,7 @@ def test_replay_through_the_service_equals_estimate_on_files(
         "/world/robot/links",
         "/keo/status/delay_ms",
         "/keo/status/rates_hz/tracker",
-        "/keo/error/px/measured",
+        "/keo/error/pz",
     ):
         assert needed in entities
     assert len(RrdReader(str(rrd)).blueprints()) == 1
