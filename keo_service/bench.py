@@ -52,7 +52,7 @@ def machine() -> dict[str, Any]:
 # ---- 1. hot path -------------------------------------------------------------------------------
 
 
-def _kHz_run(config: Config, seconds: float) -> SimulatedRun:
+def _khz_run(config: Config, seconds: float) -> SimulatedRun:
     scen = make_scenario(
         "path",
         {
@@ -67,7 +67,7 @@ def _kHz_run(config: Config, seconds: float) -> SimulatedRun:
 
 
 def hot_path(config: Config, seconds: float, with_rerun: bool) -> dict[str, float]:
-    run = _kHz_run(config, seconds)
+    run = _khz_run(config, seconds)
     cell = cell_from_config(config)
     est = Estimator(cell, EstimatorSettings.from_config(config))
     sink = None
