@@ -59,6 +59,8 @@ class ObserverConfig(_Section):
 class TimingConfig(_Section):
     delay_s: Annotated[float, msgspec.Meta(ge=-1.0, le=1.0)] = 0.0
     drift_ppm: Annotated[float, msgspec.Meta(ge=-10000.0, le=10000.0)] = 0.0
+    # stream time (s) at which delay_s holds when drift_ppm is not zero
+    drift_ref_s: float = 0.0
     alignment: Literal["interpolate", "latest"] = "interpolate"
     sample_rate_hz: Annotated[float, msgspec.Meta(gt=0.0, le=10000.0)] = 40.0
     track_delay: bool = False

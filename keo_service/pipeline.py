@@ -46,7 +46,9 @@ class EstimatorSettings:
         return cls(
             gains=tuple(obs.gain),
             max_dt_s=obs.max_dt_s,
-            delay=DelayModel(offset_s=timing.delay_s, drift=timing.drift_ppm * 1e-6),
+            delay=DelayModel(
+                offset_s=timing.delay_s, drift=timing.drift_ppm * 1e-6, t_ref=timing.drift_ref_s
+            ),
             alignment=timing.alignment,
             sample_rate_hz=timing.sample_rate_hz,
             buffer_s=timing.buffer_s,

@@ -53,6 +53,7 @@ class Scenario:
     delay_s: float = 0.028  # tracker stamps lag the encoder's by this much on average
     delay_jitter_s: float = 0.003  # std of the delay's random part
     drift_ppm: float = 0.0  # tracker clock runs fast by this much relative to the encoder's
+    delay_change_s: float = 0.0  # the delay grows by this much half-way (a changed path)
     position_noise_m: float = 20e-6
     rotation_noise_rad: float = 50e-6
     drop_probability: float = 0.005
@@ -274,6 +275,8 @@ def simulate(cell: Cell, scenario: Scenario, seed: int = 0) -> SimulatedRun:
         + scenario.delay_s
         + rng.normal(0.0, scenario.delay_jitter_s, tau.size)
     )
+    if scenario.delay_change_s:
+        stamps = stamps + np.where(tau > duration / 2, scenario.delay_change_s, 0.0)
     keep = np.argsort(stamps, kind="stable")
     tau, stamps = tau[keep], _monotonic(stamps[keep])
     q_phys = trajectory(tau)

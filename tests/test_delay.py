@@ -1,0 +1,116 @@
+"""Delay calibration from arbitrary motion, checked against the delay the simulator injected."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from keo_service.delay import DelayNotIdentifiableError, fit_delay, reference_method
+from keo_service.interchange import TrackerData
+from keo_service.simulate import make_scenario, simulate, write_run
+from tests.conftest import DEMO, keo
+
+
+def fit_run(cell, run, **kw):
+    return fit_delay(cell, run.encoder.t, run.encoder.q, run.tracker.t, run.tracker.p,
+                     run.tracker.quat, **kw)
+
+
+@pytest.mark.parametrize(("scenario", "sets"), [
+    ("paper-vertical", {}),
+    ("workspace", {}),
+    ("path", {"delay_s": "0.011"}),
+    ("path", {"delay_jitter_s": "0.006", "delay_s": "0.045"}),
+    ("path", {"position_only": "true"}),
+    ("workspace", {"position_only": "true", "delay_s": "0.020"}),
+])
+def test_delay_recovered_within_its_uncertainty(demo_cell, scenario, sets):
+    run = simulate(demo_cell, make_scenario(scenario, sets), seed=7)
+    fit = fit_run(demo_cell, run)
+    true = run.scenario.delay_s
+    assert abs(fit.delay_s - true) < 1e-3
+    assert abs(fit.delay_s - true) < 4 * fit.delay_se_s + 2e-5
+    assert fit.explained
+
+
+@pytest.mark.parametrize("ppm", [10.0, 100.0, 500.0])
+def test_clock_drift_recovered(demo_cell, ppm):
+    run = simulate(demo_cell, make_scenario("path", {"drift_ppm": repr(ppm)}), seed=8)
+    fit = fit_run(demo_cell, run)
+    assert abs(fit.drift * 1e6 - ppm) < max(4 * fit.drift_se * 1e6, 3.0)
+    expected_at_ref = run.scenario.delay_s + ppm * 1e-6 * (fit.t_ref - run.scenario.delay_s)
+    assert abs(fit.delay_s - expected_at_ref) < 1e-3
+    if ppm >= 100:
+        assert fit.drift_significant
+
+
+def test_static_data_is_refused(demo_cell, tmp_path):
+    run = simulate(demo_cell, make_scenario("paper-step"), seed=1)
+    with pytest.raises(DelayNotIdentifiableError, match="hardly moves"):
+        fit_run(demo_cell, run)
+    write_run(run, tmp_path)
+    res = keo("calibrate-delay", "--config", str(DEMO), "--encoder", str(tmp_path / "encoder.csv"),
+              "--tracker", str(tmp_path / "tracker.csv"))
+    assert res.returncode == 1
+    assert "refused" in res.stderr and "hardly moves" in res.stderr
+    assert res.stdout == ""
+
+
+def test_one_constant_velocity_direction_is_refused(demo_cell):
+    """The cruise of one stroke alone: v d is a constant, indistinguishable from the error."""
+    run = simulate(demo_cell, make_scenario("paper-vertical"), seed=2)
+    keep_e = (run.encoder.t > 5.0) & (run.encoder.t < 13.0)
+    keep_t = (run.tracker.t > 5.3) & (run.tracker.t < 12.7)
+    with pytest.raises(DelayNotIdentifiableError, match="cannot separate"):
+        fit_delay(demo_cell, run.encoder.t[keep_e], run.encoder.q[keep_e], run.tracker.t[keep_t],
+                  run.tracker.p[keep_t], run.tracker.quat[keep_t])
+
+
+def test_a_changing_delay_is_reported_not_averaged(demo_cell, tmp_path):
+    run = simulate(demo_cell, make_scenario("path", {"delay_change_s": "0.015"}), seed=3)
+    fit = fit_run(demo_cell, run, with_drift=False)
+    assert not fit.explained
+    assert any("no constant delay" in n for n in fit.notes)
+    write_run(run, tmp_path)
+    res = keo("calibrate-delay", "--config", str(DEMO), "--encoder", str(tmp_path / "encoder.csv"),
+              "--tracker", str(tmp_path / "tracker.csv"), "--json")
+    assert res.returncode == 1
+    doc = json.loads(res.stdout)
+    assert doc["verdict"] == "unexplained"
+    assert np.ptp(doc["window_delays_s"]) > 0.005
+
+
+def test_cli_reports_delay_and_the_reference_method(demo_cell, tmp_path):
+    run = simulate(demo_cell, make_scenario("paper-vertical"), seed=5)
+    write_run(run, tmp_path)
+    res = keo("calibrate-delay", "--config", str(DEMO), "--encoder", str(tmp_path / "encoder.csv"),
+              "--tracker", str(tmp_path / "tracker.csv"), "--json")
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert doc["delay_s"] == pytest.approx(0.028, abs=1e-3)
+    assert doc["verdict"] == "ok"
+    refs = doc["reference_method"]
+    assert len(refs) == 2  # the two 1 m strokes
+    for seg in refs:
+        assert seg["speed"] == pytest.approx(0.1, rel=0.02)
+        assert seg["delay_s"] == pytest.approx(0.028, abs=0.004)
+
+
+def test_reference_method_needs_constant_velocity(demo_cell):
+    run = simulate(demo_cell, make_scenario("path"), seed=5)
+    assert reference_method(demo_cell, run.encoder.t, run.encoder.q, run.tracker.t,
+                            run.tracker.p) == []
+
+
+def test_uneven_tracker_arrival_still_gives_the_delay(demo_cell):
+    """Tracker samples delivered in bursts (stamped on receipt, several at once)."""
+    run = simulate(demo_cell, make_scenario("workspace", {"delay_jitter_s": "0"}), seed=6)
+    burst = 0.03  # a burst every 30 ms: each sample waits up to 30 ms for its burst
+    stamps = np.ceil(run.tracker.t / burst) * burst
+    stamps = stamps + np.arange(stamps.size) * 1e-7  # receipt order within a burst
+    trk = TrackerData(t=stamps, p=run.tracker.p, quat=run.tracker.quat)
+    fit = fit_delay(demo_cell, run.encoder.t, run.encoder.q, trk.t, trk.p, trk.quat)
+    expected = run.scenario.delay_s + burst / 2  # on average a sample waits half a burst
+    assert abs(fit.delay_s - expected) < 1e-3
