@@ -14,18 +14,22 @@ from tests.conftest import DEMO, keo
 
 
 def fit_run(cell, run, **kw):
-    return fit_delay(cell, run.encoder.t, run.encoder.q, run.tracker.t, run.tracker.p,
-                     run.tracker.quat, **kw)
+    return fit_delay(
+        cell, run.encoder.t, run.encoder.q, run.tracker.t, run.tracker.p, run.tracker.quat, **kw
+    )
 
 
-@pytest.mark.parametrize(("scenario", "sets"), [
-    ("paper-vertical", {}),
-    ("workspace", {}),
-    ("path", {"delay_s": "0.011"}),
-    ("path", {"delay_jitter_s": "0.006", "delay_s": "0.045"}),
-    ("path", {"position_only": "true"}),
-    ("workspace", {"position_only": "true", "delay_s": "0.020"}),
-])
+@pytest.mark.parametrize(
+    ("scenario", "sets"),
+    [
+        ("paper-vertical", {}),
+        ("workspace", {}),
+        ("path", {"delay_s": "0.011"}),
+        ("path", {"delay_jitter_s": "0.006", "delay_s": "0.045"}),
+        ("path", {"position_only": "true"}),
+        ("workspace", {"position_only": "true", "delay_s": "0.020"}),
+    ],
+)
 def test_delay_recovered_within_its_uncertainty(demo_cell, scenario, sets):
     run = simulate(demo_cell, make_scenario(scenario, sets), seed=7)
     fit = fit_run(demo_cell, run)
@@ -51,10 +55,18 @@ def test_static_data_is_refused(demo_cell, tmp_path):
     with pytest.raises(DelayNotIdentifiableError, match="hardly moves"):
         fit_run(demo_cell, run)
     write_run(run, tmp_path)
-    res = keo("calibrate-delay", "--config", str(DEMO), "--encoder", str(tmp_path / "encoder.csv"),
-              "--tracker", str(tmp_path / "tracker.csv"))
+    res = keo(
+        "calibrate-delay",
+        "--config",
+        str(DEMO),
+        "--encoder",
+        str(tmp_path / "encoder.csv"),
+        "--tracker",
+        str(tmp_path / "tracker.csv"),
+    )
     assert res.returncode == 1
-    assert "refused" in res.stderr and "hardly moves" in res.stderr
+    assert "refused" in res.stderr
+    assert "hardly moves" in res.stderr
     assert res.stdout == ""
 
 
@@ -64,8 +76,14 @@ def test_one_constant_velocity_direction_is_refused(demo_cell):
     keep_e = (run.encoder.t > 5.0) & (run.encoder.t < 13.0)
     keep_t = (run.tracker.t > 5.3) & (run.tracker.t < 12.7)
     with pytest.raises(DelayNotIdentifiableError, match="cannot separate"):
-        fit_delay(demo_cell, run.encoder.t[keep_e], run.encoder.q[keep_e], run.tracker.t[keep_t],
-                  run.tracker.p[keep_t], run.tracker.quat[keep_t])
+        fit_delay(
+            demo_cell,
+            run.encoder.t[keep_e],
+            run.encoder.q[keep_e],
+            run.tracker.t[keep_t],
+            run.tracker.p[keep_t],
+            run.tracker.quat[keep_t],
+        )
 
 
 def test_a_changing_delay_is_reported_not_averaged(demo_cell, tmp_path):
@@ -74,8 +92,16 @@ def test_a_changing_delay_is_reported_not_averaged(demo_cell, tmp_path):
     assert not fit.explained
     assert any("no constant delay" in n for n in fit.notes)
     write_run(run, tmp_path)
-    res = keo("calibrate-delay", "--config", str(DEMO), "--encoder", str(tmp_path / "encoder.csv"),
-              "--tracker", str(tmp_path / "tracker.csv"), "--json")
+    res = keo(
+        "calibrate-delay",
+        "--config",
+        str(DEMO),
+        "--encoder",
+        str(tmp_path / "encoder.csv"),
+        "--tracker",
+        str(tmp_path / "tracker.csv"),
+        "--json",
+    )
     assert res.returncode == 1
     doc = json.loads(res.stdout)
     assert doc["verdict"] == "unexplained"
@@ -85,8 +111,16 @@ def test_a_changing_delay_is_reported_not_averaged(demo_cell, tmp_path):
 def test_cli_reports_delay_and_the_reference_method(demo_cell, tmp_path):
     run = simulate(demo_cell, make_scenario("paper-vertical"), seed=5)
     write_run(run, tmp_path)
-    res = keo("calibrate-delay", "--config", str(DEMO), "--encoder", str(tmp_path / "encoder.csv"),
-              "--tracker", str(tmp_path / "tracker.csv"), "--json")
+    res = keo(
+        "calibrate-delay",
+        "--config",
+        str(DEMO),
+        "--encoder",
+        str(tmp_path / "encoder.csv"),
+        "--tracker",
+        str(tmp_path / "tracker.csv"),
+        "--json",
+    )
     assert res.returncode == 0, res.stderr
     doc = json.loads(res.stdout)
     assert doc["delay_s"] == pytest.approx(0.028, abs=1e-3)
@@ -100,8 +134,10 @@ def test_cli_reports_delay_and_the_reference_method(demo_cell, tmp_path):
 
 def test_reference_method_needs_constant_velocity(demo_cell):
     run = simulate(demo_cell, make_scenario("path"), seed=5)
-    assert reference_method(demo_cell, run.encoder.t, run.encoder.q, run.tracker.t,
-                            run.tracker.p) == []
+    assert (
+        reference_method(demo_cell, run.encoder.t, run.encoder.q, run.tracker.t, run.tracker.p)
+        == []
+    )
 
 
 def test_uneven_tracker_arrival_still_gives_the_delay(demo_cell):
