@@ -16,8 +16,10 @@ standard error is large and we refuse to give a number.
 
 from __future__ import annotations
 
+import collections
 import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -91,8 +93,13 @@ def _measured_base_errors(
     return np.hstack([pos, rot])
 
 
-def _features(q: np.ndarray) -> np.ndarray:
-    return np.hstack([np.ones((q.shape[0], 1)), np.sin(q), np.cos(q)])
+def _features(q: np.ndarray, p: np.ndarray, kind: str) -> np.ndarray:
+    """Smooth models of the configuration-dependent error: of the joints (whole recordings)
+    or, fewer parameters for short windows, linear in the tool position."""
+    ones = np.ones((q.shape[0], 1))
+    if kind == "position":
+        return np.hstack([ones, p - p.mean(axis=0)])
+    return np.hstack([ones, np.sin(q), np.cos(q)])
 
 
 def _effective_factor(residual: np.ndarray) -> float:
@@ -116,6 +123,7 @@ def fit_delay(
     initial: float = 0.0,
     with_drift: bool = True,
     max_iterations: int = 6,
+    features: str = "joints",
 ) -> DelayFit:
     """Least-squares delay (and drift) from recorded streams in the tracker frame."""
     keep = np.all(np.isfinite(trk_p), axis=1) & np.isfinite(trk_t)
@@ -168,7 +176,7 @@ def fit_delay(
         groups = [slice(0, 3)] + ([slice(3, 6)] if nch == 6 else [])
         for g in groups:
             scale[g] = np.median(scale[g])
-        F = _features(q)
+        F = _features(q, p_bt, features)
         rows_y, rows_x, rows_f = [], [], []
         for c in range(nch):
             rows_y.append(err[:, c] / scale[c])
@@ -358,3 +366,101 @@ def reference_method(
                 )
         i = j + 1
     return segments
+
+
+class OnlineDelayTracker:
+    """Keeps a bounded window of raw samples and fits the delay on it when asked.
+
+    The service decides when (every `period_s`, off the event loop); the estimator moves its
+    delay toward the result slowly, so the estimate sees no step. At rest, or when the fit is
+    not trustworthy, the delay is left alone.
+    """
+
+    def __init__(
+        self, cell: Cell, window_s: float = 20.0, period_s: float = 10.0, max_samples: int = 40_000
+    ) -> None:
+        self.cell = cell
+        self.window_s = window_s
+        self.period_s = period_s
+        self._enc: collections.deque[tuple[float, np.ndarray]] = collections.deque(
+            maxlen=max_samples
+        )
+        self._trk: collections.deque[tuple[float, np.ndarray, np.ndarray | None]] = (
+            collections.deque(maxlen=max_samples)
+        )
+        self._last_fit_t = -math.inf
+        self.last_result: str = "waiting for data"
+
+    def add_encoder(self, t: float, q: Sequence[float]) -> None:
+        q_arr = np.asarray(q, dtype=float)
+        newer = not self._enc or t > self._enc[-1][0]
+        if math.isfinite(t) and np.isfinite(q_arr).all() and newer:
+            self._enc.append((t, q_arr))
+
+    def add_tracker(self, t: float, p: Sequence[float], quat: Sequence[float] | None) -> None:
+        p_arr = np.asarray(p, dtype=float)
+        q_arr = None if quat is None else np.asarray(quat, dtype=float)
+        finite = np.isfinite(p_arr).all() and (q_arr is None or np.isfinite(q_arr).all())
+        if math.isfinite(t) and finite and (not self._trk or t > self._trk[-1][0]):
+            self._trk.append((t, p_arr, q_arr))
+
+    def due(self) -> bool:
+        if not self._trk:
+            return False
+        newest = self._trk[-1][0]
+        return (
+            newest - self._last_fit_t >= self.period_s
+            and newest - self._trk[0][0] >= 0.5 * self.window_s
+        )
+
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """Copies of the window (call on the loop, then fit anywhere)."""
+        newest = self._trk[-1][0]
+        self._last_fit_t = newest
+        trk = [s for s in self._trk if s[0] >= newest - self.window_s]
+        enc = [s for s in self._enc if s[0] >= newest - self.window_s - 1.0]
+        enc_t = np.array([s[0] for s in enc])
+        enc_q = np.array([s[1] for s in enc])
+        trk_t = np.array([s[0] for s in trk])
+        trk_p = np.array([s[1] for s in trk])
+        quats = [s[2] for s in trk]
+        trk_q = None if any(q is None for q in quats) else np.array(quats)
+        return enc_t, enc_q, trk_t, trk_p, trk_q
+
+    def fit(
+        self,
+        window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
+        current: float,
+    ) -> float | None:
+        enc_t, enc_q, trk_t, trk_p, trk_q = window
+        if enc_t.size < 20 or trk_t.size < 50:
+            self.last_result = "not enough data"
+            return None
+        try:
+            fit = fit_delay(
+                self.cell,
+                enc_t,
+                enc_q,
+                trk_t,
+                trk_p,
+                trk_q,
+                initial=current,
+                with_drift=False,
+                features="position",
+            )
+        except DelayNotIdentifiableError as exc:
+            self.last_result = f"kept: {exc}"
+            return None
+        if fit.delay_se_s > 0.5e-3:
+            self.last_result = (
+                f"kept: fit not precise enough ({fit.delay_s * 1e3:.2f} +/- "
+                f"{fit.delay_se_s * 1e3:.2f} ms)"
+            )
+            return None
+        # over a short window the position-linear error model can leave some structure; the
+        # slow slew toward the result keeps a single odd window from moving the delay much
+        caveat = "" if fit.explained else " (windows disagree somewhat)"
+        self.last_result = (
+            f"updated to {fit.delay_s * 1e3:.3f} +/- {fit.delay_se_s * 1e3:.3f} ms{caveat}"
+        )
+        return fit.delay_s

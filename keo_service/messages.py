@@ -80,6 +80,7 @@ class ServiceStatus(_Message, tag=_tag("status")):
     counters: dict[str, int]
     last_estimate: EstimateMessage | None
     messages: list[str]
+    delay_tracking: str | None = None  # what online delay tracking last did (when enabled)
 
 
 Message = JointSample | RobotStatus | TrackerSample | EstimateMessage | ServiceStatus

@@ -21,6 +21,7 @@ from keo_service.observer import KinematicErrorObserver
 from keo_service.timing import Coverage, DelayModel, EncoderBuffer
 
 UNIT_QUATERNION_TOLERANCE = 1e-4
+DELAY_SLEW = 0.001  # a new delay is approached at this many s per s of stream time
 MAX_PENDING = 2048
 MAX_MESSAGES = 32
 
@@ -100,6 +101,7 @@ class Estimator:
         self.observer: KinematicErrorObserver | None = None
         self.channels: tuple[str, ...] | None = None
         self._delay = settings.delay
+        self._delay_target: float | None = None
         self._last_tracker_t = -math.inf
         self._last_update_t: float | None = None
         self._pending: deque[_TrackerSample] = deque()
@@ -116,6 +118,21 @@ class Estimator:
 
     def set_delay(self, delay: DelayModel) -> None:
         self._delay = delay
+        self._delay_target = None
+
+    def set_delay_target(self, offset_s: float) -> None:
+        """Move the delay toward `offset_s` gradually (DELAY_SLEW), so estimates see no step."""
+        self._delay_target = offset_s
+
+    def _slew_delay(self, t: float) -> None:
+        if self._delay_target is None or not math.isfinite(self._last_tracker_t):
+            return
+        dt = min(max(t - self._last_tracker_t, 0.0), 1.0)
+        gap = self._delay_target - self._delay.offset_s
+        step = max(-DELAY_SLEW * dt, min(DELAY_SLEW * dt, gap))
+        self._delay = dataclasses.replace(self._delay, offset_s=self._delay.offset_s + step)
+        if step == gap:
+            self._delay_target = None
 
     def set_gains(self, gains: Sequence[float]) -> None:
         self.settings = EstimatorSettings(**{**self.settings.__dict__, "gains": tuple(gains)})
@@ -164,6 +181,7 @@ class Estimator:
                 f"tracker sample at t={t!r}: older than "
                 f"the previous one ({self._last_tracker_t!r})",
             )
+        self._slew_delay(t)
         if not ok or p is None:
             self._last_tracker_t = t
             self.counters["tracker_gaps"] += 1

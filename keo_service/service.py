@@ -28,6 +28,7 @@ from keo_service.messages import (
 from keo_service.pipeline import Estimate, Estimator, EstimatorSettings
 
 if TYPE_CHECKING:
+    from keo_service.delay import OnlineDelayTracker
     from keo_service.viz import RerunSink
 
 log = logging.getLogger("keo.service")
@@ -63,6 +64,11 @@ class KeoService:
         self.cell = config.cell
         cell = cell_from_config(config)
         self.estimator = Estimator(cell, EstimatorSettings.from_config(config))
+        self._delay_tracker: OnlineDelayTracker | None = None
+        if config.timing.track_delay:
+            from keo_service.delay import OnlineDelayTracker
+
+            self._delay_tracker = OnlineDelayTracker(cell)
         self._viz: RerunSink | None = None
         if rrd is not None or viewer is not None:
             from keo_service.viz import RerunSink
@@ -98,6 +104,8 @@ class KeoService:
         ]
         if self._viz is not None:
             self._tasks.append(asyncio.create_task(self._viz_loop(), name="keo.service.viz"))
+        if self._delay_tracker is not None:
+            self._tasks.append(asyncio.create_task(self._delay_loop(), name="keo.service.delay"))
         log.info("keo service for cell %s up; listening on %s", self.cell, self.config.bus.listen)
         return self
 
@@ -137,11 +145,15 @@ class KeoService:
             if isinstance(msg, JointSample):
                 self._rates["encoder"].tick(now)
                 out = self.estimator.on_encoder(msg.t, msg.q)
+                if self._delay_tracker is not None:
+                    self._delay_tracker.add_encoder(msg.t, msg.q)
             elif isinstance(msg, TrackerSample):
                 self._rates["tracker"].tick(now)
                 out = self.estimator.on_tracker(
                     msg.t, msg.p, msg.q, ok=msg.status == "ok", tag=msg.device_t
                 )
+                if self._delay_tracker is not None and msg.p is not None:
+                    self._delay_tracker.add_tracker(msg.t, msg.p, msg.q)
             else:
                 self.estimator.counters["unexpected_message"] += 1
                 continue
@@ -204,6 +216,7 @@ class KeoService:
             counters=counters,
             last_estimate=None if last is None else self.to_message(last),
             messages=list(self.estimator.messages)[-10:],
+            delay_tracking=None if self._delay_tracker is None else self._delay_tracker.last_result,
         )
 
     def _resolve_if_quiet(self) -> None:
@@ -223,6 +236,21 @@ class KeoService:
             self._resolve_if_quiet()
             self._refresh_status()
             await asyncio.sleep(STATUS_PERIOD_S)
+
+    async def _delay_loop(self) -> None:
+        """Online delay tracking: fit on a bounded window off the loop, then slew to it."""
+        tracker = self._delay_tracker
+        assert tracker is not None
+        while not self._stop.is_set():
+            await asyncio.sleep(1.0)
+            if not tracker.due():
+                continue
+            window = tracker.snapshot()
+            current = self.estimator.delay.offset_s
+            found = await asyncio.to_thread(tracker.fit, window, current)
+            if found is not None:
+                self.estimator.set_delay_target(found)
+            log.info("delay tracking: %s", tracker.last_result)
 
     async def _viz_loop(self) -> None:
         assert self._viz is not None

@@ -150,3 +150,45 @@ def test_uneven_tracker_arrival_still_gives_the_delay(demo_cell):
     fit = fit_delay(demo_cell, run.encoder.t, run.encoder.q, trk.t, trk.p, trk.quat)
     expected = run.scenario.delay_s + burst / 2  # on average a sample waits half a burst
     assert abs(fit.delay_s - expected) < 1e-3
+
+
+def test_online_tracking_finds_the_delay_smoothly_and_leaves_rest_alone(demo_cell, demo_config):
+    import dataclasses
+
+    from keo_service.delay import OnlineDelayTracker
+    from keo_service.pipeline import DELAY_SLEW, Estimator, EstimatorSettings
+    from keo_service.timing import DelayModel
+
+    def drive(run, start_delay):
+        settings = dataclasses.replace(
+            EstimatorSettings.from_config(demo_config), delay=DelayModel(start_delay)
+        )
+        est = Estimator(demo_cell, settings)
+        tracker = OnlineDelayTracker(demo_cell, window_s=15.0, period_s=5.0)
+        out, delays = [], []
+        i = 0
+        for j in range(run.tracker.t.size):
+            while i < run.encoder.t.size and run.encoder.t[i] <= run.tracker.t[j]:
+                out += est.on_encoder(run.encoder.t[i], run.encoder.q[i])
+                tracker.add_encoder(run.encoder.t[i], run.encoder.q[i])
+                i += 1
+            out += est.on_tracker(run.tracker.t[j], run.tracker.p[j], run.tracker.quat[j])
+            tracker.add_tracker(run.tracker.t[j], run.tracker.p[j], run.tracker.quat[j])
+            delays.append(est.delay.offset_s)
+            if tracker.due():
+                found = tracker.fit(tracker.snapshot(), est.delay.offset_s)
+                if found is not None:
+                    est.set_delay_target(found)
+        return est, np.array(delays), tracker
+
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "80"}), seed=11)
+    est, delays, tracker = drive(run, start_delay=0.0)
+    assert abs(est.delay.offset_s - 0.028) < 1e-3
+    steps = np.abs(np.diff(delays)) / np.maximum(np.diff(run.tracker.t), 1e-6)
+    assert np.max(steps) <= DELAY_SLEW * 1.0001  # slewed, never stepped
+    assert tracker.last_result.startswith("updated")
+
+    rest = simulate(demo_cell, make_scenario("paper-step", {"duration_s": "40"}), seed=11)
+    est, delays, tracker = drive(rest, start_delay=0.02)
+    assert np.all(delays == 0.02)
+    assert "hardly moves" in tracker.last_result

@@ -192,3 +192,38 @@ def test_record_writes_what_the_devices_sent_and_survives_a_kill(demo_config, de
     assert cut.t.size > 0
     assert killed_at - cut.t[-1] < 1.5
     assert json.loads(procs.log("full").strip().splitlines()[-1])["tracker_rows"] == trk.t.size
+
+
+def test_service_tracks_the_delay_online(demo_config, demo_cell, tmp_path):
+    import msgspec
+
+    from keo_service.messages import ServiceStatus
+
+    timing = msgspec.structs.replace(demo_config.timing, delay_s=0.0, track_delay=True)
+    config = loopback_config(msgspec.structs.replace(demo_config, timing=timing))
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(config_to_toml(config))
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "70"}), seed=12)
+    write_run(run, tmp_path / "rec")
+    with process_group(tmp_path) as procs:
+        procs.start("service", ["run", "--config", str(cfg)])
+        wait_for_status(config)
+        replay = procs.start(
+            "replay",
+            ["replay", "--config", str(cfg), str(tmp_path / "rec"), "--as-fast-as-possible"],
+        )
+        assert replay.wait(timeout=120) == 0, procs.log("replay")
+        session = session_for_client(config, retry_for=5)
+        try:
+            reply = next(
+                r.ok for r in session.get(topic(config.cell, "status"), timeout=3.0) if r.ok
+            )
+        finally:
+            session.close()
+        status = decode(reply.payload.to_bytes())
+        assert procs.stop("service") == 0
+    assert isinstance(status, ServiceStatus)
+    assert status.delay_s == pytest.approx(0.028, abs=1e-3), status.delay_tracking
+    assert status.delay_tracking is not None
+    assert "updated" in status.delay_tracking
+    assert "delay tracking: updated" in procs.log("service")
