@@ -4,7 +4,8 @@
     {"type": "pose", "seq": 17, "t": 12.345, "p": [x, y, z], "q": [w, x, y, z], "status": "ok"}
 
 Pure codec. Poses before a hello are refused (their unit is unknown). Units are converted to
-metres; non-unit quaternions, non-finite numbers, repeated or backwards seq/t are refused.
+metres; non-unit quaternions, non-finite numbers, repeated or backwards seq are refused;
+a device clock that steps back is counted (alignment uses the host receipt time).
 """
 
 from __future__ import annotations
@@ -117,9 +118,10 @@ class LineProtocolParser:
             self._reject(counter, f"seq {seq} after {self._last_seq}")
             return None
         if t <= self._last_t:
-            counter = "duplicate" if t == self._last_t else "out_of_order"
-            self._reject(counter, f"seq {seq}: device time {t} not after {self._last_t}")
-            return None
+            # the device clock stepped (a resync, a restart): alignment uses the host's receipt
+            # time, so the pose stays good; the step is counted and reported
+            self.counters["device_time_step"] += 1
+            self.messages.append(f"seq {seq}: device time {t} not after {self._last_t}")
         if status != "ok":
             self._last_seq, self._last_t = seq, float(t)
             self.counters["gaps"] += 1

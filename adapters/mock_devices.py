@@ -124,9 +124,15 @@ class MockTracker(_MockServer):
         loop_play: bool = False,
         length_unit: str = "mm",
         wall_clock: bool = False,
+        beam_break: tuple[float, float] | None = None,
+        clock_step: tuple[float, float] | None = None,
     ) -> None:
         super().__init__(host, port, t0, loop_play)
         self.tracker = tracker
+        # faults a real tracker shows: (start, duration) of a broken beam in scenario seconds,
+        # and (at, step) of a jump of its own clock
+        self.beam_break = beam_break
+        self.clock_step = clock_step
         # device time = wall clock at sending (for latency measurements), else time since connect
         self.wall_clock = wall_clock
         self.length_unit = length_unit
@@ -139,9 +145,14 @@ class MockTracker(_MockServer):
 
         def frame(i: int) -> bytes:
             seq[0] += 1
+            t = float(self.tracker.t[i])
+            device_t = time.time() if self.wall_clock else round(time.monotonic() - device_t0, 6)
+            if self.clock_step is not None and t >= self.clock_step[0]:
+                device_t += self.clock_step[1]
+            if self.beam_break is not None and 0 <= t - self.beam_break[0] < self.beam_break[1]:
+                return format_pose(seq[0], device_t, None, None, status="beam_broken")
             p = (self.tracker.p[i] * self.scale).tolist()
             q = None if self.tracker.quat is None else self.tracker.quat[i].tolist()
-            device_t = time.time() if self.wall_clock else round(time.monotonic() - device_t0, 6)
             return format_pose(seq[0], device_t, p, q)
 
         await self._play_rows(writer, self.tracker.t, frame)

@@ -65,6 +65,18 @@ def cmd_adapter(args: argparse.Namespace) -> int:
     return 0
 
 
+def _pair(text: str | None, option: str) -> tuple[float, float] | None:
+    if text is None:
+        return None
+    try:
+        a, b = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise ConfigError(
+            option, option.lstrip("-"), f"'{text}' is not A:B (two numbers)"
+        ) from None
+    return a, b
+
+
 def cmd_mock(args: argparse.Namespace) -> int:
     from adapters.mock_devices import MockRobot, MockTracker
     from keo_service.cli import _parse_sets
@@ -99,6 +111,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
             args.t0,
             args.loop,
             wall_clock=args.wall_clock_device_time,
+            beam_break=_pair(args.beam_break, "--beam-break"),
+            clock_step=_pair(args.clock_step, "--clock-step"),
         )
 
     async def main() -> None:
@@ -232,6 +246,16 @@ def add_live_commands(sub: Any, add: Callable[..., argparse.ArgumentParser]) -> 
     p.add_argument("--port", type=int)
     p.add_argument("--set", action="append", metavar="KEY=VALUE")
     p.add_argument("--position-only", action="store_true", help="a single-reflector tracker")
+    p.add_argument(
+        "--beam-break",
+        metavar="START:SECONDS",
+        help="tracker: report beam_broken for SECONDS from scenario time START",
+    )
+    p.add_argument(
+        "--clock-step",
+        metavar="AT:STEP",
+        help="tracker: its own clock jumps by STEP seconds at scenario time AT",
+    )
     p.add_argument(
         "--wall-clock-device-time",
         action="store_true",

@@ -102,6 +102,7 @@ class Estimator:
         self.channels: tuple[str, ...] | None = None
         self._delay = settings.delay
         self._delay_target: float | None = None
+        self._recent_dt: deque[float] = deque(maxlen=64)
         self._last_tracker_t = -math.inf
         self._last_update_t: float | None = None
         self._pending: deque[_TrackerSample] = deque()
@@ -216,6 +217,8 @@ class Estimator:
                 f"tracker sample at t={t!r}: "
                 f"{len(channels)} channels on a {len(self.channels)}-channel stream",
             )
+        if math.isfinite(self._last_tracker_t):
+            self._recent_dt.append(t - self._last_tracker_t)
         self._last_tracker_t = t
         self.counters["tracker_samples"] += 1
         return self._enqueue(_TrackerSample(t, p_arr, q_arr, tag))
@@ -245,6 +248,16 @@ class Estimator:
 
     def _gains_for(self, n: int) -> np.ndarray:
         return np.asarray(self.settings.gains[:n], dtype=float)
+
+    def _max_step(self) -> float:
+        """The longest dt one update may use. After a gap, a single sample is one sample's
+        worth of measurement, not the whole gap's: cap at 3 typical periods (and max_dt_s)."""
+        if len(self._recent_dt) < 8:
+            return self.settings.max_dt_s
+        typical = float(np.median(self._recent_dt))
+        if self.settings.alignment == "latest":  # updates come at the fixed rate, not per sample
+            typical = max(typical, 1.0 / self.settings.sample_rate_hz)
+        return min(self.settings.max_dt_s, 3.0 * typical)
 
     def _reject(self, counter: str, message: str) -> list[Estimate]:
         self.counters[counter] += 1
@@ -318,7 +331,7 @@ class Estimator:
                 # the reference start: zero state, first step as if one sample period passed
                 self.observer.update(measured, 1.0 / self.settings.sample_rate_hz)
         else:
-            dt = min(t - self._last_update_t, self.settings.max_dt_s)
+            dt = min(t - self._last_update_t, self._max_step())
             if not self.observer.update(measured, dt):
                 self.counters["observer_rejected"] += 1
                 return self._held(t, "observer_rejected", encoder_t)
