@@ -145,12 +145,17 @@ class _Collector:
             return list(self.items)
 
 
+def _open_fds(pid: int) -> int:
+    return len(os.listdir(f"/proc/{pid}/fd"))
+
+
 def end_to_end(
     config: Config,
     seconds: float,
     tracker_hz: float = 1000.0,
     encoder_hz: float = 250.0,
     rrd: bool = False,
+    sample_every: float | None = None,
 ) -> dict[str, Any]:
     """Each component its own process; latency from the tracker line leaving the mock to the
     estimate arriving at a subscriber."""
@@ -186,6 +191,16 @@ def end_to_end(
         warm_cpu = {n: _proc_cpu_s(p) for n, p in pids.items()}
         time.sleep(max(0.0, seconds / 3))
         warm_mem = {n: _proc_mem_kb(p) for n, p in pids.items()}
+        trace = []
+        while sample_every is not None and time.time() + sample_every < t0 + seconds:
+            time.sleep(sample_every)
+            trace.append(
+                {
+                    "t_s": round(time.time() - t0, 1),
+                    "rss_mb": {n: _proc_mem_kb(p).get("VmRSS", 0) / 1024 for n, p in pids.items()},
+                    "open_fds": {n: _open_fds(p) for n, p in pids.items()},
+                }
+            )
         time.sleep(max(0.0, t0 + seconds - time.time()))
         end_cpu = {n: _proc_cpu_s(p) for n, p in pids.items()}
         end_mem = {n: _proc_mem_kb(p) for n, p in pids.items()}
@@ -196,7 +211,11 @@ def end_to_end(
         cell_from_config(config), make_scenario("path", dict(s.split("=", 1) for s in sets)), seed=1
     )
     sent = int(played.tracker.t.size)
-    in_window = [(a, m) for a, m in items if m.tracker_device_t is not None]
+    # latency after a warm-up of 0.5 s (connections settle, the first samples wait for encoder
+    # data that predates the subscription)
+    in_window = [
+        (a, m) for a, m in items if m.tracker_device_t is not None and m.tracker_device_t > t0 + 0.5
+    ]
     lat = np.array([a - m.tracker_device_t for a, m in in_window]) * 1e3
     held = sum(1 for _a, m in items if m.measured is None)
     procs_out = {
@@ -221,6 +240,7 @@ def end_to_end(
             "max": float(lat.max()) if lat.size else None,
         },
         "processes": procs_out,
+        "trace": trace,
     }
 
 
@@ -295,6 +315,25 @@ def accuracy(config: Config, seed: int = 1) -> dict[str, Any]:
 
 
 # ---- all ---------------------------------------------------------------------------------------
+
+
+def soak(config: Config, seconds: float) -> dict[str, Any]:
+    """A long run at 1 kHz: RSS and open files sampled every 10 s, per process."""
+    res = end_to_end(loopback_config(config), seconds, sample_every=10.0)
+    summary = {}
+    for name in res["processes"]:
+        rss = [s["rss_mb"][name] for s in res["trace"]]
+        fds = [s["open_fds"][name] for s in res["trace"]]
+        if rss:
+            summary[name] = {
+                "rss_first_mb": rss[0],
+                "rss_last_mb": rss[-1],
+                "rss_max_mb": max(rss),
+                "fds_first": fds[0],
+                "fds_last": fds[-1],
+            }
+    res["summary"] = summary
+    return res
 
 
 def run_bench(config: Config, quick: bool) -> dict[str, Any]:

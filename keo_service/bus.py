@@ -37,7 +37,10 @@ def make_zenoh_config(
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
     multicast: bool = False,
+    tls: Any = None,
 ) -> zenoh.Config:
+    """`tls`: an object with tls_root_ca, tls_certificate, tls_private_key, tls_mtls (the
+    [bus] config section), used for tls/ endpoints."""
     cfg = zenoh.Config()
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
@@ -46,6 +49,14 @@ def make_zenoh_config(
     cfg.insert_json5(
         "transport/link/tx/queue/congestion_control/drop/wait_before_drop", json.dumps(DROP_WAIT_US)
     )
+    if tls is not None and tls.tls_root_ca:
+        link = "transport/link/tls/"
+        cfg.insert_json5(link + "root_ca_certificate", json.dumps(tls.tls_root_ca))
+        if tls.tls_certificate:
+            for side in ("listen", "connect"):
+                cfg.insert_json5(f"{link}{side}_certificate", json.dumps(tls.tls_certificate))
+                cfg.insert_json5(f"{link}{side}_private_key", json.dumps(tls.tls_private_key))
+        cfg.insert_json5(link + "enable_mtls", json.dumps(bool(tls.tls_mtls)))
     return cfg
 
 
@@ -54,8 +65,9 @@ def open_session(
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
     multicast: bool = False,
+    tls: Any = None,
 ) -> zenoh.Session:
-    return zenoh.open(make_zenoh_config(mode, listen, connect, multicast))
+    return zenoh.open(make_zenoh_config(mode, listen, connect, multicast, tls))
 
 
 def session_for_client(config: Any, retry_for: float | None = None) -> zenoh.Session:
@@ -73,7 +85,7 @@ def session_for_client(config: Any, retry_for: float | None = None) -> zenoh.Ses
     started = time.monotonic()
     while True:
         try:
-            return open_session("client", (), endpoints, config.bus.multicast_scouting)
+            return open_session("client", (), endpoints, config.bus.multicast_scouting, config.bus)
         except zenoh.ZError as exc:
             if deadline is not None and time.monotonic() + delay > deadline:
                 raise KeoError(f"cannot reach the bus at {endpoints}: {exc}") from None

@@ -285,6 +285,18 @@ def cmd_delay_study(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from keo_service.bench import bench_table, run_bench
 
+    if args.soak is not None:
+        from keo_service.bench import soak
+
+        result = soak(_config(args.config), args.soak)
+        if not args.json:
+            result = {
+                "summary": result["summary"],
+                "latency_ms": result["latency_ms"],
+                "lost": result["lost"],
+            }
+        _print_json(result)
+        return EXIT_OK
     report = run_bench(_config(args.config), quick=args.quick)
     if args.json:
         _print_json(report)
@@ -389,6 +401,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("bench", cmd_bench, "the benchmarks (numbers, no verdicts)", config=False)
     p.add_argument("--config", default=str(demo_config_path()))
     p.add_argument("--quick", action="store_true", help="under a minute; the CI smoke test")
+    p.add_argument(
+        "--soak",
+        type=float,
+        metavar="SECONDS",
+        help="instead: a soak run at 1 kHz (e.g. 600), RSS and open files over time",
+    )
     p.add_argument("--json", action="store_true")
 
     p = add(

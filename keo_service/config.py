@@ -77,6 +77,12 @@ class BusConfig(_Section):
     listen: list[str] = msgspec.field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     connect: list[str] = msgspec.field(default_factory=list)
     multicast_scouting: bool = False
+    # TLS (endpoints "tls/host:port"): the CA that signed the other side's certificate, and
+    # this node's own certificate and key; tls_mtls makes both sides prove who they are
+    tls_root_ca: str = ""
+    tls_certificate: str = ""
+    tls_private_key: str = ""
+    tls_mtls: bool = False
 
 
 class Config(_Section):
@@ -133,7 +139,26 @@ def parse_config(
     if not urdf.is_file():
         raise ConfigError(source, "robot.urdf", f"file not found: {urdf}")
     robot = msgspec.structs.replace(config.robot, urdf=str(urdf))
-    return msgspec.structs.replace(config, robot=robot, source=source)
+    bus = config.bus
+    tls_paths = {}
+    for key in ("tls_root_ca", "tls_certificate", "tls_private_key"):
+        value = getattr(bus, key)
+        if value:
+            path = Path(value)
+            if not path.is_absolute() and base_dir is not None:
+                path = (base_dir / path).resolve()
+            if not path.is_file():
+                raise ConfigError(source, f"bus.{key}", f"file not found: {path}")
+            tls_paths[key] = str(path)
+    uses_tls = any(e.startswith("tls/") for e in bus.listen + bus.connect)
+    if uses_tls and not bus.tls_root_ca:
+        raise ConfigError(source, "bus.tls_root_ca", "tls/ endpoints need the CA certificate")
+    if bus.tls_mtls and not (bus.tls_certificate and bus.tls_private_key):
+        raise ConfigError(
+            source, "bus.tls_mtls", "mutual TLS needs bus.tls_certificate and bus.tls_private_key"
+        )
+    bus = msgspec.structs.replace(bus, **tls_paths)
+    return msgspec.structs.replace(config, robot=robot, bus=bus, source=source)
 
 
 def load_config(path: str | Path) -> Config:

@@ -16,12 +16,10 @@ from typing import Any
 from keo_service.errors import ConfigError
 
 
-def _setup_logging(verbose: bool = False) -> None:
-    logging.basicConfig(
-        level=logging.DEBUG if verbose else logging.INFO,
-        stream=sys.stderr,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
+def _setup_logging(verbose: bool = False, fmt: str = "auto") -> None:
+    from keo_service.systemd import setup_logging
+
+    setup_logging(verbose, fmt)
 
 
 def _config(path: str) -> Any:
@@ -40,7 +38,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from keo_service.service import run_service
 
     config = _config(args.config)
-    _setup_logging(args.verbose)
+    _setup_logging(args.verbose, args.log_format)
     asyncio.run(run_service(config, rrd=args.rrd, viewer=args.viewer))
     return 0
 
@@ -204,7 +202,8 @@ def cmd_router(args: argparse.Namespace) -> int:
     from keo_service.bus import open_session
 
     _setup_logging()
-    session = open_session("router", listen=args.listen, connect=args.connect or ())
+    tls = _config(args.config).bus if args.config else None
+    session = open_session("router", listen=args.listen, connect=args.connect or (), tls=tls)
     logging.getLogger("keo.router").info("zenoh router listening on %s", args.listen)
     stop = asyncio.Event()
 
@@ -226,6 +225,12 @@ def add_live_commands(sub: Any, add: Callable[..., argparse.ArgumentParser]) -> 
         "--viewer",
         metavar="URL",
         help="stream to a running Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy",
+    )
+    p.add_argument(
+        "--log-format",
+        choices=["auto", "text", "json"],
+        default="auto",
+        help="json: one JSON object per line (auto: json under journald)",
     )
     p.add_argument("-v", "--verbose", action="store_true")
 
@@ -276,6 +281,7 @@ def add_live_commands(sub: Any, add: Callable[..., argparse.ArgumentParser]) -> 
 
     p = add("router", cmd_router, "a Zenoh router for setups without zenohd", config=False)
     p.add_argument("--listen", action="append", required=True, metavar="ENDPOINT")
+    p.add_argument("--config", help="take TLS settings ([bus] tls_*) from this config")
     p.add_argument("--connect", action="append", metavar="ENDPOINT")
 
 

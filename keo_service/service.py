@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 import msgspec
 import zenoh
 
-from keo_service.bus import AsyncSubscription, open_session
+from keo_service.bus import AsyncSubscription, open_session, session_for_client
 from keo_service.config import Config
 from keo_service.kinematics import cell_from_config
 from keo_service.messages import (
@@ -26,6 +26,22 @@ from keo_service.messages import (
     topic,
 )
 from keo_service.pipeline import Estimate, Estimator, EstimatorSettings
+from keo_service.timing import DelayModel
+
+# keys a SIGHUP applies without a restart
+HOT_KEYS = frozenset({"observer.gain", "timing.delay_s", "timing.drift_ppm", "timing.drift_ref_s"})
+
+
+def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in doc.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(_flatten(value, name + "."))
+        else:
+            out[name] = value
+    return out
+
 
 if TYPE_CHECKING:
     from keo_service.delay import OnlineDelayTracker
@@ -81,6 +97,7 @@ class KeoService:
         self._started = time.monotonic()
         self._rates = {"encoder": RateMeter(), "tracker": RateMeter(), "estimate": RateMeter()}
         self._status_bytes = b""
+        self._latest_bytes = b""
         self._last_estimate_wall = 0.0
         self._seq = 0
         self.published = 0
@@ -91,10 +108,17 @@ class KeoService:
     async def __aenter__(self) -> KeoService:
         if self._session is None:
             bus = self.config.bus
-            self._session = open_session(bus.mode, bus.listen, bus.connect, bus.multicast_scouting)
+            if bus.mode == "client":  # through a router: wait for it like any client
+                self._session = session_for_client(self.config)
+            else:
+                self._session = open_session(
+                    bus.mode, bus.listen, bus.connect, bus.multicast_scouting, tls=bus
+                )
         s = self._session
         self._estimate_pub = s.declare_publisher(topic(self.cell, "estimate"), express=True)
         self._status_q = s.declare_queryable(topic(self.cell, "status"), self._on_status_query)
+        # a client that joins late asks keo/<cell>/estimate (or keo/*/estimate) for the latest
+        self._latest_q = s.declare_queryable(topic(self.cell, "estimate"), self._on_latest_query)
         self._token = s.liveliness().declare_token(topic(self.cell, "alive/service"))
         self._sub = AsyncSubscription(s, [topic(self.cell, "encoder"), topic(self.cell, "tracker")])
         self._refresh_status()
@@ -117,6 +141,7 @@ class KeoService:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._token.undeclare()
         self._status_q.undeclare()
+        self._latest_q.undeclare()
         self._estimate_pub.undeclare()
         if self._viz is not None:
             self._viz.close()
@@ -163,7 +188,9 @@ class KeoService:
     def _publish(self, estimate: Estimate, now: float) -> None:
         self._seq += 1
         msg = self.to_message(estimate)
-        self._estimate_pub.put(encode(msg))
+        payload = encode(msg)
+        self._estimate_pub.put(payload)
+        self._latest_bytes = payload
         self.published += 1
         self._rates["estimate"].tick(now)
         if self._viz is not None:
@@ -258,20 +285,84 @@ class KeoService:
             await asyncio.sleep(VIZ_PERIOD_S)
             self._viz.flush(msgspec.to_builtins(self.status()))
 
+    def _on_latest_query(self, query: zenoh.Query) -> None:  # zenoh thread
+        latest = self._latest_bytes
+        if latest:  # answer with our own key, so a wildcard query tells the cells apart
+            query.reply(topic(self.cell, "estimate"), latest)
+
+    # ---- reload (SIGHUP) ------------------------------------------------------------------
+
+    def reload(self, new: Config) -> tuple[list[str], list[str]]:
+        """Apply what can change live (gains, delay); list what needs a restart."""
+        old_flat = _flatten(msgspec.to_builtins(self.config))
+        new_flat = _flatten(msgspec.to_builtins(new))
+        changed = sorted(
+            k
+            for k in old_flat.keys() | new_flat.keys()
+            if old_flat.get(k) != new_flat.get(k) and k != "source"
+        )
+        applied = [k for k in changed if k in HOT_KEYS]
+        restart = [k for k in changed if k not in HOT_KEYS]
+        if "observer.gain" in applied:
+            self.estimator.set_gains(new.observer.gain)
+        if {"timing.delay_s", "timing.drift_ppm", "timing.drift_ref_s"} & set(applied):
+            timing = new.timing
+            self.estimator.set_delay(
+                DelayModel(timing.delay_s, timing.drift_ppm * 1e-6, timing.drift_ref_s)
+            )
+        hot = {k: v for k, v in msgspec.structs.asdict(new).items() if k in ("observer", "timing")}
+        self.config = msgspec.structs.replace(self.config, **hot) if applied else self.config
+        self._refresh_status()
+        return applied, restart
+
     def _on_status_query(self, query: zenoh.Query) -> None:  # zenoh thread: reply with a snapshot
-        query.reply(query.key_expr, self._status_bytes)
+        query.reply(topic(self.cell, "status"), self._status_bytes)
 
 
 async def run_service(
     config: Config, rrd: Path | None = None, viewer: str | None = None, ready: Any = None
 ) -> None:
-    """Run until SIGINT/SIGTERM."""
+    """Run until SIGINT/SIGTERM; SIGHUP reloads the config file. Talks to systemd when
+    NOTIFY_SOCKET is set: READY, WATCHDOG pings while the loop runs, RELOADING, STOPPING."""
     import signal
+
+    from keo_service import systemd
+    from keo_service.config import load_config
+    from keo_service.errors import ConfigError
 
     loop = asyncio.get_running_loop()
     async with KeoService(config, rrd=rrd, viewer=viewer) as service:
+
+        def reload() -> None:
+            systemd.notify("RELOADING=1")
+            try:
+                new = load_config(config.source)
+            except ConfigError as exc:
+                log.error("reload refused, keeping the running config: %s", exc)
+            else:
+                applied, restart = service.reload(new)
+                log.info("reloaded %s: applied %s", config.source, applied or "nothing")
+                if restart:
+                    log.warning("changed but NOT applied (needs a restart): %s", ", ".join(restart))
+            systemd.notify("READY=1")
+
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, service.stop)
+        loop.add_signal_handler(signal.SIGHUP, reload)
+        period = systemd.watchdog_period()
+        watchdog = None
+        if period is not None:
+
+            async def ping() -> None:
+                while True:
+                    systemd.notify("WATCHDOG=1")
+                    await asyncio.sleep(period)
+
+            watchdog = asyncio.create_task(ping(), name="keo.service.watchdog")
+        systemd.notify(f"READY=1\nSTATUS=cell {config.cell} on {', '.join(config.bus.listen)}")
         if ready is not None:
             ready()
         await service.wait()
+        systemd.notify("STOPPING=1")
+        if watchdog is not None:
+            watchdog.cancel()
