@@ -282,6 +282,17 @@ def cmd_delay_study(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_import(args: argparse.Namespace) -> int:
+    from keo_service.importers import import_dataset
+
+    info = import_dataset(args.kind, args.source, args.out)
+    if args.json:
+        _print_json(info)
+    else:
+        print(f"wrote {args.out}/encoder.csv and tracker.csv: {info['rows']} poses; {info['time']}")
+    return EXIT_OK
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from keo_service.bench import bench_table, run_bench
 
@@ -396,6 +407,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--config", default=str(demo_config_path()))
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--json", action="store_true")
+
+    p = add("import", cmd_import, "an outside data set to the interchange files", config=False)
+    p.add_argument("kind", choices=["ur10-lasertracker"])
+    p.add_argument("source", type=Path, help="e.g. Series_A/measurements_grid.csv")
+    p.add_argument("--out", type=Path, required=True)
     p.add_argument("--json", action="store_true")
 
     p = add("bench", cmd_bench, "the benchmarks (numbers, no verdicts)", config=False)

@@ -39,7 +39,7 @@ from keo_service.trajectories import (
     solve_ik,
 )
 
-SCENARIOS = ("paper-step", "paper-vertical", "workspace", "path")
+SCENARIOS = ("paper-step", "paper-vertical", "workspace", "path", "static-poses")
 
 
 @dataclass(frozen=True)
@@ -64,6 +64,15 @@ class Scenario:
     stroke_m: float = 1.0  # paper-vertical
     dwell_s: float = 4.0  # paper-vertical
     moves: int = 8  # workspace
+    poses: int = 400  # static-poses: stop-and-measure poses over the workspace
+    # effects of the real arm beyond geometry (for keo analyze to find)
+    compliance_rad_per_nm: float = 0.0  # every joint deflects this much per N m of gravity
+    backlash_rad: float = 0.0  # every joint lags by this much behind its direction of motion
+    cyclic_rad: float = 0.0  # 1st-harmonic error of joints 2 and 3 (a gear's runout)
+    thermal_m_per_c: float = 0.0  # the sensor drifts along base x with temperature
+    tracker_scale_ppm: float = 0.0  # a tracker distance-scale error (geometry absorbs it)
+    periodic_drift_m: float = 0.0  # the sensor wanders along base x, 3 cycles per recording
+    # (a cyclic disturbance in time that no effect in keo's library models)
 
 
 def make_scenario(name: str, overrides: dict[str, str] | None = None) -> Scenario:
@@ -117,8 +126,9 @@ class TrueRobot:
     T_bk: pin.SE3  # base -> real tracker frame
     parameters: dict[str, list[float]] = field(default_factory=dict)
 
-    def sensor_pose(self, q: np.ndarray) -> pin.SE3:
-        pin.framesForwardKinematics(self.model, self.data, q + self.joint_offsets)
+    def sensor_pose(self, q: np.ndarray, extra: np.ndarray | None = None) -> pin.SE3:
+        q_true = q + self.joint_offsets + (0.0 if extra is None else extra)
+        pin.framesForwardKinematics(self.model, self.data, q_true)
         return self.data.oMf[self.flange_frame_id] * self.T_ns
 
 
@@ -257,6 +267,8 @@ class SimulatedRun:
 
 
 def simulate(cell: Cell, scenario: Scenario, seed: int = 0) -> SimulatedRun:
+    if scenario.name == "static-poses":
+        return simulate_static(cell, scenario, seed)
     rng = np.random.default_rng(seed)
     true_robot = make_true_robot(cell, rng, scenario.geometric_errors)
     trajectory, duration = motion_for(scenario, cell, rng)
@@ -319,6 +331,83 @@ def simulate(cell: Cell, scenario: Scenario, seed: int = 0) -> SimulatedRun:
         true_robot=true_robot,
         physical_t=tau,
         moving=moving,
+    )
+
+
+def _static_poses(cell: Cell, scenario: Scenario, rng: np.random.Generator) -> np.ndarray:
+    robot = cell.robot
+    data = robot.create_data()
+    home = _mh_style_home(cell)
+    span = 0.45 * np.minimum(robot.upper - robot.lower, 2 * math.pi) / 2
+    centre = np.clip(home, robot.lower + span, robot.upper - span)
+    poses = []
+    while len(poses) < scenario.poses:
+        q = centre + rng.uniform(-1, 1, robot.nq) * span
+        if flange_pose(robot, data, q).translation[2] > 0.3:
+            poses.append(q)
+    return np.array(poses)
+
+
+def simulate_static(cell: Cell, scenario: Scenario, seed: int = 0) -> SimulatedRun:
+    """Stop-and-measure: one encoder row and one tracker row per pose, at the same t."""
+    rng = np.random.default_rng(seed)
+    true_robot = make_true_robot(cell, rng, scenario.geometric_errors)
+    q = _static_poses(cell, scenario, rng)
+    n = q.shape[0]
+    t = np.arange(n, dtype=float) * 10.0
+    direction = np.zeros_like(q)
+    direction[1:] = np.sign(np.diff(q, axis=0))
+    model, gdata = cell.robot.model, cell.robot.model.createData()
+    temperature = 22.0 + np.cumsum(rng.normal(0, 0.05, n))
+    T_kb = true_robot.T_bk.inverse()
+    p, quat = np.empty((n, 3)), np.empty((n, 4))
+    nominal = cell.robot.create_data()
+    truth = np.empty((n, 3 if scenario.position_only else 6))
+    for i in range(n):
+        extra = np.zeros(cell.robot.nq)
+        if scenario.compliance_rad_per_nm:
+            tau = pin.computeGeneralizedGravity(model, gdata, q[i])
+            extra += scenario.compliance_rad_per_nm * tau
+        extra += scenario.backlash_rad * direction[i]
+        if scenario.cyclic_rad:
+            extra[1:3] += scenario.cyclic_rad * np.sin(q[i, 1:3])
+        T_bs = true_robot.sensor_pose(q[i], extra)
+        if scenario.periodic_drift_m:
+            wander = scenario.periodic_drift_m * math.sin(6 * math.pi * t[i] / t[-1])
+            T_bs = pin.SE3(T_bs.rotation, T_bs.translation + np.array([wander, 0.0, 0.0]))
+        if scenario.thermal_m_per_c:
+            T_bs = pin.SE3(
+                T_bs.rotation,
+                T_bs.translation
+                + np.array([scenario.thermal_m_per_c * (temperature[i] - 22.0), 0.0, 0.0]),
+            )
+        T_ks = T_kb * T_bs
+        p_k = T_ks.translation * (1.0 + scenario.tracker_scale_ppm * 1e-6)
+        T_bt = flange_pose(cell.robot, nominal, q[i]) * cell.T_nt
+        seen = cell.T_bk * T_ks
+        truth[i] = (
+            position_error(T_bt, seen.translation)
+            if scenario.position_only
+            else pose_error(T_bt, seen)
+        )
+        p[i] = p_k + rng.normal(0.0, scenario.position_noise_m, 3)
+        quat[i] = quat_wxyz(T_ks.rotation @ pin.exp3(rng.normal(0, scenario.rotation_noise_rad, 3)))
+    tracker = TrackerData(
+        t=t,
+        p=p,
+        quat=None if scenario.position_only else quat,
+        extra={"temperature_c": temperature},
+    )
+    return SimulatedRun(
+        scenario=scenario,
+        encoder=EncoderData(t=t, q=q),
+        tracker=tracker,
+        truth_t=t,
+        truth=truth,
+        channels=channels_for(scenario.position_only),
+        true_robot=true_robot,
+        physical_t=t,
+        moving=np.zeros(n, dtype=bool),
     )
 
 
