@@ -322,9 +322,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(args)
 
 
-def cmd_not_yet(args: argparse.Namespace) -> int:
-    print(f"keo {args.command}: not implemented yet in this version", file=sys.stderr)
-    return EXIT_FAILURE
+def cmd_analyze(args: argparse.Namespace) -> int:
+    from keo_service.analysis_report import run_analysis
+
+    report = run_analysis(
+        _config(args.config), args.encoder, args.tracker, args.out, args.registration_only
+    )
+    if args.json:
+        _print_json(report)
+    else:
+        print((args.out / "report.md").read_text())
+        print(f"wrote {args.out}/report.json, report.md, plots and model.toml")
+    return EXIT_OK
 
 
 # ---- parser -----------------------------------------------------------------------------------
@@ -436,9 +445,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--json", action="store_true")
 
-    for name, text in (("analyze", "residual analysis"),):
-        p = add(name, cmd_not_yet, text, config=False)
-        p.add_argument("rest", nargs=argparse.REMAINDER)
+    p = add("analyze", cmd_analyze, "what the model still gets wrong, effects added and judged")
+    p.add_argument("--encoder", type=Path, required=True)
+    p.add_argument("--tracker", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument(
+        "--registration-only",
+        action="store_true",
+        help="keep the effects in the config; re-identify tracker and tool only",
+    )
+    p.add_argument("--json", action="store_true")
 
     from keo_service import live_cli
 

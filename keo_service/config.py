@@ -85,6 +85,23 @@ class BusConfig(_Section):
     tls_mtls: bool = False
 
 
+class ModelConfig(_Section):
+    """Effects `keo analyze` identified (written into model.toml). Applied live: joint
+    offsets, geometry (placement), compliance, cyclic. Backlash, temperature and time drift
+    are reported by the analysis but need inputs the live stream does not carry."""
+
+    effects: list[str] = msgspec.field(default_factory=list)
+    joint_offsets: list[float] = msgspec.field(default_factory=list)  # rad, per joint
+    compliance: list[float] = msgspec.field(default_factory=list)  # rad/(N m), per joint
+    backlash: list[float] = msgspec.field(default_factory=list)  # rad, per joint
+    cyclic: list[float] = msgspec.field(default_factory=list)  # per joint: a1, b1, a2, b2 (rad)
+    placement: list[float] = msgspec.field(default_factory=list)  # per joint: 6-vector (m, rad)
+    temperature_m_per_c: list[float] = msgspec.field(default_factory=list)
+    temperature_ref_c: float = 0.0
+    time_drift_m_per_s: list[float] = msgspec.field(default_factory=list)
+    time_ref_s: float = 0.0
+
+
 class Config(_Section):
     robot: RobotConfig
     cell: CellName = "cell1"
@@ -93,6 +110,7 @@ class Config(_Section):
     observer: ObserverConfig = msgspec.field(default_factory=ObserverConfig)
     timing: TimingConfig = msgspec.field(default_factory=TimingConfig)
     bus: BusConfig = msgspec.field(default_factory=BusConfig)
+    model: ModelConfig = msgspec.field(default_factory=ModelConfig)
     # Where the file came from; not a TOML key.
     source: str = ""
 

@@ -14,10 +14,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
 
+from keo_service.corrections import Corrections
 from keo_service.errors import ConfigError
 
 POSE_CHANNELS = ("px", "py", "pz", "rx", "ry", "rz")
@@ -110,6 +112,8 @@ class Cell:
     robot: RobotModel
     T_nt: pin.SE3  # flange -> nominal tool
     T_bk: pin.SE3  # base -> tracker
+    corrections: Corrections | None = None  # an identified model (keo analyze), if any
+    nominal_model: pin.Model | None = None  # for gravity torques when robot.model is corrected
 
 
 def cell_from_config(config: object) -> Cell:
@@ -120,10 +124,61 @@ def cell_from_config(config: object) -> Cell:
     robot = load_robot(
         config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
     )
+    corrections = corrections_from_config(config.model, robot.nq, config.source)
+    nominal = None
+    if corrections is not None:
+        nominal = robot.model
+        if np.any(corrections.placement):
+            model = pin.Model(robot.model)
+            for j in range(1, model.njoints):
+                delta = corrections.placement[j - 1]
+                model.jointPlacements[j] = model.jointPlacements[j] * pin.exp6(
+                    pin.Motion(delta[:3], delta[3:])
+                )
+            robot = RobotModel(
+                model,
+                robot.base_frame_id,
+                robot.flange_frame_id,
+                robot.joint_names,
+                robot.lower,
+                robot.upper,
+                robot.velocity_limit,
+            )
     return Cell(
         robot=robot,
         T_nt=se3_from_xyz_rpy(config.tool.xyz, config.tool.rpy),
         T_bk=se3_from_xyz_rpy(config.tracker.xyz, config.tracker.rpy),
+        corrections=corrections,
+        nominal_model=nominal,
+    )
+
+
+def corrections_from_config(model: Any, nq: int, source: str) -> Corrections | None:
+    """The [model] section as Corrections (None when empty); lengths checked per key."""
+    sizes = {
+        "joint_offsets": nq,
+        "compliance": nq,
+        "backlash": nq,
+        "cyclic": 4 * nq,
+        "placement": 6 * nq,
+    }
+    values = {}
+    for key, n in sizes.items():
+        v = list(getattr(model, key))
+        if v and len(v) != n:
+            raise ConfigError(
+                source, f"model.{key}", f"{len(v)} numbers, expected {n} for this {nq}-joint robot"
+            )
+        values[key] = np.asarray(v, dtype=float) if v else None
+    if all(v is None for v in values.values()):
+        return None
+    return Corrections(
+        nq=nq,
+        joint_offsets=values["joint_offsets"],
+        compliance=values["compliance"],
+        backlash=values["backlash"],
+        cyclic=None if values["cyclic"] is None else values["cyclic"].reshape(nq, 2, 2),
+        placement=None if values["placement"] is None else values["placement"].reshape(nq, 6),
     )
 
 
@@ -137,8 +192,20 @@ def flange_pose(robot: RobotModel, data: pin.Data, q: np.ndarray) -> pin.SE3:
 
 
 def tool_pose(cell: Cell, data: pin.Data, q: np.ndarray) -> pin.SE3:
-    """T_bt(q) = T_bn(q) T_nt."""
+    """T_bt(q) = T_bn(q) T_nt, on the identified model when the cell has one."""
+    if cell.corrections is not None:
+        q = corrected_joints(cell, q)
     return flange_pose(cell.robot, data, q) * cell.T_nt
+
+
+def corrected_joints(cell: Cell, q: np.ndarray) -> np.ndarray:
+    corr = cell.corrections
+    assert corr is not None
+    tau = None
+    if np.any(corr.compliance):
+        model = cell.nominal_model if cell.nominal_model is not None else cell.robot.model
+        tau = np.asarray(pin.computeGeneralizedGravity(model, model.createData(), q))
+    return np.asarray(corr.joint_angles(np.asarray(q, dtype=float), tau))
 
 
 def log3(R: np.ndarray) -> np.ndarray:
