@@ -23,7 +23,7 @@ from keo_service.kinematics import RobotModel
 
 ROT_WEIGHT = 0.5  # m per rad: 20 um of position ~ 40 urad of orientation
 KEEP_MARGIN = 0.05  # an effect must lower the held-out position RMS by 5 % to be kept
-RANK_TOL = 1e-6  # relative singular value below which a direction is unidentifiable
+RANK_TOL = 1e-3  # relative singular value below which a direction counts as unidentifiable
 
 
 class NotIdentifiableError(Exception):
@@ -529,10 +529,13 @@ def analyze(
             continue
         say(f"trying {name}")
         trial_basis = dict(model.basis)
-        if name == "geometry":
+        if name in EFFECTS:  # never fit what the data cannot tell apart from what is there
             B, rank, full = identifiable_basis(model, train, tau_tr, x, name)
+            if rank == 0:
+                say(f"{name}: nothing identifiable from these poses")
+                continue
             trial_basis[name] = B
-            say(f"geometry: {rank} of {full} parameters identifiable from these poses")
+            say(f"{name}: {rank} of {full} parameters identifiable from these poses")
         trial = Model(chain, position_only, [*model.effects, name], x, trial_basis, temp_ref, t_ref)
         size = trial.sizes(chain.nq)[-1]
         x0 = np.concatenate([x, np.zeros(size)])
