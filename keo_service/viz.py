@@ -100,6 +100,8 @@ class RerunSink:
         if estimate.channels != self._channels:
             self.flush()
             self._channels = estimate.channels
+            # the layout follows the measurement: 3 plots for a single reflector, 6 for a probe
+            self._rec.send_blueprint(blueprint(estimate.channels))
         n = len(estimate.channels)
         self._t.append(estimate.t)
         self._meas.append(

@@ -212,3 +212,46 @@ def test_echo_prints_estimates_as_json(live_config, demo_cell, tmp_path):
         # a held step (no encoder data yet for its time) says why instead of a measurement
         assert (doc["measured"] is None) == bool(doc["flags"])
     assert sum(doc["measured"] is not None for doc in docs) >= 15
+
+
+def test_position_only_tracker_live(live_config, demo_cell, tmp_path):
+    """A single-reflector tracker through the live chain: 3 channels everywhere, Rerun too."""
+    from rerun.chunk import RrdReader
+
+    cfg = tmp_path / "live.toml"
+    cfg.write_text(config_to_toml(live_config))
+    t0 = time.time() + 4.0
+    play = ["--scenario", "paper-step", "--seed", "3", "--t0", repr(t0), "--duration", "4"]
+    rrd = tmp_path / "po.rrd"
+    with process_group(tmp_path) as procs:
+        procs.start("service", ["run", "--config", str(cfg), "--rrd", str(rrd)])
+        procs.start("mock-robot", ["mock", "robot", "--config", str(cfg), *play])
+        procs.start(
+            "mock-tracker", ["mock", "tracker", "--config", str(cfg), *play, "--position-only"]
+        )
+        procs.start("encoder", ["adapter", "encoder", "--config", str(cfg)])
+        procs.start("tracker", ["adapter", "tracker", "--config", str(cfg)])
+        echo = procs.start(
+            "echo",
+            [
+                "echo",
+                f"keo/{live_config.cell}/estimate",
+                "--config",
+                str(cfg),
+                "--json",
+                "--count",
+                "50",
+            ],
+        )
+        echo.wait(timeout=30)
+        time.sleep(0.5)
+        assert procs.stop("service") == 0
+    docs = [json.loads(ln) for ln in procs.log("echo").splitlines() if ln.startswith("{")]
+    assert len(docs) == 50
+    for doc in docs:
+        assert doc["channels"] == ["px", "py", "pz"]
+        assert len(doc["estimate"]) == 3
+        assert doc["measured"] is None or len(doc["measured"]) == 3
+    entities = {c.entity_path for c in RrdReader(str(rrd)).stream().to_chunks()}
+    assert "/keo/error/px" in entities
+    assert "/keo/error/rx" not in entities

@@ -269,3 +269,78 @@ def test_paper_command_reproduces_the_reference():
         assert w["noise_rejected_pct"] > 75.0
     for a in report["alignment"]:
         assert a["ratio_motion_pos"] > 2.0  # interpolation beats the reference in motion
+
+
+def test_position_only_gives_the_same_positions_as_6dof(tmp_path):
+    """A 6-DoF file and the same data stripped of orientation: identical position estimates."""
+    full = tmp_path / "full"
+    assert (
+        keo(
+            "simulate",
+            "--config",
+            str(DEMO),
+            "--scenario",
+            "paper-vertical",
+            "--out",
+            str(full),
+            "--seed",
+            "4",
+            "--set",
+            "duration_s=12",
+        ).returncode
+        == 0
+    )
+    stripped = tmp_path / "stripped"
+    stripped.mkdir()
+    lines = (full / "tracker.csv").read_text().splitlines()
+    (stripped / "tracker.csv").write_text(
+        "\n".join(",".join(line.split(",")[:4]) for line in lines) + "\n"
+    )
+    results = {}
+    for name, trk in (("full", full / "tracker.csv"), ("stripped", stripped / "tracker.csv")):
+        out = tmp_path / f"{name}.csv"
+        res = keo(
+            "estimate",
+            "--config",
+            str(DEMO),
+            "--encoder",
+            str(full / "encoder.csv"),
+            "--tracker",
+            str(trk),
+            "--out",
+            str(out),
+        )
+        assert res.returncode == 0, res.stderr
+        results[name] = read_estimates(out)
+    a, b = results["full"], results["stripped"]
+    assert b.channels == ["px", "py", "pz"]
+    assert a.channels == ["px", "py", "pz", "rx", "ry", "rz"]
+    assert np.array_equal(a.t, b.t)
+    assert np.max(np.abs(a.estimate[:, :3] - b.estimate)) < 1e-12
+    ok = ~np.isnan(b.measured[:, 0])
+    assert np.max(np.abs(a.measured[ok, :3] - b.measured[ok])) < 1e-12
+    header = (tmp_path / "stripped.csv").read_text().splitlines()[0]
+    assert "rx" not in header  # orientation is absent, not zero-filled
+
+
+def test_position_only_scenario_files(tmp_path):
+    out = tmp_path / "po"
+    assert (
+        keo(
+            "simulate",
+            "--config",
+            str(DEMO),
+            "--scenario",
+            "path",
+            "--out",
+            str(out),
+            "--position-only",
+            "--set",
+            "duration_s=5",
+        ).returncode
+        == 0
+    )
+    assert (out / "tracker.csv").read_text().splitlines()[0] == "t,x,y,z"
+    _t, truth, channels = read_truth(out / "truth.csv")
+    assert channels == ["px", "py", "pz"]
+    assert truth.shape[1] == 3
