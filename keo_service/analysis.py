@@ -440,6 +440,9 @@ def correlations(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> li
     variables.update({f"gravity_torque_{j + 1}": tau[:, j] for j in range(tau.shape[1])})
     variables["time"] = data.t
     variables["tracker_distance"] = np.linalg.norm(data.p_ks, axis=1)
+    if data.direction is not None:  # direction of motion (or of the last move, static data)
+        variables.update({f"direction_{j + 1}": data.direction[:, j]
+                          for j in range(data.direction.shape[1])})
     for name, values in data.extra.items():
         variables[name] = values
     out = []

@@ -103,6 +103,8 @@ class Estimator:
         self._delay = settings.delay
         self._delay_target: float | None = None
         self._recent_dt: deque[float] = deque(maxlen=64)
+        self._step_cap: float | None = None
+        self._dt_seen = 0
         self._last_tracker_t = -math.inf
         self._last_update_t: float | None = None
         self._pending: deque[_TrackerSample] = deque()
@@ -219,6 +221,7 @@ class Estimator:
             )
         if math.isfinite(self._last_tracker_t):
             self._recent_dt.append(t - self._last_tracker_t)
+            self._dt_seen += 1
         self._last_tracker_t = t
         self.counters["tracker_samples"] += 1
         return self._enqueue(_TrackerSample(t, p_arr, q_arr, tag))
@@ -251,13 +254,16 @@ class Estimator:
 
     def _max_step(self) -> float:
         """The longest dt one update may use. After a gap, a single sample is one sample's
-        worth of measurement, not the whole gap's: cap at 3 typical periods (and max_dt_s)."""
+        worth of measurement, not the whole gap's: cap at 3 typical periods (and max_dt_s).
+        The typical period is the median of the last 64 intervals, refreshed every 16."""
         if len(self._recent_dt) < 8:
             return self.settings.max_dt_s
-        typical = float(np.median(self._recent_dt))
-        if self.settings.alignment == "latest":  # updates come at the fixed rate, not per sample
-            typical = max(typical, 1.0 / self.settings.sample_rate_hz)
-        return min(self.settings.max_dt_s, 3.0 * typical)
+        if self._step_cap is None or self._dt_seen % 16 == 0:
+            typical = float(np.median(self._recent_dt))
+            if self.settings.alignment == "latest":  # updates come at the fixed rate
+                typical = max(typical, 1.0 / self.settings.sample_rate_hz)
+            self._step_cap = min(self.settings.max_dt_s, 3.0 * typical)
+        return self._step_cap
 
     def _reject(self, counter: str, message: str) -> list[Estimate]:
         self.counters[counter] += 1

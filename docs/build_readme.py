@@ -1,0 +1,90 @@
+"""Build README.md from docs/README.template.md and generated results.
+
+    python docs/build_readme.py --paper P.md --delay D.md --bench B.json --ur10 DIR
+
+DIR holds analyses of the shared UR10 data: A/an.json, B/an.json (full analyses) and
+A/reg.json, B/reg.json (registration-only with the other series' model.toml).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from keo_service.bench import bench_table
+
+HERE = Path(__file__).resolve().parent
+
+
+def stats(s: dict) -> str:
+    rot = "–" if s["rot_rms_mrad"] is None else f"{s['rot_rms_mrad']:.3f}"
+    return f"{s['pos_rms_mm']:.3f} | {s['pos_max_mm']:.2f} | {rot}"
+
+
+def ur10_table(folder: Path) -> str:
+    lines = [
+        "| data | model | held-out poses | position RMS (mm) | position max (mm) | "
+        "orientation RMS (mrad) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for series in ("A", "B"):
+        r = json.loads((folder / series / "an.json").read_text())
+        label = f"Series {series}"
+        lines.append(
+            f"| {label} | nominal, registration fitted | {r['baseline']['validation']['n']} "
+            f"| {stats(r['baseline']['validation'])} |"
+        )
+        for e in r["effects"]:
+            ident = e["parameters"].get("identifiable")
+            extra = f" ({ident} identifiable)" if ident else ""
+            lines.append(
+                f"| {label} | + {e['name']}{extra} | {e['validation']['n']} | "
+                f"{stats(e['validation'])} |"
+            )
+        lines.append(
+            f"| {label} | final (same poses, fitted) | {r['final']['train']['n']} | "
+            f"{stats(r['final']['train'])} |"
+        )
+        rejected = ", ".join(
+            f"{e['name']} {e['held_out_improvement_pct']:+.1f} %" for e in r["rejected"]
+        )
+        lines.append(f"| {label} | not kept: {rejected} | | | | |")
+    for fit_on, reg_on in (("A", "B"), ("B", "A")):
+        r = json.loads((folder / reg_on / "reg.json").read_text())
+        lines.append(
+            f"| Series {reg_on} | model of Series {fit_on}, registration only | "
+            f"{r['final']['validation']['n']} | {stats(r['final']['validation'])} |"
+        )
+    a = json.loads((folder / "A" / "an.json").read_text())
+    b = json.loads((folder / "B" / "an.json").read_text())
+    lines += [
+        "",
+        f"What is left (Series A): {a['unexplained']}.",
+        "",
+        f"What is left (Series B): {b['unexplained']}.",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("--paper", type=Path, required=True)
+    p.add_argument("--delay", type=Path, required=True)
+    p.add_argument("--bench", type=Path, required=True)
+    p.add_argument("--ur10", type=Path, required=True)
+    p.add_argument("--notes", type=Path, help="markdown appended after the UR10 table")
+    args = p.parse_args()
+    text = (HERE / "README.template.md").read_text()
+    text = text.replace("@PAPER@", args.paper.read_text())
+    text = text.replace("@DELAY@", args.delay.read_text())
+    text = text.replace("@BENCH@", bench_table(json.loads(args.bench.read_text())))
+    ur10 = ur10_table(args.ur10)
+    if args.notes:
+        ur10 += "\n" + args.notes.read_text()
+    text = text.replace("@UR10@", ur10)
+    (HERE.parent / "README.md").write_text(text)
+
+
+if __name__ == "__main__":
+    main()
