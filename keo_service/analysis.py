@@ -441,8 +441,9 @@ def correlations(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> li
     variables["time"] = data.t
     variables["tracker_distance"] = np.linalg.norm(data.p_ks, axis=1)
     if data.direction is not None:  # direction of motion (or of the last move, static data)
-        variables.update({f"direction_{j + 1}": data.direction[:, j]
-                          for j in range(data.direction.shape[1])})
+        variables.update(
+            {f"direction_{j + 1}": data.direction[:, j] for j in range(data.direction.shape[1])}
+        )
     for name, values in data.extra.items():
         variables[name] = values
     out = []

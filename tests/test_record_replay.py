@@ -6,6 +6,7 @@ import json
 import signal
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -227,3 +228,48 @@ def test_service_tracks_the_delay_online(demo_config, demo_cell, tmp_path):
     assert status.delay_tracking is not None
     assert "updated" in status.delay_tracking
     assert "delay tracking: updated" in procs.log("service")
+
+
+def test_viewer_url_streams_to_a_running_viewer(demo_config, demo_cell, tmp_path):
+    """--viewer: the service streams to a Rerun gRPC endpoint (here Rerun's own headless
+    `rerun --save`, which writes what a viewer would receive)."""
+    import shutil
+    import subprocess
+    import sys
+
+    from keo_service.procs import free_port
+
+    rerun_bin = shutil.which("rerun", path=str(Path(sys.executable).parent))
+    assert rerun_bin, "the rerun-sdk wheel ships the rerun binary"
+    port = free_port()
+    received = tmp_path / "viewer.rrd"
+    viewer = subprocess.Popen(
+        [rerun_bin, "--save", str(received), "--port", str(port)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    config = loopback_config(demo_config)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(config_to_toml(config))
+    run = simulate(demo_cell, make_scenario("paper-step", {"duration_s": "3"}), seed=2)
+    write_run(run, tmp_path / "rec")
+    try:
+        time.sleep(2.0)
+        with process_group(tmp_path) as procs:
+            procs.start(
+                "service",
+                ["run", "--config", str(cfg), "--viewer", f"rerun+http://127.0.0.1:{port}/proxy"],
+            )
+            wait_for_status(config)
+            replay = procs.start(
+                "replay",
+                ["replay", "--config", str(cfg), str(tmp_path / "rec"), "--as-fast-as-possible"],
+            )
+            assert replay.wait(timeout=60) == 0
+            time.sleep(1.0)
+            assert procs.stop("service") == 0
+    finally:
+        viewer.send_signal(signal.SIGINT)
+        viewer.wait(timeout=10)
+    tbl = read_entity(received, "/keo/error/px")
+    assert tbl.num_rows == run.tracker.t.size
