@@ -74,6 +74,7 @@ class RerunSink:
         if viewer is not None:
             sinks.append(rr.GrpcSink(viewer))
         self._rec.set_sinks(*sinks, default_blueprint=blueprint(channels))
+        self._blueprint_channels = tuple(channels)
         self._static_done: set[str] = set()
         self._t: list[float] = []
         self._meas: list[np.ndarray] = []
@@ -101,7 +102,9 @@ class RerunSink:
             self.flush()
             self._channels = estimate.channels
             # the layout follows the measurement: 3 plots for a single reflector, 6 for a probe
-            self._rec.send_blueprint(blueprint(estimate.channels))
+            if tuple(estimate.channels) != self._blueprint_channels:
+                self._rec.send_blueprint(blueprint(estimate.channels))
+                self._blueprint_channels = tuple(estimate.channels)
         n = len(estimate.channels)
         self._t.append(estimate.t)
         self._meas.append(
