@@ -26,12 +26,17 @@ from keo_service.chain import Chain
 from keo_service.config import Config, ModelConfig, config_to_toml
 from keo_service.errors import KeoError
 from keo_service.interchange import read_encoder, read_tracker
-from keo_service.kinematics import load_robot
+from keo_service.kinematics import cell_from_config, load_robot
+from keo_service.timing import DelayModel
 
 DIRECTION_DEADBAND = 1e-4  # rad/s: slower joints count as not moving
 
 
-def load_data(config: Config, encoder_path: Path, tracker_path: Path) -> tuple[Data, bool]:
+def load_data(
+    config: Config, encoder_path: Path, tracker_path: Path, delay: DelayModel | None = None
+) -> tuple[Data, bool]:
+    """Pair each tracker row with the joints at its time minus the delay (the config's
+    unless given); stop-and-measure data (an encoder row at every tracker t) uses none."""
     robot = load_robot(
         config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
     )
@@ -43,8 +48,10 @@ def load_data(config: Config, encoder_path: Path, tracker_path: Path) -> tuple[D
     enc_t, enc_q = enc_t[order], enc_q[order]
     # stop-and-measure data has an encoder row at every tracker row's t: no delay applies
     static = bool(np.all(np.isin(trk.t[np.isfinite(trk.t)], enc_t)))
-    delay = 0.0 if static else config.timing.delay_s
-    target = trk.t - delay
+    if delay is None:
+        timing = config.timing
+        delay = DelayModel(timing.delay_s, timing.drift_ppm * 1e-6, timing.drift_ref_s)
+    target = trk.t.copy() if static else np.array([delay.encoder_time(t) for t in trk.t])
     ok = np.isfinite(trk.t) & np.all(np.isfinite(trk.p), axis=1)
     ok &= (target >= enc_t[0]) & (target <= enc_t[-1])
     if trk.quat is not None:
@@ -220,14 +227,81 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
         head = f"### {e['name']}"
         if "identifiable" in p:
             head += f" ({p['identifiable']} of {p['of']} combinations identifiable)"
-        lines += [
-            head,
-            "",
-            ", ".join(f"{v:.3g} +/- {s:.2g}" for v, s in zip(p["values"], p["se"], strict=True)),
-            "",
-        ]
+        if "values" in p:
+            body = ", ".join(
+                f"{v:.3g} +/- {s:.2g}" for v, s in zip(p["values"], p["se"], strict=True)
+            )
+        else:
+            body = ", ".join(
+                f"{k} = {v:.6g}" if isinstance(v, float) else f"{k} = {v}" for k, v in p.items()
+            )
+        lines += [head, "", body, ""]
     lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots]
     return "\n".join(lines) + "\n"
+
+
+def _is_static(config: Config, encoder: Path, tracker: Path) -> bool:
+    enc = read_encoder(encoder)
+    trk = read_tracker(tracker)
+    return bool(np.all(np.isin(trk.t[np.isfinite(trk.t)], enc.t)))
+
+
+def _time_delay_effect(
+    config: Config, encoder: Path, tracker: Path, data: Data, position_only: bool, say: Any
+) -> tuple[Data, dict[str, Any] | None]:
+    """Motion data: the delay (and drift) from the motion itself, kept if pairing the
+    streams with it lowers the held-out error of the registered nominal model by 5 %."""
+    from keo_service.analysis import KEEP_MARGIN, fit, initial_registration, split, stats
+    from keo_service.delay import DelayNotIdentifiableError, fit_delay
+
+    cell = cell_from_config(config)
+    enc = read_encoder(encoder, nq=cell.robot.nq)
+    trk = read_tracker(tracker)
+    say("trying time_delay (the delay between the streams, from the motion)")
+    try:
+        found = fit_delay(cell, enc.t, enc.q, trk.t, trk.p, trk.quat, initial=config.timing.delay_s)
+    except DelayNotIdentifiableError as exc:
+        say(f"time_delay: not identifiable ({exc})")
+        return data, None
+    model_delay = DelayModel(found.delay_s, found.drift, found.t_ref)
+    new_data, _ = load_data(config, encoder, tracker, model_delay)
+    chain = Chain(cell.robot)
+
+    def held_out(d: Data) -> tuple[dict[str, Any], dict[str, Any]]:
+        tr, va = split(d.n)
+        train, val = d.subset(tr), d.subset(va)
+        tau_tr, tau_va = chain.gravity_torques(train.q), chain.gravity_torques(val.q)
+        model = Model(
+            chain, position_only, [], initial_registration(chain, train, None, position_only)
+        )
+        x = fit(model, train, tau_tr, model.x, 50e-6).x
+        return stats(model, x, train, tau_tr).as_dict(), stats(model, x, val, tau_va).as_dict()
+
+    old_train, old_val = held_out(data)
+    new_train, new_val = held_out(new_data)
+    gain = 1 - new_val["pos_rms_mm"] / old_val["pos_rms_mm"]
+    entry = {
+        "name": "time_delay",
+        "description": "delay (and clock drift) between the streams",
+        "parameters": {
+            "delay_s": found.delay_s,
+            "se_s": found.delay_se_s,
+            "drift_ppm": found.drift * 1e6,
+            "drift_se_ppm": found.drift_se * 1e6,
+            "t_ref_s": found.t_ref,
+            "explained": found.explained,
+        },
+        "train": new_train,
+        "validation": new_val,
+        "held_out_improvement_pct": 100 * gain,
+        "kept": gain >= KEEP_MARGIN,
+        "baseline": {"train": old_train, "validation": old_val},
+    }
+    say(
+        f"time_delay: {found.delay_s * 1e3:.2f} +/- {found.delay_se_s * 1e3:.2f} ms, held-out "
+        f"change {100 * gain:+.1f} %"
+    )
+    return (new_data if entry["kept"] else data), entry
 
 
 def run_analysis(
@@ -237,6 +311,12 @@ def run_analysis(
 
     def progress(msg: str) -> None:
         print(f"[analyze] {msg}", file=sys.stderr, flush=True)
+
+    delay_entry = None
+    if not registration_only and not _is_static(config, encoder, tracker):
+        data, delay_entry = _time_delay_effect(
+            config, encoder, tracker, data, position_only, progress
+        )
 
     robot = load_robot(
         config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
@@ -261,9 +341,27 @@ def run_analysis(
     ).x
     plots = _plots(out, result, data, base_x, baseline)
     report = result.report
+    if delay_entry is not None:
+        if delay_entry.pop("kept"):
+            report["baseline"] = delay_entry.pop("baseline")
+            report["effects"].insert(0, delay_entry)
+        else:
+            delay_entry.pop("baseline")
+            report["rejected"].insert(0, delay_entry)
     report["position_only"] = position_only
     report["registration_only"] = registration_only
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False, default=float))
     (out / "report.md").write_text(markdown(report, plots))
-    (out / "model.toml").write_text(config_to_toml(model_config(result, config)))
+    improved = model_config(result, config)
+    kept_delay = next((e for e in report["effects"] if e["name"] == "time_delay"), None)
+    if kept_delay is not None:
+        p = kept_delay["parameters"]
+        timing = msgspec.structs.replace(
+            improved.timing,
+            delay_s=p["delay_s"],
+            drift_ppm=p["drift_ppm"],
+            drift_ref_s=p["t_ref_s"] if p["drift_ppm"] else 0.0,
+        )
+        improved = msgspec.structs.replace(improved, timing=timing)
+    (out / "model.toml").write_text(config_to_toml(improved))
     return report

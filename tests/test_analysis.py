@@ -234,3 +234,34 @@ def test_real_ur10_data_imports_and_improves(tmp_path):
     assert 0.7 < base < 1.5  # the data README: 0.8-1.1 mm with registration and tool fitted
     assert final < 0.6 * base
     assert "geometry" in [e["name"] for e in report["effects"]]
+
+
+def test_time_delay_found_from_motion_data(tmp_path):
+    """Motion data with a 28 ms delay analysed with a config that says 0: the analysis finds
+    the delay, keeps it for the held-out gain, and writes it into model.toml."""
+    cfg = static_config(tmp_path)  # delay_s = 0
+    sim = tmp_path / "sim"
+    assert (
+        keo(
+            "simulate",
+            "--config",
+            str(cfg),
+            "--scenario",
+            "workspace",
+            "--out",
+            str(sim),
+            "--seed",
+            "2",
+        ).returncode
+        == 0
+    )
+    res = analyze_cli(cfg, sim, tmp_path / "an")
+    assert res.returncode == 0, res.stderr
+    report = json.loads(res.stdout)
+    first = report["effects"][0]
+    assert first["name"] == "time_delay"
+    assert first["parameters"]["delay_s"] == pytest.approx(0.028, abs=1e-3)
+    assert first["held_out_improvement_pct"] > 5
+    model = (tmp_path / "an" / "model.toml").read_text()
+    delay_line = next(line for line in model.splitlines() if line.startswith("delay_s"))
+    assert float(delay_line.split("=")[1]) == pytest.approx(0.028, abs=1e-3)
