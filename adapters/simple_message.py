@@ -20,11 +20,11 @@ JOINT_FEEDBACK_LENGTH = 144
 ROBOT_STATUS_LENGTH = 40
 MAX_FRAME_LENGTH = 4096  # no simple message MotoROS sends is longer
 COMM_TYPES = (1, 2, 3)  # topic, request, reply
-# Other simple-message types a controller may send (ROS-Industrial standard and Motoman
-# extensions). A frame of one of these is skipped whole; any other type id is taken as
-# garbage and resynchronised past byte by byte, so random bytes cannot swallow good frames.
-OTHER_KNOWN_TYPES = frozenset({1, 10, 11, 12, 14, 2001, 2002, 2003, 2004, 2016, 2017})
-MAX_OTHER_LENGTH = 1024
+# Other fixed-size simple messages a controller may send, with their length field
+# (ROS-Industrial JOINT_POSITION, JOINT_TRAJ_PT, JOINT_TRAJ_PT_FULL; Motoman MOTION_CTRL and
+# MOTION_REPLY). Such a frame is skipped whole. Any other (type, length) pair is taken as
+# garbage and passed byte by byte, so random bytes cannot swallow the good frames after them.
+OTHER_KNOWN_LENGTHS = {10: 56, 11: 64, 14: 148, 2001: 64, 2002: 72}
 VALID_POSITION = 2
 VALID_VELOCITY = 4
 MAX_JOINTS = 10
@@ -151,7 +151,7 @@ class SimpleMessageDecoder:
         if comm not in COMM_TYPES:
             return "bad_header", f"comm_type {comm}, expected one of {COMM_TYPES}"
         if msg_type not in (JOINT_FEEDBACK, ROBOT_STATUS) and (
-            msg_type not in OTHER_KNOWN_TYPES or length > MAX_OTHER_LENGTH
+            OTHER_KNOWN_LENGTHS.get(msg_type) != length
         ):
             return (
                 "unknown_type",

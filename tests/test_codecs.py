@@ -71,7 +71,7 @@ def test_wrong_byte_order_is_refused_with_a_hint():
 
 
 def test_unknown_type_is_skipped_and_truncated_frame_counted():
-    unknown = struct.pack("<iiii", 12 + 8, 10, 1, 0) + b"\x00" * 8  # JOINT_POSITION: skipped
+    unknown = struct.pack("<iiii", 56, 10, 1, 0) + b"\x00" * 44  # JOINT_POSITION: skipped
     dec = SimpleMessageDecoder()
     out = dec.feed(unknown + encode_joint_feedback(Q) + encode_joint_feedback(Q)[:50])
     assert len(out) == 1
