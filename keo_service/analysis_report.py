@@ -26,7 +26,7 @@ from keo_service.chain import Chain
 from keo_service.config import Config, ModelConfig, config_to_toml
 from keo_service.errors import KeoError
 from keo_service.interchange import read_encoder, read_tracker
-from keo_service.kinematics import cell_from_config, load_robot
+from keo_service.kinematics import cell_from_config, robot_from_config
 from keo_service.timing import DelayModel
 
 DIRECTION_DEADBAND = 1e-4  # rad/s: slower joints count as not moving
@@ -37,9 +37,7 @@ def load_data(
 ) -> tuple[Data, bool]:
     """Pair each tracker row with the joints at its time minus the delay (the config's
     unless given); stop-and-measure data (an encoder row at every tracker t) uses none."""
-    robot = load_robot(
-        config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
-    )
+    robot = robot_from_config(config)
     enc = read_encoder(encoder_path, nq=robot.nq)
     trk = read_tracker(tracker_path)
     ok_e = np.isfinite(enc.t) & np.all(np.isfinite(enc.q), axis=1)
@@ -318,9 +316,7 @@ def run_analysis(
             config, encoder, tracker, data, position_only, progress
         )
 
-    robot = load_robot(
-        config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
-    )
+    robot = robot_from_config(config)
     chain = Chain(robot)
     fixed = saved_model(config, chain, position_only) if registration_only else None
     try:

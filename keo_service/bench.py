@@ -21,10 +21,10 @@ import numpy as np
 from keo_service.bus import session_for_client
 from keo_service.config import Config, config_to_toml
 from keo_service.demo import loopback_config
-from keo_service.evaluate import as_series, estimate_error_rms
+from keo_service.evaluate import estimate_error_rms, estimate_run
 from keo_service.kinematics import cell_from_config
 from keo_service.messages import EstimateMessage, decode, topic
-from keo_service.pipeline import Estimator, EstimatorSettings, run_offline
+from keo_service.pipeline import Estimator, EstimatorSettings
 from keo_service.procs import process_group
 from keo_service.simulate import SimulatedRun, make_scenario, simulate
 from keo_service.timing import DelayModel
@@ -279,16 +279,7 @@ def accuracy(config: Config, seed: int = 1) -> dict[str, Any]:
 
     def rms_for(**changes: Any) -> tuple[float, float]:
         settings = dataclasses.replace(base, **changes)
-        series = as_series(
-            run_offline(
-                Estimator(cell, settings),
-                run.encoder.t,
-                run.encoder.q,
-                run.tracker.t,
-                run.tracker.p,
-                run.tracker.quat,
-            )
-        )
+        series = estimate_run(cell, settings, run)
         mask = series.t > series.t[0] + 5.0
         return estimate_error_rms(series, run.truth_t, run.truth, mask)
 

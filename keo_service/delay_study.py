@@ -10,9 +10,9 @@ import numpy as np
 
 from keo_service.config import Config
 from keo_service.delay import DelayNotIdentifiableError, fit_delay
-from keo_service.evaluate import as_series, estimate_error_rms
+from keo_service.evaluate import estimate_error_rms, estimate_run
 from keo_service.kinematics import cell_from_config
-from keo_service.pipeline import Estimator, EstimatorSettings, run_offline
+from keo_service.pipeline import EstimatorSettings
 from keo_service.simulate import make_scenario, simulate
 from keo_service.timing import DelayModel
 
@@ -74,16 +74,7 @@ def delay_study(config: Config, seed: int = 1) -> list[dict[str, Any]]:
             ("found", DelayModel(fit.delay_s, fit.drift, fit.t_ref)),
         ):
             settings = dataclasses.replace(base, delay=delay)
-            series = as_series(
-                run_offline(
-                    Estimator(cell, settings),
-                    run.encoder.t,
-                    run.encoder.q,
-                    run.tracker.t,
-                    run.tracker.p,
-                    run.tracker.quat,
-                )
-            )
+            series = estimate_run(cell, settings, run)
             mask = series.t > series.t[0] + 5.0
             pos, _rot = estimate_error_rms(series, run.truth_t, run.truth, mask)
             row[f"estimate_error_{label}_mm"] = pos * 1e3

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from keo_service.pipeline import Estimate
+from keo_service.kinematics import Cell
+from keo_service.pipeline import Estimate, Estimator, EstimatorSettings, run_offline
 
 
 @dataclass(frozen=True)
@@ -59,3 +61,17 @@ def estimate_error_rms(
     pos = rms(err[mask, :3])
     rot = rms(err[mask, 3:6]) if err.shape[1] >= 6 else float("nan")
     return pos, rot
+
+
+def estimate_run(cell: Cell, settings: EstimatorSettings, run: Any) -> Series:
+    """The estimator over a SimulatedRun's streams, in stamp order."""
+    return as_series(
+        run_offline(
+            Estimator(cell, settings),
+            run.encoder.t,
+            run.encoder.q,
+            run.tracker.t,
+            run.tracker.p,
+            run.tracker.quat,
+        )
+    )

@@ -116,14 +116,19 @@ class Cell:
     nominal_model: pin.Model | None = None  # for gravity torques when robot.model is corrected
 
 
+def robot_from_config(config: Any) -> RobotModel:
+    """The nominal robot of a `keo_service.config.Config` (errors name the config key)."""
+    return load_robot(
+        config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
+    )
+
+
 def cell_from_config(config: object) -> Cell:
     """Build a Cell from a `keo_service.config.Config`."""
     from keo_service.config import Config  # local: keeps this module free of config at import
 
     assert isinstance(config, Config)
-    robot = load_robot(
-        config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
-    )
+    robot = robot_from_config(config)
     corrections = corrections_from_config(config.model, robot.nq, config.source)
     nominal = None
     if corrections is not None:

@@ -45,13 +45,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_adapter(args: argparse.Namespace) -> int:
     from adapters.devices import EncoderAdapter, TrackerAdapter
-    from keo_service.kinematics import load_robot
+    from keo_service.kinematics import robot_from_config
 
     config = _config(args.config)
     _setup_logging(args.verbose)
-    nq = load_robot(
-        config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
-    ).nq
+    nq = robot_from_config(config).nq
     kind = {"encoder": EncoderAdapter, "tracker": TrackerAdapter}[args.device]
 
     async def main() -> None:
@@ -287,14 +285,12 @@ def add_live_commands(sub: Any, add: Callable[..., argparse.ArgumentParser]) -> 
 
 def cmd_record(args: argparse.Namespace) -> int:
     from keo_service.bus import session_for_client
-    from keo_service.kinematics import load_robot
+    from keo_service.kinematics import robot_from_config
     from keo_service.recorder import record
 
     config = _config(args.config)
     _setup_logging()
-    nq = load_robot(
-        config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
-    ).nq
+    nq = robot_from_config(config).nq
 
     async def main() -> dict[str, Any]:
         stop = asyncio.Event()
@@ -313,13 +309,11 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from keo_service.bus import session_for_client
-    from keo_service.kinematics import load_robot
+    from keo_service.kinematics import robot_from_config
     from keo_service.recorder import replay
 
     config = _config(args.config)
-    nq = load_robot(
-        config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
-    ).nq
+    nq = robot_from_config(config).nq
 
     async def main() -> dict[str, Any]:
         stop = asyncio.Event()

@@ -10,10 +10,10 @@ from typing import Any
 import numpy as np
 
 from keo_service.config import Config
-from keo_service.evaluate import as_series, estimate_error_rms, truth_at, window_mask
+from keo_service.evaluate import estimate_error_rms, estimate_run, truth_at, window_mask
 from keo_service.kinematics import cell_from_config
 from keo_service.observer import discrete_settling_time, settling_time
-from keo_service.pipeline import Estimator, EstimatorSettings, run_offline
+from keo_service.pipeline import EstimatorSettings
 from keo_service.simulate import SimulatedRun, make_scenario, simulate
 
 PAPER_SETTLING_DEVIATION = "8.44-16.7 % from theory"
@@ -26,11 +26,7 @@ REFERENCE_RATE_HZ = 40.0
 def _run(config: Config, run: SimulatedRun, **changes: Any) -> Any:
     cell = cell_from_config(config)
     settings = dataclasses.replace(EstimatorSettings.from_config(config), **changes)
-    est = Estimator(cell, settings)
-    out = run_offline(
-        est, run.encoder.t, run.encoder.q, run.tracker.t, run.tracker.p, run.tracker.quat
-    )
-    return as_series(out)
+    return estimate_run(cell, settings, run)
 
 
 def _moving_windows(run: SimulatedRun, margin: float) -> list[tuple[float, float]]:
