@@ -67,6 +67,31 @@ def ur10_table(folder: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def soak_text(d: dict) -> str:
+    s = d["summary"]
+    lat = d["latency_ms"]
+    names = {
+        "service": "service",
+        "adapter-encoder": "encoder adapter",
+        "adapter-tracker": "tracker adapter",
+    }
+    rss = ", ".join(
+        f"{label} {s[n]['rss_first_mb']:.1f} → {s[n]['rss_last_mb']:.1f} MB"
+        for n, label in names.items()
+    )
+    fds = ", ".join(
+        f"{label} {s[n]['fds_first']} → {s[n]['fds_last']}" for n, label in names.items()
+    )
+    return (
+        f"Soak (`keo bench --soak {d['seconds']:.0f}`, 1 kHz tracker, 250 Hz robot, every "
+        f"process its own): resident memory from a third of the run to its end: {rss}; "
+        f"open files: {fds}; {d['estimates_received']} estimates for "
+        f"{d['tracker_samples_sent']} tracker samples; latency p50 {lat['p50']:.2f} ms, "
+        f"p99 {lat['p99']:.2f} ms, max {lat['max']:.1f} ms. Queues are bounded by "
+        "construction (deques with a maximum length everywhere).\n"
+    )
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("--paper", type=Path, required=True)
@@ -74,6 +99,7 @@ def main() -> None:
     p.add_argument("--bench", type=Path, required=True)
     p.add_argument("--ur10", type=Path, required=True)
     p.add_argument("--notes", type=Path, help="markdown appended after the UR10 table")
+    p.add_argument("--soak", type=Path, required=True, help="keo bench --soak 600 --json")
     args = p.parse_args()
     text = (HERE / "README.template.md").read_text()
     text = text.replace("@PAPER@", args.paper.read_text())
@@ -83,6 +109,7 @@ def main() -> None:
     if args.notes:
         ur10 += "\n" + args.notes.read_text()
     text = text.replace("@UR10@", ur10)
+    text = text.replace("@SOAK@", soak_text(json.loads(args.soak.read_text())))
     (HERE.parent / "README.md").write_text(text)
 
 

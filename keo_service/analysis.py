@@ -37,7 +37,8 @@ class Data:
     R_ks: np.ndarray | None  # (N, 3, 3) or None (single reflector)
     t: np.ndarray
     extra: dict[str, np.ndarray] = field(default_factory=dict)
-    direction: np.ndarray | None = None  # (N, nq) approach direction of each joint, +-1 / 0
+    direction: np.ndarray | None = None  # (N, nq) direction of each joint's last move, +-1 / 0
+    velocity: np.ndarray | None = None  # (N, nq) joint velocities (motion data), rad/s
 
     def subset(self, idx: np.ndarray) -> Data:
         return Data(
@@ -47,6 +48,7 @@ class Data:
             self.t[idx],
             {k: v[idx] for k, v in self.extra.items()},
             None if self.direction is None else self.direction[idx],
+            None if self.velocity is None else self.velocity[idx],
         )
 
     @property
@@ -55,10 +57,20 @@ class Data:
 
 
 def approach_directions(q: np.ndarray) -> np.ndarray:
-    """For stop-and-measure data in time order: the sign of each joint's last move."""
+    """For stop-and-measure data in time order: the sign of each joint's last move (a joint
+    that did not move keeps the direction it had)."""
     d = np.zeros_like(q)
     d[1:] = np.sign(np.diff(q, axis=0))
-    return d
+    return persist_directions(d)
+
+
+def persist_directions(direction: np.ndarray) -> np.ndarray:
+    """A joint that does not move keeps the direction of its last move (its backlash side)."""
+    out = direction.copy()
+    for i in range(1, out.shape[0]):
+        still = out[i] == 0
+        out[i, still] = out[i - 1, still]
+    return out
 
 
 @dataclass
@@ -440,7 +452,15 @@ def correlations(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> li
     variables.update({f"gravity_torque_{j + 1}": tau[:, j] for j in range(tau.shape[1])})
     variables["time"] = data.t
     variables["tracker_distance"] = np.linalg.norm(data.p_ks, axis=1)
-    if data.direction is not None:  # direction of motion (or of the last move, static data)
+    if data.velocity is not None:  # motion data: how fast each joint moved
+        variables.update(
+            {
+                f"joint_speed_{j + 1}": np.abs(data.velocity[:, j])
+                for j in range(data.velocity.shape[1])
+            }
+        )
+        variables["joint_speed_norm"] = np.linalg.norm(data.velocity, axis=1)
+    if data.direction is not None:  # direction of the last move of each joint
         variables.update(
             {f"direction_{j + 1}": data.direction[:, j] for j in range(data.direction.shape[1])}
         )

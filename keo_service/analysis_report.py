@@ -21,6 +21,7 @@ from keo_service.analysis import (
     Model,
     NotIdentifiableError,
     analyze,
+    persist_directions,
 )
 from keo_service.chain import Chain
 from keo_service.config import Config, ModelConfig, config_to_toml
@@ -56,6 +57,7 @@ def load_data(
         ok &= np.all(np.isfinite(trk.quat), axis=1)
     target = target[ok]
     q = np.column_stack([np.interp(target, enc_t, enc_q[:, j]) for j in range(robot.nq)])
+    velocity = tool_speed = None
     if static:  # stop-and-measure: approach direction from the previous pose
         direction = np.zeros_like(q)
         direction[1:] = np.sign(np.diff(q, axis=0))
@@ -67,14 +69,20 @@ def load_data(
         behind = np.column_stack(
             [np.interp(target - h, enc_t, enc_q[:, j]) for j in range(robot.nq)]
         )
-        vel = (ahead - behind) / (2 * h)
-        direction = np.where(np.abs(vel) > DIRECTION_DEADBAND, np.sign(vel), 0.0)
+        velocity = (ahead - behind) / (2 * h)
+        direction = np.where(np.abs(velocity) > DIRECTION_DEADBAND, np.sign(velocity), 0.0)
+        chain = Chain(robot)
+        moved = chain.flange_poses(ahead)[:, :3, 3] - chain.flange_poses(behind)[:, :3, 3]
+        tool_speed = np.linalg.norm(moved, axis=1) / (2 * h)
+    direction = persist_directions(direction)
     R = None
     if trk.quat is not None:
         quat = trk.quat[ok]
         R = Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix()
     extra = {k: v[ok] for k, v in trk.extra.items()}
-    return Data(q, trk.p[ok], R, trk.t[ok], extra, direction), trk.quat is None
+    if tool_speed is not None:
+        extra["tool_speed_m_s"] = tool_speed
+    return Data(q, trk.p[ok], R, trk.t[ok], extra, direction, velocity), trk.quat is None
 
 
 def saved_model(config: Config, chain: Chain, position_only: bool) -> Model:

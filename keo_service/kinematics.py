@@ -196,21 +196,24 @@ def flange_pose(robot: RobotModel, data: pin.Data, q: np.ndarray) -> pin.SE3:
     return data.oMf[robot.base_frame_id].actInv(T_on)
 
 
-def tool_pose(cell: Cell, data: pin.Data, q: np.ndarray) -> pin.SE3:
-    """T_bt(q) = T_bn(q) T_nt, on the identified model when the cell has one."""
+def tool_pose(
+    cell: Cell, data: pin.Data, q: np.ndarray, direction: np.ndarray | None = None
+) -> pin.SE3:
+    """T_bt(q) = T_bn(q) T_nt, on the identified model when the cell has one (`direction`:
+    each joint's direction of its last move, for backlash)."""
     if cell.corrections is not None:
-        q = corrected_joints(cell, q)
+        q = corrected_joints(cell, q, direction)
     return flange_pose(cell.robot, data, q) * cell.T_nt
 
 
-def corrected_joints(cell: Cell, q: np.ndarray) -> np.ndarray:
+def corrected_joints(cell: Cell, q: np.ndarray, direction: np.ndarray | None = None) -> np.ndarray:
     corr = cell.corrections
     assert corr is not None
     tau = None
     if np.any(corr.compliance):
         model = cell.nominal_model if cell.nominal_model is not None else cell.robot.model
         tau = np.asarray(pin.computeGeneralizedGravity(model, model.createData(), q))
-    return np.asarray(corr.joint_angles(np.asarray(q, dtype=float), tau))
+    return np.asarray(corr.joint_angles(np.asarray(q, dtype=float), tau, direction))
 
 
 def log3(R: np.ndarray) -> np.ndarray:
@@ -233,14 +236,19 @@ def position_error(T_bt: pin.SE3, p_bs: np.ndarray) -> np.ndarray:
 
 
 def measured_error(
-    cell: Cell, data: pin.Data, q: np.ndarray, p_ks: np.ndarray, q_ks: np.ndarray | None
+    cell: Cell,
+    data: pin.Data,
+    q: np.ndarray,
+    p_ks: np.ndarray,
+    q_ks: np.ndarray | None,
+    direction: np.ndarray | None = None,
 ) -> np.ndarray:
     """The measured error for joints q and a tracker measurement in the tracker frame.
 
     `q_ks` is the sensor orientation as a unit quaternion (w, x, y, z), or None for a
     single-reflector tracker: then only the 3 position channels are returned.
     """
-    T_bt = tool_pose(cell, data, q)
+    T_bt = tool_pose(cell, data, q, direction)
     if q_ks is None:
         return position_error(T_bt, cell.T_bk.act(np.asarray(p_ks, dtype=float)))
     return pose_error(T_bt, cell.T_bk * se3_from_xyz_quat(p_ks, q_ks))

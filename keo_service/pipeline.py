@@ -21,6 +21,7 @@ from keo_service.observer import KinematicErrorObserver
 from keo_service.timing import Coverage, DelayModel, EncoderBuffer
 
 UNIT_QUATERNION_TOLERANCE = 1e-4
+DIRECTION_DEADBAND = 1e-4  # rad/s: a joint slower than this keeps its last direction
 DELAY_SLEW = 0.001  # a new delay is approached at this many s per s of stream time
 MAX_PENDING = 2048
 MAX_MESSAGES = 32
@@ -102,6 +103,8 @@ class Estimator:
         self.channels: tuple[str, ...] | None = None
         self._delay = settings.delay
         self._delay_target: float | None = None
+        self._prev_q: np.ndarray | None = None
+        self._direction = np.zeros(self._nq)  # each joint's direction of its last move
         self._recent_dt: deque[float] = deque(maxlen=64)
         self._step_cap: float | None = None
         self._dt_seen = 0
@@ -161,6 +164,11 @@ class Estimator:
                 "encoder_out_of_order",
                 f"encoder sample at t={t!r}: older than the newest ({newest!r})",
             )
+        if self._prev_q is not None:
+            step = q_arr - self._prev_q
+            moved = np.abs(step) > DIRECTION_DEADBAND * max(t - newest, 1e-6)
+            self._direction[moved] = np.sign(step[moved])
+        self._prev_q = q_arr
         self.encoder.push(t, q_arr)
         self.counters["encoder_samples"] += 1
         return self._advance()
@@ -321,7 +329,7 @@ class Estimator:
                 Coverage.GAP: "encoder_gap",
             }[coverage]
             return self._held(sample.t, reason, target)
-        measured = measured_error(self.cell, self._data, q, sample.p, sample.quat)
+        measured = measured_error(self.cell, self._data, q, sample.p, sample.quat, self._direction)
         return self._update(sample.t, measured, target, q)
 
     def _update(
@@ -391,7 +399,7 @@ class Estimator:
             return self._held(tau, "encoder_stale", target)
         if tau - trk.t > stale:
             return self._held(tau, "tracker_stale", target)
-        measured = measured_error(self.cell, self._data, enc[1], trk.p, trk.quat)
+        measured = measured_error(self.cell, self._data, enc[1], trk.p, trk.quat, self._direction)
         est = self._update(tau, measured, enc[0], enc[1])
         if trk.tag is not None and not est.held:
             self.last = est = dataclasses.replace(est, source=trk.tag)

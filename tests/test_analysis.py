@@ -265,3 +265,48 @@ def test_time_delay_found_from_motion_data(tmp_path):
     model = (tmp_path / "an" / "model.toml").read_text()
     delay_line = next(line for line in model.splitlines() if line.startswith("delay_s"))
     assert float(delay_line.split("=")[1]) == pytest.approx(0.028, abs=1e-3)
+
+
+def test_backlash_in_model_toml_is_applied_by_estimate(tmp_path):
+    """Backlash identified offline is applied by the live estimator (direction of each joint's
+    last move, tracked from the encoder stream)."""
+    cfg = static_config(tmp_path)
+    sim = tmp_path / "sim"
+    sets = ["--set", "geometric_errors=false", "--set", "backlash_rad=3e-4"]
+    assert (
+        keo(
+            "simulate",
+            "--config",
+            str(cfg),
+            "--scenario",
+            "static-poses",
+            "--out",
+            str(sim),
+            "--seed",
+            "9",
+            *sets,
+        ).returncode
+        == 0
+    )
+    res = analyze_cli(cfg, sim, tmp_path / "an")
+    assert res.returncode == 0, res.stderr
+    assert "backlash" in [e["name"] for e in json.loads(res.stdout)["effects"]]
+    rms = {}
+    for name, config in (("nominal", cfg), ("model", tmp_path / "an" / "model.toml")):
+        est = tmp_path / f"{name}.csv"
+        r = keo(
+            "estimate",
+            "--config",
+            str(config),
+            "--encoder",
+            str(sim / "encoder.csv"),
+            "--tracker",
+            str(sim / "tracker.csv"),
+            "--out",
+            str(est),
+        )
+        assert r.returncode == 0, r.stderr
+        meas = read_estimates(est).measured[1:]  # the first pose has no previous move
+        rms[name] = float(np.sqrt(np.mean(np.sum(meas[:, :3] ** 2, axis=1))))
+    assert rms["nominal"] > 0.3e-3
+    assert rms["model"] < 0.06e-3
