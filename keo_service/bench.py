@@ -213,8 +213,12 @@ def end_to_end(
     sent = int(played.tracker.t.size)
     # latency after a warm-up of 0.5 s (connections settle, the first samples wait for encoder
     # data that predates the subscription)
+    # good estimates only: the held ones at the very end (tracker samples stamped after the
+    # last encoder sample, answered by the quiet-time flush) say nothing about latency
     in_window = [
-        (a, m) for a, m in items if m.tracker_device_t is not None and m.tracker_device_t > t0 + 0.5
+        (a, m)
+        for a, m in items
+        if m.tracker_device_t is not None and m.tracker_device_t > t0 + 0.5 and not m.flags
     ]
     lat = np.array([a - m.tracker_device_t for a, m in in_window]) * 1e3
     held = sum(1 for _a, m in items if m.measured is None)
