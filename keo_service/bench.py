@@ -171,7 +171,9 @@ def end_to_end(
         f"duration_s={seconds}",
     ]
     set_args = [a for s in sets for a in ("--set", s)]
-    startup = 5.0
+    # the mocks simulate the whole scenario before they listen (about 2 % of its length at
+    # 1 kHz): start the play late enough that no device data is skipped
+    startup = 5.0 + 0.04 * seconds * tracker_hz / 1000.0
     t0 = time.time() + startup
     play = ["--scenario", "path", "--seed", "1", "--t0", repr(t0), *set_args]
     names = ["service", "mock-robot", "mock-tracker", "adapter-encoder", "adapter-tracker"]

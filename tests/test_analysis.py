@@ -309,4 +309,4 @@ def test_backlash_in_model_toml_is_applied_by_estimate(tmp_path):
         meas = read_estimates(est).measured[1:]  # the first pose has no previous move
         rms[name] = float(np.sqrt(np.mean(np.sum(meas[:, :3] ** 2, axis=1))))
     assert rms["nominal"] > 0.3e-3
-    assert rms["model"] < 0.06e-3
+    assert rms["model"] < 0.08e-3  # the noise alone is ~0.035 mm
