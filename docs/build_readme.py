@@ -1,6 +1,8 @@
 """Build README.md from docs/README.template.md and generated results.
 
-    python docs/build_readme.py --paper P.md --delay D.md --bench B.json --ur10 DIR
+    python docs/build_readme.py --paper docs/results/paper.md --delay docs/results/delay.md \
+        --bench docs/results/bench.json --ur10 docs/results/ur10 \
+        --notes docs/results/ur10_notes.md --soak docs/results/soak.json
 
 DIR holds analyses of the shared UR10 data: A/an.json, B/an.json (full analyses) and
 A/reg.json, B/reg.json (registration-only with the other series' model.toml).
