@@ -17,6 +17,7 @@ standard error is large and we refuse to give a number.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import itertools
 import math
 from collections.abc import Sequence
@@ -379,7 +380,12 @@ class OnlineDelayTracker:
     def __init__(
         self, cell: Cell, window_s: float = 20.0, period_s: float = 10.0, max_samples: int = 40_000
     ) -> None:
-        self.cell = cell
+        # fits run off the event loop: give them their own scratch data for gravity torques
+        self.cell = (
+            cell
+            if cell.nominal_model is None
+            else dataclasses.replace(cell, gravity_data=cell.nominal_model.createData())
+        )
         self.window_s = window_s
         self.period_s = period_s
         self._enc: collections.deque[tuple[float, np.ndarray]] = collections.deque(

@@ -114,6 +114,7 @@ class Cell:
     T_bk: pin.SE3  # base -> tracker
     corrections: Corrections | None = None  # an identified model (keo analyze), if any
     nominal_model: pin.Model | None = None  # for gravity torques when robot.model is corrected
+    gravity_data: pin.Data | None = None  # scratch for those torques (not per sample)
 
 
 def robot_from_config(config: Any) -> RobotModel:
@@ -155,6 +156,7 @@ def cell_from_config(config: object) -> Cell:
         T_bk=se3_from_xyz_rpy(config.tracker.xyz, config.tracker.rpy),
         corrections=corrections,
         nominal_model=nominal,
+        gravity_data=None if nominal is None else nominal.createData(),
     )
 
 
@@ -210,9 +212,8 @@ def corrected_joints(cell: Cell, q: np.ndarray, direction: np.ndarray | None = N
     corr = cell.corrections
     assert corr is not None
     tau = None
-    if np.any(corr.compliance):
-        model = cell.nominal_model if cell.nominal_model is not None else cell.robot.model
-        tau = np.asarray(pin.computeGeneralizedGravity(model, model.createData(), q))
+    if np.any(corr.compliance) and cell.nominal_model is not None:
+        tau = np.asarray(pin.computeGeneralizedGravity(cell.nominal_model, cell.gravity_data, q))
     return np.asarray(corr.joint_angles(np.asarray(q, dtype=float), tau, direction))
 
 
