@@ -250,10 +250,10 @@ class Estimator:
         out: list[Estimate] = []
         if self.settings.alignment == "interpolate":
             while self._pending:
-                out.append(self._resolve(self._pending.popleft(), final=True))
+                out.append(self._resolve(self._pending.popleft()))
         else:
             out.extend(self._run_ticks(final=True))
-        return [e for e in out if e is not None]
+        return out
 
     # ---- internals ----------------------------------------------------------------------
 
@@ -304,10 +304,10 @@ class Estimator:
                 if self.encoder.newest_t < target and waited <= self.settings.stale_after_s:
                     break  # wait for the encoder stream to cover it
             self._pending.popleft()
-            out.append(self._resolve(head, final=False))
+            out.append(self._resolve(head))
         return out
 
-    def _resolve(self, sample: _TrackerSample, final: bool) -> Estimate:
+    def _resolve(self, sample: _TrackerSample) -> Estimate:
         est = self._resolve_untagged(sample)
         if sample.tag is None:
             return est

@@ -204,7 +204,7 @@ def test_service_tracks_the_delay_online(demo_config, demo_cell, tmp_path):
     config = loopback_config(msgspec.structs.replace(demo_config, timing=timing))
     cfg = tmp_path / "c.toml"
     cfg.write_text(config_to_toml(config))
-    run = simulate(demo_cell, make_scenario("path", {"duration_s": "70"}), seed=12)
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "120"}), seed=12)
     write_run(run, tmp_path / "rec")
     with process_group(tmp_path) as procs:
         procs.start("service", ["run", "--config", str(cfg)])
