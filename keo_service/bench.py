@@ -179,14 +179,7 @@ def end_to_end(
     names = ["service", "mock-robot", "mock-tracker", "adapter-encoder", "adapter-tracker"]
     with process_group(work) as procs:
         extra = ["--rrd", str(work / "bench.rrd")] if rrd else []
-        procs.start("service", ["run", "--config", str(cfg), *extra])
-        procs.start("mock-robot", ["mock", "robot", "--config", str(cfg), *play])
-        procs.start(
-            "mock-tracker",
-            ["mock", "tracker", "--config", str(cfg), *play, "--wall-clock-device-time"],
-        )
-        procs.start("adapter-encoder", ["adapter", "encoder", "--config", str(cfg)])
-        procs.start("adapter-tracker", ["adapter", "tracker", "--config", str(cfg)])
+        procs.start_cell(cfg, play, service=extra, tracker=["--wall-clock-device-time"])
         collector = _Collector(config)
         pids = {n: procs.procs[n].pid for n in names}
         time.sleep(max(0.0, t0 + 0.5 - time.time()))

@@ -92,11 +92,7 @@ def run_demo(args: argparse.Namespace) -> int:
     status = None
     with process_group(work) as procs:
         rrd = ["--rrd", str(args.rrd.resolve())] if args.rrd is not None else []
-        procs.start("service", ["run", "--config", str(cfg_path), *rrd])
-        procs.start("mock-robot", ["mock", "robot", "--config", str(cfg_path), *play])
-        procs.start("mock-tracker", ["mock", "tracker", "--config", str(cfg_path), *play])
-        procs.start("adapter-encoder", ["adapter", "encoder", "--config", str(cfg_path)])
-        procs.start("adapter-tracker", ["adapter", "tracker", "--config", str(cfg_path)])
+        procs.start_cell(cfg_path, play, service=rrd)
         if not args.json:
             print(
                 f"keo demo: 5 processes on loopback (logs in {work}); playing {SCENARIO} "

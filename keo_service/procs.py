@@ -37,6 +37,22 @@ class ProcessGroup:
         self.procs[name] = proc
         return proc
 
+    def start_cell(
+        self,
+        config: Path,
+        play: Sequence[str],
+        service: Sequence[str] = (),
+        tracker: Sequence[str] = (),
+    ) -> None:
+        """The whole chain of one cell: service, mock robot and tracker playing `play`, and
+        both adapters (names: service, mock-robot, mock-tracker, adapter-encoder/-tracker)."""
+        cfg = ["--config", str(config)]
+        self.start("service", ["run", *cfg, *service])
+        self.start("mock-robot", ["mock", "robot", *cfg, *play])
+        self.start("mock-tracker", ["mock", "tracker", *cfg, *play, *tracker])
+        self.start("adapter-encoder", ["adapter", "encoder", *cfg])
+        self.start("adapter-tracker", ["adapter", "tracker", *cfg])
+
     def stop(self, name: str, timeout: float = 3.0) -> int | None:
         proc = self.procs.pop(name)
         if proc.poll() is None:

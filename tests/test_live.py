@@ -129,11 +129,7 @@ def test_chain_as_processes(live_config, demo_cell, tmp_path):
         repr(duration),
     ]
     with process_group(tmp_path) as procs:
-        procs.start("service", ["run", "--config", str(cfg)])
-        procs.start("mock-robot", ["mock", "robot", "--config", str(cfg), *play])
-        procs.start("mock-tracker", ["mock", "tracker", "--config", str(cfg), *play])
-        procs.start("encoder", ["adapter", "encoder", "--config", str(cfg)])
-        procs.start("tracker", ["adapter", "tracker", "--config", str(cfg)])
+        procs.start_cell(cfg, play)
         client = session_for_client(live_config, retry_for=20)
         try:
             alive = client.liveliness().declare_subscriber(
@@ -151,7 +147,7 @@ def test_chain_as_processes(live_config, demo_cell, tmp_path):
         started = time.monotonic()
         code = procs.stop("service")
         stop_time = time.monotonic() - started
-        logs = {name: procs.log(name) for name in ("service", "encoder", "tracker")}
+        logs = {name: procs.log(name) for name in ("service", "adapter-encoder", "adapter-tracker")}
     assert code == 0, logs["service"]
     assert stop_time < 2.0
     check_converged(estimates, truth, t0)
@@ -172,11 +168,7 @@ def test_echo_prints_estimates_as_json(live_config, demo_cell, tmp_path):
     t0 = time.time() + 4.0
     play = ["--scenario", "paper-step", "--seed", "3", "--t0", repr(t0), "--duration", "3"]
     with process_group(tmp_path) as procs:
-        procs.start("service", ["run", "--config", str(cfg)])
-        procs.start("mock-robot", ["mock", "robot", "--config", str(cfg), *play])
-        procs.start("mock-tracker", ["mock", "tracker", "--config", str(cfg), *play])
-        procs.start("encoder", ["adapter", "encoder", "--config", str(cfg)])
-        procs.start("tracker", ["adapter", "tracker", "--config", str(cfg)])
+        procs.start_cell(cfg, play)
         echo = procs.start(
             "echo",
             [
@@ -224,13 +216,7 @@ def test_position_only_tracker_live(live_config, demo_cell, tmp_path):
     play = ["--scenario", "paper-step", "--seed", "3", "--t0", repr(t0), "--duration", "4"]
     rrd = tmp_path / "po.rrd"
     with process_group(tmp_path) as procs:
-        procs.start("service", ["run", "--config", str(cfg), "--rrd", str(rrd)])
-        procs.start("mock-robot", ["mock", "robot", "--config", str(cfg), *play])
-        procs.start(
-            "mock-tracker", ["mock", "tracker", "--config", str(cfg), *play, "--position-only"]
-        )
-        procs.start("encoder", ["adapter", "encoder", "--config", str(cfg)])
-        procs.start("tracker", ["adapter", "tracker", "--config", str(cfg)])
+        procs.start_cell(cfg, play, service=["--rrd", str(rrd)], tracker=["--position-only"])
         echo = procs.start(
             "echo",
             [

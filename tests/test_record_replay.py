@@ -151,11 +151,7 @@ def test_record_writes_what_the_devices_sent_and_survives_a_kill(demo_config, de
         repr(duration),
     ]
     with process_group(tmp_path) as procs:
-        procs.start("service", ["run", "--config", str(cfg)])  # the bus endpoint everyone joins
-        procs.start("mock-robot", ["mock", "robot", "--config", str(cfg), *play])
-        procs.start("mock-tracker", ["mock", "tracker", "--config", str(cfg), *play])
-        procs.start("encoder", ["adapter", "encoder", "--config", str(cfg)])
-        procs.start("tracker", ["adapter", "tracker", "--config", str(cfg)])
+        procs.start_cell(cfg, play)  # the service is the bus endpoint everyone joins
         # a recorder that is killed hard half-way, and one that runs to the end
         killed = procs.start(
             "killed", ["record", "--config", str(cfg), "--out", str(tmp_path / "killed")]
