@@ -125,24 +125,35 @@ def _proc_mem_kb(pid: int) -> dict[str, int]:
 
 
 class _Collector:
+    """The subscriber at the end of the chain. It is the measuring instrument, so its callback
+    keeps only an arrival time and the raw bytes (no object the garbage collector tracks: a
+    growing list of decoded messages cost a 30 ms gen-2 pause mid-run) and decodes afterwards."""
+
     def __init__(self, config: Config) -> None:
         self.session = session_for_client(config, retry_for=30)
-        self.items: list[tuple[float, EstimateMessage]] = []
+        self._arrived: list[float] = []
+        self._payloads: list[bytes] = []
         self._lock = threading.Lock()
         self.sub = self.session.declare_subscriber(topic(config.cell, "estimate"), self._on)
 
     def _on(self, sample: Any) -> None:
         arrived = time.time()
-        msg = decode(sample.payload.to_bytes())
-        if isinstance(msg, EstimateMessage):
-            with self._lock:
-                self.items.append((arrived, msg))
+        payload = sample.payload.to_bytes()
+        with self._lock:
+            self._arrived.append(arrived)
+            self._payloads.append(payload)
 
     def close(self) -> list[tuple[float, EstimateMessage]]:
         self.sub.undeclare()
         self.session.close()
         with self._lock:
-            return list(self.items)
+            pairs = list(zip(self._arrived, self._payloads, strict=True))
+        out = []
+        for arrived, payload in pairs:
+            msg = decode(payload)
+            if isinstance(msg, EstimateMessage):
+                out.append((arrived, msg))
+        return out
 
 
 def _open_fds(pid: int) -> int:
@@ -156,9 +167,11 @@ def end_to_end(
     encoder_hz: float = 250.0,
     rrd: bool = False,
     sample_every: float | None = None,
+    relay_only: bool = False,
 ) -> dict[str, Any]:
     """Each component its own process; latency from the tracker line leaving the mock to the
-    estimate arriving at a subscriber."""
+    estimate arriving at a subscriber, split at the service's publish stamp. `relay_only`: the
+    transport floor, with a pass-through relay in the service's place."""
     work = Path(tempfile.mkdtemp(prefix="keo-bench-"))
     cfg = work / "bench.toml"
     cfg.write_text(config_to_toml(config))
@@ -179,7 +192,9 @@ def end_to_end(
     names = ["service", "mock-robot", "mock-tracker", "adapter-encoder", "adapter-tracker"]
     with process_group(work) as procs:
         extra = ["--rrd", str(work / "bench.rrd")] if rrd else []
-        procs.start_cell(cfg, play, service=extra, tracker=["--wall-clock-device-time"])
+        procs.start_cell(
+            cfg, play, service=extra, tracker=["--wall-clock-device-time"], relay_only=relay_only
+        )
         collector = _Collector(config)
         pids = {n: procs.procs[n].pid for n in names}
         time.sleep(max(0.0, t0 + 0.5 - time.time()))
@@ -216,6 +231,8 @@ def end_to_end(
         if m.tracker_device_t is not None and m.tracker_device_t > t0 + 0.5 and not m.flags
     ]
     lat = np.array([a - m.tracker_device_t for a, m in in_window]) * 1e3
+    to_publish = np.array([m.host_ns * 1e-9 - m.tracker_device_t for _a, m in in_window]) * 1e3
+    to_subscriber = np.array([a - m.host_ns * 1e-9 for a, m in in_window]) * 1e3
     held = sum(1 for _a, m in items if m.measured is None)
     procs_out = {
         n: {
@@ -233,13 +250,21 @@ def end_to_end(
         "estimates_received": len(items),
         "held": held,
         "lost": max(0, sent - len(items)),
-        "latency_ms": {
-            "p50": float(np.percentile(lat, 50)) if lat.size else None,
-            "p99": float(np.percentile(lat, 99)) if lat.size else None,
-            "max": float(lat.max()) if lat.size else None,
-        },
+        "latency_ms": _percentiles(lat),
+        "latency_to_service_publish_ms": _percentiles(to_publish),
+        "latency_publish_to_subscriber_ms": _percentiles(to_subscriber),
         "processes": procs_out,
         "trace": trace,
+    }
+
+
+def _percentiles(ms: np.ndarray) -> dict[str, float | None]:
+    if not ms.size:
+        return {"p50": None, "p99": None, "max": None}
+    return {
+        "p50": float(np.percentile(ms, 50)),
+        "p99": float(np.percentile(ms, 99)),
+        "max": float(ms.max()),
     }
 
 
@@ -334,6 +359,7 @@ def run_bench(config: Config, quick: bool) -> dict[str, Any]:
     out["hot_path"] = hot_path(config, hp_seconds, with_rerun=False)
     out["hot_path_rerun"] = hot_path(config, hp_seconds, with_rerun=True)
     out["end_to_end"] = end_to_end(loopback_config(config), e2e_seconds)
+    out["transport_floor"] = end_to_end(loopback_config(config), e2e_seconds, relay_only=True)
     if not quick:
         out["end_to_end_rerun"] = end_to_end(loopback_config(config), e2e_seconds, rrd=True)
     rates = [1000.0, 2000.0] if quick else [1000.0, 2000.0, 4000.0, 8000.0]
@@ -359,22 +385,42 @@ def bench_table(r: dict[str, Any]) -> str:
         f"| hot path with Rerun logging (batched at 10 Hz) | {hpr['samples_per_s']:,.0f} "
         f"(x{hp['samples_per_s'] / hpr['samples_per_s']:.2f} the cost) |",
     ]
-    for key, label in (("end_to_end", "end to end"), ("end_to_end_rerun", "end to end, --rrd")):
+
+    def ms(d: dict[str, float | None]) -> str:
+        return ", ".join(f"{k} {v:.2f} ms" for k, v in d.items() if v is not None)
+
+    rows = (
+        ("end_to_end", "end to end"),
+        ("transport_floor", "transport floor (pass-through relay in the service's place)"),
+        ("end_to_end_rerun", "end to end, --rrd"),
+    )
+    for key, label in rows:
         if key not in r:
             continue
         e = r[key]
-        lat = e["latency_ms"]
         lines.append(
             f"| {label}: tracker {e['tracker_hz']:.0f} Hz, robot {e['encoder_hz']:.0f} Hz, "
-            f"{e['seconds']:.0f} s | latency p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, "
-            f"max {lat['max']:.2f} ms; {e['estimates_received']} estimates for "
-            f"{e['tracker_samples_sent']} samples |"
+            f"{e['seconds']:.0f} s | latency {ms(e['latency_ms'])}; "
+            f"{e['estimates_received']} estimates for {e['tracker_samples_sent']} samples |"
         )
+        if "latency_to_service_publish_ms" in e:
+            lines.append(
+                f"| {label}: tracker line -> service publish / publish -> subscriber | "
+                f"{ms(e['latency_to_service_publish_ms'])} / "
+                f"{ms(e['latency_publish_to_subscriber_ms'])} |"
+            )
         for name, p in e["processes"].items():
             lines.append(
                 f"| {label}: {name} | CPU {p['cpu_pct']:.1f} %, peak RSS "
                 f"{p['peak_rss_mb']:.0f} MB, RSS growth after warm-up "
                 f"{p['rss_growth_mb']:+.1f} MB |"
+            )
+    if "transport_floor" in r:
+        keo, floor = r["end_to_end"]["latency_ms"], r["transport_floor"]["latency_ms"]
+        if keo["p99"] and floor["p99"]:
+            lines.append(
+                f"| keo over the transport floor, same run | p50 x{keo['p50'] / floor['p50']:.2f}, "
+                f"p99 x{keo['p99'] / floor['p99']:.2f} |"
             )
     c = r["capacity"]
     steps = ", ".join(f"{s['tracker_hz']:.0f} Hz: {s['received']}/{s['sent']}" for s in c["steps"])

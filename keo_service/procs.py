@@ -25,11 +25,13 @@ class ProcessGroup:
         self.log_dir = log_dir
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
 
-    def start(self, name: str, args: Sequence[str]) -> subprocess.Popen[bytes]:
+    def start(
+        self, name: str, args: Sequence[str], module: str = "keo_service.cli"
+    ) -> subprocess.Popen[bytes]:
         log = (self.log_dir / f"{name}.log").open("wb")
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         proc = subprocess.Popen(
-            [sys.executable, "-m", "keo_service.cli", *args],
+            [sys.executable, "-m", module, *args],
             stdout=log,
             stderr=subprocess.STDOUT,
             env=env,
@@ -43,11 +45,16 @@ class ProcessGroup:
         play: Sequence[str],
         service: Sequence[str] = (),
         tracker: Sequence[str] = (),
+        relay_only: bool = False,
     ) -> None:
         """The whole chain of one cell: service, mock robot and tracker playing `play`, and
-        both adapters (names: service, mock-robot, mock-tracker, adapter-encoder/-tracker)."""
+        both adapters (names: service, mock-robot, mock-tracker, adapter-encoder/-tracker).
+        `relay_only`: the bench's pass-through relay stands where the service would."""
         cfg = ["--config", str(config)]
-        self.start("service", ["run", *cfg, *service])
+        if relay_only:
+            self.start("service", cfg, module="keo_service.bench_relay")
+        else:
+            self.start("service", ["run", *cfg, *service])
         self.start("mock-robot", ["mock", "robot", *cfg, *play])
         self.start("mock-tracker", ["mock", "tracker", *cfg, *play, *tracker])
         self.start("adapter-encoder", ["adapter", "encoder", *cfg])

@@ -1,0 +1,62 @@
+"""The benchmark's transport floor: a stand-in for `keo run` that moves the same messages over
+the same bus plumbing and does no estimation.
+
+It opens the bus as the service does, takes the encoder and tracker streams through the same
+`AsyncSubscription`, decodes every sample and answers each tracker sample with an estimate
+message (zeros) on the estimate topic. `keo bench` runs the whole chain once with the service
+and once with this relay: the difference is what keo's own work adds on that machine.
+Run as `python -m keo_service.bench_relay --config FILE`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+import time
+
+from keo_service.bus import AsyncSubscription, open_session
+from keo_service.config import Config, load_config
+from keo_service.messages import EstimateMessage, TrackerSample, decode, encode, topic
+
+CHANNELS = ["x", "y", "z", "rx", "ry", "rz"]
+
+
+async def relay(config: Config) -> None:
+    bus = config.bus
+    session = open_session(bus.mode, bus.listen, bus.connect, bus.multicast_scouting, tls=bus)
+    pub = session.declare_publisher(topic(config.cell, "estimate"), express=True)
+    sub = AsyncSubscription(session, [topic(config.cell, "encoder"), topic(config.cell, "tracker")])
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, sub.close)
+    zeros = [0.0] * len(CHANNELS)
+    seq = 0
+    async for _key, payload in sub:
+        msg = decode(payload)
+        if not isinstance(msg, TrackerSample) or msg.p is None:
+            continue
+        seq += 1
+        out = EstimateMessage(
+            stamp=msg.t,
+            host_ns=time.time_ns(),
+            channels=CHANNELS,
+            measured=zeros,
+            estimate=zeros,
+            flags=[],
+            delay_s=0.0,
+            seq=seq,
+            tracker_device_t=msg.device_t,
+        )
+        pub.put(encode(out))
+    session.close()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", required=True)
+    asyncio.run(relay(load_config(parser.parse_args().config)))
+
+
+if __name__ == "__main__":
+    main()

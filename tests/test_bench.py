@@ -1,0 +1,64 @@
+"""The benchmark's own instruments: the end-to-end chain and its transport floor (real
+processes). Timing is not judged here (noisy machines); what must hold is that every tracker
+sample is answered and that the stage split adds up."""
+
+from __future__ import annotations
+
+import pytest
+
+from keo_service.bench import bench_table, end_to_end
+from keo_service.demo import loopback_config
+
+
+@pytest.mark.parametrize("relay_only", [False, True], ids=["service", "transport-floor"])
+def test_end_to_end_chain_answers_every_tracker_sample(demo_config, relay_only):
+    res = end_to_end(loopback_config(demo_config), seconds=3.0, relay_only=relay_only)
+    assert res["tracker_samples_sent"] == 3000
+    assert res["lost"] == 0
+    total = res["latency_ms"]
+    to_publish = res["latency_to_service_publish_ms"]
+    to_subscriber = res["latency_publish_to_subscriber_ms"]
+    # the publish stamp lies between the line leaving the mock and the arrival
+    assert 0.0 < to_publish["p50"] < total["p50"]
+    assert 0.0 < to_subscriber["p50"] < total["p50"]
+    assert total["p50"] <= total["p99"] <= total["max"]
+    assert res["processes"]["service"]["cpu_pct"] > 0.0
+
+
+def test_bench_table_states_the_ratio_over_the_floor():
+    def e2e(p50: float, p99: float) -> dict:
+        lat = {"p50": p50, "p99": p99, "max": 2 * p99}
+        return {
+            "tracker_hz": 1000.0,
+            "encoder_hz": 250.0,
+            "seconds": 30.0,
+            "estimates_received": 30000,
+            "tracker_samples_sent": 30000,
+            "latency_ms": lat,
+            "latency_to_service_publish_ms": lat,
+            "latency_publish_to_subscriber_ms": lat,
+            "processes": {},
+        }
+
+    hot = {"samples_per_s": 20000.0, "us_per_sample": 50.0, "core_share_at_1kHz_pct": 5.0}
+    report = {
+        "machine": {"cpu": "test", "cores": 2, "python": "3.11"},
+        "quick": False,
+        "hot_path": hot,
+        "hot_path_rerun": {**hot, "samples_per_s": 10000.0},
+        "end_to_end": e2e(1.0, 3.0),
+        "transport_floor": e2e(0.5, 2.0),
+        "capacity": {"highest_rate_without_drops_hz": 4000.0, "steps": []},
+        "accuracy": {
+            "scenario": "s",
+            "configured_gain": 2.0,
+            "best_gain": 2.0,
+            "interpolate_pos_mm": 0.04,
+            "latest_pos_mm": 0.7,
+            "best_gain_interpolate_pos_mm": 0.04,
+            "reference_over_keo": 17.5,
+        },
+    }
+    table = bench_table(report)
+    assert "p50 x2.00, p99 x1.50" in table
+    assert "transport floor" in table
