@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from keo_service.kinematics import Cell, channels_for, measured_error
-from keo_service.observer import KinematicErrorObserver
+from keo_service.observer import KinematicErrorObserver, all_finite
 from keo_service.timing import Coverage, DelayModel, EncoderBuffer
 
 UNIT_QUATERNION_TOLERANCE = 1e-4
@@ -152,7 +152,7 @@ class Estimator:
                 "encoder_wrong_length",
                 f"encoder sample at t={t!r}: {q_arr.size} joints, expected {self._nq}",
             )
-        if not (math.isfinite(t) and np.isfinite(q_arr).all()):
+        if not (math.isfinite(t) and all_finite(q_arr)):
             return self._reject(
                 "encoder_non_finite", f"encoder sample at t={t!r}: non-finite time or joint value"
             )
@@ -204,12 +204,12 @@ class Estimator:
                 "tracker_wrong_length",
                 f"tracker sample at t={t!r}: expected 3 position and 4 quaternion values",
             )
-        if not np.isfinite(p_arr).all() or (q_arr is not None and not np.isfinite(q_arr).all()):
+        if not all_finite(p_arr) or (q_arr is not None and not all_finite(q_arr)):
             return self._reject(
                 "tracker_non_finite", f"tracker sample at t={t!r}: non-finite value"
             )
         if q_arr is not None:
-            norm = float(np.linalg.norm(q_arr))
+            norm = math.sqrt(float(q_arr @ q_arr))
             if abs(norm - 1.0) > UNIT_QUATERNION_TOLERANCE:
                 return self._reject(
                     "tracker_not_unit_quaternion",

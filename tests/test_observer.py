@@ -6,10 +6,12 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from scipy.optimize import minimize_scalar
 
 from keo_service import observer as ob
-from keo_service.observer import KinematicErrorObserver
+from keo_service.observer import KinematicErrorObserver, all_finite
 
 
 def settling_from_samples(t: np.ndarray, remaining: np.ndarray, fraction: float = 0.02) -> float:
@@ -149,3 +151,15 @@ def test_gain_command_prints_a_table(tmp_path):
         assert r["noise_gain"] == pytest.approx(math.sqrt(a / (2 - a)))
     text = keo("gain", "--noise", "2e-5", "--drift", "5e-6", "--rate", "100").stdout
     assert "best" in text
+
+
+@given(
+    st.lists(
+        st.floats(allow_nan=True, allow_infinity=True, width=64) | st.sampled_from([1e308, -1e308]),
+        min_size=1,
+        max_size=8,
+    )
+)
+def test_all_finite_agrees_with_numpy_including_overflowing_sums(values):
+    arr = np.array(values)
+    assert all_finite(arr) == bool(np.isfinite(arr).all())
