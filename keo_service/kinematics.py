@@ -11,6 +11,7 @@ A single-reflector tracker measures only p_ks; then e_m = R_bt^T (p_bs - p_bt) (
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,9 +39,10 @@ def se3_from_xyz_rpy(xyz: Sequence[float], rpy: Sequence[float]) -> pin.SE3:
 def se3_from_xyz_quat(p: Sequence[float], q_wxyz: Sequence[float]) -> pin.SE3:
     """Pose from a position and a unit quaternion, scalar first (the wire and file order)."""
     w, x, y, z = (float(v) for v in q_wxyz)
-    quat = pin.Quaternion(w, x, y, z)
-    quat.normalize()
-    return pin.SE3(quat.matrix(), np.asarray(p, dtype=float))
+    norm = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
+    # one Pinocchio call (x, y, z, qx, qy, qz, qw): a quarter of Quaternion -> matrix -> SE3
+    xyzquat = [p[0], p[1], p[2], x / norm, y / norm, z / norm, w / norm]
+    return pin.XYZQUATToSE3(np.array(xyzquat, dtype=float))
 
 
 def quat_wxyz(rotation: np.ndarray) -> np.ndarray:

@@ -10,7 +10,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from keo_service.kinematics import Cell, log3, measured_error, quat_wxyz, tool_pose
+from keo_service.kinematics import (
+    Cell,
+    log3,
+    measured_error,
+    quat_wxyz,
+    se3_from_xyz_quat,
+    tool_pose,
+)
 
 unit = st.lists(st.floats(-1, 1), min_size=3, max_size=3).filter(lambda v: np.linalg.norm(v) > 0.1)
 angles = st.floats(0.0, math.pi - 1e-6)
@@ -105,3 +112,18 @@ def test_position_only_error_is_reflector_in_tool_frame(demo_cell):
     e = measured_error(demo_cell, data, q, p_ks, None)
     assert e.shape == (3,)
     assert np.allclose(e, offset, atol=1e-12)
+
+
+@given(
+    st.lists(st.floats(-10, 10), min_size=4, max_size=4).filter(
+        lambda q: math.sqrt(sum(v * v for v in q)) > 1e-3
+    ),
+    st.lists(st.floats(-5, 5), min_size=3, max_size=3),
+)
+def test_pose_from_position_and_quaternion_matches_scipy(q_wxyz, p):
+    """Scalar-first wire order, any scale (normalised), against scipy's scalar-last rotation."""
+    w, x, y, z = q_wxyz
+    expected = Rotation.from_quat([x, y, z, w]).as_matrix()
+    pose = se3_from_xyz_quat(p, q_wxyz)
+    assert np.allclose(pose.rotation, expected, atol=1e-12)
+    assert np.allclose(pose.translation, p, atol=0)
