@@ -15,22 +15,21 @@ import asyncio
 import signal
 import time
 
-from keo_service.bus import AsyncSubscription, open_session
+from keo_service.bus import AsyncSubscription, session_for_service
 from keo_service.config import Config, load_config
+from keo_service.kinematics import POSE_CHANNELS
 from keo_service.messages import EstimateMessage, TrackerSample, decode, encode, topic
-
-CHANNELS = ["x", "y", "z", "rx", "ry", "rz"]
 
 
 async def relay(config: Config) -> None:
-    bus = config.bus
-    session = open_session(bus.mode, bus.listen, bus.connect, bus.multicast_scouting, tls=bus)
+    session = session_for_service(config)
     pub = session.declare_publisher(topic(config.cell, "estimate"), express=True)
     sub = AsyncSubscription(session, [topic(config.cell, "encoder"), topic(config.cell, "tracker")])
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, sub.close)
-    zeros = [0.0] * len(CHANNELS)
+    channels = list(POSE_CHANNELS)
+    zeros = [0.0] * len(channels)
     seq = 0
     async for _key, payload in sub:
         msg = decode(payload)
@@ -40,7 +39,7 @@ async def relay(config: Config) -> None:
         out = EstimateMessage(
             stamp=msg.t,
             host_ns=time.time_ns(),
-            channels=CHANNELS,
+            channels=channels,
             measured=zeros,
             estimate=zeros,
             flags=[],

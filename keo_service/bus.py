@@ -96,6 +96,15 @@ def session_for_client(config: Any, retry_for: float | None = None) -> zenoh.Ses
             delay = min(2 * delay, 2.0)
 
 
+def session_for_service(config: Any) -> zenoh.Session:
+    """The service's session as [bus] says: a listening peer (the embedded default), or a
+    client of a router, which it waits for like any client."""
+    bus = config.bus
+    if bus.mode == "client":
+        return session_for_client(config)
+    return open_session(bus.mode, bus.listen, bus.connect, bus.multicast_scouting, tls=bus)
+
+
 class AsyncSubscription:
     """Samples of several key expressions, in arrival order, as an async iterator of
     (key, payload bytes).

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 import msgspec
 import zenoh
 
-from keo_service.bus import AsyncSubscription, open_session, session_for_client
+from keo_service.bus import AsyncSubscription, session_for_service
 from keo_service.config import Config
 from keo_service.kinematics import cell_from_config
 from keo_service.messages import (
@@ -107,13 +107,7 @@ class KeoService:
 
     async def __aenter__(self) -> KeoService:
         if self._session is None:
-            bus = self.config.bus
-            if bus.mode == "client":  # through a router: wait for it like any client
-                self._session = session_for_client(self.config)
-            else:
-                self._session = open_session(
-                    bus.mode, bus.listen, bus.connect, bus.multicast_scouting, tls=bus
-                )
+            self._session = session_for_service(self.config)
         s = self._session
         self._estimate_pub = s.declare_publisher(topic(self.cell, "estimate"), express=True)
         self._status_q = s.declare_queryable(topic(self.cell, "status"), self._on_status_query)
