@@ -1,38 +1,15 @@
-"""Reconnecting TCP client loop shared by the adapters. Bytes only; no parsing here.
-
-A hand-written backoff (stdlib): we need the delay reset after every good connection and the
-attempt count in the adapter's status, which a generic retry decorator hides.
-"""
+"""Reconnecting TCP client loop shared by the adapters. Bytes only; no parsing here."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
 import logging
-import random
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
+
+from keo_service.live.backoff import Backoff
 
 log = logging.getLogger("keo.adapter")
-
-
-@dataclass
-class Backoff:
-    """Exponential delay between reconnects, bounded by `maximum`, with +-20 % jitter."""
-
-    initial: float = 0.1
-    maximum: float = 5.0
-    factor: float = 2.0
-    _current: float = 0.0
-
-    def next_delay(self) -> float:
-        self._current = (
-            self.initial if self._current == 0 else min(self._current * self.factor, self.maximum)
-        )
-        return self._current * random.uniform(0.8, 1.2)
-
-    def reset(self) -> None:
-        self._current = 0.0
 
 
 async def run_tcp_client(
@@ -66,7 +43,7 @@ async def run_tcp_client(
         counters["connections"] = counters.get("connections", 0) + 1
         log.info("%s: connected to %s:%d", name, host, port)
         backoff.reset()
-        reading = asyncio.create_task(handle(reader))
+        reading: asyncio.Task[None] = asyncio.ensure_future(handle(reader))
         stopping = asyncio.create_task(stop.wait())
         try:
             await asyncio.wait({reading, stopping}, return_when=asyncio.FIRST_COMPLETED)

@@ -18,8 +18,9 @@ import zenoh
 from adapters.connection import run_tcp_client
 from adapters.line_protocol import MAX_LINE, LineProtocolParser
 from adapters.simple_message import JointFeedback, RobotStatusFrame, SimpleMessageDecoder
-from keo_service.bus import session_for_client
-from keo_service.messages import JointSample, RobotStatus, TrackerSample, encode, topic
+from keo_service.live.bus import session_for_client_async
+from keo_service.live.messages import JointSample, RobotStatus, TrackerSample, encode, topic
+from keo_service.live.supervise import supervise
 
 log = logging.getLogger("keo.adapter")
 
@@ -35,15 +36,17 @@ class _Adapter:
         self.counters: Counter[str] = Counter()
         self._stop = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
+        self.failure: BaseException | None = None
 
     async def __aenter__(self) -> _Adapter:
         if self._session is None:
-            self._session = session_for_client(self.config)
+            self._session = await session_for_client_async(self.config)
         self._declare(self._session)
         self._status_q = self._session.declare_queryable(
             topic(self.config.cell, f"adapter/{self.name}/status"), self._on_status_query
         )
-        self._task = asyncio.create_task(self._run(), name=f"keo.adapter.{self.name}")
+        task = asyncio.create_task(self._run(), name=f"keo.adapter.{self.name}")
+        self._task = supervise(task, self._stop.is_set, self._fail)
         return self
 
     async def __aexit__(self, *exc: object) -> None:
@@ -59,6 +62,10 @@ class _Adapter:
         await self._stop.wait()
 
     def stop(self) -> None:
+        self._stop.set()
+
+    def _fail(self, exc: BaseException) -> None:
+        self.failure = exc
         self._stop.set()
 
     def status(self) -> dict[str, Any]:

@@ -12,12 +12,12 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 
 from adapters.line_protocol import format_hello, format_pose
 from adapters.simple_message import encode_joint_feedback, encode_robot_status
-from keo_service.interchange import EncoderData, TrackerData
 
 log = logging.getLogger("keo.mock")
 STATUS_PERIOD_S = 0.5
@@ -27,6 +27,22 @@ async def _sleep_until(wall: float) -> None:
     delay = wall - time.time()
     if delay > 0:
         await asyncio.sleep(delay)
+
+
+class JointTrack(Protocol):
+    """Joint angles to play: times (n,) [s] and angles (n, nq) [rad]."""
+
+    t: np.ndarray
+    q: np.ndarray
+
+
+class PoseTrack(Protocol):
+    """Tracker poses to play: times (n,) [s], positions (n, 3) [m], scalar-first quaternions
+    (n, 4) or None for a single reflector."""
+
+    t: np.ndarray
+    p: np.ndarray
+    quat: np.ndarray | None
 
 
 class _MockServer:
@@ -87,7 +103,7 @@ class MockRobot(_MockServer):
 
     def __init__(
         self,
-        encoder: EncoderData,
+        encoder: JointTrack,
         host: str,
         port: int,
         byte_order: str = "little",
@@ -117,7 +133,7 @@ class MockTracker(_MockServer):
 
     def __init__(
         self,
-        tracker: TrackerData,
+        tracker: PoseTrack,
         host: str,
         port: int,
         t0: float | None = None,

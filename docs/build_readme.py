@@ -14,7 +14,7 @@ import argparse
 import json
 from pathlib import Path
 
-from keo_service.bench import bench_table
+from keo_service.bench.benchmarks import bench_table
 
 HERE = Path(__file__).resolve().parent
 

@@ -7,10 +7,11 @@ from pathlib import Path
 
 import pytest
 
-from keo_service.bus import session_for_client
-from keo_service.config import Config, load_config
-from keo_service.kinematics import Cell, cell_from_config
-from keo_service.messages import topic
+from keo_service.core.kinematics import Cell
+from keo_service.io.cell import cell_from_config
+from keo_service.io.config import Config, load_config
+from keo_service.live.bus import session_for_client
+from keo_service.live.messages import topic
 
 REPO = Path(__file__).resolve().parent.parent
 CONFIGS = REPO / "configs"

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from keo_service.analysis import Data, NotIdentifiableError, analyze, approach_directions
-from keo_service.interchange import read_estimates
-from keo_service.simulate import make_scenario, simulate
+from keo_service.fit.analysis import Data, NotIdentifiableError, analyze, approach_directions
+from keo_service.io.interchange import read_estimates
+from keo_service.sim.simulate import make_scenario, simulate
 from tests.conftest import DEMO, REPO, keo
 
 UR10_B = (

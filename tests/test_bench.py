@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from keo_service.bench import bench_table, end_to_end
-from keo_service.demo import loopback_config
+from keo_service.bench.benchmarks import bench_table, end_to_end
+from keo_service.bench.demo import loopback_config
 
 
 @pytest.mark.parametrize("relay_only", [False, True], ids=["service", "transport-floor"])

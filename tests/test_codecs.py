@@ -17,7 +17,7 @@ from adapters.simple_message import (
     encode_joint_feedback,
     encode_robot_status,
 )
-from keo_service.messages import EstimateMessage, JointSample, TrackerSample, decode, encode
+from keo_service.live.messages import EstimateMessage, JointSample, TrackerSample, decode, encode
 
 Q = [0.1, -0.2, 0.3, -0.4, 0.5, -0.6]
 

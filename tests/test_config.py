@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from keo_service.config import load_config
-from keo_service.errors import ConfigError
+from keo_service.core.errors import ConfigError
+from keo_service.io.config import load_config
 from tests.conftest import DEMO, keo, write_config
 
 GOOD = """
@@ -53,7 +53,7 @@ def test_bad_config_names_the_key(tmp_path, body, key, words):
     path = write_config(tmp_path, body)
     with pytest.raises(ConfigError) as info:
         config = load_config(path)
-        from keo_service.kinematics import cell_from_config
+        from keo_service.io.cell import cell_from_config
 
         cell_from_config(config)  # frames are checked against the URDF
     assert info.value.key == key

@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from keo_service.delay import DelayNotIdentifiableError, fit_delay, reference_method
-from keo_service.interchange import TrackerData
-from keo_service.simulate import make_scenario, simulate, write_run
-from tests.conftest import DEMO, keo
+from keo_service.fit.delay import DelayNotIdentifiableError, fit_delay, reference_method
+from keo_service.io.cell import estimator_settings
+from keo_service.io.interchange import TrackerData
+from keo_service.sim.simulate import make_scenario, simulate, write_run
+from tests.conftest import DEMO, REPO, keo
 
 
 def fit_run(cell, run, **kw):
@@ -155,13 +157,13 @@ def test_uneven_tracker_arrival_still_gives_the_delay(demo_cell):
 def test_online_tracking_finds_the_delay_smoothly_and_leaves_rest_alone(demo_cell, demo_config):
     import dataclasses
 
-    from keo_service.delay import OnlineDelayTracker
-    from keo_service.pipeline import DELAY_SLEW, Estimator, EstimatorSettings
-    from keo_service.timing import DelayModel
+    from keo_service.core.estimator import DELAY_SLEW, Estimator
+    from keo_service.core.timing import DelayModel
+    from keo_service.fit.delay import OnlineDelayTracker
 
     def drive(run, start_delay):
         settings = dataclasses.replace(
-            EstimatorSettings.from_config(demo_config), delay=DelayModel(start_delay)
+            estimator_settings(demo_config), delay=DelayModel(start_delay)
         )
         est = Estimator(demo_cell, settings)
         tracker = OnlineDelayTracker(demo_cell, window_s=15.0, period_s=5.0)
@@ -192,3 +194,54 @@ def test_online_tracking_finds_the_delay_smoothly_and_leaves_rest_alone(demo_cel
     est, delays, tracker = drive(rest, start_delay=0.02)
     assert np.all(delays == 0.02)
     assert "hardly moves" in tracker.last_result
+
+
+def _calibrate(enc: Path, trk: Path, config: Path = DEMO):
+    return keo(
+        "calibrate-delay", "--config", str(config), "--encoder", str(enc), "--tracker", str(trk)
+    )
+
+
+def test_stop_and_measure_data_is_refused_in_words(demo_cell, tmp_path):
+    """One encoder row per tracker row (DESIGN.md 5): nothing moves, no delay to see."""
+    run = simulate(demo_cell, make_scenario("static-poses"), seed=1)
+    write_run(run, tmp_path)
+    res = _calibrate(tmp_path / "encoder.csv", tmp_path / "tracker.csv")
+    assert res.returncode == 1, res.stdout
+    assert "static stop-and-measure data" in res.stderr
+    assert res.stdout == ""
+
+
+def test_dwelling_robot_sampled_densely_is_refused(demo_cell):
+    """Poses held for 2 s each, encoder at 100 Hz, tracker samples only during the dwells:
+    the jumps between poses are not motion the tracker saw."""
+    rng = np.random.default_rng(4)
+    poses = rng.uniform(-0.5, 0.5, size=(20, demo_cell.robot.nq))
+    enc_t = np.arange(0.0, 40.0, 0.01)
+    enc_q = poses[np.minimum((enc_t // 2.0).astype(int), 19)]
+    trk_t = np.concatenate([np.linspace(2 * k + 0.5, 2 * k + 1.5, 20) for k in range(20)])
+    p = rng.normal(size=(trk_t.size, 3))
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (trk_t.size, 1))
+    with pytest.raises(DelayNotIdentifiableError, match="at rest at every tracker sample"):
+        fit_delay(demo_cell, enc_t, enc_q, trk_t, p, quat)
+
+
+def test_real_ur10_static_data_is_refused(tmp_path):
+    source = REPO.parent / "shared" / "data" / "ur10_lasertracker" / "Series_B"
+    if not source.is_dir():
+        pytest.skip("the shared UR10 data is not beside this checkout")
+    res = keo(
+        "import",
+        "ur10-lasertracker",
+        str(source / "measurements_joint_configurations.csv"),
+        "--out",
+        str(tmp_path),
+    )
+    assert res.returncode == 0, res.stderr
+    res = _calibrate(
+        tmp_path / "encoder.csv",
+        tmp_path / "tracker.csv",
+        REPO / "configs" / "ur10_lasertracker.toml",
+    )
+    assert res.returncode == 1, res.stdout
+    assert "static stop-and-measure data" in res.stderr

@@ -17,19 +17,19 @@ import msgspec
 import pytest
 import yaml
 
-from keo_service.bus import session_for_client
-from keo_service.config import config_to_toml, load_config
-from keo_service.errors import KeoError
-from keo_service.messages import EstimateMessage, ServiceStatus, decode, topic
-from keo_service.procs import free_port, process_group
-from keo_service.simulate import make_scenario, simulate, write_run
+from keo_service.bench.procs import free_port, process_group
+from keo_service.core.errors import KeoError
+from keo_service.io.config import config_to_toml, load_config
+from keo_service.live.bus import session_for_client
+from keo_service.live.messages import EstimateMessage, ServiceStatus, decode, topic
+from keo_service.sim.simulate import make_scenario, simulate, write_run
 from tests.conftest import CONFIGS, REPO, wait_for_status
 
 pytestmark = pytest.mark.e2e
 
 
 def test_systemd_notify_watchdog_reload_and_stop(demo_config, tmp_path):
-    from keo_service.demo import loopback_config
+    from keo_service.bench.demo import loopback_config
 
     config = loopback_config(demo_config)
     cfg = tmp_path / "c.toml"
@@ -74,10 +74,13 @@ def test_systemd_notify_watchdog_reload_and_stop(demo_config, tmp_path):
         assert any(m.startswith("READY=1") for m in messages), messages
         assert sum(m == "WATCHDOG=1" for m in messages) >= 3
         # SIGHUP: gains applied live, a changed port reported as needing a restart
-        text = cfg.read_text().replace(
-            "gain = [2.0, 2.0, 2.0, 2.0, 2.0, 2.0]", "gain = [3.0, 3.0, 3.0, 3.0, 3.0, 3.0]"
+        assert config.observer.gain == [2.0] * 6
+        changed = msgspec.structs.replace(
+            config,
+            observer=msgspec.structs.replace(config.observer, gain=[3.0] * 6),
+            robot=msgspec.structs.replace(config.robot, port=config.robot.port + 1),
         )
-        text = text.replace(f"port = {config.robot.port}", f"port = {config.robot.port + 1}")
+        text = config_to_toml(changed)
         cfg.write_text(text)
         proc.send_signal(signal.SIGHUP)
         drain(1.0)
@@ -85,7 +88,8 @@ def test_systemd_notify_watchdog_reload_and_stop(demo_config, tmp_path):
         status = _status(config)
         assert status.gains == [3.0] * 6
         # a broken file on reload keeps the running config
-        cfg.write_text(text.replace("gain = [3.0", "gain = [-3.0"))
+        assert "    3.0,\n" in text
+        cfg.write_text(text.replace("    3.0,\n", "    -3.0,\n", 1))
         proc.send_signal(signal.SIGHUP)
         drain(1.0)
         assert _status(config).gains == [3.0] * 6

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from keo_service.kinematics import (
+from keo_service.core.kinematics import (
     Cell,
     log3,
     measured_error,

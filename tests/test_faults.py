@@ -14,12 +14,12 @@ import msgspec
 import numpy as np
 import pytest
 
-from keo_service.bus import session_for_client
-from keo_service.config import config_to_toml
-from keo_service.demo import loopback_config
-from keo_service.messages import EstimateMessage, JointSample, TrackerSample, decode, topic
-from keo_service.procs import process_group
-from keo_service.simulate import make_scenario, simulate
+from keo_service.bench.demo import loopback_config
+from keo_service.bench.procs import process_group
+from keo_service.io.config import config_to_toml
+from keo_service.live.bus import session_for_client
+from keo_service.live.messages import EstimateMessage, JointSample, TrackerSample, decode, topic
+from keo_service.sim.simulate import make_scenario, simulate
 from tests.conftest import wait_for_status
 
 pytestmark = pytest.mark.e2e

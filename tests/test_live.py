@@ -19,14 +19,14 @@ import pytest
 
 from adapters.devices import EncoderAdapter, TrackerAdapter
 from adapters.mock_devices import MockRobot, MockTracker
-from keo_service.bus import AsyncSubscription, session_for_client
-from keo_service.config import config_to_toml
-from keo_service.demo import loopback_config
-from keo_service.messages import EstimateMessage, ServiceStatus, decode, topic
-from keo_service.observer import noise_gain
-from keo_service.procs import process_group
-from keo_service.service import KeoService
-from keo_service.simulate import make_scenario, simulate
+from keo_service.bench.demo import loopback_config
+from keo_service.bench.procs import process_group
+from keo_service.core.observer import noise_gain
+from keo_service.io.config import config_to_toml
+from keo_service.live.bus import AsyncSubscription, session_for_client
+from keo_service.live.messages import EstimateMessage, ServiceStatus, decode, topic
+from keo_service.live.service import KeoService
+from keo_service.sim.simulate import make_scenario, simulate
 from tests.conftest import REPO, wait_for_status
 
 GAIN = 5.0  # time constant 0.2 s
@@ -57,12 +57,14 @@ def check_converged(estimates: list[EstimateMessage], truth: np.ndarray, t_start
     assert t_start < first
 
 
-def readme_snippet(endpoint: str, cell: str) -> str:
-    """The README's subscriber example, pointed at this test's service."""
+def readme_snippets(endpoint: str, cell: str) -> list[str]:
+    """The README's client examples (async and sync), pointed at this test's service."""
     readme = (REPO / "README.md").read_text()
-    code = re.search(r"```python\n(.*?)```", readme, re.S).group(1)
-    code = code.replace("tcp/127.0.0.1:7447", endpoint).replace("keo/demo/", f"keo/{cell}/")
-    return code.replace("time.sleep(10)", "time.sleep(9)")
+    blocks = re.findall(r"```python\n(.*?)```", readme, re.S)[:2]
+    return [
+        code.replace("tcp/127.0.0.1:7447", endpoint).replace('cell="demo"', f'cell="{cell}"')
+        for code in blocks
+    ]
 
 
 async def collect(session, key: str, until: float) -> list[EstimateMessage]:
@@ -182,19 +184,24 @@ def test_echo_prints_estimates_as_json(live_config, demo_cell, tmp_path):
             ],
         )
         wait_for_status(live_config)
-        snippet = readme_snippet(live_config.bus.listen[0], live_config.cell)
-        example = subprocess.Popen(
-            [sys.executable, "-c", snippet],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
+        snippets = readme_snippets(live_config.bus.listen[0], live_config.cell)
+        assert len(snippets) == 2
+        examples = [
+            subprocess.Popen(
+                [sys.executable, "-c", snippet],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            for snippet in snippets
+        ]
         echo.wait(timeout=30)
-        example_out, example_err = example.communicate(timeout=30)
-    assert example.returncode == 0, example_err
-    example_lines = [ln for ln in example_out.splitlines() if ln.strip()]
-    assert len(example_lines) > 50
-    assert sum(" ok " in line for line in example_lines) > 50
+        outputs = [example.communicate(timeout=30) for example in examples]
+    for example, (example_out, example_err) in zip(examples, outputs, strict=True):
+        assert example.returncode == 0, example_err
+        example_lines = [ln for ln in example_out.splitlines() if ln.strip()]
+        assert len(example_lines) > 50
+        assert sum(" ok " in line for line in example_lines) > 50
     lines = [ln for ln in procs.log("echo").splitlines() if ln.startswith("{")]
     assert len(lines) == 20
     docs = [json.loads(line) for line in lines]

@@ -8,7 +8,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from keo_service.kinematics import flange_pose, load_robot
+from keo_service.core.kinematics import flange_pose, load_robot
 from tests.conftest import CONFIGS
 
 

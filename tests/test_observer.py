@@ -10,8 +10,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.optimize import minimize_scalar
 
-from keo_service import observer as ob
-from keo_service.observer import KinematicErrorObserver, all_finite
+from keo_service.core import observer as ob
+from keo_service.core.observer import KinematicErrorObserver, all_finite
 
 
 def settling_from_samples(t: np.ndarray, remaining: np.ndarray, fraction: float = 0.02) -> float:

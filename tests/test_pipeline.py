@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from keo_service.pipeline import Estimator, EstimatorSettings, run_offline
-from keo_service.simulate import make_scenario, simulate
-from keo_service.timing import DelayModel, EncoderBuffer
+from keo_service.core.estimator import Estimator, EstimatorSettings, run_offline
+from keo_service.core.timing import DelayModel, EncoderBuffer
+from keo_service.sim.simulate import make_scenario, simulate
 
 
 @pytest.fixture(scope="module")

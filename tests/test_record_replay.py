@@ -13,13 +13,13 @@ import pyarrow as pa
 import pytest
 from rerun.chunk import RrdReader
 
-from keo_service.bus import session_for_client
-from keo_service.config import config_to_toml
-from keo_service.demo import loopback_config
-from keo_service.interchange import read_encoder, read_estimates, read_tracker
-from keo_service.messages import EstimateMessage, decode, topic
-from keo_service.procs import process_group
-from keo_service.simulate import make_scenario, simulate, write_run
+from keo_service.bench.demo import loopback_config
+from keo_service.bench.procs import process_group
+from keo_service.io.config import config_to_toml
+from keo_service.io.interchange import read_encoder, read_estimates, read_tracker
+from keo_service.live.bus import session_for_client
+from keo_service.live.messages import EstimateMessage, decode, topic
+from keo_service.sim.simulate import make_scenario, simulate, write_run
 from tests.conftest import keo, wait_for_status
 
 
@@ -194,7 +194,7 @@ def test_record_writes_what_the_devices_sent_and_survives_a_kill(demo_config, de
 def test_service_tracks_the_delay_online(demo_config, demo_cell, tmp_path):
     import msgspec
 
-    from keo_service.messages import ServiceStatus
+    from keo_service.live.messages import ServiceStatus
 
     timing = msgspec.structs.replace(demo_config.timing, delay_s=0.0, track_delay=True)
     config = loopback_config(msgspec.structs.replace(demo_config, timing=timing))
@@ -233,7 +233,7 @@ def test_viewer_url_streams_to_a_running_viewer(demo_config, demo_cell, tmp_path
     import subprocess
     import sys
 
-    from keo_service.procs import free_port
+    from keo_service.bench.procs import free_port
 
     rerun_bin = shutil.which("rerun", path=str(Path(sys.executable).parent))
     assert rerun_bin, "the rerun-sdk wheel ships the rerun binary"

@@ -8,11 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from keo_service.evaluate import as_series, truth_at
-from keo_service.interchange import read_encoder, read_estimates, read_tracker, read_truth
-from keo_service.observer import noise_gain
-from keo_service.pipeline import Estimator, EstimatorSettings, run_offline
-from keo_service.simulate import make_scenario, simulate
+from keo_service.core.estimator import Estimator, EstimatorSettings, run_offline
+from keo_service.core.observer import noise_gain
+from keo_service.fit.evaluate import as_series, truth_at
+from keo_service.io.cell import estimator_settings
+from keo_service.io.interchange import read_encoder, read_estimates, read_tracker, read_truth
+from keo_service.sim.simulate import make_scenario, simulate
 from tests.conftest import DEMO, keo
 
 
@@ -75,7 +76,7 @@ def test_delay_in_the_files_is_what_was_asked(demo_config, demo_cell):
     assert np.mean(lags) == pytest.approx(0.028, abs=0.5e-3)
     assert np.std(lags) == pytest.approx(0.003, rel=0.15)
     for delay, expected in ((0.028, 0.0), (0.0, -0.1 * 0.028)):
-        settings = EstimatorSettings.from_config(demo_config)
+        settings = estimator_settings(demo_config)
         settings = EstimatorSettings(
             **{**settings.__dict__, "delay": type(settings.delay)(offset_s=delay)}
         )
@@ -160,7 +161,7 @@ def test_realistic_noise_stays_in_the_predicted_band(demo_config, demo_cell):
     run = simulate(demo_cell, make_scenario("paper-step", {"duration_s": "60"}), seed=5)
     series = as_series(
         run_offline(
-            Estimator(demo_cell, EstimatorSettings.from_config(demo_config)),
+            Estimator(demo_cell, estimator_settings(demo_config)),
             run.encoder.t,
             run.encoder.q,
             run.tracker.t,

@@ -1,0 +1,91 @@
+"""Start keo's own commands as child processes and stop them cleanly (demo, tests, bench)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class ProcessGroup:
+    """Child processes that are all stopped (SIGTERM, then SIGKILL) when the group closes."""
+
+    def __init__(self, log_dir: Path) -> None:
+        self.log_dir = log_dir
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+
+    def start(
+        self, name: str, args: Sequence[str], module: str = "keo_service.cli"
+    ) -> subprocess.Popen[bytes]:
+        log = (self.log_dir / f"{name}.log").open("wb")
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        proc = subprocess.Popen(
+            [sys.executable, "-m", module, *args],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
+        self.procs[name] = proc
+        return proc
+
+    def start_cell(
+        self,
+        config: Path,
+        play: Sequence[str],
+        service: Sequence[str] = (),
+        tracker: Sequence[str] = (),
+        relay_only: bool = False,
+    ) -> None:
+        """The whole chain of one cell: service, mock robot and tracker playing `play`, and
+        both adapters (names: service, mock-robot, mock-tracker, adapter-encoder/-tracker).
+        `relay_only`: the bench's pass-through relay stands where the service would."""
+        cfg = ["--config", str(config)]
+        if relay_only:
+            self.start("service", cfg, module="keo_service.bench.relay")
+        else:
+            self.start("service", ["run", *cfg, *service])
+        self.start("mock-robot", ["mock", "robot", *cfg, *play])
+        self.start("mock-tracker", ["mock", "tracker", *cfg, *play, *tracker])
+        self.start("adapter-encoder", ["adapter", "encoder", *cfg])
+        self.start("adapter-tracker", ["adapter", "tracker", *cfg])
+
+    def stop(self, name: str, timeout: float = 3.0) -> int | None:
+        proc = self.procs.pop(name)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        return proc.returncode
+
+    def close(self) -> dict[str, int | None]:
+        codes = {}
+        for name in list(self.procs):
+            codes[name] = self.stop(name)
+        return codes
+
+    def log(self, name: str) -> str:
+        path = self.log_dir / f"{name}.log"
+        return path.read_text(errors="replace") if path.exists() else ""
+
+
+@contextlib.contextmanager
+def process_group(log_dir: Path) -> Iterator[ProcessGroup]:
+    group = ProcessGroup(log_dir)
+    try:
+        yield group
+    finally:
+        group.close()

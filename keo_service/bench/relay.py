@@ -1,0 +1,61 @@
+"""The benchmark's transport floor: a stand-in for `keo run` that moves the same messages over
+the same bus plumbing and does no estimation.
+
+It opens the bus as the service does, takes the encoder and tracker streams through the same
+`AsyncSubscription`, decodes every sample and answers each tracker sample with an estimate
+message (zeros) on the estimate topic. `keo bench` runs the whole chain once with the service
+and once with this relay: the difference is what keo's own work adds on that machine.
+Run as `python -m keo_service.bench.relay --config FILE`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+import time
+
+from keo_service.core.kinematics import POSE_CHANNELS
+from keo_service.io.config import Config, load_config
+from keo_service.live.bus import AsyncSubscription, session_for_service
+from keo_service.live.messages import EstimateMessage, TrackerSample, decode, encode, topic
+
+
+async def relay(config: Config) -> None:
+    session = session_for_service(config)
+    pub = session.declare_publisher(topic(config.cell, "estimate"), express=True)
+    sub = AsyncSubscription(session, [topic(config.cell, "encoder"), topic(config.cell, "tracker")])
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, sub.close)
+    channels = list(POSE_CHANNELS)
+    zeros = [0.0] * len(channels)
+    seq = 0
+    async for _key, payload in sub:
+        msg = decode(payload)
+        if not isinstance(msg, TrackerSample) or msg.p is None:
+            continue
+        seq += 1
+        out = EstimateMessage(
+            stamp=msg.t,
+            host_ns=time.time_ns(),
+            channels=channels,
+            measured=zeros,
+            estimate=zeros,
+            flags=[],
+            delay_s=0.0,
+            seq=seq,
+            tracker_device_t=msg.device_t,
+        )
+        pub.put(encode(out))
+    session.close()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", required=True)
+    asyncio.run(relay(load_config(parser.parse_args().config)))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,52 @@
+"""The `keo` command line (DESIGN.md section 6): one argparse tree, one module per command
+group (`offline`, `live`, `tools`). The CLI only parses and calls; each command imports what
+it runs lazily so that `keo gain` starts fast.
+
+Exit codes: 0 success, 2 bad usage or bad config (the message names the key or argument),
+1 other failures. `--json` prints one JSON document on stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+
+from keo_service.cli import common, live, offline, tools
+from keo_service.core.errors import ConfigError, DataFormatError, KeoError
+
+__all__ = ["build_parser", "main"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="keo", description="Kinematic Error Observer")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add(
+        name: str, func: Callable[[argparse.Namespace], int], help_text: str, config: bool = True
+    ) -> argparse.ArgumentParser:
+        p: argparse.ArgumentParser = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(func=func)
+        if config:
+            p.add_argument("--config", required=True, help="keo config (TOML)")
+        return p
+
+    tools.register(add)
+    offline.register(add)
+    live.register(add)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except (ConfigError, DataFormatError) as exc:
+        print(f"keo {args.command}: error: {exc}", file=sys.stderr)
+        return common.EXIT_USAGE
+    except KeoError as exc:
+        print(f"keo {args.command}: error: {exc}", file=sys.stderr)
+        return common.EXIT_FAILURE
+    except KeyboardInterrupt:
+        return common.EXIT_OK

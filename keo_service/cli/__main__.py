@@ -1,0 +1,7 @@
+"""`python -m keo_service.cli`: the same as the `keo` console script."""
+
+import sys
+
+from keo_service.cli import main
+
+sys.exit(main())

@@ -1,0 +1,345 @@
+"""Offline commands: gain, simulate, estimate, calibrate-delay, delay-study, import, paper,
+analyze."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from keo_service.cli import common
+from keo_service.core.errors import ConfigError
+from keo_service.resources import demo_config_path
+
+
+def cmd_gain(args: argparse.Namespace) -> int:
+    from keo_service.core import observer as ob
+
+    if args.rate <= 0:
+        raise ConfigError("--rate", "rate", "must be > 0 (Hz)")
+    rows: list[dict[str, Any]] = []
+    gains = list(args.gain or [])
+    best = None
+    if args.noise is not None or args.drift is not None:
+        if args.noise is None or args.drift is None:
+            raise ConfigError("--noise/--drift", "noise", "give both --noise and --drift")
+        if args.noise <= 0 or args.drift <= 0:
+            raise ConfigError("--noise/--drift", "noise", "both must be > 0")
+        best = ob.best_gain(args.noise, args.drift, args.rate)
+        gains.append(best)
+    if not gains:
+        raise ConfigError("--gain", "gain", "give --gain L [L ...] and/or --noise N --drift D")
+    for gain in gains:
+        if not gain > 0:
+            raise ConfigError("--gain", "gain", f"{gain} is not > 0")
+        rep = ob.describe_gain(gain, args.rate)
+        row: dict[str, Any] = {
+            "gain": gain,
+            "rate_hz": args.rate,
+            "time_constant_s": rep.time_constant_s,
+            "settling_time_s": rep.settling_time_s,
+            "settling_time_sampled_s": rep.discrete_settling_time_s,
+            "step_alpha": rep.step_alpha,
+            "noise_gain": rep.noise_gain,
+        }
+        if args.noise is not None and args.drift is not None:
+            mse = ob.steady_state_mse(rep.step_alpha, args.noise, args.drift, 1.0 / args.rate)
+            row["rms_error"] = mse**0.5
+            row["best"] = gain == best
+        rows.append(row)
+    if args.json:
+        common.print_json({"gains": rows})
+        return common.EXIT_OK
+    head = (
+        f"{'L [1/s]':>10} {'tau [s]':>9} {'2% settle [s]':>14} {'at rate [s]':>12} "
+        f"{'noise gain':>11}"
+    )
+    if args.noise is not None:
+        head += f" {'rms error':>11}"
+    print(f"rate {args.rate:g} Hz; noise gain = estimate std / measurement noise std")
+    print(head)
+    for r in rows:
+        line = (
+            f"{r['gain']:>10.4g} {r['time_constant_s']:>9.4g} {r['settling_time_s']:>14.4g} "
+            f"{r['settling_time_sampled_s']:>12.4g} {r['noise_gain']:>11.4g}"
+        )
+        if "rms_error" in r:
+            line += f" {r['rms_error']:>11.4g}" + (
+                "  <- best (steady-state Kalman)" if r["best"] else ""
+            )
+        print(line)
+    return common.EXIT_OK
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from keo_service.io.cell import cell_from_config
+    from keo_service.sim.simulate import make_scenario, simulate, write_run
+
+    config = common.load(args.config)
+    overrides = common.parse_sets(args.set)
+    if args.position_only:
+        overrides["position_only"] = "true"
+    scenario = make_scenario(args.scenario, overrides)
+    run = simulate(cell_from_config(config), scenario, seed=args.seed)
+    write_run(run, args.out)
+    summary = {
+        "out": str(args.out),
+        "scenario": scenario.name,
+        "seed": args.seed,
+        "encoder_rows": int(run.encoder.t.size),
+        "tracker_rows": int(run.tracker.t.size),
+        "duration_s": float(run.truth_t[-1]) if run.truth_t.size else 0.0,
+        "channels": list(run.channels),
+    }
+    if args.json:
+        common.print_json(summary)
+    else:
+        print(
+            f"wrote {args.out}/encoder.csv ({summary['encoder_rows']} rows), tracker.csv "
+            f"({summary['tracker_rows']} rows), truth.csv; "
+            f"scenario {scenario.name}, seed {args.seed}"
+        )
+    return common.EXIT_OK
+
+
+def cmd_estimate(args: argparse.Namespace) -> int:
+    from keo_service.io.estimate_files import estimate_files, write_estimates
+
+    config = common.load(args.config)
+    result = estimate_files(config, args.encoder, args.tracker)
+    write_estimates(args.out, result)
+    held = sum(1 for e in result.estimates if e.held)
+    summary = {
+        "out": str(args.out),
+        "estimates": len(result.estimates),
+        "held": held,
+        "channels": list(result.channels),
+        "counters": result.counters,
+        "messages": result.messages[-10:],
+    }
+    if args.json:
+        common.print_json(summary)
+    else:
+        print(f"wrote {len(result.estimates)} estimates ({held} held) to {args.out}")
+        skipped = {
+            k: v
+            for k, v in result.counters.items()
+            if k.startswith(("encoder_", "tracker_")) and not k.endswith("samples")
+        }
+        if skipped:
+            print("skipped rows: " + ", ".join(f"{k}={v}" for k, v in sorted(skipped.items())))
+            for m in result.messages[-5:]:
+                print(f"  {m}")
+    return common.EXIT_OK
+
+
+def cmd_paper(args: argparse.Namespace) -> int:
+    from keo_service.sim.paper import paper_markdown, paper_report
+
+    config = common.load(args.config)
+    report = paper_report(config, seed=args.seed)
+    if args.json:
+        common.print_json(report)
+    else:
+        sys.stdout.write(paper_markdown(report))
+    return common.EXIT_OK
+
+
+def cmd_calibrate_delay(args: argparse.Namespace) -> int:
+    from keo_service.fit.delay import DelayNotIdentifiableError, fit_delay, reference_method
+    from keo_service.io.cell import cell_from_config
+    from keo_service.io.interchange import read_encoder, read_tracker
+
+    config = common.load(args.config)
+    cell = cell_from_config(config)
+    enc = read_encoder(args.encoder, nq=cell.robot.nq)
+    trk = read_tracker(args.tracker)
+    try:
+        fit = fit_delay(
+            cell,
+            enc.t,
+            enc.q,
+            trk.t,
+            trk.p,
+            trk.quat,
+            initial=config.timing.delay_s,
+            with_drift=not args.no_drift,
+        )
+    except DelayNotIdentifiableError as exc:
+        if args.json:
+            common.print_json({"verdict": "refused", "reason": str(exc)})
+        print(f"keo calibrate-delay: refused: {exc}", file=sys.stderr)
+        return common.EXIT_FAILURE
+    segments = reference_method(cell, enc.t, enc.q, trk.t, trk.p)
+    doc = {
+        "verdict": "ok" if fit.explained else "unexplained",
+        "delay_s": fit.delay_s,
+        "delay_se_s": fit.delay_se_s,
+        "drift_ppm": fit.drift * 1e6,
+        "drift_se_ppm": fit.drift_se * 1e6,
+        "drift_significant": fit.drift_significant,
+        "t_ref_s": fit.t_ref,
+        "samples": fit.samples,
+        "moving_fraction": fit.moving_fraction,
+        "residual_rms_moving_m": fit.residual_rms_moving,
+        "residual_rms_rest_m": fit.residual_rms_rest,
+        "window_delays_s": fit.window_delays_s,
+        "notes": fit.notes,
+        "reference_method": [s.__dict__ for s in segments],
+        "config": {
+            "timing.delay_s": fit.delay_s,
+            "timing.drift_ppm": fit.drift * 1e6,
+            "timing.drift_ref_s": fit.t_ref if fit.drift_significant else 0.0,
+        },
+    }
+    if args.json:
+        common.print_json(doc)
+    else:
+        print(
+            f"delay: {fit.delay_s * 1e3:.3f} ms +/- {fit.delay_se_s * 1e3:.3f} ms (1 sigma), "
+            f"from {fit.samples} tracker samples, moving {100 * fit.moving_fraction:.0f} % of "
+            "the time"
+        )
+        if fit.drift_significant:
+            print(
+                f"clock drift: {fit.drift * 1e6:.1f} +/- {fit.drift_se * 1e6:.1f} ppm; the delay "
+                f"above holds at t = {fit.t_ref:.3f} s"
+            )
+        for note in fit.notes:
+            print(f"note: {note}")
+        for s in segments:
+            print(
+                f"reference method (offset / speed) on the constant-velocity stretch "
+                f"{s.start:.2f}-{s.end:.2f} s at {s.speed * 1e3:.0f} mm/s: "
+                f"{s.delay_s * 1e3:.2f} ms"
+            )
+        print("config:")
+        print(f"  [timing] delay_s = {fit.delay_s:.6f}")
+        if fit.drift_significant:
+            print(f"           drift_ppm = {fit.drift * 1e6:.3f}")
+            print(f"           drift_ref_s = {fit.t_ref!r}")
+    if not fit.explained:
+        print(
+            "keo calibrate-delay: the number above is not to be trusted: " + "; ".join(fit.notes),
+            file=sys.stderr,
+        )
+        return common.EXIT_FAILURE
+    return common.EXIT_OK
+
+
+def cmd_delay_study(args: argparse.Namespace) -> int:
+    from keo_service.sim.delay_study import as_jsonable, delay_markdown, delay_study
+
+    rows = delay_study(common.load(args.config), seed=args.seed)
+    if args.json:
+        common.print_json(as_jsonable(rows))
+    else:
+        sys.stdout.write(delay_markdown(rows))
+    return common.EXIT_OK
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    from keo_service.io.importers import import_dataset
+
+    info = import_dataset(args.kind, args.source, args.out)
+    if args.json:
+        common.print_json(info)
+    else:
+        print(f"wrote {args.out}/encoder.csv and tracker.csv: {info['rows']} poses; {info['time']}")
+    return common.EXIT_OK
+
+
+def cmd_analyze(args: argparse.Namespace) -> int:
+    from keo_service.io.analysis_report import run_analysis
+
+    report = run_analysis(
+        common.load(args.config), args.encoder, args.tracker, args.out, args.registration_only
+    )
+    if args.json:
+        common.print_json(report)
+    else:
+        print((args.out / "report.md").read_text())
+        print(f"wrote {args.out}/report.json, report.md, plots and model.toml")
+    return common.EXIT_OK
+
+
+def register(add: common.AddCommand) -> None:
+    p = add(
+        "gain",
+        cmd_gain,
+        "time constant, 2%% settling time and noise gain of observer gains",
+        config=False,
+    )
+    p.add_argument("--gain", type=float, nargs="+", metavar="L", help="gains in 1/s")
+    p.add_argument("--rate", type=float, required=True, help="sample rate in Hz")
+    p.add_argument("--noise", type=float, help="measurement noise std (m or rad)")
+    p.add_argument(
+        "--drift",
+        type=float,
+        help="random-walk drift of the true error: std of its change over 1 s (per sqrt(s))",
+    )
+    p.add_argument("--json", action="store_true")
+
+    p = add("simulate", cmd_simulate, "write encoder.csv, tracker.csv and truth.csv for a scenario")
+    p.add_argument("--scenario", required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--set", action="append", metavar="KEY=VALUE", help="override a scenario parameter"
+    )
+    p.add_argument("--position-only", action="store_true", help="a single-reflector tracker")
+    p.add_argument("--json", action="store_true")
+
+    p = add("estimate", cmd_estimate, "the service's alignment and observer over recorded files")
+    p.add_argument("--encoder", type=Path, required=True)
+    p.add_argument("--tracker", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--json", action="store_true")
+
+    p = add(
+        "calibrate-delay",
+        cmd_calibrate_delay,
+        "the delay (and clock drift) between the streams, from any motion",
+    )
+    p.add_argument("--encoder", type=Path, required=True)
+    p.add_argument("--tracker", type=Path, required=True)
+    p.add_argument("--no-drift", action="store_true", help="fit a constant delay only")
+    p.add_argument("--json", action="store_true")
+
+    p = add(
+        "delay-study",
+        cmd_delay_study,
+        "true vs found delay on simulated scenarios (README table)",
+        config=False,
+    )
+    p.add_argument("--config", default=str(demo_config_path()))
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--json", action="store_true")
+
+    p = add("import", cmd_import, "an outside data set to the interchange files", config=False)
+    p.add_argument("kind", choices=["ur10-lasertracker"])
+    p.add_argument("source", type=Path, help="e.g. Series_A/measurements_grid.csv")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--json", action="store_true")
+
+    p = add(
+        "paper",
+        cmd_paper,
+        "the reference paper's experiments reproduced in simulation",
+        config=False,
+    )
+    p.add_argument("--config", default=str(demo_config_path()))
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--json", action="store_true")
+
+    p = add("analyze", cmd_analyze, "what the model still gets wrong, effects added and judged")
+    p.add_argument("--encoder", type=Path, required=True)
+    p.add_argument("--tracker", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument(
+        "--registration-only",
+        action="store_true",
+        help="keep the effects in the config; re-identify tracker and tool only",
+    )
+    p.add_argument("--json", action="store_true")

@@ -1,0 +1,64 @@
+"""The embedded default and the benchmarks: demo, bench."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from keo_service.cli import common
+from keo_service.resources import demo_config_path
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from keo_service.bench.benchmarks import bench_table, run_bench
+
+    if args.soak is not None:
+        from keo_service.bench.benchmarks import soak
+
+        result = soak(common.load(args.config), args.soak)
+        if not args.json:
+            result = {
+                "summary": result["summary"],
+                "latency_ms": result["latency_ms"],
+                "lost": result["lost"],
+            }
+        common.print_json(result)
+        return common.EXIT_OK
+    report = run_bench(common.load(args.config), quick=args.quick)
+    if args.json:
+        common.print_json(report)
+    else:
+        sys.stdout.write(bench_table(report))
+    return common.EXIT_OK
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from keo_service.bench.demo import run_demo
+
+    return run_demo(args)
+
+
+def register(add: common.AddCommand) -> None:
+    p = add(
+        "demo",
+        cmd_demo,
+        "mock devices, adapters and service on loopback; prints a summary",
+        config=False,
+    )
+    p.add_argument("--config", default=str(demo_config_path()), help="default: the demo cell")
+    p.add_argument("--duration", type=float, default=18.0, help="seconds of scenario to play")
+    p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--seed", type=int, default=1)
+
+    p = add("bench", cmd_bench, "the benchmarks (numbers, no verdicts)", config=False)
+    p.add_argument("--config", default=str(demo_config_path()))
+    p.add_argument("--quick", action="store_true", help="under a minute; the CI smoke test")
+    p.add_argument(
+        "--soak",
+        type=float,
+        metavar="SECONDS",
+        help="instead: a soak run at 1 kHz (e.g. 600), RSS and open files over time",
+    )
+    p.add_argument("--json", action="store_true")

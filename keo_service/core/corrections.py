@@ -1,0 +1,55 @@
+"""Corrections to the nominal kinematic model that `keo analyze` identifies (data only)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Corrections:
+    nq: int
+    joint_offsets: np.ndarray = field(default=None)  # type: ignore[arg-type]
+    compliance: np.ndarray = field(default=None)  # type: ignore[arg-type]  # rad/(N m)
+    backlash: np.ndarray = field(default=None)  # type: ignore[arg-type]  # rad, x direction
+    cyclic: np.ndarray = field(default=None)  # type: ignore[arg-type]  # (nq, H, 2): a, b
+    placement: np.ndarray = field(default=None)  # type: ignore[arg-type]  # (nq, 6)
+
+    def __post_init__(self) -> None:
+        zero = {
+            "joint_offsets": (self.nq,),
+            "compliance": (self.nq,),
+            "backlash": (self.nq,),
+            "cyclic": (self.nq, 2, 2),
+            "placement": (self.nq, 6),
+        }
+        for name, shape in zero.items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.zeros(shape))
+
+    @property
+    def is_zero(self) -> bool:
+        return all(
+            not np.any(getattr(self, n))
+            for n in ("joint_offsets", "compliance", "backlash", "cyclic", "placement")
+        )
+
+    def joint_angles(
+        self, q: np.ndarray, tau: np.ndarray | None = None, direction: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Effective joint angles for joints q (..., nq); tau: gravity torques (..., nq)."""
+        q_eff: np.ndarray = q + self.joint_offsets
+        if tau is not None and np.any(self.compliance):
+            q_eff = q_eff + self.compliance * tau
+        if direction is not None and np.any(self.backlash):
+            q_eff = q_eff + self.backlash * direction
+        if np.any(self.cyclic):
+            for h in range(self.cyclic.shape[1]):
+                k = h + 1
+                q_eff = (
+                    q_eff
+                    + self.cyclic[:, h, 0] * np.sin(k * q)
+                    + self.cyclic[:, h, 1] * np.cos(k * q)
+                )
+        return q_eff

@@ -1,0 +1,416 @@
+"""The estimator: validation, alignment, measured error and observer, one sample at a time.
+
+One implementation serves `keo estimate` (files), `keo run` (live) and replay: samples go in
+as they arrive (any interleaving of the two streams, each in its own time order) and
+estimates come out. Only stream time stamps are used, never the wall clock, so the same
+input gives the same output however it is delivered. No I/O here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import Counter, deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from keo_service.core.kinematics import Cell, channels_for, measured_error
+from keo_service.core.observer import KinematicErrorObserver, all_finite
+from keo_service.core.timing import Coverage, DelayModel, EncoderBuffer
+
+UNIT_QUATERNION_TOLERANCE = 1e-4
+DIRECTION_DEADBAND = 1e-4  # rad/s: a joint slower than this keeps its last direction
+DELAY_SLEW = 0.001  # a new delay is approached at this many s per s of stream time
+MAX_PENDING = 2048
+MAX_MESSAGES = 32
+
+
+@dataclass(frozen=True)
+class EstimatorSettings:
+    gains: tuple[float, ...] = (1.0,) * 6
+    max_dt_s: float = 0.25
+    delay: DelayModel = field(default_factory=DelayModel)
+    alignment: str = "interpolate"
+    sample_rate_hz: float = 40.0
+    buffer_s: float = 2.0
+    max_gap_s: float = 0.2
+    stale_after_s: float = 0.5
+    start: str = "zero"  # observer's initial state: "zero" (the reference) or "first"
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One observer output. `measured` is None when the step was held (see `flags`)."""
+
+    t: float
+    measured: np.ndarray | None
+    estimate: np.ndarray
+    flags: tuple[str, ...]
+    encoder_t: float | None  # stream time at which the joints were evaluated
+    channels: tuple[str, ...]
+    joints: np.ndarray | None = None  # the joints the measured error was computed with
+    source: object = None  # passed through from on_tracker(tag=...), e.g. the device time
+
+    @property
+    def held(self) -> bool:
+        return self.measured is None
+
+
+@dataclass(frozen=True)
+class _TrackerSample:
+    t: float
+    p: np.ndarray | None  # None: a gap reported by the tracker
+    quat: np.ndarray | None
+    tag: object = None
+
+
+class Estimator:
+    """Feeds samples through alignment, the measured error and the observer."""
+
+    def __init__(self, cell: Cell, settings: EstimatorSettings) -> None:
+        if settings.alignment not in ("interpolate", "latest"):
+            raise ValueError(f"unknown alignment {settings.alignment!r}")
+        self.cell = cell
+        self.settings = settings
+        self._data = cell.robot.create_data()
+        self._nq = cell.robot.nq
+        capacity = max(64, math.ceil(settings.buffer_s * 2000.0))
+        self.encoder = EncoderBuffer(self._nq, capacity)
+        self.counters: Counter[str] = Counter()
+        self.messages: deque[str] = deque(maxlen=MAX_MESSAGES)
+        self.observer: KinematicErrorObserver | None = None
+        self.channels: tuple[str, ...] | None = None
+        self._delay = settings.delay
+        self._delay_target: float | None = None
+        self._prev_q: np.ndarray | None = None
+        self._direction = np.zeros(self._nq)  # each joint's direction of its last move
+        self._recent_dt: deque[float] = deque(maxlen=64)
+        self._step_cap: float | None = None
+        self._dt_seen = 0
+        self._last_tracker_t = -math.inf
+        self._last_update_t: float | None = None
+        self._pending: deque[_TrackerSample] = deque()
+        # "latest" alignment state
+        self._recent_tracker: deque[_TrackerSample] = deque(maxlen=4096)
+        self._next_tick: float | None = None
+        self.last: Estimate | None = None
+
+    # ---- public -------------------------------------------------------------------------
+
+    @property
+    def delay(self) -> DelayModel:
+        return self._delay
+
+    def set_delay(self, delay: DelayModel) -> None:
+        self._delay = delay
+        self._delay_target = None
+
+    def set_delay_target(self, offset_s: float) -> None:
+        """Move the delay toward `offset_s` gradually (DELAY_SLEW), so estimates see no step."""
+        self._delay_target = offset_s
+
+    def _slew_delay(self, t: float) -> None:
+        if self._delay_target is None or not math.isfinite(self._last_tracker_t):
+            return
+        dt = min(max(t - self._last_tracker_t, 0.0), 1.0)
+        gap = self._delay_target - self._delay.offset_s
+        step = max(-DELAY_SLEW * dt, min(DELAY_SLEW * dt, gap))
+        self._delay = dataclasses.replace(self._delay, offset_s=self._delay.offset_s + step)
+        if step == gap:
+            self._delay_target = None
+
+    def set_gains(self, gains: Sequence[float]) -> None:
+        self.settings = EstimatorSettings(**{**self.settings.__dict__, "gains": tuple(gains)})
+        if self.observer is not None:
+            self.observer.set_gain(self._gains_for(len(self.observer.gain)))
+
+    def on_encoder(self, t: float, q: Sequence[float] | np.ndarray) -> list[Estimate]:
+        q_arr = np.asarray(q, dtype=float)
+        if q_arr.shape != (self._nq,):
+            return self._reject(
+                "encoder_wrong_length",
+                f"encoder sample at t={t!r}: {q_arr.size} joints, expected {self._nq}",
+            )
+        if not (math.isfinite(t) and all_finite(q_arr)):
+            return self._reject(
+                "encoder_non_finite", f"encoder sample at t={t!r}: non-finite time or joint value"
+            )
+        newest = self.encoder.newest_t
+        if t == newest:
+            return self._reject("encoder_duplicate", f"encoder sample at t={t!r}: duplicate stamp")
+        if t < newest:
+            return self._reject(
+                "encoder_out_of_order",
+                f"encoder sample at t={t!r}: older than the newest ({newest!r})",
+            )
+        if self._prev_q is not None:
+            step = q_arr - self._prev_q
+            moved = np.abs(step) > DIRECTION_DEADBAND * max(t - newest, 1e-6)
+            self._direction[moved] = np.sign(step[moved])
+        self._prev_q = q_arr
+        self.encoder.push(t, q_arr)
+        self.counters["encoder_samples"] += 1
+        return self._advance()
+
+    def on_tracker(
+        self,
+        t: float,
+        p: Sequence[float] | np.ndarray | None,
+        quat: Sequence[float] | np.ndarray | None = None,
+        ok: bool = True,
+        tag: object = None,
+    ) -> list[Estimate]:
+        """A tracker sample; `ok=False` (or p None) is a gap the tracker reported."""
+        if not math.isfinite(t):
+            return self._reject("tracker_non_finite", f"tracker sample: non-finite time {t!r}")
+        if t == self._last_tracker_t:
+            return self._reject("tracker_duplicate", f"tracker sample at t={t!r}: duplicate stamp")
+        if t < self._last_tracker_t:
+            return self._reject(
+                "tracker_out_of_order",
+                f"tracker sample at t={t!r}: older than "
+                f"the previous one ({self._last_tracker_t!r})",
+            )
+        self._slew_delay(t)
+        if not ok or p is None:
+            self._last_tracker_t = t
+            self.counters["tracker_gaps"] += 1
+            return self._enqueue(_TrackerSample(t, None, None, tag))
+        p_arr = np.asarray(p, dtype=float)
+        q_arr = None if quat is None else np.asarray(quat, dtype=float)
+        if p_arr.shape != (3,) or (q_arr is not None and q_arr.shape != (4,)):
+            return self._reject(
+                "tracker_wrong_length",
+                f"tracker sample at t={t!r}: expected 3 position and 4 quaternion values",
+            )
+        if not all_finite(p_arr) or (q_arr is not None and not all_finite(q_arr)):
+            return self._reject(
+                "tracker_non_finite", f"tracker sample at t={t!r}: non-finite value"
+            )
+        if q_arr is not None:
+            norm = math.sqrt(float(q_arr @ q_arr))
+            if abs(norm - 1.0) > UNIT_QUATERNION_TOLERANCE:
+                return self._reject(
+                    "tracker_not_unit_quaternion",
+                    f"tracker sample at t={t!r}: quaternion norm {norm:.6g}, expected 1",
+                )
+            q_arr = q_arr / norm
+        channels = channels_for(q_arr is None)
+        if self.channels is None:
+            self.channels = channels
+            self.observer = KinematicErrorObserver(self._gains_for(len(channels)))
+            self.counters["channels"] = len(channels)
+        elif channels != self.channels:
+            return self._reject(
+                "tracker_channel_mismatch",
+                f"tracker sample at t={t!r}: "
+                f"{len(channels)} channels on a {len(self.channels)}-channel stream",
+            )
+        if math.isfinite(self._last_tracker_t):
+            self._recent_dt.append(t - self._last_tracker_t)
+            self._dt_seen += 1
+        self._last_tracker_t = t
+        self.counters["tracker_samples"] += 1
+        return self._enqueue(_TrackerSample(t, p_arr, q_arr, tag))
+
+    @property
+    def has_pending(self) -> bool:
+        """Tracker samples wait for encoder data (or "latest" ticks wait to be run)."""
+        if self.settings.alignment == "interpolate":
+            return bool(self._pending)
+        return (
+            self._next_tick is not None
+            and bool(self._recent_tracker)
+            and self._next_tick <= self._recent_tracker[-1].t
+        )
+
+    def flush(self) -> list[Estimate]:
+        """End of input: resolve what still waits (their encoder data will never come)."""
+        out: list[Estimate] = []
+        if self.settings.alignment == "interpolate":
+            while self._pending:
+                out.append(self._resolve(self._pending.popleft()))
+        else:
+            out.extend(self._run_ticks(final=True))
+        return out
+
+    # ---- internals ----------------------------------------------------------------------
+
+    def _gains_for(self, n: int) -> np.ndarray:
+        return np.asarray(self.settings.gains[:n], dtype=float)
+
+    def _max_step(self) -> float:
+        """The longest dt one update may use. After a gap, a single sample is one sample's
+        worth of measurement, not the whole gap's: cap at 3 typical periods (and max_dt_s).
+        The typical period is the median of the last 64 intervals, refreshed every 16."""
+        if len(self._recent_dt) < 8:
+            return self.settings.max_dt_s
+        if self._step_cap is None or self._dt_seen % 16 == 0:
+            typical = float(np.median(self._recent_dt))
+            if self.settings.alignment == "latest":  # updates come at the fixed rate
+                typical = max(typical, 1.0 / self.settings.sample_rate_hz)
+            self._step_cap = min(self.settings.max_dt_s, 3.0 * typical)
+        return self._step_cap
+
+    def _reject(self, counter: str, message: str) -> list[Estimate]:
+        self.counters[counter] += 1
+        self.counters["rejected"] += 1
+        self.messages.append(message)
+        return []
+
+    def _enqueue(self, sample: _TrackerSample) -> list[Estimate]:
+        if self.settings.alignment == "latest":
+            self._recent_tracker.append(sample)
+            if self._next_tick is None:
+                self._next_tick = sample.t
+            return self._run_ticks(final=False)
+        if len(self._pending) >= MAX_PENDING:
+            dropped = self._pending.popleft()
+            self.counters["pending_overflow"] += 1
+            self.messages.append(f"tracker sample at t={dropped.t!r} dropped: no encoder data came")
+        self._pending.append(sample)
+        return self._advance()
+
+    def _advance(self) -> list[Estimate]:
+        if self.settings.alignment == "latest":
+            return self._run_ticks(final=False)
+        out: list[Estimate] = []
+        while self._pending:
+            head = self._pending[0]
+            if head.p is not None:
+                target = self._delay.encoder_time(head.t)
+                waited = self._last_tracker_t - head.t
+                if self.encoder.newest_t < target and waited <= self.settings.stale_after_s:
+                    break  # wait for the encoder stream to cover it
+            self._pending.popleft()
+            out.append(self._resolve(head))
+        return out
+
+    def _resolve(self, sample: _TrackerSample) -> Estimate:
+        est = self._resolve_untagged(sample)
+        if sample.tag is None:
+            return est
+        self.last = dataclasses.replace(est, source=sample.tag)
+        return self.last
+
+    def _resolve_untagged(self, sample: _TrackerSample) -> Estimate:
+        if sample.p is None:
+            return self._held(sample.t, "tracker_gap", None)
+        target = self._delay.encoder_time(sample.t)
+        coverage, q = self.encoder.interpolate(target, self.settings.max_gap_s)
+        if coverage is Coverage.OK and target < self.encoder.newest_t - self.settings.buffer_s:
+            coverage, q = Coverage.TOO_OLD, None
+        if coverage is not Coverage.OK or q is None:
+            reason = {
+                Coverage.NOT_YET: "encoder_stale",
+                Coverage.EMPTY: "encoder_stale",
+                Coverage.TOO_OLD: "encoder_too_old",
+                Coverage.GAP: "encoder_gap",
+            }[coverage]
+            return self._held(sample.t, reason, target)
+        measured = measured_error(self.cell, self._data, q, sample.p, sample.quat, self._direction)
+        return self._update(sample.t, measured, target, q)
+
+    def _update(
+        self, t: float, measured: np.ndarray, encoder_t: float, joints: np.ndarray
+    ) -> Estimate:
+        assert self.observer is not None
+        assert self.channels is not None
+        if self._last_update_t is None:
+            if self.settings.start == "first":
+                self.observer.reset(measured)
+            else:
+                self.observer.reset()
+                # the reference start: zero state, first step as if one sample period passed
+                self.observer.update(measured, 1.0 / self.settings.sample_rate_hz)
+        else:
+            dt = min(t - self._last_update_t, self._max_step())
+            if not self.observer.update(measured, dt):
+                self.counters["observer_rejected"] += 1
+                return self._held(t, "observer_rejected", encoder_t)
+        self._last_update_t = t
+        self.counters["estimates"] += 1
+        est = Estimate(t, measured, self.observer.estimate, (), encoder_t, self.channels, joints)
+        self.last = est
+        return est
+
+    def _held(self, t: float, reason: str, encoder_t: float | None) -> Estimate:
+        self.counters[f"held_{reason}"] += 1
+        channels = self.channels or ()
+        state = self.observer.estimate if self.observer is not None else np.zeros(len(channels))
+        est = Estimate(t, None, state, (reason,), encoder_t, channels)
+        self.last = est
+        return est
+
+    # "latest": the reference method, sampled at a fixed rate in stream time
+    def _run_ticks(self, final: bool) -> list[Estimate]:
+        out: list[Estimate] = []
+        if self._next_tick is None or not self._recent_tracker:
+            return out
+        period = 1.0 / self.settings.sample_rate_hz
+        newest_tracker = self._recent_tracker[-1].t
+        while True:
+            tau = self._next_tick
+            if tau > newest_tracker:
+                break
+            target = self._delay.encoder_time(tau)
+            if (
+                not final
+                and self.encoder.newest_t < target
+                and newest_tracker - tau <= self.settings.stale_after_s
+            ):
+                break
+            out.append(self._tick(tau, target))
+            self._next_tick = tau + period
+        return out
+
+    def _tick(self, tau: float, target: float) -> Estimate:
+        trk = None
+        for s in reversed(self._recent_tracker):
+            if s.t <= tau:
+                trk = s
+                break
+        enc = self.encoder.latest_at_or_before(target)
+        stale = self.settings.stale_after_s
+        if trk is None or trk.p is None:
+            return self._held(tau, "tracker_gap", target)
+        if enc is None or target - enc[0] > stale:
+            return self._held(tau, "encoder_stale", target)
+        if tau - trk.t > stale:
+            return self._held(tau, "tracker_stale", target)
+        measured = measured_error(self.cell, self._data, enc[1], trk.p, trk.quat, self._direction)
+        est = self._update(tau, measured, enc[0], enc[1])
+        if trk.tag is not None and not est.held:
+            self.last = est = dataclasses.replace(est, source=trk.tag)
+        return est
+
+
+def run_offline(
+    estimator: Estimator,
+    encoder_t: np.ndarray,
+    encoder_q: np.ndarray,
+    tracker_t: np.ndarray,
+    tracker_p: np.ndarray,
+    tracker_quat: np.ndarray | None,
+) -> list[Estimate]:
+    """Feed two recorded streams in time-stamp order (encoder first on ties), then flush.
+
+    This is the order a live service sees when each sample arrives at its stamp, so replaying
+    the files through the service gives the same estimates.
+    """
+    out: list[Estimate] = []
+    i = j = 0
+    n_enc, n_trk = encoder_t.size, tracker_t.size
+    while i < n_enc or j < n_trk:
+        take_encoder = j >= n_trk or (i < n_enc and not encoder_t[i] > tracker_t[j])
+        if take_encoder:
+            out.extend(estimator.on_encoder(float(encoder_t[i]), encoder_q[i]))
+            i += 1
+        else:
+            quat = None if tracker_quat is None else tracker_quat[j]
+            out.extend(estimator.on_tracker(float(tracker_t[j]), tracker_p[j], quat))
+            j += 1
+    out.extend(estimator.flush())
+    return out

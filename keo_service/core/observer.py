@@ -1,0 +1,180 @@
+"""The Kinematic Error Observer (DESIGN.md section 2) and its analytic properties. No I/O.
+
+Model: de/dt = 0, e_m = e + n. Observer: de_hat/dt = L (e_m - e_hat), L = diag(L_i) > 0.
+Each step is discretized exactly for its own dt (zero-order hold on the new measurement):
+    e_hat_k = e_hat_{k-1} + (1 - exp(-L dt_k)) (e_m_k - e_hat_{k-1})
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+SETTLING_FRACTION = 0.02
+
+
+class KinematicErrorObserver:
+    """Per-channel first-order observer; the number of channels comes from the gains given."""
+
+    def __init__(
+        self,
+        gains: Sequence[float] | np.ndarray,
+        initial: Sequence[float] | np.ndarray | None = None,
+    ) -> None:
+        gain = np.asarray(gains, dtype=float)
+        if gain.ndim != 1 or gain.size == 0:
+            raise ValueError("gains must be a non-empty 1-D sequence")
+        if not np.all(np.isfinite(gain)) or np.any(gain <= 0):
+            raise ValueError(f"every gain must be finite and > 0, got {gain.tolist()}")
+        self._gain = gain
+        self._state = np.zeros_like(gain)
+        self._initialized = False
+        self.rejected = 0
+        self.updates = 0
+        if initial is not None:
+            self.reset(initial)
+
+    @property
+    def gain(self) -> np.ndarray:
+        return self._gain.copy()
+
+    @property
+    def channels(self) -> int:
+        return int(self._gain.size)
+
+    @property
+    def estimate(self) -> np.ndarray:
+        return self._state.copy()
+
+    def set_gain(self, gains: Sequence[float] | np.ndarray) -> None:
+        """Change gains without touching the state (used by a live reload)."""
+        gain = np.asarray(gains, dtype=float)
+        if gain.shape != self._gain.shape or np.any(~np.isfinite(gain)) or np.any(gain <= 0):
+            raise ValueError(f"need {self.channels} finite gains > 0, got {gain.tolist()}")
+        self._gain = gain
+
+    def reset(self, initial: Sequence[float] | np.ndarray | None = None) -> None:
+        """Restart from `initial` (default zero: the reference experiment's start)."""
+        value = np.zeros_like(self._gain) if initial is None else np.asarray(initial, dtype=float)
+        if value.shape != self._gain.shape or not np.all(np.isfinite(value)):
+            raise ValueError(f"initial state must be {self.channels} finite numbers")
+        self._state = value.copy()
+        self._initialized = True
+
+    def update(self, measured: np.ndarray, dt: float) -> bool:
+        """One exact ZOH step. Returns False (state unchanged, counted) for bad input."""
+        if (
+            not (dt > 0.0 and math.isfinite(dt))
+            or measured.shape != self._gain.shape
+            or not all_finite(measured)
+        ):
+            self.rejected += 1
+            return False
+        alpha = -np.expm1(-self._gain * dt)
+        self._state = self._state + alpha * (measured - self._state)
+        self.updates += 1
+        return True
+
+
+# ---- analytic properties -------------------------------------------------------------------
+
+
+def time_constant(gain: float) -> float:
+    """1/L seconds."""
+    return 1.0 / gain
+
+
+def settling_time(gain: float, fraction: float = SETTLING_FRACTION) -> float:
+    """Continuous-time settling time to within `fraction` of a step: ln(1/fraction)/L."""
+    return math.log(1.0 / fraction) / gain
+
+
+def step_alpha(gain: float, period: float) -> float:
+    """Fraction of the innovation taken per step: a = 1 - exp(-L T)."""
+    return -math.expm1(-gain * period)
+
+
+def discrete_settling_time(
+    gain: float, period: float, fraction: float = SETTLING_FRACTION
+) -> float:
+    """First sample time at which a step from zero is within `fraction` of its final value."""
+    a = step_alpha(gain, period)
+    steps = math.ceil(math.log(fraction) / math.log1p(-a) - 1e-12)
+    return max(steps, 1) * period
+
+
+def noise_gain(gain: float, period: float) -> float:
+    """Estimate std / white measurement noise std in steady state: sqrt(a/(2-a))."""
+    a = step_alpha(gain, period)
+    return math.sqrt(a / (2.0 - a))
+
+
+def steady_state_mse(alpha: float, noise_std: float, drift: float, period: float) -> float:
+    """Mean square estimate error for true error = random walk, plus white measurement noise.
+
+    `drift` is the random walk's intensity: std of its change over one second (units/sqrt(s)).
+    With q = drift^2 T and r = noise_std^2 the error obeys
+    eps_k = (1-a)(eps_{k-1} - w_k) + a v_k, so V = ((1-a)^2 q + a^2 r) / (a (2-a)).
+    """
+    q = drift * drift * period
+    r = noise_std * noise_std
+    return ((1.0 - alpha) ** 2 * q + alpha * alpha * r) / (alpha * (2.0 - alpha))
+
+
+def kalman_alpha(noise_std: float, drift: float, period: float) -> float:
+    """Steady-state Kalman gain of the random-walk model: the a that minimises the MSE."""
+    q = drift * drift * period
+    r = noise_std * noise_std
+    if q <= 0.0:
+        return 0.0
+    if r <= 0.0:
+        return 1.0
+    prior = 0.5 * (q + math.sqrt(q * q + 4.0 * q * r))
+    return prior / (prior + r)
+
+
+def best_gain(noise_std: float, drift: float, rate_hz: float) -> float:
+    """Observer gain L (1/s) whose ZOH step equals the steady-state Kalman gain."""
+    period = 1.0 / rate_hz
+    a = kalman_alpha(noise_std, drift, period)
+    if a <= 0.0:
+        return 0.0
+    if a >= 1.0:
+        return math.inf
+    return -math.log1p(-a) / period
+
+
+def all_finite(values: np.ndarray) -> bool:
+    """True when every value is finite. A finite sum proves it (a NaN or an infinity makes the
+    sum non-finite); summing the short hot-path vectors as Python floats costs a third of
+    isfinite().all() and warns about nothing. Only a non-finite sum (or an overflow of huge
+    finite values) takes the exact test."""
+    return math.isfinite(sum(values.ravel().tolist())) or bool(np.isfinite(values).all())
+
+
+@dataclass(frozen=True)
+class GainReport:
+    gain: float
+    rate_hz: float
+    time_constant_s: float
+    settling_time_s: float
+    discrete_settling_time_s: float
+    step_alpha: float
+    noise_gain: float
+    extras: dict[str, float] = field(default_factory=dict)
+
+
+def describe_gain(gain: float, rate_hz: float) -> GainReport:
+    period = 1.0 / rate_hz
+    return GainReport(
+        gain=gain,
+        rate_hz=rate_hz,
+        time_constant_s=time_constant(gain),
+        settling_time_s=settling_time(gain),
+        discrete_settling_time_s=discrete_settling_time(gain, period),
+        step_alpha=step_alpha(gain, period),
+        noise_gain=noise_gain(gain, period),
+    )

@@ -1,0 +1,504 @@
+"""The delay between the encoder and tracker streams, found from whatever motion was recorded.
+No I/O.
+
+While the tool moves at velocity v, reading the joints at t - d instead of the true t - d*
+shifts the measured error by v (d - d*) (angular velocity for orientation). The error itself
+changes only with the configuration, so we model it with smooth features of the joints
+(1, sin q_j, cos q_j per channel) and fit, by linear least squares around the current guess,
+
+    e(t; d) = F(q) a + v(t) delta + v(t) (t - t_ref) rho
+
+then move the guess by -delta (Gauss-Newton, a few rounds). The standard errors come from the
+residual, inflated for its autocorrelation. If the motion cannot separate delta from the
+configuration features (too little motion, a single constant-velocity direction), the
+standard error is large and we refuse to give a number.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+
+from keo_service.core.kinematics import Cell, tool_pose
+
+VELOCITY_STEP_S = 0.005  # central differences for the tool's velocity
+MIN_SPEED = 0.005  # m/s: slower than this is "at rest"
+MAX_SE_S = 0.002  # refuse when the delay's standard error is larger than this
+
+
+# static data: the joints move less than this around every tracker sample
+REST_WINDOW_S = 0.05
+REST_TOLERANCE_RAD = 1e-6
+
+
+class DelayNotIdentifiableError(Exception):
+    """The recorded motion cannot determine the delay; the message says why."""
+
+
+@dataclass
+class DelayFit:
+    delay_s: float
+    delay_se_s: float
+    drift: float  # s/s; delay(t) = delay_s + drift (t - t_ref)
+    drift_se: float
+    t_ref: float
+    drift_significant: bool
+    residual_rms_moving: float
+    residual_rms_rest: float
+    samples: int
+    moving_fraction: float
+    explained: bool
+    iterations: int
+    window_delays_s: list[float] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+def _interp_joints(enc_t: np.ndarray, enc_q: np.ndarray, t: np.ndarray) -> np.ndarray:
+    return np.column_stack([np.interp(t, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])])
+
+
+def _tool_states(
+    cell: Cell, enc_t: np.ndarray, enc_q: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Tool pose, linear and angular velocity (base frame) at encoder times t."""
+    data = cell.robot.create_data()
+    h = VELOCITY_STEP_S
+    q0 = _interp_joints(enc_t, enc_q, t)
+    qm = _interp_joints(enc_t, enc_q, t - h)
+    qp = _interp_joints(enc_t, enc_q, t + h)
+    n = t.size
+    p = np.empty((n, 3))
+    R = np.empty((n, 3, 3))
+    v = np.empty((n, 3))
+    w = np.empty((n, 3))
+    for i in range(n):
+        T = tool_pose(cell, data, q0[i])
+        Tm = tool_pose(cell, data, qm[i])
+        Tp = tool_pose(cell, data, qp[i])
+        p[i], R[i] = T.translation, T.rotation
+        v[i] = (Tp.translation - Tm.translation) / (2 * h)
+        w[i] = pin.log3(Tp.rotation @ Tm.rotation.T) / (2 * h)
+    return q0, p, R, v, w
+
+
+def _measured_base_errors(
+    p_bt: np.ndarray, R_bt: np.ndarray, p_bs: np.ndarray, R_bs: np.ndarray | None
+) -> np.ndarray:
+    """Errors in the base frame: position p_bs - p_bt, orientation log3(R_bs R_bt^T)."""
+    pos: np.ndarray = p_bs - p_bt
+    if R_bs is None:
+        return pos
+    rot = np.array([pin.log3(R_bs[i] @ R_bt[i].T) for i in range(p_bt.shape[0])])
+    return np.hstack([pos, rot])
+
+
+def _features(q: np.ndarray, p: np.ndarray, kind: str) -> np.ndarray:
+    """Smooth models of the configuration-dependent error: of the joints (whole recordings)
+    or, fewer parameters for short windows, linear in the tool position."""
+    ones = np.ones((q.shape[0], 1))
+    if kind == "position":
+        return np.hstack([ones, p - p.mean(axis=0)])
+    return np.hstack([ones, np.sin(q), np.cos(q)])
+
+
+def _effective_factor(residual: np.ndarray) -> float:
+    """Variance inflation (1 + rho)/(1 - rho) for lag-1 autocorrelated residuals."""
+    r = residual - residual.mean()
+    denom = float(r @ r)
+    if denom <= 0:
+        return 1.0
+    rho = float(r[1:] @ r[:-1]) / denom
+    rho = min(max(rho, 0.0), 0.98)
+    return (1 + rho) / (1 - rho)
+
+
+def _refuse_static(enc_t: np.ndarray, enc_q: np.ndarray, trk_t: np.ndarray) -> None:
+    """Static stop-and-measure data has no delay to see: refuse it in words rather than read
+    the jumps between poses as motion."""
+    if enc_t.size == trk_t.size and np.allclose(np.sort(enc_t), np.sort(trk_t), rtol=0, atol=1e-9):
+        raise DelayNotIdentifiableError(
+            "static stop-and-measure data (one encoder row per tracker row, at the same times): "
+            "the robot stands still at every measurement, so there is no delay to see; record "
+            "the streams while the robot moves"
+        )
+    order = np.argsort(enc_t)
+    t, q = enc_t[order], enc_q[order]
+    # joint change across each tracker sample's neighbourhood (+-REST_WINDOW_S of encoder data)
+    lo = np.searchsorted(t, trk_t - REST_WINDOW_S, side="left")
+    hi = np.searchsorted(t, trk_t + REST_WINDOW_S, side="right") - 1
+    usable = hi > lo
+    if not np.any(usable):
+        return
+    change = np.max(np.abs(q[hi[usable]] - q[lo[usable]]), axis=1)
+    if np.all(change < REST_TOLERANCE_RAD):
+        raise DelayNotIdentifiableError(
+            f"the robot is at rest at every tracker sample (joints change by less than "
+            f"{REST_TOLERANCE_RAD:g} rad within {REST_WINDOW_S:g} s of each): static data has no "
+            "delay to see; record the streams while the robot moves"
+        )
+
+
+def fit_delay(
+    cell: Cell,
+    enc_t: np.ndarray,
+    enc_q: np.ndarray,
+    trk_t: np.ndarray,
+    trk_p: np.ndarray,
+    trk_quat: np.ndarray | None,
+    initial: float = 0.0,
+    with_drift: bool = True,
+    max_iterations: int = 6,
+    features: str = "joints",
+) -> DelayFit:
+    """Least-squares delay (and drift) from recorded streams in the tracker frame."""
+    _refuse_static(enc_t, enc_q, trk_t)
+    keep = np.all(np.isfinite(trk_p), axis=1) & np.isfinite(trk_t)
+    if trk_quat is not None:
+        keep &= np.all(np.isfinite(trk_quat), axis=1)
+    trk_t, trk_p = trk_t[keep], trk_p[keep]
+    trk_quat = None if trk_quat is None else trk_quat[keep]
+    order = np.argsort(enc_t)
+    enc_t, enc_q = enc_t[order], enc_q[order]
+    margin = 0.2
+    inside = (trk_t - initial > enc_t[0] + margin) & (trk_t - initial < enc_t[-1] - margin)
+    trk_t, trk_p = trk_t[inside], trk_p[inside]
+    trk_quat = None if trk_quat is None else trk_quat[inside]
+    if trk_t.size < 50:
+        raise DelayNotIdentifiableError(
+            f"only {trk_t.size} tracker samples overlap the encoder stream"
+        )
+    T_bk = cell.T_bk
+    p_bs = np.array([T_bk.act(p) for p in trk_p])
+    R_bs = None
+    if trk_quat is not None:
+        R_k = np.array(
+            [pin.Quaternion(w, x, y, z).normalized().matrix() for w, x, y, z in trk_quat]
+        )
+        R_bs = np.einsum("ij,njk->nik", T_bk.rotation, R_k)
+    t_ref = float(np.mean(trk_t))
+    delay = initial
+    drift = 0.0
+    iterations = 0
+    for _ in range(max_iterations):
+        iterations += 1
+        enc_times = trk_t - (delay + drift * (trk_t - t_ref))
+        q, p_bt, R_bt, v, w = _tool_states(cell, enc_t, enc_q, enc_times)
+        err = _measured_base_errors(p_bt, R_bt, p_bs, R_bs)
+        speed = np.linalg.norm(v, axis=1)
+        moving = speed > MIN_SPEED
+        if moving.mean() < 0.05 or np.sqrt(np.mean(speed**2)) < 2 * MIN_SPEED:
+            raise DelayNotIdentifiableError(
+                f"the tool hardly moves (RMS speed {np.sqrt(np.mean(speed**2)) * 1e3:.1f} mm/s, "
+                f"moving {100 * moving.mean():.0f} % of the time): a delay only shows while it "
+                "moves; record motion with changes of speed or direction"
+            )
+        vel = np.hstack([v, w]) if R_bs is not None else v
+        nch = err.shape[1]
+        # weight each channel group by its noise (median absolute first difference)
+        scale = np.empty(nch)
+        for c in range(nch):
+            d1 = np.diff(err[:, c])
+            scale[c] = max(1.4826 * np.median(np.abs(d1 - np.median(d1))) / math.sqrt(2), 1e-9)
+        groups = [slice(0, 3)] + ([slice(3, 6)] if nch == 6 else [])
+        for g in groups:
+            scale[g] = np.median(scale[g])
+        F = _features(q, p_bt, features)
+        rows_y, rows_x, rows_f = [], [], []
+        for c in range(nch):
+            rows_y.append(err[:, c] / scale[c])
+            cols = [vel[:, c] / scale[c]]
+            if with_drift:
+                cols.append(vel[:, c] * (trk_t - t_ref) / scale[c])
+            rows_x.append(np.column_stack(cols))
+            block = np.zeros((F.shape[0], F.shape[1] * nch))
+            block[:, c * F.shape[1] : (c + 1) * F.shape[1]] = F / scale[c]
+            rows_f.append(block)
+        y = np.concatenate(rows_y)
+        X = np.vstack(rows_x)
+        Fm = np.vstack(rows_f)
+        # partial out the configuration features (Frisch-Waugh-Lovell)
+        Qf, _ = np.linalg.qr(Fm, mode="reduced")
+        y_p = y - Qf @ (Qf.T @ y)
+        X_p = X - Qf @ (Qf.T @ X)
+        beta, *_ = np.linalg.lstsq(X_p, y_p, rcond=None)
+        resid = y_p - X_p @ beta
+        inflate = np.mean(
+            [_effective_factor(resid[c * trk_t.size : (c + 1) * trk_t.size]) for c in range(nch)]
+        )
+        # heteroscedasticity-robust (timing noise grows with speed), inflated for correlation
+        try:
+            bread = np.linalg.inv(X_p.T @ X_p)
+            meat = (X_p * (resid**2)[:, None]).T @ X_p
+            cov = bread @ meat @ bread * inflate
+        except np.linalg.LinAlgError:
+            cov = np.full((X.shape[1], X.shape[1]), np.inf)
+        # e(t; d) = e_true + v (d - d_true): the fitted coefficient is how far off we are
+        step = float(beta[0])
+        delay -= step
+        if with_drift:
+            drift -= float(beta[1])
+        if abs(step) < 1e-7:
+            break
+    se = float(math.sqrt(cov[0, 0])) if np.isfinite(cov[0, 0]) else math.inf
+    drift_se = float(math.sqrt(cov[1, 1])) if with_drift and np.isfinite(cov[1, 1]) else math.inf
+    res = resid.reshape(nch, -1).T * scale  # back to metres / radians
+    res_pos = np.linalg.norm(res[:, :3], axis=1)
+    rms_moving = float(np.sqrt(np.mean(res_pos[moving] ** 2))) if moving.any() else math.nan
+    rms_rest = float(np.sqrt(np.mean(res_pos[~moving] ** 2))) if (~moving).any() else math.nan
+    notes: list[str] = []
+    if not se < MAX_SE_S:
+        raise DelayNotIdentifiableError(
+            f"the motion cannot separate a delay from a configuration-dependent error "
+            f"(standard error {se * 1e3:.1f} ms > {MAX_SE_S * 1e3:.0f} ms); a move at constant "
+            "velocity along one direction is not enough: include rests, changes of speed or of "
+            "direction"
+        )
+    significant = with_drift and abs(drift) > 3 * drift_se
+    if with_drift and not significant:
+        notes.append(f"no significant clock drift ({drift * 1e6:.1f} +/- {drift_se * 1e6:.1f} ppm)")
+    # a constant delay (and drift) explains the data if separate stretches of time agree on it
+    windows = _window_delays(
+        X_p[:, 0], y_p - (X_p[:, 1:] @ beta[1:] if with_drift else 0.0), trk_t, nch, float(inflate)
+    )
+    explained, spread_note = _consistent(windows)
+    if not explained:
+        notes.append(spread_note)
+    return DelayFit(
+        window_delays_s=[delay - w[0] for w in windows],
+        delay_s=delay,
+        delay_se_s=se,
+        drift=drift if significant else 0.0,
+        drift_se=drift_se,
+        t_ref=t_ref,
+        drift_significant=significant,
+        residual_rms_moving=rms_moving,
+        residual_rms_rest=rms_rest,
+        samples=int(trk_t.size),
+        moving_fraction=float(moving.mean()),
+        explained=explained,
+        iterations=iterations,
+        notes=notes,
+    )
+
+
+WINDOWS = 6
+PRACTICAL_SPREAD_S = 0.001
+
+
+def _window_delays(
+    x: np.ndarray, y: np.ndarray, t: np.ndarray, nch: int, inflate: float
+) -> list[tuple[float, float]]:
+    """The delay correction fitted on each of WINDOWS stretches of time: (value, se)."""
+    n = t.size
+    bounds = np.linspace(t[0], t[-1] + 1e-9, WINDOWS + 1)
+    out = []
+    for a, b in itertools.pairwise(bounds):
+        rows = np.tile((t >= a) & (t < b), nch)[: x.size]
+        xx = float(x[rows] @ x[rows])
+        if xx <= 0 or rows.sum() < 20 * nch:
+            continue
+        est = float(x[rows] @ y[rows]) / xx
+        r = y[rows] - est * x[rows]
+        robust = float((x[rows] ** 2) @ (r**2)) / (xx * xx)
+        out.append((est, math.sqrt(robust * inflate)))
+    del n
+    return out
+
+
+def _consistent(windows: list[tuple[float, float]]) -> tuple[bool, str]:
+    from scipy.stats import chi2
+
+    if len(windows) < 3:
+        return True, ""
+    est = np.array([w[0] for w in windows])
+    se = np.array([w[1] for w in windows])
+    ok = np.isfinite(se) & (se > 0) & (se < 0.05)
+    est, se = est[ok], se[ok]
+    if est.size < 3:
+        return True, ""
+    w = 1 / se**2
+    mean = float(np.sum(w * est) / np.sum(w))
+    stat = float(np.sum(((est - mean) / se) ** 2))
+    p = float(chi2.sf(stat, est.size - 1))
+    # statistically and practically different: within 1 ms a constant delay serves
+    if p >= 1e-3 or np.ptp(est) < PRACTICAL_SPREAD_S:
+        return True, ""
+    return False, (
+        f"no constant delay (and drift) explains these streams: stretches of the "
+        f"recording disagree by up to {np.ptp(est) * 1e3:.2f} ms (chi2 {stat:.0f} on "
+        f"{est.size - 1} dof); the delay varies, or samples are stamped unevenly"
+    )
+
+
+@dataclass
+class ReferenceSegment:
+    start: float
+    end: float
+    speed: float
+    offset: float
+    delay_s: float
+
+
+def reference_method(
+    cell: Cell,
+    enc_t: np.ndarray,
+    enc_q: np.ndarray,
+    trk_t: np.ndarray,
+    trk_p: np.ndarray,
+    min_duration: float = 1.0,
+) -> list[ReferenceSegment]:
+    """The paper's t_o = e / v on each constant-velocity stretch (offset against the rest
+    before it), with the joints read at the tracker stamps (no alignment)."""
+    ok = np.all(np.isfinite(trk_p), axis=1)
+    trk_t, trk_p = trk_t[ok], trk_p[ok]
+    inside = (trk_t > enc_t[0] + 0.1) & (trk_t < enc_t[-1] - 0.1)
+    trk_t, trk_p = trk_t[inside], trk_p[inside]
+    if trk_t.size < 10:
+        return []
+    _q, p_bt, _R, v, _w = _tool_states(cell, enc_t, enc_q, trk_t)
+    p_bs = np.array([cell.T_bk.act(p) for p in trk_p])
+    err = p_bs - p_bt
+    speed = np.linalg.norm(v, axis=1)
+    segments: list[ReferenceSegment] = []
+    i = 0
+    n = trk_t.size
+    while i < n:
+        if speed[i] < 10 * MIN_SPEED:
+            i += 1
+            continue
+        j = i
+        while (
+            j + 1 < n
+            and speed[j + 1] > 10 * MIN_SPEED
+            and np.linalg.norm(v[j + 1] - v[i]) < 0.05 * speed[i]
+        ):
+            j += 1
+        if trk_t[j] - trk_t[i] >= min_duration:
+            # the error changes along the stroke: compare with the rests on both sides
+            before = (trk_t < trk_t[i] - 0.5) & (trk_t > trk_t[i] - 3.5) & (speed < MIN_SPEED)
+            after = (trk_t > trk_t[j] + 0.5) & (trk_t < trk_t[j] + 3.5) & (speed < MIN_SPEED)
+            rest_parts = [m for m in (before, after) if m.sum() > 10]
+            if rest_parts:
+                direction = np.mean(v[i : j + 1], axis=0)
+                mean_speed = float(np.linalg.norm(direction))
+                direction /= mean_speed
+                rest_error = np.mean([np.mean(err[m], axis=0) for m in rest_parts], axis=0)
+                offset = float((np.mean(err[i : j + 1], axis=0) - rest_error) @ direction)
+                # tracker lagging (positive delay) makes the offset negative along the motion
+                segments.append(
+                    ReferenceSegment(
+                        float(trk_t[i]), float(trk_t[j]), mean_speed, offset, -offset / mean_speed
+                    )
+                )
+        i = j + 1
+    return segments
+
+
+class OnlineDelayTracker:
+    """Keeps a bounded window of raw samples and fits the delay on it when asked.
+
+    The service decides when (every `period_s`, off the event loop); the estimator moves its
+    delay toward the result slowly, so the estimate sees no step. At rest, or when the fit is
+    not trustworthy, the delay is left alone.
+    """
+
+    def __init__(
+        self, cell: Cell, window_s: float = 20.0, period_s: float = 10.0, max_samples: int = 40_000
+    ) -> None:
+        # fits run off the event loop: give them their own scratch data for gravity torques
+        self.cell = (
+            cell
+            if cell.nominal_model is None
+            else dataclasses.replace(cell, gravity_data=cell.nominal_model.createData())
+        )
+        self.window_s = window_s
+        self.period_s = period_s
+        self._enc: collections.deque[tuple[float, np.ndarray]] = collections.deque(
+            maxlen=max_samples
+        )
+        self._trk: collections.deque[tuple[float, np.ndarray, np.ndarray | None]] = (
+            collections.deque(maxlen=max_samples)
+        )
+        self._last_fit_t = -math.inf
+        self.last_result: str = "waiting for data"
+
+    def add_encoder(self, t: float, q: Sequence[float]) -> None:
+        q_arr = np.asarray(q, dtype=float)
+        newer = not self._enc or t > self._enc[-1][0]
+        if math.isfinite(t) and np.isfinite(q_arr).all() and newer:
+            self._enc.append((t, q_arr))
+
+    def add_tracker(self, t: float, p: Sequence[float], quat: Sequence[float] | None) -> None:
+        p_arr = np.asarray(p, dtype=float)
+        q_arr = None if quat is None else np.asarray(quat, dtype=float)
+        finite = np.isfinite(p_arr).all() and (q_arr is None or np.isfinite(q_arr).all())
+        if math.isfinite(t) and finite and (not self._trk or t > self._trk[-1][0]):
+            self._trk.append((t, p_arr, q_arr))
+
+    def due(self) -> bool:
+        if not self._trk:
+            return False
+        newest = self._trk[-1][0]
+        return (
+            newest - self._last_fit_t >= self.period_s
+            and newest - self._trk[0][0] >= 0.5 * self.window_s
+        )
+
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """Copies of the window (call on the loop, then fit anywhere)."""
+        newest = self._trk[-1][0]
+        self._last_fit_t = newest
+        trk = [s for s in self._trk if s[0] >= newest - self.window_s]
+        enc = [s for s in self._enc if s[0] >= newest - self.window_s - 1.0]
+        enc_t = np.array([s[0] for s in enc])
+        enc_q = np.array([s[1] for s in enc])
+        trk_t = np.array([s[0] for s in trk])
+        trk_p = np.array([s[1] for s in trk])
+        quats = [s[2] for s in trk]
+        trk_q = None if any(q is None for q in quats) else np.array(quats)
+        return enc_t, enc_q, trk_t, trk_p, trk_q
+
+    def fit(
+        self,
+        window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
+        current: float,
+    ) -> float | None:
+        enc_t, enc_q, trk_t, trk_p, trk_q = window
+        if enc_t.size < 20 or trk_t.size < 50:
+            self.last_result = "not enough data"
+            return None
+        try:
+            fit = fit_delay(
+                self.cell,
+                enc_t,
+                enc_q,
+                trk_t,
+                trk_p,
+                trk_q,
+                initial=current,
+                with_drift=False,
+                features="position",
+            )
+        except DelayNotIdentifiableError as exc:
+            self.last_result = f"kept: {exc}"
+            return None
+        if fit.delay_se_s > 0.5e-3:
+            self.last_result = (
+                f"kept: fit not precise enough ({fit.delay_s * 1e3:.2f} +/- "
+                f"{fit.delay_se_s * 1e3:.2f} ms)"
+            )
+            return None
+        # over a short window the position-linear error model can leave some structure; the
+        # slow slew toward the result keeps a single odd window from moving the delay much
+        caveat = "" if fit.explained else " (windows disagree somewhat)"
+        self.last_result = (
+            f"updated to {fit.delay_s * 1e3:.3f} +/- {fit.delay_se_s * 1e3:.3f} ms{caveat}"
+        )
+        return fit.delay_s

@@ -1,0 +1,376 @@
+"""`keo analyze` files: read the interchange files, run the analysis, write report.json, a
+readable report.md with plots, and model.toml (the config with every kept effect added)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+import pinocchio as pin
+from scipy.spatial.transform import Rotation
+
+from keo_service.core.chain import Chain
+from keo_service.core.errors import KeoError
+from keo_service.core.timing import DelayModel
+from keo_service.fit.analysis import (
+    EFFECTS,
+    Analysis,
+    Data,
+    Model,
+    NotIdentifiableError,
+    analyze,
+    persist_directions,
+)
+from keo_service.io.cell import cell_from_config, delay_model, robot_from_config
+from keo_service.io.config import Config, ModelConfig, config_to_toml
+from keo_service.io.interchange import read_encoder, read_tracker
+
+DIRECTION_DEADBAND = 1e-4  # rad/s: slower joints count as not moving
+
+
+def load_data(
+    config: Config, encoder_path: Path, tracker_path: Path, delay: DelayModel | None = None
+) -> tuple[Data, bool]:
+    """Pair each tracker row with the joints at its time minus the delay (the config's
+    unless given); stop-and-measure data (an encoder row at every tracker t) uses none."""
+    robot = robot_from_config(config)
+    enc = read_encoder(encoder_path, nq=robot.nq)
+    trk = read_tracker(tracker_path)
+    ok_e = np.isfinite(enc.t) & np.all(np.isfinite(enc.q), axis=1)
+    enc_t, enc_q = enc.t[ok_e], enc.q[ok_e]
+    order = np.argsort(enc_t)
+    enc_t, enc_q = enc_t[order], enc_q[order]
+    # stop-and-measure data has an encoder row at every tracker row's t: no delay applies
+    static = bool(np.all(np.isin(trk.t[np.isfinite(trk.t)], enc_t)))
+    if delay is None:
+        timing = config.timing
+        delay = delay_model(timing)
+    target = trk.t.copy() if static else np.array([delay.encoder_time(t) for t in trk.t])
+    ok = np.isfinite(trk.t) & np.all(np.isfinite(trk.p), axis=1)
+    ok &= (target >= enc_t[0]) & (target <= enc_t[-1])
+    if trk.quat is not None:
+        ok &= np.all(np.isfinite(trk.quat), axis=1)
+    target = target[ok]
+    q = np.column_stack([np.interp(target, enc_t, enc_q[:, j]) for j in range(robot.nq)])
+    velocity = tool_speed = None
+    if static:  # stop-and-measure: approach direction from the previous pose
+        direction = np.zeros_like(q)
+        direction[1:] = np.sign(np.diff(q, axis=0))
+    else:
+        h = 0.01
+        ahead = np.column_stack(
+            [np.interp(target + h, enc_t, enc_q[:, j]) for j in range(robot.nq)]
+        )
+        behind = np.column_stack(
+            [np.interp(target - h, enc_t, enc_q[:, j]) for j in range(robot.nq)]
+        )
+        velocity = (ahead - behind) / (2 * h)
+        direction = np.where(np.abs(velocity) > DIRECTION_DEADBAND, np.sign(velocity), 0.0)
+        chain = Chain(robot)
+        moved = chain.flange_poses(ahead)[:, :3, 3] - chain.flange_poses(behind)[:, :3, 3]
+        tool_speed = np.linalg.norm(moved, axis=1) / (2 * h)
+    direction = persist_directions(direction)
+    R = None
+    if trk.quat is not None:
+        quat = trk.quat[ok]
+        R = Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix()
+    extra = {k: v[ok] for k, v in trk.extra.items()}
+    if tool_speed is not None:
+        extra["tool_speed_m_s"] = tool_speed
+    return Data(q, trk.p[ok], R, trk.t[ok], extra, direction, velocity), trk.quat is None
+
+
+def saved_model(config: Config, chain: Chain, position_only: bool) -> Model:
+    """The effects in the config's [model] section, as a fixed Model (registration-only)."""
+    m: ModelConfig = config.model
+    nq = chain.nq
+    effects, parts = [], []
+    for name in m.effects:
+        if name == "geometry":
+            values = m.placement
+        elif name == "temperature":
+            values = m.temperature_m_per_c
+        elif name == "time_drift":
+            values = m.time_drift_m_per_s
+        elif name in EFFECTS:
+            values = getattr(m, name)
+        else:
+            raise KeoError(f"{config.source}: key 'model.effects': unknown effect '{name}'")
+        effects.append(name)
+        parts.append(np.asarray(values, dtype=float))
+    n_reg = 9 if position_only else 12
+    x = np.concatenate([np.zeros(n_reg), *parts]) if parts else np.zeros(n_reg)
+    model = Model(chain, position_only, effects, x, {}, m.temperature_ref_c, m.time_ref_s)
+    expected = n_reg + sum(model.sizes(nq))
+    if x.size != expected:
+        raise KeoError(
+            f"{config.source}: key 'model': the saved effects have {x.size - n_reg} "
+            f"numbers, expected {expected - n_reg}"
+        )
+    return model
+
+
+def model_config(result: Analysis, base: Config) -> Config:
+    """The config with the identified registration and every kept effect."""
+    model, x = result.model, result.x
+    T_bk, T_ns, corr, drifts = model.unpack(x)
+    nq = model.chain.nq
+    m = ModelConfig(
+        effects=list(model.effects),
+        joint_offsets=corr.joint_offsets.tolist() if "joint_offsets" in model.effects else [],
+        compliance=corr.compliance.tolist() if "compliance" in model.effects else [],
+        backlash=corr.backlash.tolist() if "backlash" in model.effects else [],
+        cyclic=corr.cyclic.reshape(nq * 4).tolist() if "cyclic" in model.effects else [],
+        placement=corr.placement.reshape(nq * 6).tolist() if "geometry" in model.effects else [],
+        temperature_m_per_c=drifts.get("temperature", np.zeros(0)).tolist(),
+        temperature_ref_c=model.temperature_ref,
+        time_drift_m_per_s=drifts.get("time_drift", np.zeros(0)).tolist(),
+        time_ref_s=model.time_ref,
+    )
+
+    def xyz_rpy(T: np.ndarray) -> tuple[list[float], list[float]]:
+        return T[:3, 3].tolist(), pin.rpy.matrixToRpy(T[:3, :3]).tolist()
+
+    tool_xyz, tool_rpy = xyz_rpy(T_ns)
+    trk_xyz, trk_rpy = xyz_rpy(T_bk)
+    tool = msgspec.structs.replace(base.tool, xyz=tool_xyz, rpy=tool_rpy)
+    tracker = msgspec.structs.replace(base.tracker, xyz=trk_xyz, rpy=trk_rpy)
+    return msgspec.structs.replace(base, tool=tool, tracker=tracker, model=m)
+
+
+def _plots(
+    out: Path, result: Analysis, data: Data, baseline_x: np.ndarray, baseline_model: Model
+) -> list[str]:
+    try:
+        import matplotlib
+    except ImportError:
+        raise KeoError(
+            "keo analyze draws its plots with matplotlib: pip install 'keo[plot]'"
+        ) from None
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    chain = result.model.chain
+    tau = chain.gravity_torques(data.q)
+    width = 3 if result.model.position_only or data.R_ks is None else 6
+    before = baseline_model.residuals(baseline_x, data, tau).reshape(-1, width)[:, :3] * 1e3
+    after = result.model.residuals(result.x, data, tau).reshape(-1, width)[:, :3] * 1e3
+    files = []
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    bins = np.linspace(0, max(np.linalg.norm(before, axis=1).max(), 1e-3), 50).tolist()
+    ax.hist(np.linalg.norm(before, axis=1), bins=bins, alpha=0.6, label="nominal model")
+    ax.hist(np.linalg.norm(after, axis=1), bins=bins, alpha=0.6, label="with kept effects")
+    ax.set_xlabel("position residual (mm)")
+    ax.set_ylabel("poses")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "residual_histogram.png", dpi=110)
+    plt.close(fig)
+    files.append("residual_histogram.png")
+    variables = {f"q{j + 1} (rad)": data.q[:, j] for j in range(data.q.shape[1])}
+    variables["time (s)"] = data.t
+    for k, v in data.extra.items():
+        variables[k] = v
+    cols = 3
+    rows = math.ceil(len(variables) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(12, 3 * rows), squeeze=False)
+    for ax, (name, v) in zip(axes.ravel(), variables.items(), strict=False):
+        ax.plot(v, np.linalg.norm(before, axis=1), ".", ms=2, alpha=0.4, label="nominal")
+        ax.plot(v, np.linalg.norm(after, axis=1), ".", ms=2, alpha=0.4, label="with effects")
+        ax.set_xlabel(name)
+        ax.set_ylabel("|residual| (mm)")
+    for ax in axes.ravel()[len(variables) :]:
+        ax.axis("off")
+    axes[0, 0].legend()
+    fig.tight_layout()
+    fig.savefig(out / "residual_vs_variables.png", dpi=90)
+    plt.close(fig)
+    files.append("residual_vs_variables.png")
+    return files
+
+
+def _stats_line(s: dict[str, Any]) -> str:
+    rot = "" if s["rot_rms_mrad"] is None else f", orientation {s['rot_rms_mrad']:.4f} mrad RMS"
+    return (
+        f"{s['n']} poses: position {s['pos_rms_mm']:.4f} mm RMS, {s['pos_max_mm']:.3f} mm max{rot}"
+    )
+
+
+def markdown(report: dict[str, Any], plots: list[str]) -> str:
+    lines = [
+        "# keo analyze",
+        "",
+        "All numbers below are on held-out poses (never used to fit) unless marked.",
+        "",
+        f"- nominal model, registration fitted: {_stats_line(report['baseline']['validation'])}",
+    ]
+    for e in report["effects"]:
+        lines.append(
+            f"- + {e['name']} ({e['description']}): {_stats_line(e['validation'])} "
+            f"({e['held_out_improvement_pct']:+.1f} %)"
+        )
+    lines.append(f"- final: {_stats_line(report['final']['validation'])}")
+    lines.append(f"- (final on the fitted poses: {_stats_line(report['final']['train'])})")
+    if report["rejected"]:
+        lines += ["", "Tried and not kept (held-out change below 5 %):", ""]
+        for e in report["rejected"]:
+            lines.append(f"- {e['name']}: {e['held_out_improvement_pct']:+.1f} %")
+    lines += [
+        "",
+        "## What remains",
+        "",
+        report["unexplained"],
+        "",
+        "| variable | R^2 of the residual | by chance |",
+        "|---|---|---|",
+    ]
+    for c in report["correlations"]:
+        lines.append(f"| {c['variable']} | {c['r2']:.3f} | {c['chance']:.3f} |")
+    lines += ["", "## Parameters (value +/- standard error)", ""]
+    for e in report["effects"]:
+        p = e["parameters"]
+        head = f"### {e['name']}"
+        if "identifiable" in p:
+            head += f" ({p['identifiable']} of {p['of']} combinations identifiable)"
+        if "values" in p:
+            body = ", ".join(
+                f"{v:.3g} +/- {s:.2g}" for v, s in zip(p["values"], p["se"], strict=True)
+            )
+        else:
+            body = ", ".join(
+                f"{k} = {v:.6g}" if isinstance(v, float) else f"{k} = {v}" for k, v in p.items()
+            )
+        lines += [head, "", body, ""]
+    lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots]
+    return "\n".join(lines) + "\n"
+
+
+def _is_static(config: Config, encoder: Path, tracker: Path) -> bool:
+    enc = read_encoder(encoder)
+    trk = read_tracker(tracker)
+    return bool(np.all(np.isin(trk.t[np.isfinite(trk.t)], enc.t)))
+
+
+def _time_delay_effect(
+    config: Config, encoder: Path, tracker: Path, data: Data, position_only: bool, say: Any
+) -> tuple[Data, dict[str, Any] | None]:
+    """Motion data: the delay (and drift) from the motion itself, kept if pairing the
+    streams with it lowers the held-out error of the registered nominal model by 5 %."""
+    from keo_service.fit.analysis import KEEP_MARGIN, fit, initial_registration, split, stats
+    from keo_service.fit.delay import DelayNotIdentifiableError, fit_delay
+
+    cell = cell_from_config(config)
+    enc = read_encoder(encoder, nq=cell.robot.nq)
+    trk = read_tracker(tracker)
+    say("trying time_delay (the delay between the streams, from the motion)")
+    try:
+        found = fit_delay(cell, enc.t, enc.q, trk.t, trk.p, trk.quat, initial=config.timing.delay_s)
+    except DelayNotIdentifiableError as exc:
+        say(f"time_delay: not identifiable ({exc})")
+        return data, None
+    model_delay = DelayModel(found.delay_s, found.drift, found.t_ref)
+    new_data, _ = load_data(config, encoder, tracker, model_delay)
+    chain = Chain(cell.robot)
+
+    def held_out(d: Data) -> tuple[dict[str, Any], dict[str, Any]]:
+        tr, va = split(d.n)
+        train, val = d.subset(tr), d.subset(va)
+        tau_tr, tau_va = chain.gravity_torques(train.q), chain.gravity_torques(val.q)
+        model = Model(
+            chain, position_only, [], initial_registration(chain, train, None, position_only)
+        )
+        x = fit(model, train, tau_tr, model.x, 50e-6).x
+        return stats(model, x, train, tau_tr).as_dict(), stats(model, x, val, tau_va).as_dict()
+
+    old_train, old_val = held_out(data)
+    new_train, new_val = held_out(new_data)
+    gain = 1 - new_val["pos_rms_mm"] / old_val["pos_rms_mm"]
+    entry = {
+        "name": "time_delay",
+        "description": "delay (and clock drift) between the streams",
+        "parameters": {
+            "delay_s": found.delay_s,
+            "se_s": found.delay_se_s,
+            "drift_ppm": found.drift * 1e6,
+            "drift_se_ppm": found.drift_se * 1e6,
+            "t_ref_s": found.t_ref,
+            "explained": found.explained,
+        },
+        "train": new_train,
+        "validation": new_val,
+        "held_out_improvement_pct": 100 * gain,
+        "kept": gain >= KEEP_MARGIN,
+        "baseline": {"train": old_train, "validation": old_val},
+    }
+    say(
+        f"time_delay: {found.delay_s * 1e3:.2f} +/- {found.delay_se_s * 1e3:.2f} ms, held-out "
+        f"change {100 * gain:+.1f} %"
+    )
+    return (new_data if entry["kept"] else data), entry
+
+
+def run_analysis(
+    config: Config, encoder: Path, tracker: Path, out: Path, registration_only: bool
+) -> dict[str, Any]:
+    data, position_only = load_data(config, encoder, tracker)
+
+    def progress(msg: str) -> None:
+        print(f"[analyze] {msg}", file=sys.stderr, flush=True)
+
+    delay_entry = None
+    if not registration_only and not _is_static(config, encoder, tracker):
+        data, delay_entry = _time_delay_effect(
+            config, encoder, tracker, data, position_only, progress
+        )
+
+    robot = robot_from_config(config)
+    chain = Chain(robot)
+    fixed = saved_model(config, chain, position_only) if registration_only else None
+    try:
+        result = analyze(robot, data, position_only, fixed_model=fixed, progress=progress)
+    except NotIdentifiableError as exc:
+        raise KeoError(f"cannot analyze these data: {exc}") from None
+    out.mkdir(parents=True, exist_ok=True)
+    baseline = Model(chain, position_only, [], result.x[: result.model.n_reg])
+    from keo_service.fit.analysis import fit, initial_registration
+
+    tau = chain.gravity_torques(data.q)
+    base_x = fit(
+        baseline,
+        data,
+        tau,
+        initial_registration(chain, data, None, position_only),
+        result.report["registration"]["noise_estimate_mm"] * 1e-3,
+    ).x
+    plots = _plots(out, result, data, base_x, baseline)
+    report = result.report
+    if delay_entry is not None:
+        if delay_entry.pop("kept"):
+            report["baseline"] = delay_entry.pop("baseline")
+            report["effects"].insert(0, delay_entry)
+        else:
+            delay_entry.pop("baseline")
+            report["rejected"].insert(0, delay_entry)
+    report["position_only"] = position_only
+    report["registration_only"] = registration_only
+    (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False, default=float))
+    (out / "report.md").write_text(markdown(report, plots))
+    improved = model_config(result, config)
+    kept_delay = next((e for e in report["effects"] if e["name"] == "time_delay"), None)
+    if kept_delay is not None:
+        p = kept_delay["parameters"]
+        timing = msgspec.structs.replace(
+            improved.timing,
+            delay_s=p["delay_s"],
+            drift_ppm=p["drift_ppm"],
+            drift_ref_s=p["t_ref_s"] if p["drift_ppm"] else 0.0,
+        )
+        improved = msgspec.structs.replace(improved, timing=timing)
+    (out / "model.toml").write_text(config_to_toml(improved))
+    return report

@@ -1,0 +1,105 @@
+"""The core's objects built from a config: robot model, cell, corrections, estimator settings
+and delay model. The one place where config keys meet the math's types."""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+
+from keo_service.core.corrections import Corrections
+from keo_service.core.errors import ConfigError
+from keo_service.core.estimator import EstimatorSettings
+from keo_service.core.kinematics import Cell, RobotModel, load_robot, se3_from_xyz_rpy
+from keo_service.core.timing import DelayModel
+from keo_service.io.config import Config, ModelConfig, TimingConfig
+
+
+def robot_from_config(config: Config) -> RobotModel:
+    """The nominal robot of a config (errors name the config key)."""
+    return load_robot(
+        config.robot.urdf, config.robot.base_frame, config.robot.flange_frame, source=config.source
+    )
+
+
+def cell_from_config(config: Config) -> Cell:
+    """The cell of a config: robot (with identified geometry applied), tool and tracker
+    registration, and the identified corrections of its [model] section."""
+    robot = robot_from_config(config)
+    corrections = corrections_from_config(config.model, robot.nq, config.source)
+    nominal = None
+    if corrections is not None:
+        nominal = robot.model
+        if corrections.placement is not None and np.any(corrections.placement):
+            robot = _with_placement_corrections(robot, corrections.placement)
+    return Cell(
+        robot=robot,
+        T_nt=se3_from_xyz_rpy(config.tool.xyz, config.tool.rpy),
+        T_bk=se3_from_xyz_rpy(config.tracker.xyz, config.tracker.rpy),
+        corrections=corrections,
+        nominal_model=nominal,
+        gravity_data=None if nominal is None else nominal.createData(),
+    )
+
+
+def _with_placement_corrections(robot: RobotModel, placement: np.ndarray) -> RobotModel:
+    model = pin.Model(robot.model)
+    for j in range(1, model.njoints):
+        delta = placement[j - 1]
+        model.jointPlacements[j] = model.jointPlacements[j] * pin.exp6(
+            pin.Motion(delta[:3], delta[3:])
+        )
+    return RobotModel(
+        model,
+        robot.base_frame_id,
+        robot.flange_frame_id,
+        robot.joint_names,
+        robot.lower,
+        robot.upper,
+        robot.velocity_limit,
+    )
+
+
+def corrections_from_config(model: ModelConfig, nq: int, source: str) -> Corrections | None:
+    """The [model] section as Corrections (None when empty); lengths checked per key."""
+    sizes = {
+        "joint_offsets": nq,
+        "compliance": nq,
+        "backlash": nq,
+        "cyclic": 4 * nq,
+        "placement": 6 * nq,
+    }
+    values: dict[str, np.ndarray | None] = {}
+    for key, n in sizes.items():
+        v = list(getattr(model, key))
+        if v and len(v) != n:
+            raise ConfigError(
+                source, f"model.{key}", f"{len(v)} numbers, expected {n} for this {nq}-joint robot"
+            )
+        values[key] = np.asarray(v, dtype=float) if v else None
+    if all(v is None for v in values.values()):
+        return None
+    shapes = {"cyclic": (nq, 2, 2), "placement": (nq, 6)}
+    given = {k: v.reshape(shapes.get(k, (nq,))) for k, v in values.items() if v is not None}
+    return Corrections(nq=nq, **given)
+
+
+def delay_model(timing: TimingConfig) -> DelayModel:
+    """The [timing] section's delay: delay_s at drift_ref_s, drifting by drift_ppm."""
+    return DelayModel(
+        offset_s=timing.delay_s, drift=timing.drift_ppm * 1e-6, t_ref=timing.drift_ref_s
+    )
+
+
+def estimator_settings(config: Config) -> EstimatorSettings:
+    """The estimator's settings from [observer] and [timing]."""
+    timing, obs = config.timing, config.observer
+    return EstimatorSettings(
+        gains=tuple(obs.gain),
+        max_dt_s=obs.max_dt_s,
+        delay=delay_model(timing),
+        alignment=timing.alignment,
+        sample_rate_hz=timing.sample_rate_hz,
+        buffer_s=timing.buffer_s,
+        max_gap_s=timing.max_gap_s,
+        stale_after_s=timing.stale_after_s,
+    )

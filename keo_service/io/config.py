@@ -1,0 +1,204 @@
+"""The TOML config (DESIGN.md section 6), read with tomllib and validated with msgspec.
+
+Every key is optional except `robot.urdf`; unknown keys are errors. Errors name the key.
+Relative paths are resolved against the config file's folder.
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+import msgspec
+import tomli_w
+
+from keo_service.core.errors import ConfigError
+
+Finite = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
+Vec3 = Annotated[list[Finite], msgspec.Meta(min_length=3, max_length=3)]
+Gain = Annotated[float, msgspec.Meta(gt=0.0, le=1e4)]
+Port = Annotated[int, msgspec.Meta(ge=1, le=65535)]
+CellName = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_\-]+$")]
+
+
+class _Section(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
+    pass
+
+
+class RobotConfig(_Section):
+    urdf: str
+    base_frame: str = "base_link"
+    flange_frame: str = "tool0"
+    host: str = "127.0.0.1"
+    port: Port = 50241
+    byte_order: Literal["little", "big"] = "little"
+
+
+class ToolConfig(_Section):
+    xyz: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    rpy: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+class TrackerConfig(_Section):
+    xyz: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    rpy: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    host: str = "127.0.0.1"
+    port: Port = 5005
+
+
+class ObserverConfig(_Section):
+    gain: Annotated[list[Gain], msgspec.Meta(min_length=6, max_length=6)] = msgspec.field(
+        default_factory=lambda: [1.0] * 6
+    )
+    # A sample that follows a gap longer than this updates as if it came after max_dt_s,
+    # so one measurement after a beam break cannot pull the estimate all the way.
+    max_dt_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 0.25
+
+
+class TimingConfig(_Section):
+    delay_s: Annotated[float, msgspec.Meta(ge=-1.0, le=1.0)] = 0.0
+    drift_ppm: Annotated[float, msgspec.Meta(ge=-10000.0, le=10000.0)] = 0.0
+    # stream time (s) at which delay_s holds when drift_ppm is not zero
+    drift_ref_s: float = 0.0
+    alignment: Literal["interpolate", "latest"] = "interpolate"
+    sample_rate_hz: Annotated[float, msgspec.Meta(gt=0.0, le=10000.0)] = 40.0
+    track_delay: bool = False
+    # Encoder samples kept for alignment, in seconds of stream time.
+    buffer_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 2.0
+    # Two encoder samples further apart than this are not interpolated between.
+    max_gap_s: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.2
+    # A tracker sample waits at most this long (stream time) for encoder data to cover it.
+    stale_after_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 0.5
+
+
+class BusConfig(_Section):
+    mode: Literal["peer", "client"] = "peer"
+    listen: list[str] = msgspec.field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = msgspec.field(default_factory=list)
+    multicast_scouting: bool = False
+    # TLS (endpoints "tls/host:port"): the CA that signed the other side's certificate, and
+    # this node's own certificate and key; tls_mtls makes both sides prove who they are
+    tls_root_ca: str = ""
+    tls_certificate: str = ""
+    tls_private_key: str = ""
+    tls_mtls: bool = False
+
+
+class ModelConfig(_Section):
+    """Effects `keo analyze` identified (written into model.toml). Applied live: joint
+    offsets, geometry (placement), compliance, cyclic. Backlash, temperature and time drift
+    are reported by the analysis but need inputs the live stream does not carry."""
+
+    effects: list[str] = msgspec.field(default_factory=list)
+    joint_offsets: list[float] = msgspec.field(default_factory=list)  # rad, per joint
+    compliance: list[float] = msgspec.field(default_factory=list)  # rad/(N m), per joint
+    backlash: list[float] = msgspec.field(default_factory=list)  # rad, per joint
+    cyclic: list[float] = msgspec.field(default_factory=list)  # per joint: a1, b1, a2, b2 (rad)
+    placement: list[float] = msgspec.field(default_factory=list)  # per joint: 6-vector (m, rad)
+    temperature_m_per_c: list[float] = msgspec.field(default_factory=list)
+    temperature_ref_c: float = 0.0
+    time_drift_m_per_s: list[float] = msgspec.field(default_factory=list)
+    time_ref_s: float = 0.0
+
+
+class Config(_Section):
+    robot: RobotConfig
+    cell: CellName = "cell1"
+    tool: ToolConfig = msgspec.field(default_factory=ToolConfig)
+    tracker: TrackerConfig = msgspec.field(default_factory=TrackerConfig)
+    observer: ObserverConfig = msgspec.field(default_factory=ObserverConfig)
+    timing: TimingConfig = msgspec.field(default_factory=TimingConfig)
+    bus: BusConfig = msgspec.field(default_factory=BusConfig)
+    model: ModelConfig = msgspec.field(default_factory=ModelConfig)
+    # Where the file came from; not a TOML key.
+    source: str = ""
+
+    @property
+    def urdf_path(self) -> Path:
+        return Path(self.robot.urdf)
+
+    def bus_endpoints(self) -> list[str]:
+        """Endpoints a client process (adapter, echo, record) connects to."""
+        return list(self.bus.connect or self.bus.listen)
+
+
+_PATH_RE = re.compile(r" - at `\$\.?(?P<path>[^`]*)`$")
+_UNKNOWN_RE = re.compile(r"Object contains unknown field `(?P<field>[^`]+)`")
+_MISSING_RE = re.compile(r"Object missing required field `(?P<field>[^`]+)`")
+
+
+def _explain(exc: msgspec.ValidationError, source: str) -> ConfigError:
+    text = str(exc)
+    match = _PATH_RE.search(text)
+    path = match.group("path") if match else ""
+    what = text[: match.start()] if match else text
+    for pattern, verb in ((_UNKNOWN_RE, "unknown key"), (_MISSING_RE, "required key is missing")):
+        m = pattern.search(what)
+        if m:
+            key = f"{path}.{m.group('field')}" if path else m.group("field")
+            return ConfigError(source, key, verb)
+    return ConfigError(source, path or "(top level)", f"{what}")
+
+
+def parse_config(
+    data: dict[str, object], source: str = "<config>", base_dir: Path | None = None
+) -> Config:
+    """Validate a parsed TOML document; resolve relative paths against `base_dir`."""
+    if "source" in data:
+        raise ConfigError(source, "source", "unknown key")
+    try:
+        config = msgspec.convert(data, Config)
+    except msgspec.ValidationError as exc:
+        raise _explain(exc, source) from None
+    urdf = Path(config.robot.urdf)
+    if not urdf.is_absolute() and base_dir is not None:
+        urdf = (base_dir / urdf).resolve()
+    if not urdf.is_file():
+        raise ConfigError(source, "robot.urdf", f"file not found: {urdf}")
+    robot = msgspec.structs.replace(config.robot, urdf=str(urdf))
+    bus = config.bus
+    tls_paths = {}
+    for key in ("tls_root_ca", "tls_certificate", "tls_private_key"):
+        value = getattr(bus, key)
+        if value:
+            path = Path(value)
+            if not path.is_absolute() and base_dir is not None:
+                path = (base_dir / path).resolve()
+            if not path.is_file():
+                raise ConfigError(source, f"bus.{key}", f"file not found: {path}")
+            tls_paths[key] = str(path)
+    uses_tls = any(e.startswith("tls/") for e in bus.listen + bus.connect)
+    if uses_tls and not bus.tls_root_ca:
+        raise ConfigError(source, "bus.tls_root_ca", "tls/ endpoints need the CA certificate")
+    if bus.tls_mtls and not (bus.tls_certificate and bus.tls_private_key):
+        raise ConfigError(
+            source, "bus.tls_mtls", "mutual TLS needs bus.tls_certificate and bus.tls_private_key"
+        )
+    bus = msgspec.structs.replace(bus, **tls_paths)
+    return msgspec.structs.replace(config, robot=robot, bus=bus, source=source)
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and validate a config file. Raises ConfigError naming the offending key."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(str(path), "(file)", f"cannot read config: {exc.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(str(path), "(syntax)", f"not valid TOML: {exc}") from None
+    return parse_config(data, source=str(path), base_dir=path.parent)
+
+
+def config_to_toml(config: Config) -> str:
+    """Write a config back as TOML (used for model.toml); paths stay absolute. `tomli-w`
+    escapes strings and formats floats so that `load_config` reads back the same values."""
+    doc: dict[str, object] = {"cell": config.cell}
+    for name, section in msgspec.to_builtins(config).items():
+        if isinstance(section, dict):
+            doc[name] = section
+    return tomli_w.dumps(doc)

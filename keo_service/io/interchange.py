@@ -1,0 +1,227 @@
+"""The recording interchange (DESIGN.md section 5): encoder.csv, tracker.csv, truth.csv and
+estimate files. Plain CSV with a header row; SI units; quaternions scalar first.
+
+Readers check the format and raise DataFormatError naming file, line and column. Values that
+parse but are not finite are kept as NaN: the estimator skips and counts them.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from keo_service.core.errors import DataFormatError
+
+TRACKER_POSE_COLUMNS = ("t", "x", "y", "z", "qw", "qx", "qy", "qz")
+TRACKER_POSITION_COLUMNS = ("t", "x", "y", "z")
+
+
+@dataclass
+class EncoderData:
+    t: np.ndarray  # (n,)
+    q: np.ndarray  # (n, nq)
+
+
+@dataclass
+class TrackerData:
+    t: np.ndarray  # (n,)
+    p: np.ndarray  # (n, 3)
+    quat: np.ndarray | None  # (n, 4) scalar first, or None for a single reflector
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def position_only(self) -> bool:
+        return self.quat is None
+
+
+def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
+    """Header and numbers of a CSV file. numpy parses well-formed files in one pass; a file it
+    refuses is parsed again cell by cell only to say which line and column is wrong."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise DataFormatError(str(path), 0, "-", f"cannot open: {exc.strerror}") from None
+    lines = text.splitlines()
+    if not lines:
+        raise DataFormatError(str(path), 1, "-", "empty file, expected a header row")
+    header = [h.strip() for h in next(csv.reader(lines[:1]), [])]
+    if len(set(header)) != len(header):
+        raise DataFormatError(str(path), 1, "-", f"repeated column names in {header}")
+    body = lines[1:]
+    if not any(line.strip() for line in body):
+        return header, np.empty((0, len(header)))
+    try:
+        data = np.loadtxt(body, delimiter=",", dtype=float, ndmin=2, comments=None)
+    except ValueError:
+        data = None
+    if data is not None and data.shape[1] == len(header):
+        return header, data
+    return header, _parse_cells(path, header, body)
+
+
+def _parse_cells(path: Path, header: list[str], body: list[str]) -> np.ndarray:
+    rows: list[list[float]] = []
+    for line_no, row in enumerate(csv.reader(body), start=2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) != len(header):
+            raise DataFormatError(
+                str(path),
+                line_no,
+                "-",
+                f"{len(row)} fields, expected {len(header)} as in the header",
+            )
+        values = []
+        for name, cell in zip(header, row, strict=True):
+            try:
+                values.append(float(cell))
+            except ValueError:
+                raise DataFormatError(
+                    str(path), line_no, name, f"'{cell}' is not a number"
+                ) from None
+        rows.append(values)
+    return np.array(rows, dtype=float).reshape(len(rows), len(header))
+
+
+def read_encoder(path: str | Path, nq: int | None = None) -> EncoderData:
+    path = Path(path)
+    header, data = _read_table(path)
+    if not header or header[0] != "t":
+        raise DataFormatError(
+            str(path), 1, header[0] if header else "-", "first column must be 't'"
+        )
+    joints = header[1:]
+    expected = [f"q{i + 1}" for i in range(len(joints))]
+    if joints != expected or not joints:
+        raise DataFormatError(
+            str(path), 1, "-", f"columns must be t,q1,...,qN; got {','.join(header)}"
+        )
+    if nq is not None and len(joints) != nq:
+        raise DataFormatError(
+            str(path), 1, joints[-1], f"{len(joints)} joint columns, the robot model has {nq}"
+        )
+    return EncoderData(t=data[:, 0].copy(), q=data[:, 1:].copy())
+
+
+def read_tracker(path: str | Path) -> TrackerData:
+    path = Path(path)
+    header, data = _read_table(path)
+    if tuple(header[:8]) == TRACKER_POSE_COLUMNS:
+        core, quat = 8, data[:, 4:8].copy()
+    elif tuple(header[:4]) == TRACKER_POSITION_COLUMNS and not {"qw", "qx", "qy", "qz"} & set(
+        header
+    ):
+        core, quat = 4, None
+    else:
+        raise DataFormatError(
+            str(path),
+            1,
+            "-",
+            "columns must start with t,x,y,z,qw,qx,qy,qz "
+            f"(6-DoF) or t,x,y,z (single reflector); got {','.join(header)}",
+        )
+    extra = {name: data[:, i].copy() for i, name in enumerate(header) if i >= core}
+    return TrackerData(t=data[:, 0].copy(), p=data[:, 1:4].copy(), quat=quat, extra=extra)
+
+
+def _fmt(value: float) -> str:
+    return repr(float(value)) if math.isfinite(value) else "nan"
+
+
+def _write_rows(path: Path, header: Sequence[str], rows: Iterable[Sequence[float]]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", encoding="utf-8", newline="") as f:
+        f.write(",".join(header) + "\n")
+        for row in rows:
+            f.write(",".join(_fmt(v) for v in row) + "\n")
+
+
+def write_encoder(path: str | Path, data: EncoderData) -> None:
+    header = ["t"] + [f"q{i + 1}" for i in range(data.q.shape[1])]
+    _write_rows(Path(path), header, np.column_stack([data.t, data.q]).tolist())
+
+
+def write_tracker(path: str | Path, data: TrackerData) -> None:
+    cols: list[np.ndarray] = [data.t[:, None], data.p]
+    header = list(TRACKER_POSITION_COLUMNS)
+    if data.quat is not None:
+        cols.append(data.quat)
+        header = list(TRACKER_POSE_COLUMNS)
+    for name, values in data.extra.items():
+        cols.append(values[:, None])
+        header.append(name)
+    _write_rows(Path(path), header, np.hstack(cols).tolist())
+
+
+def error_columns(prefix: str, channels: Sequence[str]) -> list[str]:
+    return [f"{prefix}_{c}" for c in channels]
+
+
+def write_truth(
+    path: str | Path, t: np.ndarray, error: np.ndarray, channels: Sequence[str]
+) -> None:
+    _write_rows(
+        Path(path), ["t", *error_columns("true", channels)], np.column_stack([t, error]).tolist()
+    )
+
+
+def read_truth(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    path = Path(path)
+    header, data = _read_table(path)
+    if header[0] != "t" or not all(h.startswith("true_") for h in header[1:]):
+        raise DataFormatError(str(path), 1, "-", "columns must be t,true_px,...")
+    return data[:, 0], data[:, 1:], [h[5:] for h in header[1:]]
+
+
+class EstimateWriter:
+    """Streams estimates to CSV: t, meas_*, est_*, flags. Held steps leave meas_* empty."""
+
+    def __init__(self, handle: TextIO, channels: Sequence[str]) -> None:
+        self._f = handle
+        self._n = len(channels)
+        handle.write(
+            ",".join(
+                ["t", *error_columns("meas", channels), *error_columns("est", channels), "flags"]
+            )
+            + "\n"
+        )
+
+    def write(
+        self, t: float, measured: np.ndarray | None, estimate: np.ndarray, flags: Sequence[str]
+    ) -> None:
+        meas = [""] * self._n if measured is None else [repr(float(v)) for v in measured]
+        est = [repr(float(v)) for v in estimate]
+        self._f.write(",".join([repr(float(t)), *meas, *est, "|".join(flags)]) + "\n")
+
+
+@dataclass
+class EstimateTable:
+    t: np.ndarray
+    measured: np.ndarray  # NaN where held
+    estimate: np.ndarray
+    flags: list[str]
+    channels: list[str]
+
+
+def read_estimates(path: str | Path) -> EstimateTable:
+    path = Path(path)
+    with path.open(encoding="utf-8", newline="") as f:
+        reader = csv.reader(f)
+        header = next(reader)
+        n = (len(header) - 2) // 2
+        channels = [h[len("meas_") :] for h in header[1 : 1 + n]]
+        t, meas, est, flags = [], [], [], []
+        for row in reader:
+            t.append(float(row[0]))
+            meas.append([float(v) if v else math.nan for v in row[1 : 1 + n]])
+            est.append([float(v) for v in row[1 + n : 1 + 2 * n]])
+            flags.append(row[-1])
+    return EstimateTable(
+        np.array(t), np.array(meas).reshape(-1, n), np.array(est).reshape(-1, n), flags, channels
+    )

@@ -1,0 +1,242 @@
+"""Zenoh sessions and the hand-off from Zenoh's threads to asyncio. No math here.
+
+Zenoh delivers samples on its own threads. The callback only appends to a bounded deque and
+schedules at most one wake-up of the event loop; the loop drains the deque. When the deque is
+full the oldest sample is dropped and counted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import json
+import logging
+import threading
+import time
+from collections.abc import AsyncIterator, Sequence
+from typing import Any
+
+import zenoh
+
+from keo_service.core.errors import KeoError
+from keo_service.live.backoff import Backoff
+
+log = logging.getLogger("keo.bus")
+
+DEFAULT_QUEUE = 10_000
+
+
+# A DROP publisher waits this long on a full transmit queue before dropping (Zenoh's default
+# is 1 ms, which loses samples in ordinary bursts such as a replay); it still never blocks the
+# event loop for longer than this.
+DROP_WAIT_US = 50_000
+
+
+def make_zenoh_config(
+    mode: str = "peer",
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    multicast: bool = False,
+    tls: Any = None,
+) -> zenoh.Config:
+    """`tls`: an object with tls_root_ca, tls_certificate, tls_private_key, tls_mtls (the
+    [bus] config section), used for tls/ endpoints."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", json.dumps(mode))
+    cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    cfg.insert_json5("scouting/multicast/enabled", json.dumps(multicast))
+    cfg.insert_json5(
+        "transport/link/tx/queue/congestion_control/drop/wait_before_drop", json.dumps(DROP_WAIT_US)
+    )
+    if tls is not None and tls.tls_root_ca:
+        link = "transport/link/tls/"
+        cfg.insert_json5(link + "root_ca_certificate", json.dumps(tls.tls_root_ca))
+        if tls.tls_certificate:
+            for side in ("listen", "connect"):
+                cfg.insert_json5(f"{link}{side}_certificate", json.dumps(tls.tls_certificate))
+                cfg.insert_json5(f"{link}{side}_private_key", json.dumps(tls.tls_private_key))
+        cfg.insert_json5(link + "enable_mtls", json.dumps(bool(tls.tls_mtls)))
+    return cfg
+
+
+def open_session(
+    mode: str = "peer",
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    multicast: bool = False,
+    tls: Any = None,
+) -> zenoh.Session:
+    return zenoh.open(make_zenoh_config(mode, listen, connect, multicast, tls))
+
+
+def _unreachable(endpoints: Sequence[str], exc: Exception) -> KeoError:
+    return KeoError(f"cannot reach the bus at {list(endpoints)}: {exc}")
+
+
+def _log_retry(endpoints: Sequence[str], started: float, delay: float) -> None:
+    # a service starting beside us is normal for a few seconds; longer is worth a warning
+    level = logging.WARNING if time.monotonic() - started > 5.0 else logging.DEBUG
+    log.log(level, "bus not reachable at %s; retrying in %.1f s", list(endpoints), delay)
+
+
+def open_client(
+    endpoints: Sequence[str],
+    multicast: bool = False,
+    tls: Any = None,
+    retry_for: float | None = None,
+) -> zenoh.Session:
+    """A Zenoh client session of `endpoints`, retried with `Backoff` for `retry_for` seconds
+    (None: until it succeeds). Blocking: for scripts and threads; async code uses
+    `open_client_async`."""
+    backoff, started = Backoff(maximum=2.0), time.monotonic()
+    while True:
+        try:
+            return open_session("client", (), endpoints, multicast, tls)
+        except zenoh.ZError as exc:
+            delay = backoff.next_delay()
+            if retry_for is not None and time.monotonic() + delay > started + retry_for:
+                raise _unreachable(endpoints, exc) from None
+            _log_retry(endpoints, started, delay)
+            time.sleep(delay)
+
+
+async def open_client_async(
+    endpoints: Sequence[str],
+    multicast: bool = False,
+    tls: Any = None,
+    retry_for: float | None = None,
+) -> zenoh.Session:
+    """`open_client` without blocking the event loop: each attempt runs in a thread (Zenoh
+    fails an unreachable endpoint within milliseconds) and the waits are `asyncio.sleep`, so
+    a cancelled caller (SIGTERM) stops at once."""
+    backoff, started = Backoff(maximum=2.0), time.monotonic()
+    while True:
+        try:
+            return await asyncio.to_thread(open_session, "client", (), endpoints, multicast, tls)
+        except zenoh.ZError as exc:
+            delay = backoff.next_delay()
+            if retry_for is not None and time.monotonic() + delay > started + retry_for:
+                raise _unreachable(endpoints, exc) from None
+            _log_retry(endpoints, started, delay)
+            await asyncio.sleep(delay)
+
+
+def session_for_client(config: Any, retry_for: float | None = None) -> zenoh.Session:
+    """A session for leaf processes (adapters, echo, record, clients): a Zenoh client of
+    bus.connect (or bus.listen). Leaf processes are clients, not peers: a listening peer (the
+    service) or a router forwards between its clients, while two peers that do not listen
+    never meet. Once open, Zenoh itself reconnects when the service or router restarts."""
+    return open_client(config.bus_endpoints(), config.bus.multicast_scouting, config.bus, retry_for)
+
+
+async def session_for_client_async(config: Any, retry_for: float | None = None) -> zenoh.Session:
+    """`session_for_client` for async code: never blocks the event loop."""
+    return await open_client_async(
+        config.bus_endpoints(), config.bus.multicast_scouting, config.bus, retry_for
+    )
+
+
+def session_for_service(config: Any) -> zenoh.Session:
+    """The service's session as [bus] says: a listening peer (the embedded default), or a
+    client of a router, which it waits for like any client."""
+    bus = config.bus
+    if bus.mode == "client":
+        return session_for_client(config)  # before the loop runs: blocking is fine here
+    return open_session(bus.mode, bus.listen, bus.connect, bus.multicast_scouting, tls=bus)
+
+
+class AsyncSubscription:
+    """Samples of several key expressions, in arrival order, as an async iterator of
+    (key, payload bytes).
+
+    Zenoh runs each subscriber's callback on its own thread, so two subscribers can deliver
+    out of order relative to each other. To keep the publisher's order across keys (replay
+    relies on it), several keys under one prefix share one wildcard subscriber and are
+    filtered here.
+    """
+
+    def __init__(
+        self, session: zenoh.Session, keys: Sequence[str], maxlen: int = DEFAULT_QUEUE
+    ) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._buf: collections.deque[tuple[str, bytes]] = collections.deque(maxlen=maxlen)
+        self._wake = asyncio.Event()
+        self._scheduled = threading.Event()
+        self._closed = False
+        self.dropped = 0
+        self._wanted: frozenset[str] | None = None
+        keys = list(keys)
+        prefixes = {k.rsplit("/", 1)[0] for k in keys}
+        if len(keys) > 1 and len(prefixes) == 1 and not any("*" in k for k in keys):
+            self._wanted = frozenset(keys)
+            keys = [f"{prefixes.pop()}/*"]
+        self._subs = [session.declare_subscriber(k, self._on_sample) for k in keys]
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:  # zenoh thread: no zenoh calls, no blocking
+        key = str(sample.key_expr)
+        if self._wanted is not None and key not in self._wanted:
+            return
+        if len(self._buf) == self._buf.maxlen:
+            self.dropped += 1
+        self._buf.append((key, sample.payload.to_bytes()))
+        if not self._scheduled.is_set():
+            self._scheduled.set()
+            with contextlib.suppress(RuntimeError):  # the loop closed during shutdown
+                self._loop.call_soon_threadsafe(self._set_wake)
+
+    @property
+    def pending(self) -> int:
+        """Samples received and not yet taken by the iterating task."""
+        return len(self._buf)
+
+    def _set_wake(self) -> None:
+        self._scheduled.clear()
+        self._wake.set()
+
+    async def __aiter__(self) -> AsyncIterator[tuple[str, bytes]]:
+        while True:
+            while self._buf:
+                yield self._buf.popleft()
+            if self._closed:
+                return
+            self._wake.clear()
+            if self._buf:
+                continue
+            await self._wake.wait()
+
+    def close(self) -> None:
+        self._closed = True
+        for sub in self._subs:
+            sub.undeclare()
+        self._loop.call_soon_threadsafe(self._wake.set)
+
+
+class BlockingSubscription:
+    """The same hand-off for plain threads: the callback appends to a bounded deque (oldest
+    dropped and counted) and notifies; `get(timeout)` waits in the caller's thread. No user
+    code ever runs on Zenoh's threads."""
+
+    def __init__(self, session: zenoh.Session, key: str, maxlen: int = DEFAULT_QUEUE) -> None:
+        self._buf: collections.deque[tuple[str, bytes]] = collections.deque(maxlen=maxlen)
+        self._ready = threading.Condition()
+        self.dropped = 0
+        self._sub = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:  # zenoh thread
+        with self._ready:
+            if len(self._buf) == self._buf.maxlen:
+                self.dropped += 1
+            self._buf.append((str(sample.key_expr), sample.payload.to_bytes()))
+            self._ready.notify()
+
+    def get(self, timeout: float | None) -> tuple[str, bytes] | None:
+        """The next (key, payload), or None when nothing arrived within `timeout` seconds."""
+        with self._ready:
+            if not self._ready.wait_for(lambda: bool(self._buf), timeout):
+                return None
+            return self._buf.popleft()
+
+    def close(self) -> None:
+        self._sub.undeclare()

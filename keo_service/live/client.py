@@ -1,0 +1,281 @@
+"""keo's client API: what a user program needs to follow a running `keo run`.
+
+    async with Client("tcp/127.0.0.1:7447", cell="demo") as keo:
+        async for est in keo.estimates():      # EstimateMessage: stamp, measured, estimate, flags
+            ...
+        latest = await keo.latest()            # the service's latest estimate (a query)
+        status = await keo.status()            # ServiceStatus
+
+    with SyncClient("tcp/127.0.0.1:7447", cell="demo") as keo:   # scripts, no asyncio
+        for est in keo.estimates(timeout=5.0):
+            ...
+
+Only an endpoint and the cell's name are needed (no URDF, no config file); `from_config` takes
+both from a keo config. Samples reach the caller through a bounded queue: Zenoh's threads
+only append (the oldest sample is dropped and counted in `dropped` when the caller falls
+behind); the caller's code runs on its own loop or thread, never on Zenoh's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import AsyncIterator, Iterator, Sequence
+from pathlib import Path
+from typing import Any, Self, TypeVar
+
+import msgspec
+import zenoh
+
+from keo_service.core.errors import KeoError
+from keo_service.io.config import Config, load_config
+from keo_service.live.bus import (
+    AsyncSubscription,
+    BlockingSubscription,
+    open_client,
+    open_client_async,
+)
+from keo_service.live.messages import EstimateMessage, Message, ServiceStatus, decode, topic
+
+__all__ = ["Client", "ClientError", "SyncClient"]
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+DEFAULT_QUEUE = 1000
+
+_M = TypeVar("_M", bound=msgspec.Struct)
+
+
+class ClientError(KeoError):
+    """The bus or the service did not answer as expected (what, where, what was expected)."""
+
+
+def _endpoints(endpoint: str | Sequence[str]) -> list[str]:
+    return [endpoint] if isinstance(endpoint, str) else list(endpoint)
+
+
+def _key(cell: str, channel: str) -> str:
+    """A keo channel name ("encoder", "tracker", "estimate", ...) or a full key expression."""
+    return channel if "/" in channel else topic(cell, channel)
+
+
+def _decode_as(payload: bytes, kind: type[_M]) -> _M | None:
+    try:
+        msg = decode(payload)
+    except msgspec.DecodeError:
+        return None
+    return msg if isinstance(msg, kind) else None
+
+
+def _query(session: zenoh.Session, key: str, kind: type[_M], timeout: float) -> _M | None:
+    """The first reply on `key` that decodes as `kind`, asking again until `timeout`."""
+    deadline = time.monotonic() + timeout
+    while True:
+        remaining = deadline - time.monotonic()
+        for reply in session.get(key, timeout=max(0.05, min(1.0, remaining))):
+            if reply.ok is not None:
+                msg = _decode_as(reply.ok.payload.to_bytes(), kind)
+                if msg is not None:
+                    return msg
+        if time.monotonic() >= deadline:
+            return None
+        time.sleep(min(0.1, max(0.0, deadline - time.monotonic())))
+
+
+class _Settings(msgspec.Struct, frozen=True):
+    endpoints: list[str]
+    cell: str
+    queue_size: int
+    connect_timeout_s: float | None
+    multicast: bool = False
+    tls: Any = None
+
+    @classmethod
+    def from_config(cls, config: Config, **kw: Any) -> _Settings:
+        return cls(
+            endpoints=config.bus_endpoints(),
+            cell=config.cell,
+            queue_size=kw.pop("queue_size", DEFAULT_QUEUE),
+            connect_timeout_s=kw.pop("connect_timeout_s", 20.0),
+            multicast=config.bus.multicast_scouting,
+            tls=config.bus,
+        )
+
+
+def _config(config: Config | str | Path) -> Config:
+    return config if isinstance(config, Config) else load_config(config)
+
+
+class Client:
+    """An async context manager that owns one Zenoh client session and its subscriptions.
+
+    `endpoint`: where the service (or a router) listens, e.g. "tcp/127.0.0.1:7447".
+    `connect_timeout_s`: how long to keep trying to reach it (None: until it answers).
+    `queue_size`: samples buffered per iteration before the oldest is dropped.
+    """
+
+    def __init__(
+        self,
+        endpoint: str | Sequence[str] = DEFAULT_ENDPOINT,
+        *,
+        cell: str = "cell1",
+        queue_size: int = DEFAULT_QUEUE,
+        connect_timeout_s: float | None = 20.0,
+    ) -> None:
+        self._settings = _Settings(_endpoints(endpoint), cell, queue_size, connect_timeout_s)
+        self._session: zenoh.Session | None = None
+        self._subscriptions: list[AsyncSubscription] = []
+        self._dropped_closed = 0
+
+    @classmethod
+    def from_config(cls, config: Config | str | Path, **kw: Any) -> Client:
+        """Endpoint, cell and TLS settings from a keo config (a path or a loaded Config)."""
+        client = cls(**kw)
+        client._settings = _Settings.from_config(_config(config), **kw)
+        return client
+
+    @property
+    def cell(self) -> str:
+        return self._settings.cell
+
+    @property
+    def dropped(self) -> int:
+        """Samples dropped because the caller iterated more slowly than they arrived."""
+        return self._dropped_closed + sum(s.dropped for s in self._subscriptions)
+
+    async def __aenter__(self) -> Self:
+        if self._session is not None:
+            raise ClientError("this Client is already open (it is not re-entrant)")
+        s = self._settings
+        self._session = await open_client_async(
+            s.endpoints, s.multicast, s.tls, retry_for=s.connect_timeout_s
+        )
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        for sub in self._subscriptions:
+            self._dropped_closed += sub.dropped
+            sub.close()
+        self._subscriptions.clear()
+        session, self._session = self._session, None
+        if session is not None:
+            await asyncio.to_thread(session.close)
+
+    def _open_session(self) -> zenoh.Session:
+        if self._session is None:
+            raise ClientError("use the Client inside `async with Client(...) as keo:`")
+        return self._session
+
+    async def samples(self, channel: str) -> AsyncIterator[Message]:
+        """Every decodable keo message on a channel ("encoder", "tracker", "estimate",
+        "robot_status") or a full key expression, in arrival order."""
+        sub = AsyncSubscription(
+            self._open_session(), [_key(self.cell, channel)], maxlen=self._settings.queue_size
+        )
+        self._subscriptions.append(sub)
+        try:
+            async for _key_expr, payload in sub:
+                try:
+                    yield decode(payload)
+                except msgspec.DecodeError:
+                    continue  # a foreign payload on a wildcard key: not ours to type
+        finally:
+            if sub in self._subscriptions:
+                self._subscriptions.remove(sub)
+                self._dropped_closed += sub.dropped
+                sub.close()
+
+    async def estimates(self) -> AsyncIterator[EstimateMessage]:
+        """The service's estimates as they are published."""
+        async for msg in self.samples("estimate"):
+            if isinstance(msg, EstimateMessage):
+                yield msg
+
+    async def latest(self, timeout: float = 2.0) -> EstimateMessage | None:
+        """The service's latest estimate (None when it has none yet or does not answer)."""
+        session = self._open_session()
+        return await asyncio.to_thread(
+            _query, session, topic(self.cell, "estimate"), EstimateMessage, timeout
+        )
+
+    async def status(self, timeout: float = 5.0) -> ServiceStatus:
+        """The service's status; ClientError when no service answers within `timeout`."""
+        session = self._open_session()
+        key = topic(self.cell, "status")
+        status = await asyncio.to_thread(_query, session, key, ServiceStatus, timeout)
+        if status is None:
+            raise ClientError(f"no keo service answered on {key} within {timeout:g} s")
+        return status
+
+
+class SyncClient:
+    """The same for scripts without asyncio: a context manager; iteration blocks the caller's
+    thread, never Zenoh's."""
+
+    def __init__(
+        self,
+        endpoint: str | Sequence[str] = DEFAULT_ENDPOINT,
+        *,
+        cell: str = "cell1",
+        queue_size: int = DEFAULT_QUEUE,
+        connect_timeout_s: float | None = 20.0,
+    ) -> None:
+        self._settings = _Settings(_endpoints(endpoint), cell, queue_size, connect_timeout_s)
+        self._session: zenoh.Session | None = None
+        self.dropped = 0
+
+    @classmethod
+    def from_config(cls, config: Config | str | Path, **kw: Any) -> SyncClient:
+        client = cls(**kw)
+        client._settings = _Settings.from_config(_config(config), **kw)
+        return client
+
+    @property
+    def cell(self) -> str:
+        return self._settings.cell
+
+    def __enter__(self) -> Self:
+        s = self._settings
+        self._session = open_client(s.endpoints, s.multicast, s.tls, retry_for=s.connect_timeout_s)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        session, self._session = self._session, None
+        if session is not None:
+            session.close()
+
+    def _open_session(self) -> zenoh.Session:
+        if self._session is None:
+            raise ClientError("use the SyncClient inside `with SyncClient(...) as keo:`")
+        return self._session
+
+    def samples(self, channel: str, timeout: float | None = None) -> Iterator[Message]:
+        """Messages on a channel or key expression; ends when none arrived for `timeout`
+        seconds (None: never)."""
+        sub = BlockingSubscription(
+            self._open_session(), _key(self.cell, channel), maxlen=self._settings.queue_size
+        )
+        try:
+            while (item := sub.get(timeout)) is not None:
+                try:
+                    yield decode(item[1])
+                except msgspec.DecodeError:
+                    continue
+        finally:
+            self.dropped += sub.dropped
+            sub.close()
+
+    def estimates(self, timeout: float | None = None) -> Iterator[EstimateMessage]:
+        """Estimates as published; ends when none arrived for `timeout` seconds."""
+        for msg in self.samples("estimate", timeout):
+            if isinstance(msg, EstimateMessage):
+                yield msg
+
+    def latest(self, timeout: float = 2.0) -> EstimateMessage | None:
+        return _query(self._open_session(), topic(self.cell, "estimate"), EstimateMessage, timeout)
+
+    def status(self, timeout: float = 5.0) -> ServiceStatus:
+        key = topic(self.cell, "status")
+        status = _query(self._open_session(), key, ServiceStatus, timeout)
+        if status is None:
+            raise ClientError(f"no keo service answered on {key} within {timeout:g} s")
+        return status

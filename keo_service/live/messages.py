@@ -1,0 +1,103 @@
+"""Wire messages: msgspec Structs encoded as MessagePack, shared by adapters, service, clients.
+
+The schema version is part of each message's tag ("keo.joint/1"), so a client that meets a
+payload from an incompatible version gets a clear decode error instead of wrong numbers.
+Units are SI. `host_ns` is the host time (ns since the epoch) at which the sample was received;
+`t` (seconds, same clock) is the stream time used for alignment, kept as its own float so a
+replay reproduces the exact numbers.
+"""
+
+from __future__ import annotations
+
+import msgspec
+
+SCHEMA_VERSION = 1
+
+
+def _tag(name: str) -> str:
+    return f"keo.{name}/{SCHEMA_VERSION}"
+
+
+class _Message(msgspec.Struct, frozen=True, kw_only=True, tag_field="type"):
+    pass
+
+
+class JointSample(_Message, frozen=True, tag=_tag("joint")):
+    t: float
+    host_ns: int
+    seq: int
+    q: list[float]
+    dq: list[float] | None = None
+    device_t: float | None = None
+
+
+class RobotStatus(_Message, frozen=True, tag=_tag("robot_status")):
+    host_ns: int
+    drives_powered: int
+    e_stopped: int
+    error_code: int
+    in_error: int
+    in_motion: int
+    mode: int
+    motion_possible: int
+
+
+class TrackerSample(_Message, frozen=True, tag=_tag("tracker")):
+    """A pose (p, and q scalar first for a 6-DoF probe), or a gap when status != "ok"."""
+
+    t: float
+    host_ns: int
+    seq: int
+    status: str = "ok"
+    p: list[float] | None = None
+    q: list[float] | None = None
+    device_t: float | None = None
+
+
+class EstimateMessage(_Message, frozen=True, tag=_tag("estimate")):
+    stamp: float
+    host_ns: int
+    channels: list[str]
+    measured: list[float] | None
+    estimate: list[float]
+    flags: list[str]
+    delay_s: float
+    seq: int
+    # device time of the tracker sample behind this estimate, when the tracker gives one
+    tracker_device_t: float | None = None
+
+
+class ServiceStatus(_Message, frozen=True, tag=_tag("status")):
+    cell: str
+    health: str
+    host_ns: int
+    uptime_s: float
+    rates_hz: dict[str, float]
+    delay_s: float
+    drift: float
+    gains: list[float]
+    alignment: str
+    counters: dict[str, int]
+    last_estimate: EstimateMessage | None
+    messages: list[str]
+    delay_tracking: str | None = None  # what online delay tracking last did (when enabled)
+
+
+Message = JointSample | RobotStatus | TrackerSample | EstimateMessage | ServiceStatus
+
+ENCODER = msgspec.msgpack.Encoder()
+DECODER = msgspec.msgpack.Decoder(Message)
+
+
+def encode(message: Message) -> bytes:
+    return ENCODER.encode(message)
+
+
+def decode(payload: bytes) -> Message:
+    """Raises msgspec.DecodeError (with where and what) for malformed or foreign payloads."""
+    message: Message = DECODER.decode(payload)
+    return message
+
+
+def topic(cell: str, name: str) -> str:
+    return f"keo/{cell}/{name}"

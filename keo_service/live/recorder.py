@@ -1,0 +1,250 @@
+"""`keo record` and `keo replay`: raw streams to the interchange files and back onto the bus.
+
+The recorder writes rows as samples arrive (bounded memory) and flushes at least once a
+second, so a killed recorder loses at most a second. Numbers are written with repr(), so a
+replay publishes exactly the floats that were recorded. Tracker gaps are counted, not written:
+the interchange format has no row for "no pose".
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import msgspec
+import numpy as np
+import zenoh
+
+from keo_service.io.interchange import (
+    TRACKER_POSE_COLUMNS,
+    TRACKER_POSITION_COLUMNS,
+    read_encoder,
+    read_tracker,
+)
+from keo_service.live.bus import AsyncSubscription
+from keo_service.live.messages import (
+    JointSample,
+    ServiceStatus,
+    TrackerSample,
+    decode,
+    encode,
+    topic,
+)
+
+log = logging.getLogger("keo.record")
+FLUSH_PERIOD_S = 1.0
+
+
+@dataclass
+class RecordStats:
+    encoder_rows: int = 0
+    tracker_rows: int = 0
+    tracker_gaps: int = 0
+    rejected: int = 0
+    messages: list[str] = field(default_factory=list)
+
+
+class Recorder:
+    """Writes encoder.csv and tracker.csv in `out_dir` from samples as they arrive."""
+
+    def __init__(self, out_dir: Path, nq: int) -> None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self.out_dir = out_dir
+        self.nq = nq
+        self.stats = RecordStats()
+        self._enc: TextIO = (out_dir / "encoder.csv").open("w", encoding="utf-8")
+        self._enc.write(",".join(["t", *(f"q{i + 1}" for i in range(nq))]) + "\n")
+        self._trk: TextIO | None = None
+        self._trk_has_q: bool | None = None
+        self._last_flush = time.monotonic()
+
+    def _note(self, text: str) -> None:
+        self.stats.rejected += 1
+        if len(self.stats.messages) < 20:
+            self.stats.messages.append(text)
+
+    def on_payload(self, payload: bytes) -> None:
+        try:
+            msg = decode(payload)
+        except msgspec.DecodeError as exc:
+            self._note(f"undecodable payload: {exc}")
+            return
+        if isinstance(msg, JointSample):
+            if len(msg.q) != self.nq:
+                self._note(
+                    f"joint sample seq {msg.seq} with {len(msg.q)} joints, expected {self.nq}"
+                )
+                return
+            self._enc.write(",".join(repr(float(v)) for v in (msg.t, *msg.q)) + "\n")
+            self.stats.encoder_rows += 1
+        elif isinstance(msg, TrackerSample):
+            if msg.status != "ok" or msg.p is None:
+                self.stats.tracker_gaps += 1
+                return
+            has_q = msg.q is not None
+            if self._trk is None:
+                self._trk = (self.out_dir / "tracker.csv").open("w", encoding="utf-8")
+                cols = TRACKER_POSE_COLUMNS if has_q else TRACKER_POSITION_COLUMNS
+                self._trk.write(",".join(cols) + "\n")
+                self._trk_has_q = has_q
+            if has_q != self._trk_has_q:
+                self._note(f"tracker sample seq {msg.seq}: orientation presence changed mid-stream")
+                return
+            values = (msg.t, *msg.p, *(msg.q or ()))
+            self._trk.write(",".join(repr(float(v)) for v in values) + "\n")
+            self.stats.tracker_rows += 1
+        self.maybe_flush()
+
+    def maybe_flush(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if force or now - self._last_flush >= FLUSH_PERIOD_S:
+            self._enc.flush()
+            if self._trk is not None:
+                self._trk.flush()
+            self._last_flush = now
+
+    def close(self) -> None:
+        self.maybe_flush(force=True)
+        self._enc.close()
+        if self._trk is not None:
+            self._trk.close()
+
+
+async def record(
+    session: zenoh.Session,
+    cell: str,
+    out_dir: Path,
+    nq: int,
+    stop: asyncio.Event,
+    duration: float | None = None,
+) -> RecordStats:
+    recorder = Recorder(out_dir, nq)
+    sub = AsyncSubscription(session, [topic(cell, "encoder"), topic(cell, "tracker")])
+
+    async def consume() -> None:
+        async for _key, payload in sub:
+            recorder.on_payload(payload)
+
+    async def flusher() -> None:
+        while True:
+            await asyncio.sleep(FLUSH_PERIOD_S / 2)
+            recorder.maybe_flush()
+
+    tasks = [asyncio.create_task(consume()), asyncio.create_task(flusher())]
+    try:
+        if duration is None:
+            await stop.wait()
+        else:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), duration)
+    finally:
+        sub.close()
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        recorder.close()
+    recorder.stats.rejected += sub.dropped
+    return recorder.stats
+
+
+@dataclass
+class ReplayPlan:
+    """Both streams merged in stamp order (encoder first on ties), as `keo estimate` feeds them."""
+
+    kinds: np.ndarray  # 0 encoder, 1 tracker
+    index: np.ndarray
+    t: np.ndarray
+
+
+def replay_plan(enc_t: np.ndarray, trk_t: np.ndarray) -> ReplayPlan:
+    t = np.concatenate([enc_t, trk_t])
+    kinds = np.concatenate([np.zeros(enc_t.size, int), np.ones(trk_t.size, int)])
+    index = np.concatenate([np.arange(enc_t.size), np.arange(trk_t.size)])
+    order = np.lexsort((kinds, t))
+    return ReplayPlan(kinds[order], index[order], t[order])
+
+
+def _status_received(session: zenoh.Session, cell: str) -> int | None:
+    for reply in session.get(topic(cell, "status"), timeout=1.0):
+        if reply.ok:
+            msg = decode(reply.ok.payload.to_bytes())
+            if isinstance(msg, ServiceStatus):
+                return int(msg.counters.get("received", 0))
+    return None
+
+
+async def replay(
+    session: zenoh.Session,
+    cell: str,
+    directory: Path,
+    nq: int,
+    as_fast_as_possible: bool,
+    stop: asyncio.Event,
+) -> dict[str, Any]:
+    """Publish recorded files back onto the bus, at the recorded pace or as fast as the
+    service takes them (it waits on the service's `received` counter between chunks)."""
+    enc = read_encoder(directory / "encoder.csv", nq=nq)
+    trk = read_tracker(directory / "tracker.csv")
+    plan = replay_plan(enc.t, trk.t)
+    block = zenoh.CongestionControl.BLOCK
+    enc_pub = session.declare_publisher(topic(cell, "encoder"), congestion_control=block)
+    trk_pub = session.declare_publisher(topic(cell, "tracker"), congestion_control=block)
+    chunk = 250
+    baseline = (
+        await asyncio.to_thread(_status_received, session, cell) if as_fast_as_possible else None
+    )
+    start_wall = time.time()
+    sent = 0
+    for k in range(plan.t.size):
+        if stop.is_set():
+            break
+        if not as_fast_as_possible:
+            delay = start_wall + (plan.t[k] - plan.t[0]) - time.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+        i = int(plan.index[k])
+        now_ns = time.time_ns()
+        if plan.kinds[k] == 0:
+            enc_pub.put(
+                encode(
+                    JointSample(t=float(enc.t[i]), host_ns=now_ns, seq=i + 1, q=enc.q[i].tolist())
+                )
+            )
+        else:
+            quat = None if trk.quat is None else trk.quat[i].tolist()
+            trk_pub.put(
+                encode(
+                    TrackerSample(
+                        t=float(trk.t[i]), host_ns=now_ns, seq=i + 1, p=trk.p[i].tolist(), q=quat
+                    )
+                )
+            )
+        sent += 1
+        if as_fast_as_possible and baseline is not None and sent % chunk == 0:
+            await _wait_for_service(session, cell, baseline + sent, stop)
+    if as_fast_as_possible and baseline is not None:
+        await _wait_for_service(session, cell, baseline + sent, stop)
+    enc_pub.undeclare()
+    trk_pub.undeclare()
+    return {
+        "published": sent,
+        "encoder_rows": int(enc.t.size),
+        "tracker_rows": int(trk.t.size),
+        "seconds": time.time() - start_wall,
+    }
+
+
+async def _wait_for_service(
+    session: zenoh.Session, cell: str, target: int, stop: asyncio.Event, timeout: float = 30.0
+) -> None:
+    deadline = time.monotonic() + timeout
+    while not stop.is_set() and time.monotonic() < deadline:
+        received = await asyncio.to_thread(_status_received, session, cell)
+        if received is not None and received >= target:
+            return
+        await asyncio.sleep(0.05)

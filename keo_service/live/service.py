@@ -1,0 +1,410 @@
+"""`keo run`: the live service. It only moves data: Zenoh samples in, the Estimator (all the
+math), estimates and status out. An async context manager that owns its session and tasks.
+
+Supervision: every task is watched. A task that raises (or ends while the service runs) is
+logged at error level at once with its name and traceback, the service stops its other tasks
+and `run_service` raises `ServiceFailedError`, so `keo run` exits non-zero and systemd restarts it.
+What one bad input can cause is counted instead (undecodable payloads, rejected samples in the
+estimator, a failed publish): those never stop the service.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import msgspec
+import zenoh
+
+from keo_service.core.errors import KeoError
+from keo_service.core.estimator import Estimate, Estimator
+from keo_service.io.cell import cell_from_config, delay_model, estimator_settings
+from keo_service.io.config import Config
+from keo_service.live.bus import AsyncSubscription, session_for_service
+from keo_service.live.messages import (
+    EstimateMessage,
+    JointSample,
+    ServiceStatus,
+    TrackerSample,
+    decode,
+    encode,
+    topic,
+)
+from keo_service.live.supervise import supervise
+
+# keys a SIGHUP applies without a restart
+HOT_KEYS = frozenset({"observer.gain", "timing.delay_s", "timing.drift_ppm", "timing.drift_ref_s"})
+
+
+def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in doc.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(_flatten(value, name + "."))
+        else:
+            out[name] = value
+    return out
+
+
+if TYPE_CHECKING:
+    from keo_service.fit.delay import OnlineDelayTracker
+    from keo_service.live.rerun_sink import RerunSink
+
+log = logging.getLogger("keo.service")
+VIZ_PERIOD_S = 0.1  # Rerun gets batches at display rate, never one call per sample
+STATUS_PERIOD_S = 0.1
+STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "stale"
+
+
+class RateMeter:
+    """Samples per second over the last `window` arrivals (bounded)."""
+
+    def __init__(self, window: int = 200) -> None:
+        self._times: collections.deque[float] = collections.deque(maxlen=window)
+
+    def tick(self, now: float) -> None:
+        self._times.append(now)
+
+    def rate(self, now: float) -> float:
+        if len(self._times) < 2 or now - self._times[-1] > 2.0:
+            return 0.0
+        return (len(self._times) - 1) / (self._times[-1] - self._times[0])
+
+
+class ServiceFailedError(KeoError):
+    """A task of the service failed; the cause is chained and was logged when it happened."""
+
+
+class KeoService:
+    def __init__(
+        self,
+        config: Config,
+        session: zenoh.Session | None = None,
+        rrd: Path | None = None,
+        viewer: str | None = None,
+    ) -> None:
+        self.config = config
+        self.cell = config.cell
+        cell = cell_from_config(config)
+        self.estimator = Estimator(cell, estimator_settings(config))
+        self._delay_tracker: OnlineDelayTracker | None = None
+        if config.timing.track_delay:
+            from keo_service.fit.delay import OnlineDelayTracker
+
+            self._delay_tracker = OnlineDelayTracker(cell)
+        self._viz: RerunSink | None = None
+        if rrd is not None or viewer is not None:
+            from keo_service.live.rerun_sink import RerunSink
+
+            self._viz = RerunSink(cell, rrd=rrd, viewer=viewer)
+        self._own_session = session is None
+        self._session = session
+        self._stop = asyncio.Event()
+        self._tasks: list[asyncio.Task[None]] = []
+        self.failure: BaseException | None = None
+        self.publish_failures = 0
+        self._progress_at = time.monotonic()
+        self._started = time.monotonic()
+        self._rates = {"encoder": RateMeter(), "tracker": RateMeter(), "estimate": RateMeter()}
+        self._status_bytes = b""
+        self._latest_bytes = b""
+        self._last_estimate_wall = 0.0
+        self._seq = 0
+        self.published = 0
+        self.received = 0
+        self._last_arrival = time.monotonic()
+        self.decode_errors = 0
+
+    async def __aenter__(self) -> KeoService:
+        if self._session is None:
+            self._session = session_for_service(self.config)
+        s = self._session
+        self._estimate_pub = s.declare_publisher(topic(self.cell, "estimate"), express=True)
+        self._status_q = s.declare_queryable(topic(self.cell, "status"), self._on_status_query)
+        # a client that joins late asks keo/<cell>/estimate (or keo/*/estimate) for the latest
+        self._latest_q = s.declare_queryable(topic(self.cell, "estimate"), self._on_latest_query)
+        self._token = s.liveliness().declare_token(topic(self.cell, "alive/service"))
+        self._sub = AsyncSubscription(s, [topic(self.cell, "encoder"), topic(self.cell, "tracker")])
+        self._refresh_status()
+        self._start(self._consume(), "keo.service.consume")
+        self._start(self._status_loop(), "keo.service.status")
+        if self._viz is not None:
+            self._start(self._viz_loop(), "keo.service.viz")
+        if self._delay_tracker is not None:
+            self._start(self._delay_loop(), "keo.service.delay")
+        log.info("keo service for cell %s up; listening on %s", self.cell, self.config.bus.listen)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._sub.close()
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._token.undeclare()
+        self._status_q.undeclare()
+        self._latest_q.undeclare()
+        self._estimate_pub.undeclare()
+        if self._viz is not None:
+            self._viz.close()
+        if self._own_session and self._session is not None:
+            self._session.close()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    # ---- supervision ----------------------------------------------------------------------
+
+    def _start(self, coro: Any, name: str) -> None:
+        task = asyncio.create_task(coro, name=name)
+        self._tasks.append(supervise(task, self._stop.is_set, self._fail))
+
+    def _fail(self, exc: BaseException) -> None:
+        if self.failure is None:
+            self.failure = exc
+        self._stop.set()
+
+    def data_path_healthy(self, now: float, within_s: float) -> bool:
+        """For the watchdog: the consume task runs and has either nothing to do (no input) or
+        has made progress within `within_s` seconds."""
+        if self.failure is not None or not self._tasks or self._tasks[0].done():
+            return False
+        return self._sub.pending == 0 or now - self._progress_at < within_s
+
+    async def wait(self) -> None:
+        await self._stop.wait()
+
+    # ---- data path ------------------------------------------------------------------------
+
+    async def _consume(self) -> None:
+        async for key, payload in self._sub:
+            now = time.monotonic()
+            try:
+                msg = decode(payload)
+            except msgspec.DecodeError as exc:
+                self.decode_errors += 1
+                self.estimator.messages.append(f"undecodable payload on {key}: {exc}")
+                continue
+            self.received += 1
+            self._last_arrival = now
+            self._progress_at = now
+            if isinstance(msg, JointSample):
+                self._rates["encoder"].tick(now)
+                out = self.estimator.on_encoder(msg.t, msg.q)
+                if self._delay_tracker is not None:
+                    self._delay_tracker.add_encoder(msg.t, msg.q)
+            elif isinstance(msg, TrackerSample):
+                self._rates["tracker"].tick(now)
+                out = self.estimator.on_tracker(
+                    msg.t, msg.p, msg.q, ok=msg.status == "ok", tag=msg.device_t
+                )
+                if self._delay_tracker is not None and msg.p is not None:
+                    self._delay_tracker.add_tracker(msg.t, msg.p, msg.q)
+            else:
+                self.estimator.counters["unexpected_message"] += 1
+                continue
+            for estimate in out:
+                self._publish(estimate, now)
+
+    def _publish(self, estimate: Estimate, now: float) -> None:
+        self._seq += 1
+        msg = self.to_message(estimate)
+        payload = encode(msg)
+        try:
+            self._estimate_pub.put(payload)
+        except zenoh.ZError as exc:  # the bus refused one sample: counted, the next may pass
+            self.publish_failures += 1
+            if self.publish_failures == 1 or self.publish_failures % 1000 == 0:
+                log.warning(
+                    "publishing an estimate failed (%d so far): %s", self.publish_failures, exc
+                )
+        self._latest_bytes = payload
+        self.published += 1
+        self._rates["estimate"].tick(now)
+        if self._viz is not None:
+            self._viz.add(estimate)
+        if not estimate.held:
+            self._last_estimate_wall = now
+
+    def to_message(self, estimate: Estimate) -> EstimateMessage:
+        return EstimateMessage(
+            stamp=estimate.t,
+            host_ns=time.time_ns(),
+            channels=list(estimate.channels),
+            measured=None if estimate.measured is None else estimate.measured.tolist(),
+            estimate=estimate.estimate.tolist(),
+            flags=list(estimate.flags),
+            delay_s=self.estimator.delay.at(estimate.t),
+            seq=self._seq,
+            tracker_device_t=estimate.source if isinstance(estimate.source, float) else None,
+        )
+
+    # ---- status -----------------------------------------------------------------------------
+
+    def health(self, now: float) -> str:
+        last = self.estimator.last
+        if last is None:
+            return "waiting"
+        if now - self._last_estimate_wall > STALE_AFTER_S or last.held:
+            return "stale"
+        return "ok"
+
+    def status(self) -> ServiceStatus:
+        now = time.monotonic()
+        counters = dict(self.estimator.counters)
+        counters["published"] = self.published
+        counters["received"] = self.received
+        counters["decode_errors"] = self.decode_errors
+        counters["queue_dropped"] = self._sub.dropped
+        counters["publish_failed"] = self.publish_failures
+        last = self.estimator.last
+        delay = self.estimator.delay
+        return ServiceStatus(
+            cell=self.cell,
+            health=self.health(now),
+            host_ns=time.time_ns(),
+            uptime_s=now - self._started,
+            rates_hz={k: round(v.rate(now), 3) for k, v in self._rates.items()},
+            delay_s=delay.offset_s,
+            drift=delay.drift,
+            gains=list(self.estimator.settings.gains),
+            alignment=self.estimator.settings.alignment,
+            counters=counters,
+            last_estimate=None if last is None else self.to_message(last),
+            messages=list(self.estimator.messages)[-10:],
+            delay_tracking=None if self._delay_tracker is None else self._delay_tracker.last_result,
+        )
+
+    def _resolve_if_quiet(self) -> None:
+        """Both streams quiet for stale_after_s: what still waits for encoder data will not
+        get it; publish those steps as held (flagged) instead of leaving them unanswered."""
+        now = time.monotonic()
+        quiet = now - self._last_arrival > self.config.timing.stale_after_s
+        if quiet and self.estimator.has_pending:
+            for estimate in self.estimator.flush():
+                self._publish(estimate, now)
+
+    def _refresh_status(self) -> None:
+        self._status_bytes = encode(self.status())
+
+    async def _status_loop(self) -> None:
+        while not self._stop.is_set():
+            self._resolve_if_quiet()
+            self._refresh_status()
+            await asyncio.sleep(STATUS_PERIOD_S)
+
+    async def _delay_loop(self) -> None:
+        """Online delay tracking: fit on a bounded window off the loop, then slew to it."""
+        tracker = self._delay_tracker
+        assert tracker is not None
+        while not self._stop.is_set():
+            await asyncio.sleep(1.0)
+            if not tracker.due():
+                continue
+            window = tracker.snapshot()
+            current = self.estimator.delay.offset_s
+            found = await asyncio.to_thread(tracker.fit, window, current)
+            if found is not None:
+                self.estimator.set_delay_target(found)
+            log.info("delay tracking: %s", tracker.last_result)
+
+    async def _viz_loop(self) -> None:
+        assert self._viz is not None
+        while not self._stop.is_set():
+            await asyncio.sleep(VIZ_PERIOD_S)
+            self._viz.flush(msgspec.to_builtins(self.status()))
+
+    def _on_latest_query(self, query: zenoh.Query) -> None:  # zenoh thread
+        latest = self._latest_bytes
+        if latest:  # answer with our own key, so a wildcard query tells the cells apart
+            query.reply(topic(self.cell, "estimate"), latest)
+
+    # ---- reload (SIGHUP) ------------------------------------------------------------------
+
+    def reload(self, new: Config) -> tuple[list[str], list[str]]:
+        """Apply what can change live (gains, delay); list what needs a restart."""
+        old_flat = _flatten(msgspec.to_builtins(self.config))
+        new_flat = _flatten(msgspec.to_builtins(new))
+        changed = sorted(
+            k
+            for k in old_flat.keys() | new_flat.keys()
+            if old_flat.get(k) != new_flat.get(k) and k != "source"
+        )
+        applied = [k for k in changed if k in HOT_KEYS]
+        restart = [k for k in changed if k not in HOT_KEYS]
+        if "observer.gain" in applied:
+            self.estimator.set_gains(new.observer.gain)
+        if {"timing.delay_s", "timing.drift_ppm", "timing.drift_ref_s"} & set(applied):
+            timing = new.timing
+            self.estimator.set_delay(delay_model(timing))
+        hot = {k: v for k, v in msgspec.structs.asdict(new).items() if k in ("observer", "timing")}
+        self.config = msgspec.structs.replace(self.config, **hot) if applied else self.config
+        self._refresh_status()
+        return applied, restart
+
+    def _on_status_query(self, query: zenoh.Query) -> None:  # zenoh thread: reply with a snapshot
+        query.reply(topic(self.cell, "status"), self._status_bytes)
+
+
+async def run_service(
+    config: Config, rrd: Path | None = None, viewer: str | None = None, ready: Any = None
+) -> None:
+    """Run until SIGINT/SIGTERM; SIGHUP reloads the config file. Talks to systemd when
+    NOTIFY_SOCKET is set: READY, WATCHDOG pings while the loop runs, RELOADING, STOPPING."""
+    import signal
+
+    from keo_service.core.errors import ConfigError
+    from keo_service.io.config import load_config
+    from keo_service.live import systemd
+
+    loop = asyncio.get_running_loop()
+    async with KeoService(config, rrd=rrd, viewer=viewer) as service:
+
+        def reload() -> None:
+            systemd.notify("RELOADING=1")
+            try:
+                new = load_config(config.source)
+            except ConfigError as exc:
+                log.error("reload refused, keeping the running config: %s", exc)
+            else:
+                applied, restart = service.reload(new)
+                log.info("reloaded %s: applied %s", config.source, applied or "nothing")
+                if restart:
+                    log.warning("changed but NOT applied (needs a restart): %s", ", ".join(restart))
+            systemd.notify("READY=1")
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, service.stop)
+        loop.add_signal_handler(signal.SIGHUP, reload)
+        period = systemd.watchdog_period()
+        watchdog = None
+        if period is not None:
+
+            async def ping() -> None:
+                # an honest watchdog: no ping while the data path is stuck with input waiting
+                # (or failed); a blocked event loop sends none either
+                while True:
+                    if service.data_path_healthy(time.monotonic(), period):
+                        systemd.notify("WATCHDOG=1")
+                    else:
+                        log.error("data path stalled: watchdog pings withheld")
+                    await asyncio.sleep(period / 2)
+
+            watchdog = asyncio.create_task(ping(), name="keo.service.watchdog")
+        systemd.notify(f"READY=1\nSTATUS=cell {config.cell} on {', '.join(config.bus.listen)}")
+        if ready is not None:
+            ready()
+        await service.wait()
+        systemd.notify("STOPPING=1")
+        if watchdog is not None:
+            watchdog.cancel()
+        if service.failure is not None:
+            raise ServiceFailedError(
+                f"stopped after an internal failure: {type(service.failure).__name__}: "
+                f"{service.failure}"
+            ) from service.failure

@@ -1,0 +1,2 @@
+"""Simulation that knows the truth: the simulator, joint trajectories, the reference paper's
+experiments and the delay study."""

@@ -1,0 +1,72 @@
+"""The package's layout contracts that a user or an outside check relies on (DESIGN.md 8)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import keo_service
+from keo_service.core.chain import Chain
+from keo_service.core.kinematics import flange_pose, load_robot
+from tests.conftest import CONFIGS
+
+CORE_MODULES = [
+    "keo_service.core",
+    "keo_service.core.chain",
+    "keo_service.core.corrections",
+    "keo_service.core.errors",
+    "keo_service.core.estimator",
+    "keo_service.core.kinematics",
+    "keo_service.core.observer",
+    "keo_service.core.timing",
+]
+FORBIDDEN_IN_CORE = ["asyncio", "zenoh", "msgspec", "rerun", "matplotlib"]
+
+
+def test_importing_the_core_loads_no_network_messages_plots_or_asyncio():
+    code = (
+        "import sys\n"
+        + "".join(f"import {m}\n" for m in CORE_MODULES)
+        + f"print(','.join(m for m in {FORBIDDEN_IN_CORE!r} if m in sys.modules))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.strip()
+    assert out == "", f"importing keo_service.core loaded {out}"
+
+
+def test_importing_the_package_stays_light_until_a_public_name_is_used():
+    code = (
+        "import sys, keo_service\n"
+        "before = 'zenoh' in sys.modules\n"
+        "keo_service.Client\n"
+        "print(before, 'zenoh' in sys.modules)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert out == ["False", "True"]
+
+
+def test_public_surface_resolves_every_name():
+    assert "Client" in keo_service.__all__
+    for name in keo_service.__all__:
+        assert getattr(keo_service, name) is not None, name
+    with pytest.raises(AttributeError):
+        _ = keo_service.NoSuchName
+
+
+@pytest.mark.parametrize("urdf", ["mh180.urdf", "ur10.urdf"])
+def test_vectorised_chain_equals_pinocchio_at_random_poses(urdf):
+    robot = load_robot(CONFIGS / "robots" / urdf, "base_link", "tool0")
+    rng = np.random.default_rng(7)
+    lower = np.maximum(robot.lower, -2 * np.pi)
+    upper = np.minimum(robot.upper, 2 * np.pi)
+    q = rng.uniform(lower, upper, size=(1000, robot.nq))
+    batch = Chain(robot).flange_poses(q)
+    data = robot.create_data()
+    reference = np.array([flange_pose(robot, data, qi).homogeneous for qi in q])
+    assert np.max(np.abs(batch - reference)) < 1e-12
