@@ -33,11 +33,6 @@ MIN_SPEED = 0.005  # m/s: slower than this is "at rest"
 MAX_SE_S = 0.002  # refuse when the delay's standard error is larger than this
 
 
-# static data: the joints move less than this around every tracker sample
-REST_WINDOW_S = 0.05
-REST_TOLERANCE_RAD = 1e-6
-
-
 class DelayNotIdentifiableError(Exception):
     """The recorded motion cannot determine the delay; the message says why."""
 
@@ -119,7 +114,7 @@ def _effective_factor(residual: np.ndarray) -> float:
     return (1 + rho) / (1 - rho)
 
 
-def _refuse_static(enc_t: np.ndarray, enc_q: np.ndarray, trk_t: np.ndarray) -> None:
+def _refuse_stop_and_measure(enc_t: np.ndarray, trk_t: np.ndarray) -> None:
     """Static stop-and-measure data has no delay to see: refuse it in words rather than read
     the jumps between poses as motion."""
     if enc_t.size == trk_t.size and np.allclose(np.sort(enc_t), np.sort(trk_t), rtol=0, atol=1e-9):
@@ -127,21 +122,6 @@ def _refuse_static(enc_t: np.ndarray, enc_q: np.ndarray, trk_t: np.ndarray) -> N
             "static stop-and-measure data (one encoder row per tracker row, at the same times): "
             "the robot stands still at every measurement, so there is no delay to see; record "
             "the streams while the robot moves"
-        )
-    order = np.argsort(enc_t)
-    t, q = enc_t[order], enc_q[order]
-    # joint change across each tracker sample's neighbourhood (+-REST_WINDOW_S of encoder data)
-    lo = np.searchsorted(t, trk_t - REST_WINDOW_S, side="left")
-    hi = np.searchsorted(t, trk_t + REST_WINDOW_S, side="right") - 1
-    usable = hi > lo
-    if not np.any(usable):
-        return
-    change = np.max(np.abs(q[hi[usable]] - q[lo[usable]]), axis=1)
-    if np.all(change < REST_TOLERANCE_RAD):
-        raise DelayNotIdentifiableError(
-            f"the robot is at rest at every tracker sample (joints change by less than "
-            f"{REST_TOLERANCE_RAD:g} rad within {REST_WINDOW_S:g} s of each): static data has no "
-            "delay to see; record the streams while the robot moves"
         )
 
 
@@ -158,7 +138,7 @@ def fit_delay(
     features: str = "joints",
 ) -> DelayFit:
     """Least-squares delay (and drift) from recorded streams in the tracker frame."""
-    _refuse_static(enc_t, enc_q, trk_t)
+    _refuse_stop_and_measure(enc_t, trk_t)
     keep = np.all(np.isfinite(trk_p), axis=1) & np.isfinite(trk_t)
     if trk_quat is not None:
         keep &= np.all(np.isfinite(trk_quat), axis=1)
