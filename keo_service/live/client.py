@@ -105,13 +105,8 @@ def _config(config: Config | str | Path) -> Config:
     return config if isinstance(config, Config) else load_config(config)
 
 
-class Client:
-    """An async context manager that owns one Zenoh client session and its subscriptions.
-
-    `endpoint`: where the service (or a router) listens, e.g. "tcp/127.0.0.1:7447".
-    `connect_timeout_s`: how long to keep trying to reach it (None: until it answers).
-    `queue_size`: samples buffered per iteration before the oldest is dropped.
-    """
+class _ClientBase:
+    """What both clients share: where the service is and how much to buffer."""
 
     def __init__(
         self,
@@ -127,7 +122,7 @@ class Client:
         self._dropped_closed = 0
 
     @classmethod
-    def from_config(cls, config: Config | str | Path, **kw: Any) -> Client:
+    def from_config(cls, config: Config | str | Path, **kw: Any) -> Self:
         """Endpoint, cell and TLS settings from a keo config (a path or a loaded Config)."""
         client = cls(**kw)
         client._settings = _Settings.from_config(_config(config), **kw)
@@ -141,6 +136,20 @@ class Client:
     def dropped(self) -> int:
         """Samples dropped because the caller iterated more slowly than they arrived."""
         return self._dropped_closed + sum(s.dropped for s in self._subscriptions)
+
+    def _open_session(self) -> zenoh.Session:
+        if self._session is None:
+            raise ClientError(f"use the {type(self).__name__} inside its `with` block")
+        return self._session
+
+
+class Client(_ClientBase):
+    """An async context manager that owns one Zenoh client session and its subscriptions.
+
+    `endpoint`: where the service (or a router) listens, e.g. "tcp/127.0.0.1:7447".
+    `connect_timeout_s`: how long to keep trying to reach it (None: until it answers).
+    `queue_size`: samples buffered per iteration before the oldest is dropped.
+    """
 
     async def __aenter__(self) -> Self:
         if self._session is not None:
@@ -159,11 +168,6 @@ class Client:
         session, self._session = self._session, None
         if session is not None:
             await asyncio.to_thread(session.close)
-
-    def _open_session(self) -> zenoh.Session:
-        if self._session is None:
-            raise ClientError("use the Client inside `async with Client(...) as keo:`")
-        return self._session
 
     async def samples(self, channel: str) -> AsyncIterator[Message]:
         """Every decodable keo message on a channel ("encoder", "tracker", "estimate",
@@ -207,31 +211,9 @@ class Client:
         return status
 
 
-class SyncClient:
+class SyncClient(_ClientBase):
     """The same for scripts without asyncio: a context manager; iteration blocks the caller's
     thread, never Zenoh's."""
-
-    def __init__(
-        self,
-        endpoint: str | Sequence[str] = DEFAULT_ENDPOINT,
-        *,
-        cell: str = "cell1",
-        queue_size: int = DEFAULT_QUEUE,
-        connect_timeout_s: float | None = 20.0,
-    ) -> None:
-        self._settings = _Settings(_endpoints(endpoint), cell, queue_size, connect_timeout_s)
-        self._session: zenoh.Session | None = None
-        self.dropped = 0
-
-    @classmethod
-    def from_config(cls, config: Config | str | Path, **kw: Any) -> SyncClient:
-        client = cls(**kw)
-        client._settings = _Settings.from_config(_config(config), **kw)
-        return client
-
-    @property
-    def cell(self) -> str:
-        return self._settings.cell
 
     def __enter__(self) -> Self:
         s = self._settings
@@ -242,11 +224,6 @@ class SyncClient:
         session, self._session = self._session, None
         if session is not None:
             session.close()
-
-    def _open_session(self) -> zenoh.Session:
-        if self._session is None:
-            raise ClientError("use the SyncClient inside `with SyncClient(...) as keo:`")
-        return self._session
 
     def samples(self, channel: str, timeout: float | None = None) -> Iterator[Message]:
         """Messages on a channel or key expression; ends when none arrived for `timeout`
@@ -261,7 +238,7 @@ class SyncClient:
                 except msgspec.DecodeError:
                     continue
         finally:
-            self.dropped += sub.dropped
+            self._dropped_closed += sub.dropped
             sub.close()
 
     def estimates(self, timeout: float | None = None) -> Iterator[EstimateMessage]:
