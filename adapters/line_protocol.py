@@ -6,14 +6,22 @@
 Pure codec. Poses before a hello are refused (their unit is unknown). Units are converted to
 metres; non-unit quaternions, non-finite numbers, repeated or backwards seq are refused;
 a device clock that steps back is counted (alignment uses the host receipt time).
+
+The lines' shapes are msgspec Structs; Python's json reads the text first because devices
+write NaN and Infinity, which strict JSON lacks and which must count as non-finite numbers,
+not as malformed lines.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections import Counter, deque
 from dataclasses import dataclass
+from typing import Literal
+
+import msgspec
+
+from keo_service.core.rejects import RejectLog
 
 UNITS = {"m": 1.0, "mm": 1e-3}
 QUATERNION_TOLERANCE = 1e-3
@@ -46,13 +54,45 @@ def format_pose(
     return (json.dumps(doc) + "\n").encode()
 
 
-def _finite_list(value: object, n: int) -> list[float] | None:
-    if not isinstance(value, list) or len(value) != n:
-        return None
-    if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
-        return None
-    out = [float(v) for v in value]
-    return out if all(math.isfinite(v) for v in out) else None
+class _Line(msgspec.Struct, tag_field="type", forbid_unknown_fields=False):
+    pass
+
+
+class HelloLine(_Line, tag="hello"):
+    length_unit: Literal["m", "mm"]
+    source: str = ""
+
+
+class PoseLine(_Line, tag="pose"):
+    seq: int
+    t: float
+    status: str = "ok"
+    p: tuple[float, float, float] | None = None
+    q: tuple[float, float, float, float] | None = None
+
+
+# what a shape error at each field means, as counted in status
+_FIELD_REASON = {
+    "type": "unknown_type",
+    "length_unit": "bad_hello",
+    "t": "non_finite",
+    "p": "non_finite",
+    "q": "non_finite",
+}
+_AT = " - at `$."
+
+
+def _reason(error: str) -> str:
+    if _AT in error:
+        field = error.split(_AT, 1)[1].split("`", maxsplit=1)[0].split("[", maxsplit=1)[0]
+        return _FIELD_REASON.get(field, "malformed")
+    if "field `type`" in error:
+        return "unknown_type"
+    return "malformed"
+
+
+def _finite(values: tuple[float, ...]) -> bool:
+    return all(math.isfinite(v) for v in values)
 
 
 class LineProtocolParser:
@@ -61,8 +101,9 @@ class LineProtocolParser:
         self.source = ""
         self._last_seq: int | None = None
         self._last_t = -math.inf
-        self.counters: Counter[str] = Counter()
-        self.messages: deque[str] = deque(maxlen=16)
+        self._rejects = RejectLog(keep=16)
+        self.counters = self._rejects.counters
+        self.messages = self._rejects.messages
 
     def reset(self) -> None:
         """New connection: a new hello is needed; sequence checks start over."""
@@ -71,9 +112,7 @@ class LineProtocolParser:
         self._last_t = -math.inf
 
     def _reject(self, counter: str, message: str) -> None:
-        self.counters[counter] += 1
-        self.counters["rejected"] += 1
-        self.messages.append(message)
+        self._rejects.reject(counter, message)
 
     def parse(self, line: bytes) -> Pose | None:
         if len(line) > MAX_LINE:
@@ -87,31 +126,22 @@ class LineProtocolParser:
         if not isinstance(doc, dict):
             self._reject("malformed", "a line must be a JSON object")
             return None
-        kind = doc.get("type")
-        if kind == "hello":
-            unit = doc.get("length_unit")
-            if unit not in UNITS:
-                self._reject("bad_hello", f"length_unit {unit!r}, expected 'm' or 'mm'")
-                return None
-            self.scale = UNITS[str(unit)]
-            self.source = str(doc.get("source", ""))
-            self.counters["hello"] += 1
+        try:
+            msg = msgspec.convert(doc, HelloLine | PoseLine)
+        except msgspec.ValidationError as exc:
+            self._reject(_reason(str(exc)), f"seq {doc.get('seq')!r}: {exc}")
             return None
-        if kind != "pose":
-            self._reject("unknown_type", f"type {kind!r}, expected 'hello' or 'pose'")
+        if isinstance(msg, HelloLine):
+            self.scale = UNITS[msg.length_unit]
+            self.source = msg.source
+            self.counters["hello"] += 1
             return None
         if self.scale is None:
             self._reject("no_hello", "pose before hello: its length unit is unknown")
             return None
-        seq, t, status = doc.get("seq"), doc.get("t"), doc.get("status", "ok")
-        if not isinstance(seq, int) or isinstance(seq, bool):
-            self._reject("malformed", f"seq {seq!r}, expected an integer")
-            return None
-        if not isinstance(t, int | float) or isinstance(t, bool) or not math.isfinite(t):
+        seq, t, status = msg.seq, msg.t, msg.status
+        if not math.isfinite(t):
             self._reject("non_finite", f"seq {seq}: time {t!r}, expected a finite number")
-            return None
-        if not isinstance(status, str):
-            self._reject("malformed", f"seq {seq}: status {status!r}, expected a string")
             return None
         if self._last_seq is not None and seq <= self._last_seq:
             counter = "duplicate" if seq == self._last_seq else "out_of_order"
@@ -126,19 +156,14 @@ class LineProtocolParser:
             self._last_seq, self._last_t = seq, float(t)
             self.counters["gaps"] += 1
             return Pose(seq, float(t), status, None, None)
-        p = _finite_list(doc.get("p"), 3)
-        if p is None:
-            self._reject(
-                "non_finite", f"seq {seq}: p must be 3 finite numbers, got {doc.get('p')!r}"
-            )
+        p = msg.p
+        if p is None or not _finite(p):
+            self._reject("non_finite", f"seq {seq}: p must be 3 finite numbers, got {p!r}")
             return None
-        q = None
-        if "q" in doc and doc["q"] is not None:
-            q = _finite_list(doc["q"], 4)
-            if q is None:
-                self._reject(
-                    "non_finite", f"seq {seq}: q must be 4 finite numbers, got {doc['q']!r}"
-                )
+        q = msg.q
+        if q is not None:
+            if not _finite(q):
+                self._reject("non_finite", f"seq {seq}: q must be 4 finite numbers, got {q!r}")
                 return None
             norm = math.sqrt(sum(v * v for v in q))
             if abs(norm - 1.0) > QUATERNION_TOLERANCE:
@@ -146,7 +171,7 @@ class LineProtocolParser:
                     "not_unit_quaternion", f"seq {seq}: quaternion norm {norm:.6g}, expected 1"
                 )
                 return None
-            q = [v / norm for v in q]
+            q = (q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm)
         self._last_seq, self._last_t = seq, float(t)
         self.counters["poses"] += 1
         s = self.scale

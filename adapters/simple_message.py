@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import math
 import struct
-from collections import Counter, deque
 from dataclasses import dataclass
+
+from keo_service.core.rejects import RejectLog
 
 JOINT_FEEDBACK = 15
 ROBOT_STATUS = 13
@@ -88,13 +89,12 @@ class SimpleMessageDecoder:
         self._buf = bytearray()
         self._max_buffer = max_buffer
         self._skipped = 0
-        self.counters: Counter[str] = Counter()
-        self.messages: deque[str] = deque(maxlen=16)
+        self._rejects = RejectLog(keep=16)
+        self.counters = self._rejects.counters
+        self.messages = self._rejects.messages
 
     def _reject(self, counter: str, message: str) -> None:
-        self.counters[counter] += 1
-        self.counters["rejected"] += 1
-        self.messages.append(message)
+        self._rejects.reject(counter, message)
 
     def reset(self) -> None:
         """Connection lost: a partial frame left in the buffer is counted as truncated."""

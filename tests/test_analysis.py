@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from keo_service.fit.analysis import Data, NotIdentifiableError, analyze, approach_directions
+from keo_service.core.corrections import approach_directions
+from keo_service.fit.analysis import Data, NotIdentifiableError, analyze
 from keo_service.io.interchange import read_estimates
 from keo_service.sim.simulate import make_scenario, simulate
 from tests.conftest import DEMO, REPO, keo

@@ -6,7 +6,7 @@ import pytest
 
 from keo_service.core.errors import ConfigError
 from keo_service.io.config import load_config
-from tests.conftest import DEMO, keo, write_config
+from tests.conftest import CONFIGS, DEMO, keo, write_config
 
 GOOD = """
 cell = "c1"
@@ -82,3 +82,12 @@ def test_cli_bad_usage_exits_2():
     result = keo("simulate", "--config", str(DEMO), "--scenario", "nowhere", "--out", "/tmp/x")
     assert result.returncode == 2
     assert "unknown scenario" in result.stderr
+
+
+def test_an_empty_config_gives_the_estimators_defaults():
+    from keo_service.core.estimator import EstimatorSettings
+    from keo_service.io.cell import estimator_settings
+    from keo_service.io.config import parse_config
+
+    config = parse_config({"robot": {"urdf": str(CONFIGS / "robots" / "ur10.urdf")}}, source="t")
+    assert estimator_settings(config) == EstimatorSettings()

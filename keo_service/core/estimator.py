@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections import Counter, deque
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -18,6 +18,7 @@ import numpy as np
 
 from keo_service.core.kinematics import Cell, channels_for, measured_error
 from keo_service.core.observer import KinematicErrorObserver, all_finite
+from keo_service.core.rejects import RejectLog
 from keo_service.core.timing import Coverage, DelayModel, EncoderBuffer
 
 UNIT_QUATERNION_TOLERANCE = 1e-4
@@ -78,8 +79,9 @@ class Estimator:
         self._nq = cell.robot.nq
         capacity = max(64, math.ceil(settings.buffer_s * 2000.0))
         self.encoder = EncoderBuffer(self._nq, capacity)
-        self.counters: Counter[str] = Counter()
-        self.messages: deque[str] = deque(maxlen=MAX_MESSAGES)
+        self._rejects = RejectLog(keep=MAX_MESSAGES)
+        self.counters = self._rejects.counters
+        self.messages = self._rejects.messages
         self.observer: KinematicErrorObserver | None = None
         self.channels: tuple[str, ...] | None = None
         self._delay = settings.delay
@@ -255,9 +257,7 @@ class Estimator:
         return self._step_cap
 
     def _reject(self, counter: str, message: str) -> list[Estimate]:
-        self.counters[counter] += 1
-        self.counters["rejected"] += 1
-        self.messages.append(message)
+        self._rejects.reject(counter, message)
         return []
 
     def _enqueue(self, sample: _TrackerSample) -> list[Estimate]:

@@ -58,23 +58,6 @@ class Data:
         return int(self.q.shape[0])
 
 
-def approach_directions(q: np.ndarray) -> np.ndarray:
-    """For stop-and-measure data in time order: the sign of each joint's last move (a joint
-    that did not move keeps the direction it had)."""
-    d = np.zeros_like(q)
-    d[1:] = np.sign(np.diff(q, axis=0))
-    return persist_directions(d)
-
-
-def persist_directions(direction: np.ndarray) -> np.ndarray:
-    """A joint that does not move keeps the direction of its last move (its backlash side)."""
-    out = direction.copy()
-    for i in range(1, out.shape[0]):
-        still = out[i] == 0
-        out[i, still] = out[i - 1, still]
-    return out
-
-
 @dataclass
 class Stats:
     n: int

@@ -15,6 +15,7 @@ import pinocchio as pin
 from scipy.spatial.transform import Rotation
 
 from keo_service.core.chain import Chain
+from keo_service.core.corrections import approach_directions, persist_directions
 from keo_service.core.errors import KeoError
 from keo_service.core.timing import DelayModel
 from keo_service.fit.analysis import (
@@ -24,7 +25,6 @@ from keo_service.fit.analysis import (
     Model,
     NotIdentifiableError,
     analyze,
-    persist_directions,
 )
 from keo_service.io.cell import cell_from_config, delay_model, robot_from_config
 from keo_service.io.config import Config, ModelConfig, config_to_toml
@@ -59,8 +59,7 @@ def load_data(
     q = np.column_stack([np.interp(target, enc_t, enc_q[:, j]) for j in range(robot.nq)])
     velocity = tool_speed = None
     if static:  # stop-and-measure: approach direction from the previous pose
-        direction = np.zeros_like(q)
-        direction[1:] = np.sign(np.diff(q, axis=0))
+        direction = approach_directions(q)
     else:
         h = 0.01
         ahead = np.column_stack(
@@ -70,11 +69,11 @@ def load_data(
             [np.interp(target - h, enc_t, enc_q[:, j]) for j in range(robot.nq)]
         )
         velocity = (ahead - behind) / (2 * h)
-        direction = np.where(np.abs(velocity) > DIRECTION_DEADBAND, np.sign(velocity), 0.0)
+        moving = np.where(np.abs(velocity) > DIRECTION_DEADBAND, np.sign(velocity), 0.0)
+        direction = persist_directions(moving)
         chain = Chain(robot)
         moved = chain.flange_poses(ahead)[:, :3, 3] - chain.flange_poses(behind)[:, :3, 3]
         tool_speed = np.linalg.norm(moved, axis=1) / (2 * h)
-    direction = persist_directions(direction)
     R = None
     if trk.quat is not None:
         quat = trk.quat[ok]

@@ -15,6 +15,10 @@ import msgspec
 import tomli_w
 
 from keo_service.core.errors import ConfigError
+from keo_service.core.estimator import EstimatorSettings
+
+# the estimator's defaults are the config's defaults: one place for each value
+_DEFAULTS = EstimatorSettings()
 
 Finite = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
 Vec3 = Annotated[list[Finite], msgspec.Meta(min_length=3, max_length=3)]
@@ -50,11 +54,11 @@ class TrackerConfig(_Section):
 
 class ObserverConfig(_Section):
     gain: Annotated[list[Gain], msgspec.Meta(min_length=6, max_length=6)] = msgspec.field(
-        default_factory=lambda: [1.0] * 6
+        default_factory=lambda: list(_DEFAULTS.gains)
     )
     # A sample that follows a gap longer than this updates as if it came after max_dt_s,
     # so one measurement after a beam break cannot pull the estimate all the way.
-    max_dt_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 0.25
+    max_dt_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = _DEFAULTS.max_dt_s
 
 
 class TimingConfig(_Section):
@@ -63,14 +67,14 @@ class TimingConfig(_Section):
     # stream time (s) at which delay_s holds when drift_ppm is not zero
     drift_ref_s: float = 0.0
     alignment: Literal["interpolate", "latest"] = "interpolate"
-    sample_rate_hz: Annotated[float, msgspec.Meta(gt=0.0, le=10000.0)] = 40.0
+    sample_rate_hz: Annotated[float, msgspec.Meta(gt=0.0, le=10000.0)] = _DEFAULTS.sample_rate_hz
     track_delay: bool = False
     # Encoder samples kept for alignment, in seconds of stream time.
-    buffer_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 2.0
+    buffer_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = _DEFAULTS.buffer_s
     # Two encoder samples further apart than this are not interpolated between.
-    max_gap_s: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.2
+    max_gap_s: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = _DEFAULTS.max_gap_s
     # A tracker sample waits at most this long (stream time) for encoder data to cover it.
-    stale_after_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 0.5
+    stale_after_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = _DEFAULTS.stale_after_s
 
 
 class BusConfig(_Section):

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from keo_service.core.corrections import approach_directions
 from keo_service.core.errors import ConfigError
 from keo_service.core.kinematics import (
     Cell,
@@ -357,8 +358,7 @@ def simulate_static(cell: Cell, scenario: Scenario, seed: int = 0) -> SimulatedR
     q = _static_poses(cell, scenario, rng)
     n = q.shape[0]
     t = np.arange(n, dtype=float) * 10.0
-    direction = np.zeros_like(q)
-    direction[1:] = np.sign(np.diff(q, axis=0))
+    direction = approach_directions(q)
     model, gdata = cell.robot.model, cell.robot.model.createData()
     temperature = 22.0 + np.cumsum(rng.normal(0, 0.05, n))
     T_kb = true_robot.T_bk.inverse()
