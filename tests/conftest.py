@@ -2,7 +2,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -10,8 +9,7 @@ import pytest
 from keo_service.core.kinematics import Cell
 from keo_service.io.cell import cell_from_config
 from keo_service.io.config import Config, load_config
-from keo_service.live.bus import session_for_client
-from keo_service.live.messages import topic
+from keo_service.live.client import SyncClient
 
 REPO = Path(__file__).resolve().parent.parent
 CONFIGS = REPO / "configs"
@@ -46,13 +44,6 @@ def keo(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
 
 
 def wait_for_status(config, timeout: float = 20.0) -> None:
-    session = session_for_client(config, retry_for=timeout)
-    try:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if any(r.ok for r in session.get(topic(config.cell, "status"), timeout=0.5)):
-                return
-            time.sleep(0.2)
-    finally:
-        session.close()
-    raise AssertionError("the service did not come up")
+    """Until the service answers a status query, through the client API."""
+    with SyncClient.from_config(config, connect_timeout_s=timeout) as keo:
+        keo.status(timeout=timeout)

@@ -21,7 +21,8 @@ from keo_service.bench.procs import free_port, process_group
 from keo_service.core.errors import KeoError
 from keo_service.io.config import config_to_toml, load_config
 from keo_service.live.bus import session_for_client
-from keo_service.live.messages import EstimateMessage, ServiceStatus, decode, topic
+from keo_service.live.client import SyncClient
+from keo_service.live.messages import EstimateMessage, ServiceStatus, decode
 from keo_service.sim.simulate import make_scenario, simulate, write_run
 from tests.conftest import CONFIGS, REPO, wait_for_status
 
@@ -113,16 +114,8 @@ def test_systemd_notify_watchdog_reload_and_stop(demo_config, tmp_path):
 
 
 def _status(config) -> ServiceStatus:
-    session = session_for_client(config, retry_for=10)
-    try:
-        for reply in session.get(topic(config.cell, "status"), timeout=3.0):
-            if reply.ok:
-                msg = decode(reply.ok.payload.to_bytes())
-                assert isinstance(msg, ServiceStatus)
-                return msg
-    finally:
-        session.close()
-    raise AssertionError("no status")
+    with SyncClient.from_config(config, connect_timeout_s=10) as keo:
+        return keo.status(timeout=3.0)
 
 
 def compose_commands() -> dict[str, list[str]]:

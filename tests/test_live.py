@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import re
 import subprocess
@@ -23,7 +24,8 @@ from keo_service.bench.demo import loopback_config
 from keo_service.bench.procs import process_group
 from keo_service.core.observer import noise_gain
 from keo_service.io.config import config_to_toml
-from keo_service.live.bus import AsyncSubscription, session_for_client
+from keo_service.live.bus import session_for_client
+from keo_service.live.client import Client
 from keo_service.live.messages import EstimateMessage, ServiceStatus, decode, topic
 from keo_service.live.service import KeoService
 from keo_service.sim.simulate import make_scenario, simulate
@@ -67,22 +69,18 @@ def readme_snippets(endpoint: str, cell: str) -> list[str]:
     ]
 
 
-async def collect(session, key: str, until: float) -> list[EstimateMessage]:
-    sub = AsyncSubscription(session, [key])
+async def collect(config, until: float) -> list[EstimateMessage]:
+    """Estimates until `until` (wall clock), through the client API."""
     out: list[EstimateMessage] = []
+    async with Client.from_config(config, connect_timeout_s=20) as keo:
 
-    async def gather() -> None:
-        async for _k, payload in sub:
-            msg = decode(payload)
-            assert isinstance(msg, EstimateMessage)
-            out.append(msg)
+        async def gather() -> None:
+            async for est in keo.estimates():
+                out.append(est)
 
-    try:
-        await asyncio.wait_for(gather(), timeout=until - time.time())
-    except TimeoutError:
-        pass
-    finally:
-        sub.close()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(gather(), timeout=until - time.time())
+        assert keo.dropped == 0
     return out
 
 
@@ -95,14 +93,13 @@ async def test_chain_in_one_process(live_config, demo_cell):
     await robot.start()
     await tracker.start()
     try:
-        async with KeoService(live_config) as service:
-            client = session_for_client(live_config, retry_for=10)
-            try:
-                async with EncoderAdapter(live_config, 6), TrackerAdapter(live_config, 6):
-                    estimates = await collect(client, topic(live_config.cell, "estimate"), t0 + 3.7)
-                    status = service.status()
-            finally:
-                client.close()
+        async with (
+            KeoService(live_config) as service,
+            EncoderAdapter(live_config, 6),
+            TrackerAdapter(live_config, 6),
+        ):
+            estimates = await collect(live_config, t0 + 3.7)
+            status = service.status()
     finally:
         await robot.close()
         await tracker.close()
@@ -137,9 +134,7 @@ def test_chain_as_processes(live_config, demo_cell, tmp_path):
             alive = client.liveliness().declare_subscriber(
                 f"keo/{live_config.cell}/alive/**", history=True
             )
-            estimates = asyncio.run(
-                collect(client, topic(live_config.cell, "estimate"), t0 + duration + 0.3)
-            )
+            estimates = asyncio.run(collect(live_config, t0 + duration + 0.3))
             replies = [
                 r.ok for r in client.get(topic(live_config.cell, "status"), timeout=3.0) if r.ok
             ]

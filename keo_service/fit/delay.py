@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pinocchio as pin
+from scipy.stats import median_abs_deviation
 
 from keo_service.core.kinematics import Cell, tool_pose
 
@@ -185,7 +186,7 @@ def fit_delay(
         scale = np.empty(nch)
         for c in range(nch):
             d1 = np.diff(err[:, c])
-            scale[c] = max(1.4826 * np.median(np.abs(d1 - np.median(d1))) / math.sqrt(2), 1e-9)
+            scale[c] = max(median_abs_deviation(d1, scale="normal") / math.sqrt(2), 1e-9)
         groups = [slice(0, 3)] + ([slice(3, 6)] if nch == 6 else [])
         for g in groups:
             scale[g] = np.median(scale[g])
