@@ -53,7 +53,7 @@ def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 if TYPE_CHECKING:
     from keo_service.fit.delay import OnlineDelayTracker
-    from keo_service.live.rerun_sink import RerunSink
+    from keo_service.live.rerun_sink import RerunWorker
 
 log = logging.getLogger("keo.service")
 VIZ_PERIOD_S = 0.1  # Rerun gets batches at display rate, never one call per sample
@@ -97,11 +97,11 @@ class KeoService:
             from keo_service.fit.delay import OnlineDelayTracker
 
             self._delay_tracker = OnlineDelayTracker(cell)
-        self._viz: RerunSink | None = None
+        self._viz: RerunWorker | None = None
         if rrd is not None or viewer is not None:
-            from keo_service.live.rerun_sink import RerunSink
+            from keo_service.live.rerun_sink import RerunSink, RerunWorker
 
-            self._viz = RerunSink(cell, rrd=rrd, viewer=viewer)
+            self._viz = RerunWorker(lambda: RerunSink(cell, rrd=rrd, viewer=viewer))
         self._own_session = session is None
         self._session = session
         self._stop = asyncio.Event()
@@ -134,6 +134,7 @@ class KeoService:
         self._start(self._consume(), "keo.service.consume")
         self._start(self._status_loop(), "keo.service.status")
         if self._viz is not None:
+            self._viz.start()
             self._start(self._viz_loop(), "keo.service.viz")
         if self._delay_tracker is not None:
             self._start(self._delay_loop(), "keo.service.delay")
@@ -227,7 +228,7 @@ class KeoService:
         self.published += 1
         self._rates["estimate"].tick(now)
         if self._viz is not None:
-            self._viz.add(estimate)
+            self._viz.submit(estimate)
         if not estimate.held:
             self._last_estimate_wall = now
 
@@ -262,6 +263,8 @@ class KeoService:
         counters["decode_errors"] = self.decode_errors
         counters["queue_dropped"] = self._sub.dropped
         counters["publish_failed"] = self.publish_failures
+        if self._viz is not None:
+            counters["rerun_dropped"] = self._viz.dropped
         last = self.estimator.last
         delay = self.estimator.delay
         return ServiceStatus(
@@ -317,7 +320,9 @@ class KeoService:
         assert self._viz is not None
         while not self._stop.is_set():
             await asyncio.sleep(VIZ_PERIOD_S)
-            self._viz.flush(msgspec.to_builtins(self.status()))
+            if self._viz.failure is not None:  # the Rerun thread died: fail like any task
+                raise RuntimeError("Rerun logging thread failed") from self._viz.failure
+            self._viz.submit(msgspec.to_builtins(self.status()))
 
     def _on_latest_query(self, query: zenoh.Query) -> None:  # zenoh thread
         latest = self._latest_bytes
