@@ -20,12 +20,14 @@ import numpy as np
 
 from keo_service.bench.demo import loopback_config
 from keo_service.bench.procs import process_group
+from keo_service.core.errors import KeoError
 from keo_service.core.estimator import Estimator, EstimatorSettings
 from keo_service.core.timing import DelayModel
 from keo_service.fit.evaluate import estimate_error_rms, estimate_run
 from keo_service.io.cell import cell_from_config, estimator_settings
 from keo_service.io.config import Config, config_to_toml
 from keo_service.live.bus import session_for_client
+from keo_service.live.client import SyncClient
 from keo_service.live.messages import EstimateMessage, decode, topic
 from keo_service.sim.simulate import SimulatedRun, make_scenario, simulate
 
@@ -175,6 +177,14 @@ class _Collector:
         return out
 
 
+def _service_counters(config: Config) -> dict[str, int]:
+    try:
+        with SyncClient.from_config(config, connect_timeout_s=5.0) as keo:
+            return dict(keo.status(timeout=3.0).counters)
+    except KeoError:
+        return {}
+
+
 def _open_fds(pid: int) -> int:
     return len(os.listdir(f"/proc/{pid}/fd"))
 
@@ -235,6 +245,7 @@ def end_to_end(
         end_mem = {n: _proc_mem_kb(p) for n, p in pids.items()}
         time.sleep(1.5)  # the last samples: encoder coverage, or the quiet-time flush
         items = collector.close()
+        counters = {} if relay_only else _service_counters(config)
     run_s = seconds - 0.5
     played = simulate(
         cell_from_config(config), make_scenario("path", dict(s.split("=", 1) for s in sets)), seed=1
@@ -275,6 +286,8 @@ def end_to_end(
         "latency_publish_to_subscriber_ms": _percentiles(to_subscriber),
         "processes": procs_out,
         "trace": trace,
+        "rerun_dropped": counters.get("rerun_dropped", 0),
+        "service_counters": counters,
     }
 
 
@@ -448,6 +461,14 @@ def bench_table(r: dict[str, Any]) -> str:
             lines.append(
                 f"| keo over the transport floor, same run | p50 x{keo['p50'] / floor['p50']:.2f}, "
                 f"p99 x{keo['p99'] / floor['p99']:.2f} |"
+            )
+    if "end_to_end_rerun" in r:
+        plain, rrd = r["end_to_end"]["latency_ms"], r["end_to_end_rerun"]["latency_ms"]
+        if plain["p99"] and rrd["p99"]:
+            lines.append(
+                f"| --rrd over the plain run, same bench | p50 x{rrd['p50'] / plain['p50']:.2f}, "
+                f"p99 x{rrd['p99'] / plain['p99']:.2f}; Rerun queue drops "
+                f"{r['end_to_end_rerun'].get('rerun_dropped', 0)} |"
             )
     c = r["capacity"]
     steps = ", ".join(f"{s['tracker_hz']:.0f} Hz: {s['received']}/{s['sent']}" for s in c["steps"])
