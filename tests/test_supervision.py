@@ -251,3 +251,27 @@ async def test_client_says_when_no_service_answers():
             assert await keo.latest(timeout=0.3) is None
     finally:
         peer.close()
+
+
+async def test_a_fault_in_the_recorder_ends_the_recording_with_its_cause(tmp_path, monkeypatch):
+    import asyncio
+
+    from keo_service.core.errors import KeoError
+    from keo_service.live.bus import open_session
+    from keo_service.live.recorder import Recorder, record
+
+    def broken(self, payload: bytes) -> None:
+        raise RuntimeError("injected fault in the recorder")
+
+    monkeypatch.setattr(Recorder, "on_payload", broken)
+    session = open_session("peer", listen=[f"tcp/127.0.0.1:{free_port()}"])
+    try:
+        stop = asyncio.Event()
+        recording = asyncio.create_task(record(session, "rec", tmp_path, 6, stop))
+        await asyncio.sleep(0.3)
+        session.put(topic("rec", "encoder"), b"anything")
+        with pytest.raises(KeoError, match="injected fault in the recorder"):
+            async with asyncio.timeout(2.0):
+                await recording
+    finally:
+        session.close()

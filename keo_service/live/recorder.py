@@ -20,6 +20,7 @@ import msgspec
 import numpy as np
 import zenoh
 
+from keo_service.core.errors import KeoError
 from keo_service.io.interchange import (
     TRACKER_POSE_COLUMNS,
     TRACKER_POSITION_COLUMNS,
@@ -35,6 +36,7 @@ from keo_service.live.messages import (
     encode,
     topic,
 )
+from keo_service.live.supervise import supervise
 
 log = logging.getLogger("keo.record")
 FLUSH_PERIOD_S = 1.0
@@ -135,7 +137,16 @@ async def record(
             await asyncio.sleep(FLUSH_PERIOD_S / 2)
             recorder.maybe_flush()
 
-    tasks = [asyncio.create_task(consume()), asyncio.create_task(flusher())]
+    failures: list[BaseException] = []
+
+    def fail(exc: BaseException) -> None:
+        failures.append(exc)
+        stop.set()
+
+    tasks = [
+        supervise(asyncio.create_task(consume(), name="keo.record.consume"), stop.is_set, fail),
+        supervise(asyncio.create_task(flusher(), name="keo.record.flush"), stop.is_set, fail),
+    ]
     try:
         if duration is None:
             await stop.wait()
@@ -148,6 +159,10 @@ async def record(
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
         recorder.close()
+    if failures:  # logged with its traceback when it happened
+        raise KeoError(f"recording stopped after an internal failure: {failures[0]}") from failures[
+            0
+        ]
     recorder.stats.rejected += sub.dropped
     return recorder.stats
 
