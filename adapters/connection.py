@@ -16,12 +16,14 @@ async def run_tcp_client(
     name: str,
     host: str,
     port: int,
-    handle: Callable[[asyncio.StreamReader], Awaitable[None]],
+    handle: Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]],
     stop: asyncio.Event,
     counters: dict[str, int],
     backoff: Backoff | None = None,
 ) -> None:
-    """Connect, hand the reader to `handle` until the connection ends, reconnect; until `stop`."""
+    """Connect, hand reader and writer to `handle` until the connection ends, reconnect;
+    until `stop`. An exception in `handle` is logged as a connection error and retried with
+    the backoff (a device that answers wrongly is a device problem, not a reason to die)."""
     backoff = backoff or Backoff()
     while not stop.is_set():
         try:
@@ -43,7 +45,7 @@ async def run_tcp_client(
         counters["connections"] = counters.get("connections", 0) + 1
         log.info("%s: connected to %s:%d", name, host, port)
         backoff.reset()
-        reading: asyncio.Task[None] = asyncio.ensure_future(handle(reader))
+        reading: asyncio.Task[None] = asyncio.ensure_future(handle(reader, writer))
         stopping = asyncio.create_task(stop.wait())
         try:
             await asyncio.wait({reading, stopping}, return_when=asyncio.FIRST_COMPLETED)

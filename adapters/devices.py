@@ -1,4 +1,5 @@
-"""The two device adapters: a device's TCP stream in, Zenoh samples out.
+"""The device adapters: a device's TCP stream in, Zenoh samples out (MotoROS or UR RTDE
+for the robot, keo's line protocol for the tracker).
 
 Each is an async context manager that owns its session and tasks (aiomqtt style). Codec
 errors are counted and visible on `keo/<cell>/adapter/<name>/status`; they never stop it.
@@ -7,17 +8,23 @@ errors are counted and visible on `keo/<cell>/adapter/<name>/status`; they never
 from __future__ import annotations
 
 import asyncio
+import collections
+import dataclasses
 import json
 import logging
+import math
 import time
 from collections import Counter
 from typing import Any
 
 import zenoh
 
+from adapters import rtde
 from adapters.connection import run_tcp_client
 from adapters.line_protocol import MAX_LINE, LineProtocolParser
+from adapters.rtde import Package, RtdeDecoder
 from adapters.simple_message import JointFeedback, RobotStatusFrame, SimpleMessageDecoder
+from keo_service.core.clock import ClockMapper
 from keo_service.live.bus import session_for_client_async
 from keo_service.live.messages import JointSample, RobotStatus, TrackerSample, encode, topic
 from keo_service.live.supervise import supervise
@@ -88,6 +95,9 @@ class EncoderAdapter(_Adapter):
 
     def _declare(self, session: zenoh.Session) -> None:
         self.decoder = SimpleMessageDecoder(self.config.robot.byte_order)
+        self._declare_publishers(session)
+
+    def _declare_publishers(self, session: zenoh.Session) -> None:
         self._pub = session.declare_publisher(
             topic(self.config.cell, "encoder"),
             congestion_control=zenoh.CongestionControl.BLOCK,
@@ -106,10 +116,10 @@ class EncoderAdapter(_Adapter):
     async def _run(self) -> None:
         robot = self.config.robot
         await run_tcp_client(
-            "encoder", robot.host, robot.port, self._read, self._stop, self.counters
+            "encoder", robot.host, robot.endpoint_port, self._read, self._stop, self.counters
         )
 
-    async def _read(self, reader: asyncio.StreamReader) -> None:
+    async def _read(self, reader: asyncio.StreamReader, _writer: asyncio.StreamWriter) -> None:
         try:
             while True:
                 data = await reader.read(4096)
@@ -168,7 +178,7 @@ class TrackerAdapter(_Adapter):
             "tracker", tracker.host, tracker.port, self._read, self._stop, self.counters
         )
 
-    async def _read(self, reader: asyncio.StreamReader) -> None:
+    async def _read(self, reader: asyncio.StreamReader, _writer: asyncio.StreamWriter) -> None:
         self.parser.reset()
         while True:
             try:
@@ -198,3 +208,176 @@ class TrackerAdapter(_Adapter):
             )
             self._pub.put(encode(sample))
             self.counters["published"] += 1
+
+
+# UR robot_mode values that mean the arm's drives have power, and safety modes that are stops
+_UR_POWERED = frozenset({4, 5, 6, 7})  # POWER_ON, IDLE, BACKDRIVE, RUNNING
+_UR_RUNNING = 7
+_UR_ESTOP = frozenset({6, 7})  # SYSTEM / ROBOT EMERGENCY STOP
+_UR_FAULT = frozenset({8, 9})  # VIOLATION, FAULT
+_UR_MOTION_OK = frozenset({1, 2})  # NORMAL, REDUCED
+HANDSHAKE_TIMEOUT_S = 5.0
+ROBOT_STATUS_PERIOD_S = 0.5
+
+
+class RtdeEncoderAdapter(EncoderAdapter):
+    """Universal Robots RTDE (protocol 2) -> keo/<cell>/encoder and keo/<cell>/robot_status.
+
+    Each joint sample keeps the controller's `timestamp` as `device_t` and gets `t` on the
+    host clock from the clock mapping (not the receipt time, which carries TCP and
+    scheduling jitter)."""
+
+    def _declare(self, session: zenoh.Session) -> None:
+        self._declare_publishers(session)
+        if self.nq != 6:
+            raise ValueError(
+                f"robot.urdf has {self.nq} joints; a UR controller reports 6 (base, shoulder, "
+                "elbow, wrist 1-3) in the URDF's joint order"
+            )
+        self.rtde_decoder = RtdeDecoder()
+        self.clock = ClockMapper()
+        self.controller = ""
+        self._pending: collections.deque[Package] = collections.deque(maxlen=64)
+        self._last_status: tuple[int, int] | None = None
+        self._last_status_at = 0.0
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "adapter": self.name,
+            "counters": dict(self.counters),
+            "decoder": dict(self.rtde_decoder.counters),
+            "messages": list(self.rtde_decoder.messages),
+            "controller": self.controller,
+            "clock": dataclasses.asdict(self.clock.state()),
+        }
+
+    async def _run(self) -> None:
+        robot = self.config.robot
+        await run_tcp_client(
+            "encoder", robot.host, robot.endpoint_port, self._rtde, self._stop, self.counters
+        )
+
+    async def _rtde(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.rtde_decoder = RtdeDecoder()
+        self._pending.clear()
+        writer.write(rtde.request_protocol_version())
+        if not rtde.parse_accepted(await self._expect(reader, rtde.REQUEST_PROTOCOL_VERSION)):
+            raise rtde.RtdeError("the controller refused RTDE protocol version 2")
+        writer.write(rtde.get_controller_version())
+        version = rtde.parse_controller_version(
+            await self._expect(reader, rtde.GET_URCONTROL_VERSION)
+        )
+        self.controller = ".".join(map(str, version))
+        names = list(rtde.OUTPUTS)
+        writer.write(rtde.setup_outputs(self.config.robot.frequency_hz, names))
+        recipe = rtde.parse_outputs_reply(
+            await self._expect(reader, rtde.CONTROL_PACKAGE_SETUP_OUTPUTS), names
+        )
+        writer.write(rtde.start())
+        if not rtde.parse_accepted(await self._expect(reader, rtde.CONTROL_PACKAGE_START)):
+            raise rtde.RtdeError("the controller refused to start streaming")
+        log.info(
+            "encoder: RTDE controller %s streaming %s at %g Hz",
+            self.controller,
+            ", ".join(names),
+            self.config.robot.frequency_hz,
+        )
+        while self._pending:
+            self._on_package(self._pending.popleft(), recipe, time.time_ns())
+        while True:
+            data = await reader.read(65536)
+            if not data:
+                return
+            host_ns = time.time_ns()
+            for pkg in self._feed(data):
+                self._on_package(pkg, recipe, host_ns)
+
+    def _feed(self, data: bytes) -> list[Package]:
+        return self.rtde_decoder.feed(data)
+
+    async def _expect(self, reader: asyncio.StreamReader, kind: int) -> Package:
+        """The controller's answer of type `kind`; text messages on the way are logged."""
+        async with asyncio.timeout(HANDSHAKE_TIMEOUT_S):
+            while True:
+                while self._pending:
+                    pkg = self._pending.popleft()
+                    if pkg.type == kind:
+                        return pkg
+                    self._on_side_package(pkg)
+                data = await reader.read(65536)
+                if not data:
+                    raise rtde.RtdeError(
+                        f"the controller closed during the handshake ({chr(kind)})"
+                    )
+                self._pending.extend(self._feed(data))
+
+    def _on_side_package(self, pkg: Package) -> None:
+        if pkg.type == rtde.TEXT_MESSAGE:
+            try:
+                text = rtde.parse_text_message(pkg)
+            except rtde.RtdeError as exc:
+                self.rtde_decoder.reject("bad_text", str(exc))
+                return
+            log.log(
+                logging.WARNING if text.level >= 2 else logging.INFO,
+                "controller (%s): %s",
+                text.source,
+                text.message,
+            )
+            self.counters["text_messages"] += 1
+        else:
+            self.rtde_decoder.reject("unexpected", f"package {pkg.type} at this point, skipped")
+
+    def _on_package(self, pkg: Package, recipe: rtde.Recipe, host_ns: int) -> None:
+        if pkg.type != rtde.DATA_PACKAGE:
+            self._on_side_package(pkg)
+            return
+        try:
+            values = recipe.unpack(pkg.payload)
+        except rtde.RtdeError as exc:
+            self.rtde_decoder.reject("bad_data", str(exc))
+            return
+        stamp = values["timestamp"]
+        q, qd = values["actual_q"], values["actual_qd"]
+        assert isinstance(stamp, float)
+        assert isinstance(q, tuple)
+        assert isinstance(qd, tuple)
+        if not all(math.isfinite(v) for v in (stamp, *q, *qd)):
+            self.rtde_decoder.reject("non_finite", f"data package at controller time {stamp!r}")
+            return
+        t = self.clock.map(stamp, host_ns * 1e-9)
+        self._seq += 1
+        self._pub.put(
+            encode(
+                JointSample(
+                    t=t, host_ns=host_ns, seq=self._seq, q=list(q), dq=list(qd), device_t=stamp
+                )
+            )
+        )
+        self.counters["published"] += 1
+        self._maybe_publish_status(values, host_ns)
+
+    def _maybe_publish_status(self, values: dict[str, Any], host_ns: int) -> None:
+        robot_mode, safety_mode = int(values["robot_mode"]), int(values["safety_mode"])
+        now = host_ns * 1e-9
+        changed = (robot_mode, safety_mode) != self._last_status
+        if not changed and now - self._last_status_at < ROBOT_STATUS_PERIOD_S:
+            return
+        self._last_status, self._last_status_at = (robot_mode, safety_mode), now
+        moving = any(abs(v) > 1e-3 for v in values["actual_qd"])
+        status = RobotStatus(
+            host_ns=host_ns,
+            drives_powered=int(robot_mode in _UR_POWERED),
+            e_stopped=int(safety_mode in _UR_ESTOP),
+            error_code=safety_mode if safety_mode in _UR_FAULT else 0,
+            in_error=int(safety_mode in _UR_FAULT),
+            in_motion=int(moving),
+            mode=robot_mode,
+            motion_possible=int(robot_mode == _UR_RUNNING and safety_mode in _UR_MOTION_OK),
+        )
+        self._status_pub.put(encode(status))
+
+
+def encoder_adapter_for(config: Any) -> type[EncoderAdapter]:
+    """The encoder adapter of `robot.protocol`."""
+    return RtdeEncoderAdapter if config.robot.protocol == "rtde" else EncoderAdapter

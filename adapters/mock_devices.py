@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
+import struct
 import time
 from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
 
+from adapters import rtde
 from adapters.line_protocol import format_hello, format_pose
 from adapters.simple_message import encode_joint_feedback, encode_robot_status
 
@@ -172,3 +175,157 @@ class MockTracker(_MockServer):
             return format_pose(seq[0], device_t, p, q)
 
         await self._play_rows(writer, self.tracker.t, frame)
+
+
+# outputs the mock controller knows (name -> RTDE type); anything else is NOT_FOUND
+MOCK_RTDE_OUTPUTS = {
+    **rtde.OUTPUTS,
+    "target_q": "VECTOR6D",
+    "target_qd": "VECTOR6D",
+    "actual_TCP_pose": "VECTOR6D",
+    "actual_current": "VECTOR6D",
+    "speed_scaling": "DOUBLE",
+    "robot_status_bits": "UINT32",
+    "safety_status_bits": "UINT32",
+}
+_ZERO = {"DOUBLE": 0.0, "INT32": 0, "UINT32": 0, "VECTOR6D": (0.0,) * 6}
+
+
+class MockRtdeController:
+    """A Universal Robots controller's RTDE server (protocol 2) playing a joint track.
+
+    It samples the track at the frequency the client asks for (at most `max_hz`: 500 on
+    e-Series, 125 on CB3) and stamps each package with its own clock: `clock_offset_s` plus
+    the scenario time, running `clock_drift_ppm` fast. Delivery can be late in bursts: every
+    `burst_every_s` on average (0: never) sending stalls for up to `late_ms` and the packages
+    held up go out together, as a congested network or a busy host delivers them.
+    """
+
+    def __init__(
+        self,
+        track: JointTrack,
+        host: str,
+        port: int,
+        t0: float | None = None,
+        max_hz: float = 500.0,
+        clock_offset_s: float = 1000.0,
+        clock_drift_ppm: float = 0.0,
+        late_ms: float = 0.0,
+        burst_every_s: float = 0.0,
+        version: tuple[int, int, int, int] = (5, 15, 0, 0),
+        seed: int = 0,
+    ) -> None:
+        self.track = track
+        self.host, self.port, self.t0 = host, port, t0
+        self.max_hz = max_hz
+        self.clock_offset_s, self.clock_drift = clock_offset_s, clock_drift_ppm * 1e-6
+        self.late_s, self.burst_every_s = late_ms * 1e-3, burst_every_s
+        self.version = version
+        self.rng = np.random.default_rng(seed)
+        self.clients = 0
+        self.sent: list[tuple[float, float]] = []  # (scenario time, controller stamp), for tests
+        self._server: asyncio.Server | None = None
+
+    async def start(self) -> None:
+        self._server = await asyncio.start_server(self._on_client, self.host, self.port)
+        if self.t0 is None:
+            self.t0 = time.time() + 0.5
+        log.info(
+            "mock RTDE controller on %s:%d, playing from t0=%.3f", self.host, self.port, self.t0
+        )
+
+    async def close(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()
+
+    def device_time(self, scenario_t: float) -> float:
+        return self.clock_offset_s + scenario_t * (1.0 + self.clock_drift)
+
+    async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.clients += 1
+        decoder = rtde.RtdeDecoder()
+        recipe: rtde.Recipe | None = None
+        frequency = self.max_hz
+        streaming: asyncio.Task[None] | None = None
+        try:
+            while data := await reader.read(4096):
+                for pkg in decoder.feed(data):
+                    kind = pkg.type
+                    if kind == rtde.REQUEST_PROTOCOL_VERSION:
+                        (version,) = struct.unpack(">H", pkg.payload[:2])
+                        writer.write(rtde.accepted(kind, version == rtde.PROTOCOL_VERSION))
+                    elif kind == rtde.GET_URCONTROL_VERSION:
+                        writer.write(rtde.controller_version(*self.version))
+                    elif kind == rtde.CONTROL_PACKAGE_SETUP_OUTPUTS:
+                        asked, names = rtde.parse_setup_request(pkg)
+                        if asked > 0:
+                            frequency = min(asked, self.max_hz)
+                        types = [MOCK_RTDE_OUTPUTS.get(n, "NOT_FOUND") for n in names]
+                        writer.write(rtde.outputs_reply(1, types))
+                        if "NOT_FOUND" not in types:
+                            recipe = rtde.Recipe(1, tuple(names), tuple(types))
+                    elif kind == rtde.CONTROL_PACKAGE_START:
+                        writer.write(rtde.accepted(kind, recipe is not None))
+                        if recipe is not None and streaming is None:
+                            writer.write(rtde.text_message(f"streaming at {frequency:g} Hz"))
+                            streaming = asyncio.create_task(self._stream(writer, recipe, frequency))
+                    elif kind == rtde.CONTROL_PACKAGE_PAUSE:
+                        if streaming is not None:
+                            streaming.cancel()
+                            streaming = None
+                        writer.write(rtde.accepted(kind))
+                    await writer.drain()
+        except (ConnectionError, OSError, asyncio.CancelledError):
+            pass
+        finally:
+            if streaming is not None:
+                streaming.cancel()
+            writer.close()
+
+    def _schedule(self, frequency: float) -> tuple[np.ndarray, np.ndarray]:
+        """Scenario times of the samples and the wall-clock offsets at which they go out."""
+        t_end = float(self.track.t[-1])
+        times = np.arange(math.ceil(float(self.track.t[0]) * frequency), t_end * frequency)
+        times = times / frequency
+        send = times.copy()
+        if self.burst_every_s > 0 and self.late_s > 0:
+            at = float(self.rng.uniform(0, self.burst_every_s))
+            while at < t_end:
+                stall = float(self.rng.uniform(0.2, 1.0)) * self.late_s
+                held = (times >= at) & (times < at + stall)
+                send[held] = at + stall  # held up, then out together
+                at += float(self.rng.exponential(self.burst_every_s)) + stall
+        return times, send
+
+    async def _stream(self, writer: asyncio.StreamWriter, recipe: rtde.Recipe, hz: float) -> None:
+        assert self.t0 is not None
+        times, send = self._schedule(hz)
+        q = np.column_stack([np.interp(times, self.track.t, c) for c in self.track.q.T])
+        qd = np.gradient(q, times, axis=0) if times.size > 1 else np.zeros_like(q)
+        i, n = 0, times.size
+        while i < n:
+            now = time.time() - self.t0
+            if send[i] > now:
+                await asyncio.sleep(send[i] - now)
+                continue
+            chunk = []
+            while i < n and send[i] <= now:  # everything due: one write, as a burst arrives
+                stamp = self.device_time(float(times[i]))
+                values: dict[str, object] = {
+                    name: _ZERO[kind] for name, kind in zip(recipe.names, recipe.types, strict=True)
+                }
+                values.update(
+                    timestamp=stamp,
+                    actual_q=tuple(q[i].tolist()),
+                    actual_qd=tuple(qd[i].tolist()),
+                    target_q=tuple(q[i].tolist()),
+                    robot_mode=7,
+                    safety_mode=1,
+                    runtime_state=2,
+                )
+                chunk.append(rtde.data_package(recipe, {k: values[k] for k in recipe.names}))
+                self.sent.append((float(times[i]), stamp))
+                i += 1
+            writer.write(b"".join(chunk))
+            await writer.drain()

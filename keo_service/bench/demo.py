@@ -23,9 +23,20 @@ from keo_service.io.cell import cell_from_config
 from keo_service.io.config import Config, config_to_toml, load_config
 from keo_service.live.client import Client, ClientError
 from keo_service.live.messages import EstimateMessage, ServiceStatus
+from keo_service.resources import configs_dir
 from keo_service.sim.simulate import make_scenario, simulate
 
-SCENARIO = "paper-vertical"
+# per robot: the config it plays, the scenario, and what its mock controller adds
+DEMO_ROBOTS = {
+    "mh180": ("demo.toml", "paper-vertical", []),
+    # a UR controller's own clock, 80 ppm fast, and delivery up to 6 ms late in bursts: the
+    # adapter maps the controller's stamps onto the host clock
+    "ur10": (
+        "ur10_demo.toml",
+        "paper-step",
+        ["--clock-drift-ppm", "80", "--late-ms", "6", "--burst-every", "1"],
+    ),
+}
 STARTUP_S = 4.0  # the children import numpy, Pinocchio and Zenoh before the scenario starts
 
 
@@ -55,7 +66,8 @@ async def _follow(config: Config, until: float) -> tuple[list[EstimateMessage], 
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    base = load_config(args.config)
+    config_name, scenario, robot_args = DEMO_ROBOTS[args.robot]
+    base = load_config(args.config or configs_dir() / config_name)
     config = loopback_config(base)
     work = Path(tempfile.mkdtemp(prefix="keo-demo-"))
     cfg_path = work / "demo.toml"
@@ -63,7 +75,7 @@ def run_demo(args: argparse.Namespace) -> int:
     t0 = time.time() + STARTUP_S
     play = [
         "--scenario",
-        SCENARIO,
+        scenario,
         "--seed",
         str(args.seed),
         "--t0",
@@ -74,10 +86,11 @@ def run_demo(args: argparse.Namespace) -> int:
     status = None
     with process_group(work) as procs:
         rrd = ["--rrd", str(args.rrd.resolve())] if args.rrd is not None else []
-        procs.start_cell(cfg_path, play, service=rrd)
+        procs.start_cell(cfg_path, play, service=rrd, robot=robot_args)
         if not args.json:
             print(
-                f"keo demo: 5 processes on loopback (logs in {work}); playing {SCENARIO} "
+                f"keo demo: 5 processes on loopback (logs in {work}); {args.robot} playing "
+                f"{scenario} "
                 f"for {args.duration:g} s from t0 + {STARTUP_S:g} s ...",
                 flush=True,
             )
@@ -86,7 +99,7 @@ def run_demo(args: argparse.Namespace) -> int:
         except ClientError:
             estimates = []
         codes = procs.close()
-    summary = _summary(config, args, estimates, status, codes, t0, work)
+    summary = _summary(config, args, scenario, estimates, status, codes, t0, work)
     if args.rrd is not None:
         summary["rrd"] = str(args.rrd)
     if args.json:
@@ -99,6 +112,7 @@ def run_demo(args: argparse.Namespace) -> int:
 def _summary(
     config: Config,
     args: argparse.Namespace,
+    scenario: str,
     estimates: list[EstimateMessage],
     status: ServiceStatus | None,
     codes: dict[str, int | None],
@@ -107,12 +121,13 @@ def _summary(
 ) -> dict[str, Any]:
     run = simulate(
         cell_from_config(config),
-        make_scenario(SCENARIO, {"duration_s": repr(args.duration)}),
+        make_scenario(scenario, {"duration_s": repr(args.duration)}),
         seed=args.seed,
     )
     good = [e for e in estimates if e.measured is not None]
     out: dict[str, Any] = {
-        "scenario": SCENARIO,
+        "robot": args.robot,
+        "scenario": scenario,
         "duration_s": args.duration,
         "estimates": len(estimates),
         "held": len(estimates) - len(good),

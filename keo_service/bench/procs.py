@@ -46,6 +46,7 @@ class ProcessGroup:
         service: Sequence[str] = (),
         tracker: Sequence[str] = (),
         relay_only: bool = False,
+        robot: Sequence[str] = (),
     ) -> None:
         """The whole chain of one cell: service, mock robot and tracker playing `play`, and
         both adapters (names: service, mock-robot, mock-tracker, adapter-encoder/-tracker).
@@ -55,7 +56,7 @@ class ProcessGroup:
             self.start("service", cfg, module="keo_service.bench.relay")
         else:
             self.start("service", ["run", *cfg, *service])
-        self.start("mock-robot", ["mock", "robot", *cfg, *play])
+        self.start("mock-robot", ["mock", "robot", *cfg, *play, *robot])
         self.start("mock-tracker", ["mock", "tracker", *cfg, *play, *tracker])
         self.start("adapter-encoder", ["adapter", "encoder", *cfg])
         self.start("adapter-tracker", ["adapter", "tracker", *cfg])

@@ -38,13 +38,17 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_adapter(args: argparse.Namespace) -> int:
-    from adapters.devices import EncoderAdapter, TrackerAdapter
+    from adapters.devices import TrackerAdapter, encoder_adapter_for
     from keo_service.io.cell import robot_from_config
 
     config = common.load(args.config)
     _setup_logging(args.verbose)
     nq = robot_from_config(config).nq
-    kind = {"encoder": EncoderAdapter, "tracker": TrackerAdapter}[args.device]
+    if args.device == "encoder" and config.robot.protocol == "rtde" and nq != 6:
+        raise ConfigError(
+            config.source, "robot.urdf", f"{nq} joints; a UR controller (rtde) reports 6"
+        )
+    kind = encoder_adapter_for(config) if args.device == "encoder" else TrackerAdapter
 
     async def main() -> None:
         async with kind(config, nq) as adapter:
@@ -70,7 +74,7 @@ def _pair(text: str | None, option: str) -> tuple[float, float] | None:
 
 
 def cmd_mock(args: argparse.Namespace) -> int:
-    from adapters.mock_devices import MockRobot, MockTracker
+    from adapters.mock_devices import MockRobot, MockRtdeController, MockTracker
     from keo_service.io.cell import cell_from_config
     from keo_service.sim.simulate import make_scenario, simulate
 
@@ -84,12 +88,26 @@ def cmd_mock(args: argparse.Namespace) -> int:
     run = simulate(
         cell_from_config(config), make_scenario(args.scenario, overrides), seed=args.seed
     )
-    server: MockRobot | MockTracker
-    if args.device == "robot":
+    server: MockRobot | MockTracker | MockRtdeController
+    protocol = args.protocol or config.robot.protocol
+    if args.device == "robot" and protocol == "rtde":
+        server = MockRtdeController(
+            run.encoder,
+            args.host or config.robot.host,
+            args.port or (config.robot.endpoint_port if config.robot.protocol == "rtde" else 30004),
+            args.t0,
+            max_hz=args.max_hz,
+            clock_offset_s=args.clock_offset,
+            clock_drift_ppm=args.clock_drift_ppm,
+            late_ms=args.late_ms,
+            burst_every_s=args.burst_every,
+            seed=args.seed,
+        )
+    elif args.device == "robot":
         server = MockRobot(
             run.encoder,
             args.host or config.robot.host,
-            args.port or config.robot.port,
+            args.port or config.robot.endpoint_port,
             config.robot.byte_order,
             args.t0,
             args.loop,
@@ -253,6 +271,20 @@ def register(add: common.AddCommand) -> None:
         "--clock-step",
         metavar="AT:STEP",
         help="tracker: its own clock jumps by STEP seconds at scenario time AT",
+    )
+    p.add_argument(
+        "--protocol",
+        choices=["motoros", "rtde"],
+        help="robot: the wire format (default: the config's robot.protocol)",
+    )
+    p.add_argument("--max-hz", type=float, default=500.0, help="rtde: 500 e-Series, 125 CB3")
+    p.add_argument(
+        "--clock-offset", type=float, default=1000.0, help="rtde: controller clock at t0"
+    )
+    p.add_argument("--clock-drift-ppm", type=float, default=0.0, help="rtde: controller clock rate")
+    p.add_argument("--late-ms", type=float, default=0.0, help="rtde: longest delivery stall (ms)")
+    p.add_argument(
+        "--burst-every", type=float, default=0.0, help="rtde: mean seconds between stalls"
     )
     p.add_argument(
         "--wall-clock-device-time",

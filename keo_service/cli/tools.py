@@ -46,7 +46,13 @@ def register(add: common.AddCommand) -> None:
         "mock devices, adapters and service on loopback; prints a summary",
         config=False,
     )
-    p.add_argument("--config", default=str(demo_config_path()), help="default: the demo cell")
+    p.add_argument(
+        "--robot",
+        choices=["mh180", "ur10"],
+        default="mh180",
+        help="mh180: MotoROS (the reference paper's cell); ur10: a UR10 over RTDE",
+    )
+    p.add_argument("--config", help="default: the demo cell of --robot")
     p.add_argument("--duration", type=float, default=18.0, help="seconds of scenario to play")
     p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
     p.add_argument("--json", action="store_true")

@@ -31,13 +31,30 @@ class _Section(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     pass
 
 
+# the controller's port when `robot.port` is not given
+DEFAULT_ROBOT_PORTS = {"motoros": 50241, "rtde": 30004}
+
+
 class RobotConfig(_Section):
     urdf: str
     base_frame: str = "base_link"
     flange_frame: str = "tool0"
+    # "motoros": ROS-Industrial simple message (MotoROS); "rtde": Universal Robots RTDE
+    protocol: Literal["motoros", "rtde"] = "motoros"
     host: str = "127.0.0.1"
-    port: Port = 50241
+    port: Port | None = None  # None: 50241 for motoros, 30004 for rtde
     byte_order: Literal["little", "big"] = "little"
+    # rtde: the output rate asked of the controller (500 Hz on e-Series, 125 Hz on CB3)
+    frequency_hz: Annotated[float, msgspec.Meta(gt=0.0, le=500.0)] = 500.0
+
+    def __post_init__(self) -> None:
+        if self.port is None:
+            self.port = DEFAULT_ROBOT_PORTS[self.protocol]
+
+    @property
+    def endpoint_port(self) -> int:
+        """The controller's port (the protocol's default when the config gives none)."""
+        return self.port if self.port is not None else DEFAULT_ROBOT_PORTS[self.protocol]
 
 
 class ToolConfig(_Section):
