@@ -25,8 +25,10 @@ from adapters.line_protocol import MAX_LINE, LineProtocolParser
 from adapters.rtde import Package, RtdeDecoder
 from adapters.simple_message import JointFeedback, RobotStatusFrame, SimpleMessageDecoder
 from keo_service.core.clock import ClockMapper
-from keo_service.live.bus import session_for_client_async
+from keo_service.core.rejects import RejectLog
+from keo_service.live.bus import AsyncSubscription, session_for_client_async
 from keo_service.live.messages import JointSample, RobotStatus, TrackerSample, encode, topic
+from keo_service.live.ros2 import Ros2Node
 from keo_service.live.supervise import supervise
 
 log = logging.getLogger("keo.adapter")
@@ -159,6 +161,7 @@ class TrackerAdapter(_Adapter):
 
     def _declare(self, session: zenoh.Session) -> None:
         self.parser = LineProtocolParser()
+        self.clock = ClockMapper()
         self._pub = session.declare_publisher(
             topic(self.config.cell, "tracker"),
             congestion_control=zenoh.CongestionControl.BLOCK,
@@ -170,6 +173,7 @@ class TrackerAdapter(_Adapter):
             **super().status(),
             "parser": dict(self.parser.counters),
             "messages": list(self.parser.messages),
+            "clock": dataclasses.asdict(self.clock.state()),
         }
 
     async def _run(self) -> None:
@@ -180,6 +184,7 @@ class TrackerAdapter(_Adapter):
 
     async def _read(self, reader: asyncio.StreamReader, _writer: asyncio.StreamWriter) -> None:
         self.parser.reset()
+        self.clock = ClockMapper()  # a new connection may bring a new device clock
         while True:
             try:
                 line = await reader.readuntil(b"\n")
@@ -197,8 +202,12 @@ class TrackerAdapter(_Adapter):
             pose = self.parser.parse(line)
             if pose is None:
                 continue
+            # the tracker's own stamps, mapped onto the host clock, carry less jitter than
+            # the receipt time; a tracker without a device time is stamped on receipt
+            receipt = host_ns * 1e-9
+            t = receipt if pose.device_t is None else self.clock.map(pose.device_t, receipt)
             sample = TrackerSample(
-                t=host_ns * 1e-9,
+                t=t,
                 host_ns=host_ns,
                 seq=pose.seq,
                 status=pose.status,
@@ -379,5 +388,181 @@ class RtdeEncoderAdapter(EncoderAdapter):
 
 
 def encoder_adapter_for(config: Any) -> type[EncoderAdapter]:
-    """The encoder adapter of `robot.protocol`."""
+    """The encoder adapter of `robot.protocol` (ros2: `Ros2JointStateAdapter`, which needs
+    the URDF's joint names)."""
     return RtdeEncoderAdapter if config.robot.protocol == "rtde" else EncoderAdapter
+
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+POINT_STAMPED = "geometry_msgs/msg/PointStamped"
+
+
+def _stamp_s(header: Any) -> float:
+    return float(header.stamp.sec) + float(header.stamp.nanosec) * 1e-9
+
+
+class _Ros2Adapter(_Adapter):
+    """A ROS 2 topic over rmw_zenoh in, keo's samples out; the ROS messages arrive on the same
+    Zenoh session (a client of the service or router), through the bounded hand-off."""
+
+    topics: tuple[tuple[str, str], ...] = ()  # (topic, ROS type) pairs, set per instance
+
+    def _declare(self, session: zenoh.Session) -> None:
+        ros = self.config.ros2
+        self.node = Ros2Node(
+            session, f"keo_{self.config.cell}_{self.name}", ros.domain_id, ros.distro
+        )
+        self.clock = ClockMapper()
+        self.rejects = RejectLog(keep=16)
+        self._seq = 0
+        self._declare_output(session)
+
+    def _declare_output(self, session: zenoh.Session) -> None:
+        raise NotImplementedError
+
+    def status(self) -> dict[str, Any]:
+        return {
+            **super().status(),
+            "decoder": dict(self.rejects.counters),
+            "messages": list(self.rejects.messages),
+            "clock": dataclasses.asdict(self.clock.state()),
+            "topics": [ros_topic for ros_topic, _type in self.topics],
+        }
+
+    async def _run(self) -> None:
+        keys = {}
+        for ros_topic, typename in self.topics:
+            self.node.declare_subscription(ros_topic, typename)
+            keys[self.node.subscription_key(ros_topic, typename)] = typename
+        sub = AsyncSubscription(self.node.session, list(keys))
+        stopping = asyncio.ensure_future(self._stop.wait())
+        try:
+            async for key, payload in _until(sub, stopping):
+                typename = _type_of(key, keys)
+                try:
+                    message = self.node.deserialize(payload, typename)
+                except Exception as exc:
+                    self.rejects.reject("bad_cdr", f"{typename} on {key}: {exc}")
+                    continue
+                self._on_message(message, typename, time.time_ns())
+        finally:
+            stopping.cancel()
+            sub.close()
+            self.node.close()
+
+    def _on_message(self, message: Any, typename: str, host_ns: int) -> None:
+        raise NotImplementedError
+
+
+def _type_of(key: str, keys: dict[str, str]) -> str:
+    for pattern, typename in keys.items():
+        if key.rsplit("/", 1)[0] == pattern.rsplit("/", 1)[0]:
+            return typename
+    return next(iter(keys.values()))
+
+
+async def _until(sub: AsyncSubscription, stopping: asyncio.Future[Any]) -> Any:
+    iterator = sub.__aiter__()
+    while True:
+        nxt = asyncio.ensure_future(anext(iterator))
+        done, _ = await asyncio.wait({nxt, stopping}, return_when=asyncio.FIRST_COMPLETED)
+        if nxt not in done:
+            nxt.cancel()
+            return
+        try:
+            yield nxt.result()
+        except StopAsyncIteration:
+            return
+
+
+class Ros2JointStateAdapter(_Ros2Adapter):
+    """sensor_msgs/msg/JointState on `robot.joint_states_topic` -> keo/<cell>/encoder, joints
+    picked by name into the URDF's order (other names ignored), header.stamp as device time."""
+
+    name = "encoder"
+
+    def __init__(self, config: Any, joint_names: list[str], session: Any = None) -> None:
+        super().__init__(config, len(joint_names), session)
+        self.joint_names = list(joint_names)
+        self.topics = ((config.robot.joint_states_topic, JOINT_STATE),)
+
+    def _declare_output(self, session: zenoh.Session) -> None:
+        self._pub = session.declare_publisher(
+            topic(self.config.cell, "encoder"),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            express=True,
+        )
+
+    def _on_message(self, message: Any, typename: str, host_ns: int) -> None:
+        index = {name: i for i, name in enumerate(message.name)}
+        missing = [n for n in self.joint_names if n not in index]
+        if missing:
+            self.rejects.reject(
+                "missing_joint",
+                f"JointState without {', '.join(missing)} (has {', '.join(message.name)}); "
+                "the URDF's joints are " + ", ".join(self.joint_names),
+            )
+            return
+        q = [float(message.position[index[n]]) for n in self.joint_names]
+        dq = None
+        if len(message.velocity) == len(message.name):
+            dq = [float(message.velocity[index[n]]) for n in self.joint_names]
+        stamp = _stamp_s(message.header)
+        if not all(math.isfinite(v) for v in (*q, stamp)):
+            self.rejects.reject("non_finite", f"JointState at stamp {stamp!r}")
+            return
+        self._seq += 1
+        t = self.clock.map(stamp, host_ns * 1e-9)
+        self._pub.put(
+            encode(JointSample(t=t, host_ns=host_ns, seq=self._seq, q=q, dq=dq, device_t=stamp))
+        )
+        self.counters["published"] += 1
+
+
+class Ros2PoseAdapter(_Ros2Adapter):
+    """geometry_msgs/msg/PoseStamped (a 6-DoF probe) or PointStamped (a single reflector) on
+    `tracker.pose_topic`, in metres -> keo/<cell>/tracker; header.stamp as device time."""
+
+    name = "tracker"
+
+    def __init__(self, config: Any, nq: int, session: Any = None) -> None:
+        super().__init__(config, nq, session)
+        topic_ = config.tracker.pose_topic
+        self.topics = ((topic_, POSE_STAMPED), (topic_, POINT_STAMPED))
+
+    def _declare_output(self, session: zenoh.Session) -> None:
+        self._pub = session.declare_publisher(
+            topic(self.config.cell, "tracker"),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            express=True,
+        )
+
+    def _on_message(self, message: Any, typename: str, host_ns: int) -> None:
+        stamp = _stamp_s(message.header)
+        if typename == POSE_STAMPED:
+            pos, o = message.pose.position, message.pose.orientation
+            p = [pos.x, pos.y, pos.z]
+            q: list[float] | None = [o.w, o.x, o.y, o.z]
+        else:
+            p, q = [message.point.x, message.point.y, message.point.z], None
+        values = [*p, *(q or []), stamp]
+        if not all(math.isfinite(v) for v in values):
+            self.rejects.reject("non_finite", f"{typename} at stamp {stamp!r}")
+            return
+        if q is not None:
+            norm = math.sqrt(sum(v * v for v in q))
+            if abs(norm - 1.0) > 1e-3:
+                self.rejects.reject("not_unit_quaternion", f"quaternion norm {norm:.6g}")
+                return
+            q = [v / norm for v in q]
+        self._seq += 1
+        t = self.clock.map(stamp, host_ns * 1e-9)
+        sample = TrackerSample(t=t, host_ns=host_ns, seq=self._seq, p=p, q=q, device_t=stamp)
+        self._pub.put(encode(sample))
+        self.counters["published"] += 1
+
+
+def tracker_adapter_for(config: Any) -> type[_Adapter]:
+    """The tracker adapter of `tracker.protocol`."""
+    return Ros2PoseAdapter if config.tracker.protocol == "ros2" else TrackerAdapter

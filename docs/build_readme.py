@@ -2,7 +2,8 @@
 
     python docs/build_readme.py --paper docs/results/paper.md --delay docs/results/delay.md \
         --bench docs/results/bench.json --ur10 docs/results/ur10 \
-        --notes docs/results/ur10_notes.md --soak docs/results/soak.json
+        --notes docs/results/ur10_notes.md --soak docs/results/soak.json \
+        --rtde docs/results/rtde_clock.json
 
 DIR holds analyses of the shared UR10 data: A/an.json, B/an.json (full analyses) and
 A/reg.json, B/reg.json (registration-only with the other series' model.toml).
@@ -102,6 +103,7 @@ def main() -> None:
     p.add_argument("--ur10", type=Path, required=True)
     p.add_argument("--notes", type=Path, help="markdown appended after the UR10 table")
     p.add_argument("--soak", type=Path, required=True, help="keo bench --soak 600 --json")
+    p.add_argument("--rtde", type=Path, required=True, help="clock numbers of tests/test_rtde.py")
     args = p.parse_args()
     text = (HERE / "README.template.md").read_text()
     text = text.replace("@PAPER@", args.paper.read_text())
@@ -112,6 +114,11 @@ def main() -> None:
         ur10 += "\n" + args.notes.read_text()
     text = text.replace("@UR10@", ur10)
     text = text.replace("@SOAK@", soak_text(json.loads(args.soak.read_text())))
+    clock = json.loads(args.rtde.read_text())
+    text = text.replace("@RTDE_RECEIPT@", f"{clock['receipt_jitter_p99_ms']:.2f}")
+    text = text.replace("@RTDE_MAPPED@", f"{clock['mapped_jitter_p99_ms']:.3f}")
+    text = text.replace("@RTDE_DRIFT@", f"{clock['mapped_drift_ppm']:+.1f}")
+    text = text.replace("@RTDE_EST@", f"{clock['clock']['drift_ppm']:+.1f}")
     (HERE.parent / "README.md").write_text(text)
 
 

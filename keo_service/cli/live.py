@@ -38,20 +38,31 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_adapter(args: argparse.Namespace) -> int:
-    from adapters.devices import TrackerAdapter, encoder_adapter_for
+    from adapters.devices import (
+        Ros2JointStateAdapter,
+        encoder_adapter_for,
+        tracker_adapter_for,
+    )
     from keo_service.io.cell import robot_from_config
 
     config = common.load(args.config)
     _setup_logging(args.verbose)
-    nq = robot_from_config(config).nq
+    robot = robot_from_config(config)
+    nq = robot.nq
     if args.device == "encoder" and config.robot.protocol == "rtde" and nq != 6:
         raise ConfigError(
             config.source, "robot.urdf", f"{nq} joints; a UR controller (rtde) reports 6"
         )
-    kind = encoder_adapter_for(config) if args.device == "encoder" else TrackerAdapter
+
+    def make() -> Any:
+        if args.device == "tracker":
+            return tracker_adapter_for(config)(config, nq)
+        if config.robot.protocol == "ros2":
+            return Ros2JointStateAdapter(config, list(robot.joint_names))
+        return encoder_adapter_for(config)(config, nq)
 
     async def main() -> None:
-        async with kind(config, nq) as adapter:
+        async with make() as adapter:
             _install_stop(adapter.stop)
             await adapter.wait()
         if adapter.failure is not None:  # logged with its traceback when it happened

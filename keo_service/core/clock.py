@@ -73,10 +73,14 @@ class ClockMapper:
         return device_t + self._offset + self._drift * (device_t - self._ref)
 
     def map(self, device_t: float, host_t: float) -> float:
-        """Learn from one sample and return its stamp on the host clock."""
+        """Learn from one sample and return its stamp on the host clock. A sample far off the
+        line (a step not yet confirmed, or one glitch) is not learned from and keeps its
+        receipt time."""
         if self._is_step(device_t, host_t):
             self.steps += 1
             self._reset()
+        elif self._outliers:
+            return host_t
         self._last_device = max(self._last_device, device_t)
         lag = host_t - device_t
         index = math.floor(device_t / self.block_s)

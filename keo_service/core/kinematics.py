@@ -194,3 +194,12 @@ def sensor_pose_from_error(T_bt: pin.SE3, error: np.ndarray) -> pin.SE3:
 
 def channels_for(position_only: bool) -> tuple[str, ...]:
     return POSITION_CHANNELS if position_only else POSE_CHANNELS
+
+
+def error_as_pose(error: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """An error 6-vector [p; r] as a pose: position [m] and the unit quaternion of exp(r),
+    scalar first; a 3-vector (single reflector) has no orientation (None)."""
+    p = np.array(error[:3], dtype=float)
+    if len(error) < 6:
+        return p, None
+    return p, quat_wxyz(pin.exp3(np.asarray(error[3:6], dtype=float)))

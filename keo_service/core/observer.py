@@ -178,3 +178,38 @@ def describe_gain(gain: float, rate_hz: float) -> GainReport:
         step_alpha=step_alpha(gain, period),
         noise_gain=noise_gain(gain, period),
     )
+
+
+class NoiseMeter:
+    """The measurement noise per channel, online: an exponentially weighted mean of half the
+    squared change between consecutive measurements (for white noise E[(n_k - n_k-1)^2] / 2
+    = s^2; a slowly varying true error adds little at tracker rates). Bounded: one number per
+    channel."""
+
+    def __init__(self, weight: float = 0.01) -> None:
+        self.weight = weight
+        self._last: np.ndarray | None = None
+        self._var: np.ndarray | None = None
+
+    def add(self, measured: np.ndarray) -> None:
+        if self._last is not None and self._last.shape == measured.shape:
+            half_sq = 0.5 * (measured - self._last) ** 2
+            if self._var is None or self._var.shape != half_sq.shape:
+                self._var = half_sq
+            else:
+                self._var = self._var + self.weight * (half_sq - self._var)
+        self._last = np.array(measured, dtype=float)
+
+    def std(self) -> np.ndarray | None:
+        return None if self._var is None else np.sqrt(self._var)
+
+
+def estimate_variance(
+    noise_std: np.ndarray, gains: Sequence[float] | np.ndarray, period: float
+) -> np.ndarray:
+    """The observer's steady-state estimate variance per channel for white measurement noise
+    of `noise_std` at sample period `period` [s]: (noise gain * noise std)^2."""
+    gains = np.asarray(gains, dtype=float)[: noise_std.size]
+    factor = np.array([noise_gain(float(g), period) for g in gains])
+    out: np.ndarray = (factor * noise_std) ** 2
+    return out

@@ -31,30 +31,37 @@ class _Section(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     pass
 
 
-# the controller's port when `robot.port` is not given
-DEFAULT_ROBOT_PORTS = {"motoros": 50241, "rtde": 30004}
+# the controller's port when `robot.port` is not given (ros2 has none: it comes over the bus)
+DEFAULT_ROBOT_PORTS = {"motoros": 50241, "rtde": 30004, "ros2": 0}
+RosTopic = Annotated[
+    str, msgspec.Meta(pattern=r"^/[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
+]
 
 
 class RobotConfig(_Section):
     urdf: str
     base_frame: str = "base_link"
     flange_frame: str = "tool0"
-    # "motoros": ROS-Industrial simple message (MotoROS); "rtde": Universal Robots RTDE
-    protocol: Literal["motoros", "rtde"] = "motoros"
+    # "motoros": ROS-Industrial simple message (MotoROS); "rtde": Universal Robots RTDE;
+    # "ros2": sensor_msgs/msg/JointState over rmw_zenoh (any ROS 2 driver)
+    protocol: Literal["motoros", "rtde", "ros2"] = "motoros"
     host: str = "127.0.0.1"
-    port: Port | None = None  # None: 50241 for motoros, 30004 for rtde
+    # 0: the protocol's default, 50241 for motoros, 30004 for rtde (ros2 uses none)
+    port: Annotated[int, msgspec.Meta(ge=0, le=65535)] = 0
     byte_order: Literal["little", "big"] = "little"
     # rtde: the output rate asked of the controller (500 Hz on e-Series, 125 Hz on CB3)
     frequency_hz: Annotated[float, msgspec.Meta(gt=0.0, le=500.0)] = 500.0
+    # ros2: joints picked by name into the URDF's order
+    joint_states_topic: RosTopic = "/joint_states"
 
     def __post_init__(self) -> None:
-        if self.port is None:
-            self.port = DEFAULT_ROBOT_PORTS[self.protocol]
+        if self.port == 0:
+            self.port = DEFAULT_ROBOT_PORTS.get(self.protocol, 0)
 
     @property
     def endpoint_port(self) -> int:
         """The controller's port (the protocol's default when the config gives none)."""
-        return self.port if self.port is not None else DEFAULT_ROBOT_PORTS[self.protocol]
+        return self.port
 
 
 class ToolConfig(_Section):
@@ -67,6 +74,19 @@ class TrackerConfig(_Section):
     rpy: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
     host: str = "127.0.0.1"
     port: Port = 5005
+    # "line": keo's line protocol over TCP; "ros2": geometry_msgs/msg/PoseStamped (or
+    # PointStamped for a single reflector) over rmw_zenoh, metres
+    protocol: Literal["line", "ros2"] = "line"
+    pose_topic: RosTopic = "/lasertracker/pose"
+
+
+class Ros2Config(_Section):
+    """rmw_zenoh's wire format on keo's own Zenoh sessions (DESIGN.md section 6)."""
+
+    enabled: bool = False
+    domain_id: Annotated[int, msgspec.Meta(ge=0, le=232)] = 0
+    distro: Literal["humble", "iron", "jazzy", "kilted", "rolling"] = "jazzy"
+    publish_tf: bool = False
 
 
 class ObserverConfig(_Section):
@@ -133,6 +153,7 @@ class Config(_Section):
     timing: TimingConfig = msgspec.field(default_factory=TimingConfig)
     bus: BusConfig = msgspec.field(default_factory=BusConfig)
     model: ModelConfig = msgspec.field(default_factory=ModelConfig)
+    ros2: Ros2Config = msgspec.field(default_factory=Ros2Config)
     # Where the file came from; not a TOML key.
     source: str = ""
 
@@ -220,6 +241,6 @@ def config_to_toml(config: Config) -> str:
     escapes strings and formats floats so that `load_config` reads back the same values."""
     doc: dict[str, object] = {"cell": config.cell}
     for name, section in msgspec.to_builtins(config).items():
-        if isinstance(section, dict):
-            doc[name] = section
+        if isinstance(section, dict):  # TOML has no null: an unset optional key is left out
+            doc[name] = {k: v for k, v in section.items() if v is not None}
     return tomli_w.dumps(doc)

@@ -22,6 +22,7 @@ import zenoh
 
 from keo_service.core.errors import KeoError
 from keo_service.core.estimator import Estimate, Estimator
+from keo_service.core.observer import NoiseMeter
 from keo_service.io.cell import cell_from_config, delay_model, estimator_settings
 from keo_service.io.config import Config
 from keo_service.live.bus import AsyncSubscription, session_for_service
@@ -54,6 +55,7 @@ def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 if TYPE_CHECKING:
     from keo_service.fit.delay import OnlineDelayTracker
     from keo_service.live.rerun_sink import RerunWorker
+    from keo_service.live.ros2_bridge import EstimateBridge
 
 log = logging.getLogger("keo.service")
 VIZ_PERIOD_S = 0.1  # Rerun gets batches at display rate, never one call per sample
@@ -102,6 +104,8 @@ class KeoService:
             from keo_service.live.rerun_sink import RerunSink, RerunWorker
 
             self._viz = RerunWorker(lambda: RerunSink(cell, rrd=rrd, viewer=viewer))
+        self._noise = NoiseMeter()
+        self._ros2: EstimateBridge | None = None
         self._own_session = session is None
         self._session = session
         self._stop = asyncio.Event()
@@ -129,6 +133,10 @@ class KeoService:
         # a client that joins late asks keo/<cell>/estimate (or keo/*/estimate) for the latest
         self._latest_q = s.declare_queryable(topic(self.cell, "estimate"), self._on_latest_query)
         self._token = s.liveliness().declare_token(topic(self.cell, "alive/service"))
+        if self.config.ros2.enabled:
+            from keo_service.live.ros2_bridge import EstimateBridge
+
+            self._ros2 = EstimateBridge(s, self.config)
         self._sub = AsyncSubscription(s, [topic(self.cell, "encoder"), topic(self.cell, "tracker")])
         self._refresh_status()
         self._start(self._consume(), "keo.service.consume")
@@ -151,6 +159,8 @@ class KeoService:
         self._status_q.undeclare()
         self._latest_q.undeclare()
         self._estimate_pub.undeclare()
+        if self._ros2 is not None:
+            self._ros2.close()
         if self._viz is not None:
             self._viz.close()
         if self._own_session and self._session is not None:
@@ -226,11 +236,20 @@ class KeoService:
                 )
         self._latest_bytes = payload
         self.published += 1
+        if self._ros2 is not None and estimate.measured is not None:
+            self._noise.add(estimate.measured)
+            gains = self.config.observer.gain
+            self._ros2.publish(msg, self._noise.std(), gains, self._period())
         self._rates["estimate"].tick(now)
         if self._viz is not None:
             self._viz.submit(estimate)
         if not estimate.held:
             self._last_estimate_wall = now
+
+    def _period(self) -> float:
+        """The tracker's sample period [s] as measured (its nominal 10 ms before a rate)."""
+        rate = self._rates["tracker"].rate(time.monotonic())
+        return 1.0 / rate if rate > 0 else 0.01
 
     def to_message(self, estimate: Estimate) -> EstimateMessage:
         return EstimateMessage(
