@@ -28,7 +28,13 @@ from keo_service.core.clock import ClockMapper
 from keo_service.core.rejects import RejectLog
 from keo_service.live.bus import AsyncSubscription, session_for_client_async
 from keo_service.live.messages import JointSample, RobotStatus, TrackerSample, encode, topic
-from keo_service.live.ros2 import Ros2Node
+from keo_service.live.ros2 import (
+    JOINT_STATE,
+    POINT_STAMPED,
+    POSE_STAMPED,
+    Ros2Node,
+    seconds_of,
+)
 from keo_service.live.supervise import supervise
 
 log = logging.getLogger("keo.adapter")
@@ -393,15 +399,6 @@ def encoder_adapter_for(config: Any) -> type[EncoderAdapter]:
     return RtdeEncoderAdapter if config.robot.protocol == "rtde" else EncoderAdapter
 
 
-JOINT_STATE = "sensor_msgs/msg/JointState"
-POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
-POINT_STAMPED = "geometry_msgs/msg/PointStamped"
-
-
-def _stamp_s(header: Any) -> float:
-    return float(header.stamp.sec) + float(header.stamp.nanosec) * 1e-9
-
-
 class _Ros2Adapter(_Adapter):
     """A ROS 2 topic over rmw_zenoh in, keo's samples out; the ROS messages arrive on the same
     Zenoh session (a client of the service or router), through the bounded hand-off."""
@@ -508,7 +505,7 @@ class Ros2JointStateAdapter(_Ros2Adapter):
         dq = None
         if len(message.velocity) == len(message.name):
             dq = [float(message.velocity[index[n]]) for n in self.joint_names]
-        stamp = _stamp_s(message.header)
+        stamp = seconds_of(message.header)
         if not all(math.isfinite(v) for v in (*q, stamp)):
             self.rejects.reject("non_finite", f"JointState at stamp {stamp!r}")
             return
@@ -539,7 +536,7 @@ class Ros2PoseAdapter(_Ros2Adapter):
         )
 
     def _on_message(self, message: Any, typename: str, host_ns: int) -> None:
-        stamp = _stamp_s(message.header)
+        stamp = seconds_of(message.header)
         if typename == POSE_STAMPED:
             pos, o = message.pose.position, message.pose.orientation
             p = [pos.x, pos.y, pos.z]

@@ -27,9 +27,19 @@ from collections.abc import Callable
 from typing import Any
 
 import zenoh
-from rosbags.typesys import Stores, get_typestore
+
+from keo_service.io.ros2_messages import (
+    JOINT_STATE,
+    POINT_STAMPED,
+    POSE_STAMPED,
+    seconds_of,
+    typestore,
+)
 
 __all__ = [
+    "JOINT_STATE",
+    "POINT_STAMPED",
+    "POSE_STAMPED",
     "Ros2Node",
     "Ros2Publisher",
     "attachment",
@@ -37,23 +47,13 @@ __all__ = [
     "dds_type_name",
     "mangle",
     "parse_attachment",
+    "seconds_of",
     "typestore",
 ]
 
-_STORES = {
-    "humble": Stores.ROS2_HUMBLE,
-    "iron": Stores.ROS2_IRON,
-    "jazzy": Stores.ROS2_JAZZY,
-    "kilted": Stores.ROS2_KILTED,
-    "rolling": Stores.LATEST,
-}
 ATTACHMENT = struct.Struct("<qqB16s")
 # reliable, volatile, keep last 10; rmw_zenoh leaves a field empty where it is the default
 DEFAULT_QOS = "::,10:,:,:,,"
-
-
-def typestore(distro: str) -> Any:
-    return get_typestore(_STORES[distro])
 
 
 def dds_type_name(typename: str) -> str:

@@ -16,14 +16,11 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from keo_service.core.kinematics import error_as_pose
 from keo_service.core.observer import estimate_variance
+from keo_service.io import ros2_messages as rm
 from keo_service.io.config import Config
 from keo_service.live.messages import EstimateMessage
 from keo_service.live.ros2 import Ros2Node
-
-POSE_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
-TF_TYPE = "tf2_msgs/msg/TFMessage"
 
 
 def estimate_topic(cell: str) -> str:
@@ -35,62 +32,24 @@ def tool_frame(cell: str) -> str:
     return f"{cell}_tool"
 
 
-def covariance(variance: np.ndarray | None, channels: int) -> np.ndarray:
-    """The 6x6 row-major covariance of a pose from per-channel variances (px..rz)."""
-    cov = np.zeros(36)
-    if variance is not None:
-        for i, v in enumerate(variance[:6]):
-            cov[7 * i] = v
-    if channels < 6:
-        for i in range(3, 6):
-            cov[7 * i] = -1.0  # orientation unknown
-    return cov
-
-
 class EstimateBridge:
     def __init__(self, session: zenoh.Session, config: Config) -> None:
         ros = config.ros2
         self.cell = config.cell
         self.node = Ros2Node(session, f"keo_{config.cell}", ros.domain_id, ros.distro)
         self.types = self.node.store.types
-        self._pose = self.node.publisher(estimate_topic(config.cell), POSE_TYPE)
-        self._tf = self.node.publisher("/tf", TF_TYPE) if ros.publish_tf else None
+        self._pose = self.node.publisher(estimate_topic(config.cell), rm.POSE_COV)
+        self._tf = self.node.publisher("/tf", rm.TF_MESSAGE) if ros.publish_tf else None
         self.published = 0
 
-    def _header(self, stamp: float, frame: str) -> Any:
-        sec = int(np.floor(stamp))
-        nanosec = min(round((stamp - sec) * 1e9), 999_999_999)
-        time_type = self.types["builtin_interfaces/msg/Time"]
-        return self.types["std_msgs/msg/Header"](stamp=time_type(sec, nanosec), frame_id=frame)
-
     def pose_message(self, msg: EstimateMessage, variance: np.ndarray | None) -> Any:
-        t = self.types
-        p, q = error_as_pose(np.asarray(msg.estimate))
-        w, x, y, z = (1.0, 0.0, 0.0, 0.0) if q is None else q
-        pose = t["geometry_msgs/msg/Pose"](
-            position=t["geometry_msgs/msg/Point"](*map(float, p)),
-            orientation=t["geometry_msgs/msg/Quaternion"](float(x), float(y), float(z), float(w)),
-        )
-        return t[POSE_TYPE](
-            header=self._header(msg.stamp, tool_frame(self.cell)),
-            pose=t["geometry_msgs/msg/PoseWithCovariance"](
-                pose=pose, covariance=covariance(variance, len(msg.estimate))
-            ),
+        return rm.pose_with_covariance(
+            self.types, msg.stamp, tool_frame(self.cell), msg.estimate, variance
         )
 
     def tf_message(self, msg: EstimateMessage) -> Any:
-        t = self.types
-        p, q = error_as_pose(np.asarray(msg.estimate))
-        w, x, y, z = (1.0, 0.0, 0.0, 0.0) if q is None else q
-        transform = t["geometry_msgs/msg/TransformStamped"](
-            header=self._header(msg.stamp, tool_frame(self.cell)),
-            child_frame_id=f"{tool_frame(self.cell)}_measured",
-            transform=t["geometry_msgs/msg/Transform"](
-                translation=t["geometry_msgs/msg/Vector3"](*map(float, p)),
-                rotation=t["geometry_msgs/msg/Quaternion"](float(x), float(y), float(z), float(w)),
-            ),
-        )
-        return t[TF_TYPE](transforms=[transform])
+        frame = tool_frame(self.cell)
+        return rm.tf_message(self.types, msg.stamp, frame, f"{frame}_measured", msg.estimate)
 
     def publish(
         self,
