@@ -164,3 +164,94 @@ def test_estimate_from_ros2_inputs_alone_reaches_a_ros2_subscriber(
     assert any(f"/MP/%/%/{node}/%keo%{config.cell}%kinematic_error/" in t for t in tokens), tokens
     assert any(f"/MP/%/%/{node}/%tf/tf2_msgs::msg::dds_::TFMessage_/" in t for t in tokens)
     assert any("/MS/" in t and "%joint_states" in t for t in tokens), tokens
+
+
+async def test_mcap_recording_reads_back_with_mcap_and_rosbags_and_estimates_alike(
+    demo_config, demo_cell, tmp_path
+):
+    import asyncio
+
+    from mcap.reader import make_reader
+    from rosbags.rosbag2 import Reader
+
+    from keo_service.io.estimate_files import estimate_files
+    from keo_service.io.mcap_files import McapWriter
+    from keo_service.live.messages import JointSample, TrackerSample, encode, topic
+    from keo_service.live.recorder import record
+    from keo_service.sim.simulate import write_run
+
+    run = simulate(demo_cell, make_scenario("paper-step", {"duration_s": "4"}), seed=5)
+    names = list(demo_cell.robot.joint_names)
+    session = open_session("peer")
+    out = tmp_path / "rec"
+    try:
+        stop = asyncio.Event()
+        writer = McapWriter(out, names, demo_config.cell)
+        recording = asyncio.create_task(
+            record(session, demo_config.cell, out, len(names), stop, mcap=writer)
+        )
+        await asyncio.sleep(0.3)
+        events = sorted(
+            [(float(t), 0, i) for i, t in enumerate(run.encoder.t)]
+            + [(float(t), 1, i) for i, t in enumerate(run.tracker.t)]
+        )
+        for k, (t, kind, i) in enumerate(events):
+            if kind == 0:
+                msg = JointSample(t=t, host_ns=0, seq=k, q=run.encoder.q[i].tolist())
+                session.put(topic(demo_config.cell, "encoder"), encode(msg))
+            else:
+                pose = TrackerSample(
+                    t=t,
+                    host_ns=0,
+                    seq=k,
+                    p=run.tracker.p[i].tolist(),
+                    q=run.tracker.quat[i].tolist(),
+                )
+                session.put(topic(demo_config.cell, "tracker"), encode(pose))
+            if k % 100 == 0:
+                await asyncio.sleep(0.01)
+        est = EstimateMessage(
+            stamp=1.0,
+            host_ns=0,
+            channels=["px", "py", "pz", "rx", "ry", "rz"],
+            measured=[0.0] * 6,
+            estimate=[1e-3, 0, 0, 0, 0, 1e-4],
+            flags=[],
+            delay_s=0.0,
+            seq=1,
+        )
+        session.put(topic(demo_config.cell, "estimate"), encode(est))
+        await asyncio.sleep(0.5)
+        stop.set()
+        stats = await recording
+    finally:
+        session.close()
+    assert stats.encoder_rows == run.encoder.t.size
+    assert stats.tracker_rows == run.tracker.t.size
+    mcap_file = out / "keo" / "keo.mcap"
+    counts: dict[tuple[str, str], int] = {}
+    with mcap_file.open("rb") as f:
+        for schema, channel, _message in make_reader(f).iter_messages():
+            assert schema.encoding == "ros2msg"
+            assert channel.message_encoding == "cdr"
+            counts[(channel.topic, schema.name)] = counts.get((channel.topic, schema.name), 0) + 1
+    assert counts[("/joint_states", "sensor_msgs/msg/JointState")] == run.encoder.t.size
+    assert counts[("/lasertracker/pose", "geometry_msgs/msg/PoseStamped")] == run.tracker.t.size
+    assert counts[(f"/keo/{demo_config.cell}/kinematic_error", POSE_COV)] == 1
+    with Reader(out / "keo") as bag:  # rosbags reads it as a rosbag2
+        assert {c.msgtype for c in bag.connections} >= {
+            "sensor_msgs/msg/JointState",
+            "geometry_msgs/msg/PoseStamped",
+        }
+    # keo estimate on the MCAP recording equals keo estimate on the same samples as CSV
+    write_run(run, tmp_path / "csv")
+    from_csv = estimate_files(
+        demo_config, tmp_path / "csv/encoder.csv", tmp_path / "csv/tracker.csv"
+    )
+    from_mcap = estimate_files(demo_config, out, out)
+    assert len(from_csv.estimates) == len(from_mcap.estimates)
+    diff = max(
+        float(np.max(np.abs(a.estimate - b.estimate)))
+        for a, b in zip(from_csv.estimates, from_mcap.estimates, strict=True)
+    )
+    assert diff < 1e-9

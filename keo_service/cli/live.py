@@ -328,15 +328,28 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     config = common.load(args.config)
     _setup_logging()
-    nq = robot_from_config(config).nq
+    robot = robot_from_config(config)
+    nq = robot.nq
 
     async def main() -> dict[str, Any]:
         # SIGTERM's default action ends the process while it waits for the bus
         session = await session_for_client_async(config)
         stop = asyncio.Event()
         _install_stop(stop.set)
+        mcap = None
+        if args.format == "mcap":
+            from keo_service.io.mcap_files import McapWriter
+
+            mcap = McapWriter(
+                args.out,
+                robot.joint_names,
+                config.cell,
+                config.robot.joint_states_topic,
+                config.tracker.pose_topic,
+                config.ros2.distro,
+            )
         try:
-            stats = await record(session, config.cell, args.out, nq, stop, args.duration)
+            stats = await record(session, config.cell, args.out, nq, stop, args.duration, mcap=mcap)
         finally:
             session.close()
         return stats.__dict__
@@ -352,7 +365,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from keo_service.live.recorder import replay
 
     config = common.load(args.config)
-    nq = robot_from_config(config).nq
+    robot = robot_from_config(config)
 
     async def main() -> dict[str, Any]:
         # SIGTERM's default action ends the process while it waits for the bus
@@ -362,7 +375,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
         try:
             await asyncio.sleep(0.5)  # let the declarations reach the service
             return await replay(
-                session, config.cell, args.directory, nq, args.as_fast_as_possible, stop
+                session,
+                config.cell,
+                args.directory,
+                robot.nq,
+                args.as_fast_as_possible,
+                stop,
+                joint_names=robot.joint_names,
             )
         finally:
             session.close()
@@ -375,6 +394,12 @@ def _register_recording(add: common.AddCommand) -> None:
     p = add("record", cmd_record, "raw encoder and tracker streams to the interchange files")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument(
+        "--format",
+        choices=["csv", "mcap"],
+        default="csv",
+        help="csv: encoder.csv, tracker.csv; mcap: a ROS 2 MCAP recording in OUT/keo/",
+    )
 
     p = add("replay", cmd_replay, "recorded interchange files back onto the bus", config=False)
     p.add_argument("--config", required=True)

@@ -9,6 +9,7 @@ from keo_service.core.estimator import Estimate, Estimator, EstimatorSettings, r
 from keo_service.io.cell import cell_from_config, estimator_settings
 from keo_service.io.config import Config
 from keo_service.io.interchange import EstimateWriter, read_encoder, read_tracker
+from keo_service.io.mcap_files import is_mcap, read_mcap
 
 
 @dataclass
@@ -26,8 +27,16 @@ def estimate_files(
     settings: EstimatorSettings | None = None,
 ) -> OfflineResult:
     cell = cell_from_config(config)
-    encoder = read_encoder(encoder_path, nq=cell.robot.nq)
-    tracker = read_tracker(tracker_path)
+    names = cell.robot.joint_names
+    # a ROS 2 MCAP recording may stand for either file (or both)
+    encoder = (
+        read_mcap(encoder_path, names)[0]
+        if is_mcap(encoder_path)
+        else read_encoder(encoder_path, nq=cell.robot.nq)
+    )
+    tracker = (
+        read_mcap(tracker_path, names)[1] if is_mcap(tracker_path) else read_tracker(tracker_path)
+    )
     estimator = Estimator(cell, settings or estimator_settings(config))
     estimates = run_offline(estimator, encoder.t, encoder.q, tracker.t, tracker.p, tracker.quat)
     return OfflineResult(

@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
@@ -27,8 +28,10 @@ from keo_service.io.interchange import (
     read_encoder,
     read_tracker,
 )
+from keo_service.io.mcap_files import McapWriter, is_mcap, read_mcap
 from keo_service.live.bus import AsyncSubscription
 from keo_service.live.messages import (
+    EstimateMessage,
     JointSample,
     ServiceStatus,
     TrackerSample,
@@ -117,6 +120,44 @@ class Recorder:
             self._trk.close()
 
 
+class McapRecorder(Recorder):
+    """The same streams, and the service's estimates, as a ROS 2 MCAP recording."""
+
+    def __init__(self, writer: McapWriter, nq: int) -> None:
+        self.writer = writer
+        self.nq = nq
+        self.stats = RecordStats()
+
+    def on_payload(self, payload: bytes) -> None:
+        try:
+            msg = decode(payload)
+        except msgspec.DecodeError as exc:
+            self._note(f"undecodable payload: {exc}")
+            return
+        if isinstance(msg, JointSample):
+            if len(msg.q) != self.nq:
+                self._note(
+                    f"joint sample seq {msg.seq} with {len(msg.q)} joints, expected {self.nq}"
+                )
+                return
+            self.writer.joints(msg.t, msg.q, msg.dq)
+            self.stats.encoder_rows += 1
+        elif isinstance(msg, TrackerSample):
+            if msg.status != "ok" or msg.p is None:
+                self.stats.tracker_gaps += 1
+                return
+            self.writer.pose(msg.t, msg.p, msg.q)
+            self.stats.tracker_rows += 1
+        elif isinstance(msg, EstimateMessage) and msg.measured is not None:
+            self.writer.estimate(msg.stamp, msg.estimate)
+
+    def maybe_flush(self, force: bool = False) -> None:
+        pass  # MCAP chunks are written by rosbags as they fill
+
+    def close(self) -> None:
+        self.writer.close()
+
+
 async def record(
     session: zenoh.Session,
     cell: str,
@@ -124,9 +165,15 @@ async def record(
     nq: int,
     stop: asyncio.Event,
     duration: float | None = None,
+    mcap: McapWriter | None = None,
 ) -> RecordStats:
-    recorder = Recorder(out_dir, nq)
-    sub = AsyncSubscription(session, [topic(cell, "encoder"), topic(cell, "tracker")])
+    """Record until `stop` (or `duration`): interchange CSV files, or with `mcap` a ROS 2
+    MCAP recording that also holds the estimates."""
+    recorder = Recorder(out_dir, nq) if mcap is None else McapRecorder(mcap, nq)
+    keys = [topic(cell, "encoder"), topic(cell, "tracker")]
+    if mcap is not None:
+        keys.append(topic(cell, "estimate"))
+    sub = AsyncSubscription(session, keys)
 
     async def consume() -> None:
         async for _key, payload in sub:
@@ -200,11 +247,16 @@ async def replay(
     nq: int,
     as_fast_as_possible: bool,
     stop: asyncio.Event,
+    joint_names: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Publish recorded files back onto the bus, at the recorded pace or as fast as the
-    service takes them (it waits on the service's `received` counter between chunks)."""
-    enc = read_encoder(directory / "encoder.csv", nq=nq)
-    trk = read_tracker(directory / "tracker.csv")
+    """Publish recorded files (interchange CSV, or a ROS 2 MCAP recording) back onto the bus,
+    at the recorded pace or as fast as the service takes them (it waits on the service's
+    `received` counter between chunks)."""
+    if is_mcap(directory):
+        enc, trk = read_mcap(directory, joint_names)
+    else:
+        enc = read_encoder(directory / "encoder.csv", nq=nq)
+        trk = read_tracker(directory / "tracker.csv")
     plan = replay_plan(enc.t, trk.t)
     block = zenoh.CongestionControl.BLOCK
     enc_pub = session.declare_publisher(topic(cell, "encoder"), congestion_control=block)
