@@ -27,7 +27,11 @@ UR10_B = (
 
 def run_analysis(cell, sets, seed=3, position_only=False):
     run = simulate(cell, make_scenario("static-poses", sets), seed=seed)
-    R = None if position_only else Rotation.from_quat(run.tracker.quat[:, [1, 2, 3, 0]]).as_matrix()
+    R = (
+        None
+        if position_only
+        else Rotation.from_quat(run.tracker.quat, scalar_first=True).as_matrix()
+    )
     data = Data(
         run.encoder.q,
         run.tracker.p,

@@ -77,7 +77,7 @@ def load_data(
     R = None
     if trk.quat is not None:
         quat = trk.quat[ok]
-        R = Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix()
+        R = Rotation.from_quat(quat, scalar_first=True).as_matrix()
     extra = {k: v[ok] for k, v in trk.extra.items()}
     if tool_speed is not None:
         extra["tool_speed_m_s"] = tool_speed
