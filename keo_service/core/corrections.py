@@ -15,6 +15,9 @@ class Corrections:
     backlash: np.ndarray = field(default=None)  # type: ignore[arg-type]  # rad, x direction
     cyclic: np.ndarray = field(default=None)  # type: ignore[arg-type]  # (nq, H, 2): a, b
     placement: np.ndarray = field(default=None)  # type: ignore[arg-type]  # (nq, 6)
+    # joint-angle error maps: per joint (knots [rad], values [rad]), piecewise linear in the
+    # joint's own angle, holding the edge value outside the knots; empty: no map
+    maps: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
 
     def __post_init__(self) -> None:
         zero = {
@@ -30,10 +33,18 @@ class Corrections:
 
     @property
     def is_zero(self) -> bool:
-        return all(
+        return not any(v.size and np.any(v) for _k, v in self.maps) and all(
             not np.any(getattr(self, n))
             for n in ("joint_offsets", "compliance", "backlash", "cyclic", "placement")
         )
+
+    def map_ranges(self) -> list[tuple[float, float] | None]:
+        """Each joint's calibrated range (first and last knot), None without a map."""
+        out: list[tuple[float, float] | None] = [None] * self.nq
+        for j, (knots, _values) in enumerate(self.maps):
+            if knots.size:
+                out[j] = (float(knots[0]), float(knots[-1]))
+        return out
 
     def joint_angles(
         self, q: np.ndarray, tau: np.ndarray | None = None, direction: np.ndarray | None = None
@@ -52,7 +63,18 @@ class Corrections:
                     + self.cyclic[:, h, 0] * np.sin(k * q)
                     + self.cyclic[:, h, 1] * np.cos(k * q)
                 )
+        if self.maps:
+            q_eff = q_eff + self.map_error(q)
         return q_eff
+
+    def map_error(self, q: np.ndarray) -> np.ndarray:
+        """The maps' angle error at joints q (..., nq): linear between knots, the edge value
+        beyond them (never extrapolated)."""
+        out = np.zeros(np.shape(q))
+        for j, (knots, values) in enumerate(self.maps):
+            if knots.size:
+                out[..., j] = np.interp(q[..., j], knots, values)
+        return out
 
 
 def approach_directions(q: np.ndarray) -> np.ndarray:

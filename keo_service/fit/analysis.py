@@ -10,6 +10,7 @@ probe, orientation (rad, scaled by ROT_WEIGHT m/rad). Fitted with scipy's robust
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -25,6 +26,7 @@ from keo_service.core.kinematics import RobotModel
 
 ROT_WEIGHT = 0.5  # m per rad: 20 um of position ~ 40 urad of orientation
 KEEP_MARGIN = 0.05  # an effect must lower the held-out position RMS by 5 % to be kept
+MAPS = "joint_maps"  # joint-angle error maps (fit.angle_maps): knots depend on the data
 RANK_TOL = 1e-3  # relative singular value below which a direction counts as unidentifiable
 
 
@@ -86,16 +88,8 @@ class EffectSpec:
 
 
 def _set(corr: Corrections, **kw: np.ndarray) -> Corrections:
-    return Corrections(
-        nq=corr.nq,
-        **{
-            **{
-                k: getattr(corr, k)
-                for k in ("joint_offsets", "compliance", "backlash", "cyclic", "placement")
-            },
-            **kw,
-        },
-    )
+    fields: dict[str, Any] = kw
+    return dataclasses.replace(corr, **fields)
 
 
 EFFECTS: dict[str, EffectSpec] = {
@@ -141,6 +135,17 @@ CANDIDATES = (
 )
 
 
+def split_maps(
+    knots: tuple[np.ndarray, ...], values: np.ndarray
+) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """A flat vector of map values as (knots, values) per joint."""
+    out, k = [], 0
+    for kn in knots:
+        out.append((kn, values[k : k + kn.size]))
+        k += kn.size
+    return tuple(out)
+
+
 @dataclass
 class Model:
     chain: Chain
@@ -150,6 +155,7 @@ class Model:
     basis: dict[str, np.ndarray] = field(default_factory=dict)  # identifiable directions
     temperature_ref: float = 0.0
     time_ref: float = 0.0
+    knots: tuple[np.ndarray, ...] = ()  # joint_maps: each joint's knots (rad), empty: none
 
     @property
     def n_reg(self) -> int:
@@ -162,6 +168,8 @@ class Model:
                 out.append(self.basis[name].shape[1])
             elif name in ("temperature", "time_drift"):
                 out.append(3)
+            elif name == MAPS:
+                out.append(sum(k.size for k in self.knots))
             else:
                 out.append(EFFECTS[name].size(nq))
         return out
@@ -181,6 +189,8 @@ class Model:
                 part = self.basis[name] @ part
             if name in EFFECTS:
                 corr = EFFECTS[name].apply(corr, part)
+            elif name == MAPS:
+                corr = dataclasses.replace(corr, maps=split_maps(self.knots, part))
             else:
                 drifts[name] = part
         T_bk = np.eye(4)

@@ -20,12 +20,16 @@ from keo_service.core.errors import KeoError
 from keo_service.core.timing import DelayModel
 from keo_service.fit.analysis import (
     EFFECTS,
+    KEEP_MARGIN,
+    MAPS,
     Analysis,
     Data,
     Model,
     NotIdentifiableError,
     analyze,
+    split,
 )
+from keo_service.fit.angle_maps import try_maps
 from keo_service.io.cell import cell_from_config, delay_model, robot_from_config
 from keo_service.io.config import Config, ModelConfig, config_to_toml
 from keo_service.io.interchange import read_encoder, read_tracker
@@ -96,6 +100,8 @@ def saved_model(config: Config, chain: Chain, position_only: bool) -> Model:
             values = m.temperature_m_per_c
         elif name == "time_drift":
             values = m.time_drift_m_per_s
+        elif name == MAPS:
+            values = [v for joint in m.map_values for v in joint]
         elif name in EFFECTS:
             values = getattr(m, name)
         else:
@@ -104,7 +110,8 @@ def saved_model(config: Config, chain: Chain, position_only: bool) -> Model:
         parts.append(np.asarray(values, dtype=float))
     n_reg = 9 if position_only else 12
     x = np.concatenate([np.zeros(n_reg), *parts]) if parts else np.zeros(n_reg)
-    model = Model(chain, position_only, effects, x, {}, m.temperature_ref_c, m.time_ref_s)
+    knots = tuple(np.asarray(k, dtype=float) for k in m.map_knots) if MAPS in effects else ()
+    model = Model(chain, position_only, effects, x, {}, m.temperature_ref_c, m.time_ref_s, knots)
     expected = n_reg + sum(model.sizes(nq))
     if x.size != expected:
         raise KeoError(
@@ -130,6 +137,8 @@ def model_config(result: Analysis, base: Config) -> Config:
         temperature_ref_c=model.temperature_ref,
         time_drift_m_per_s=drifts.get("time_drift", np.zeros(0)).tolist(),
         time_ref_s=model.time_ref,
+        map_knots=[k.tolist() for k, _v in corr.maps] if MAPS in model.effects else [],
+        map_values=[v.tolist() for _k, v in corr.maps] if MAPS in model.effects else [],
     )
 
     def xyz_rpy(T: np.ndarray) -> tuple[list[float], list[float]]:
@@ -335,6 +344,9 @@ def run_analysis(
         result = analyze(robot, data, position_only, fixed_model=fixed, progress=progress)
     except NotIdentifiableError as exc:
         raise KeoError(f"cannot analyze these data: {exc}") from None
+    if fixed is None:
+        train_idx, val_idx = split(data.n)
+        try_maps(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
     out.mkdir(parents=True, exist_ok=True)
     baseline = Model(chain, position_only, [], result.x[: result.model.n_reg])
     from keo_service.fit.analysis import fit, initial_registration

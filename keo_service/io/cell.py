@@ -76,11 +76,34 @@ def corrections_from_config(model: ModelConfig, nq: int, source: str) -> Correct
                 source, f"model.{key}", f"{len(v)} numbers, expected {n} for this {nq}-joint robot"
             )
         values[key] = np.asarray(v, dtype=float) if v else None
-    if all(v is None for v in values.values()):
+    maps = _maps_from_config(model, nq, source)
+    if all(v is None for v in values.values()) and not maps:
         return None
     shapes = {"cyclic": (nq, 2, 2), "placement": (nq, 6)}
     given = {k: v.reshape(shapes.get(k, (nq,))) for k, v in values.items() if v is not None}
-    return Corrections(nq=nq, **given)
+    return Corrections(nq, **given, maps=maps)
+
+
+def _maps_from_config(
+    model: ModelConfig, nq: int, source: str
+) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    if not model.map_knots and not model.map_values:
+        return ()
+    if len(model.map_knots) != nq or len(model.map_values) != nq:
+        raise ConfigError(
+            source, "model.map_knots", f"one list per joint ({nq}) in map_knots and map_values"
+        )
+    maps = []
+    for j, (knots, values) in enumerate(zip(model.map_knots, model.map_values, strict=True)):
+        k, v = np.asarray(knots, dtype=float), np.asarray(values, dtype=float)
+        if k.size != v.size or (k.size and (k.size < 2 or np.any(np.diff(k) <= 0))):
+            raise ConfigError(
+                source,
+                f"model.map_knots[{j}]",
+                "at least two increasing knots, as many as map_values",
+            )
+        maps.append((k, v))
+    return tuple(maps)
 
 
 def delay_model(timing: TimingConfig) -> DelayModel:

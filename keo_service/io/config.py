@@ -138,6 +138,10 @@ class ModelConfig(_Section):
     backlash: list[float] = msgspec.field(default_factory=list)  # rad, per joint
     cyclic: list[float] = msgspec.field(default_factory=list)  # per joint: a1, b1, a2, b2 (rad)
     placement: list[float] = msgspec.field(default_factory=list)  # per joint: 6-vector (m, rad)
+    # joint-angle error maps: per joint the knots (rad, increasing) and the angle error there
+    # (rad); an empty list: no map for that joint
+    map_knots: list[list[float]] = msgspec.field(default_factory=list)
+    map_values: list[list[float]] = msgspec.field(default_factory=list)
     temperature_m_per_c: list[float] = msgspec.field(default_factory=list)
     temperature_ref_c: float = 0.0
     time_drift_m_per_s: list[float] = msgspec.field(default_factory=list)

@@ -1,0 +1,319 @@
+"""Joint-angle error maps: each joint's angle error as a piecewise-linear function of that
+joint's own angle (encoder or gear transmission error, a ripple of tens of cycles per turn).
+
+The maps are small (milliradians), so the residual is linear in them to first order:
+r(q) ~ r0 + sum_j dr/dq_j * m_j(q_j), with m_j a hat-function (linear interpolation) basis on
+knots every `spacing` rad over the training range. The registration, the geometry and every
+other kept parameter are solved together with the maps in the same linear system (their
+Jacobian columns beside the maps'), with a penalty on the maps' second differences
+(smoothness) and a tiny ridge (a constant or linear map is the same as a joint offset or a
+scale and would otherwise be undetermined). Knot spacing and smoothing weight are chosen by
+cross-validation over blocks of the training poses. Outside its knots a map holds its edge
+value; the live estimator flags such samples (`outside_calibrated_range`).
+
+One residual evaluation per joint gives every pose's derivative at once (each pose depends
+only on its own joints), so building the system costs a few evaluations, and each solve is a
+small dense one: cross-validating a grid of settings takes seconds, not minutes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from scipy.linalg import block_diag
+
+from keo_service.fit.analysis import MAPS, Data, Model, numeric_jacobian
+
+SPACINGS = (0.05, 0.075, 0.1)  # rad between knots
+SMOOTHING = (1e-3, 1e-2, 1e-1, 1.0)  # weight of the second-difference penalty
+RIDGE = 1e-9  # relative to the mean diagonal of the normal equations
+CONSTRAINT = 1e3  # weight that keeps each map's mean and slope at zero
+FOLDS = 4
+MIN_POSES_PER_KNOT = 2.0  # a joint whose range gives fewer poses per knot gets no map
+
+
+@dataclasses.dataclass
+class MapFit:
+    model: Model  # the model with the maps appended
+    x: np.ndarray
+    se: np.ndarray  # standard errors of all parameters (maps last)
+    spacing: float
+    smoothing: float
+    cv_rms_mm: float
+    parameters: int  # map values fitted
+
+
+def knots_for(q: np.ndarray, spacing: float) -> tuple[np.ndarray, ...]:
+    """Knots every `spacing` rad over each joint's range in `q`; none for a joint that
+    hardly moves."""
+    out = []
+    for j in range(q.shape[1]):
+        lo, hi = float(q[:, j].min()), float(q[:, j].max())
+        n = int(np.ceil((hi - lo) / spacing)) + 1
+        if hi - lo < 2 * spacing or q.shape[0] < MIN_POSES_PER_KNOT * n:
+            out.append(np.empty(0))
+        else:
+            out.append(np.linspace(lo, lo + (n - 1) * spacing, n))
+    return tuple(out)
+
+
+def hat_basis(q: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    """(N, K) weights of linear interpolation between knots (the edge value outside)."""
+    qc = np.clip(q, knots[0], knots[-1])
+    i = np.clip(np.searchsorted(knots, qc) - 1, 0, knots.size - 2)
+    w = (qc - knots[i]) / (knots[i + 1] - knots[i])
+    out = np.zeros((q.size, knots.size))
+    rows = np.arange(q.size)
+    out[rows, i] = 1.0 - w
+    out[rows, i + 1] = w
+    return out
+
+
+@dataclasses.dataclass
+class _Linearized:
+    r0: np.ndarray  # (N, width) residuals at x
+    joint_grad: list[np.ndarray]  # per joint (N, width): d residual / d q_j
+    J: np.ndarray  # (N * width, P) Jacobian of the model's own parameters
+
+
+def linearize(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> _Linearized:
+    r0 = model.residuals(x, data, tau)
+    width = r0.size // data.n
+    grads = []
+    h = 1e-6
+    for j in range(model.chain.nq):
+        q = data.q.copy()
+        q[:, j] += h
+        shifted = dataclasses.replace(data, q=q)
+        grads.append(((model.residuals(x, shifted, tau) - r0) / h).reshape(data.n, width))
+    J = numeric_jacobian(lambda z: model.residuals(z, data, tau), x, r0)
+    return _Linearized(r0.reshape(data.n, width), grads, J)
+
+
+def _design(lin: _Linearized, q: np.ndarray, knots: Sequence[np.ndarray]) -> np.ndarray:
+    cols = [lin.J]
+    for j, kn in enumerate(knots):
+        if kn.size:
+            B = hat_basis(q[:, j], kn)
+            cols.append((lin.joint_grad[j][:, :, None] * B[:, None, :]).reshape(-1, kn.size))
+    return np.hstack(cols)
+
+
+def _penalty(n_other: int, knots: Sequence[np.ndarray]) -> np.ndarray:
+    """Second differences of each map, and (weighted far above them) each map's mean and
+    slope over its knots: a constant or linear map is a joint offset or a scale error, which
+    the other parameters already carry, so the maps keep only what those cannot express."""
+    blocks = []
+    for kn in knots:
+        if kn.size >= 3:
+            D = np.zeros((kn.size - 2 + 2, kn.size))
+            for i in range(kn.size - 2):
+                D[i, i : i + 3] = (1.0, -2.0, 1.0)
+            centred = (kn - kn.mean()) / max(float(np.ptp(kn)), 1e-9)
+            D[-2] = CONSTRAINT / kn.size
+            D[-1] = CONSTRAINT * centred / kn.size
+            blocks.append(D)
+        elif kn.size:
+            blocks.append(np.zeros((0, kn.size)))
+    D = block_diag(*blocks) if blocks else np.zeros((0, 0))
+    P = np.zeros((D.shape[0], n_other + D.shape[1]))
+    P[:, n_other:] = D
+    return P
+
+
+def _normal(A: np.ndarray, P: np.ndarray, smoothing: float) -> np.ndarray:
+    AtA = A.T @ A
+    ridge = RIDGE * float(np.trace(AtA)) / AtA.shape[0]
+    return AtA + smoothing * P.T @ P + ridge * np.eye(AtA.shape[0])
+
+
+def _solve(A: np.ndarray, r: np.ndarray, P: np.ndarray, smoothing: float) -> np.ndarray:
+    M = _normal(A, P, smoothing)
+    step: np.ndarray = -np.linalg.solve(M, A.T @ r)
+    return step
+
+
+def _pos_rms_mm(r: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum(r[:, :3] ** 2, axis=1))) * 1e3)
+
+
+def fit_maps(
+    model: Model,
+    x: np.ndarray,
+    train: Data,
+    tau: np.ndarray,
+    spacings: Sequence[float] = SPACINGS,
+    smoothings: Sequence[float] = SMOOTHING,
+    joints: Sequence[int] | None = None,
+) -> MapFit | None:
+    """Maps for every joint that moved (or `joints`), spacing and smoothing chosen by
+    cross-validation over blocks of the training poses; None when no joint can carry one."""
+    lin = linearize(model, x, train, tau)
+    width = lin.r0.shape[1]
+    fold = (np.arange(train.n) * FOLDS) // train.n
+    best: tuple[float, float, float, tuple[np.ndarray, ...]] | None = None
+    for spacing in spacings:
+        knots = knots_for(train.q, spacing)
+        if joints is not None:
+            knots = tuple(k if j in joints else np.empty(0) for j, k in enumerate(knots))
+        if not any(k.size for k in knots):
+            continue
+        P = _penalty(x.size, knots)
+        A = _design(lin, train.q, knots)
+        for smoothing in smoothings:
+            errors = []
+            for f in range(FOLDS):
+                fit_rows = np.repeat(fold != f, width)
+                held = fold == f
+                step = _solve(A[fit_rows], lin.r0.ravel()[fit_rows], P, smoothing)
+                pred = (lin.r0.ravel() + A @ step).reshape(train.n, width)
+                errors.append(pred[held])
+            cv = _pos_rms_mm(np.vstack(errors))
+            if best is None or cv < best[0]:
+                best = (cv, spacing, smoothing, knots)
+    if best is None:
+        return None
+    cv, spacing, smoothing, knots = best
+    A = _design(lin, train.q, knots)
+    P = _penalty(x.size, knots)
+    step = _solve(A, lin.r0.ravel(), P, smoothing)
+    n_maps = sum(k.size for k in knots)
+    trial = dataclasses.replace(model, effects=[*model.effects, MAPS], knots=knots)
+    x_new = np.concatenate([x, np.zeros(n_maps)]) + step
+    # standard errors: the penalised normal equations' inverse, scaled by the residual variance
+    resid = lin.r0.ravel() + A @ step
+    dof = max(1, resid.size - A.shape[1])
+    s2 = float(resid @ resid) / dof
+    M_inv = np.linalg.inv(_normal(A, P, smoothing))
+    cov = M_inv @ (A.T @ A) @ M_inv * s2
+    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    trial.x = x_new
+    return MapFit(trial, x_new, se, spacing, smoothing, cv, n_maps)
+
+
+def held_out_band(data: Data, joint: int = 0, fraction: float = 0.2) -> tuple[np.ndarray, ...]:
+    """A second split: the poses whose `joint` angle lies in the middle `fraction` of its
+    range are held out (a region of the workspace the fit never saw)."""
+    q = data.q[:, joint]
+    lo, hi = np.quantile(q, [0.5 - fraction / 2, 0.5 + fraction / 2])
+    band = (q >= lo) & (q <= hi)
+    return np.flatnonzero(~band), np.flatnonzero(band)
+
+
+def map_records(fit: MapFit, joint_names: Sequence[str]) -> list[dict[str, Any]]:
+    """Each joint's map as a record: knots, values and standard errors (rad), its range."""
+    out = []
+    k = fit.x.size - fit.parameters
+    for j, kn in enumerate(fit.model.knots):
+        if not kn.size:
+            continue
+        values, se = fit.x[k : k + kn.size], fit.se[k : k + kn.size]
+        k += kn.size
+        out.append(
+            {
+                "joint": joint_names[j] if j < len(joint_names) else f"joint_{j + 1}",
+                "parameter": "angle error map",
+                "unit": "rad",
+                "knots": kn.tolist(),
+                "values": values.tolist(),
+                "se": se.tolist(),
+                "range_rad": [float(kn[0]), float(kn[-1])],
+                "peak_mrad": float(np.max(np.abs(values)) * 1e3),
+            }
+        )
+    return out
+
+
+def _linear_rms(
+    lin: _Linearized,
+    q: np.ndarray,
+    knots: Sequence[np.ndarray],
+    fit_idx: np.ndarray,
+    test_idx: np.ndarray,
+    smoothing: float,
+    n_other: int,
+    with_maps: bool,
+) -> float:
+    """Held-out position RMS of a linear refit on `fit_idx` rows, judged on `test_idx`."""
+    width = lin.r0.shape[1]
+    use = knots if with_maps else tuple(np.empty(0) for _ in knots)
+    A = _design(lin, q, use).reshape(q.shape[0], width, -1)
+    P = _penalty(n_other, use)
+    step = _solve(A[fit_idx].reshape(-1, A.shape[2]), lin.r0[fit_idx].ravel(), P, smoothing)
+    pred = lin.r0[test_idx] + (A[test_idx].reshape(-1, A.shape[2]) @ step).reshape(-1, width)
+    return _pos_rms_mm(pred)
+
+
+def try_maps(
+    analysis: Any,
+    data: Data,
+    train_idx: np.ndarray,
+    val_idx: np.ndarray,
+    keep_margin: float,
+    joint_names: Sequence[str],
+    say: Any = None,
+) -> None:
+    """Try joint-angle maps after the other effects: kept (appended to `analysis`) only if
+    they lower the held-out error by `keep_margin` on the held-out blocks and on a held-out
+    band of the first joint's angle. The report gets the maps' entry either way, with the
+    parameter count, both splits and a learning curve."""
+    from keo_service.fit.analysis import stats
+
+    say = say or (lambda _m: None)
+    model, x = analysis.model, analysis.x
+    chain = model.chain
+    train, val = data.subset(train_idx), data.subset(val_idx)
+    tau_tr, tau_va = chain.gravity_torques(train.q), chain.gravity_torques(val.q)
+    say("trying joint_maps (cross-validating knot spacing and smoothing)")
+    fit = fit_maps(model, x, train, tau_tr)
+    if fit is None:
+        say("joint_maps: no joint moves enough to carry a map")
+        return
+    before = stats(model, x, val, tau_va)
+    after = stats(fit.model, fit.x, val, tau_va)
+    gain = 1 - after.pos_rms_mm / before.pos_rms_mm
+    # second split: a band of joint 1's angle held out (a region of the workspace)
+    lin = linearize(model, x, data, chain.gravity_torques(data.q))
+    keep_band, band = held_out_band(data)
+    knots = knots_for(data.q[keep_band], fit.spacing)
+    band_before = _linear_rms(lin, data.q, knots, keep_band, band, fit.smoothing, x.size, False)
+    band_after = _linear_rms(lin, data.q, knots, keep_band, band, fit.smoothing, x.size, True)
+    band_gain = 1 - band_after / band_before
+    curve = []
+    for share in (0.25, 0.5, 0.75, 1.0):
+        sub = train_idx[: max(10, int(share * train_idx.size))]
+        kn = knots_for(data.q[sub], fit.spacing)
+        rms = _linear_rms(lin, data.q, kn, sub, val_idx, fit.smoothing, x.size, True)
+        curve.append({"train_poses": int(sub.size), "held_out_pos_rms_mm": rms})
+    entry: dict[str, Any] = {
+        "name": MAPS,
+        "description": "joint-angle error maps: angle error vs the joint's own angle (rad)",
+        "parameters": {"maps": map_records(fit, joint_names)},
+        "parameter_count": fit.parameters,
+        "knot_spacing_rad": fit.spacing,
+        "smoothing": fit.smoothing,
+        "cv_pos_rms_mm": fit.cv_rms_mm,
+        "train": stats(fit.model, fit.x, train, tau_tr).as_dict(),
+        "validation": after.as_dict(),
+        "held_out_improvement_pct": 100 * gain,
+        "band_split": {
+            "joint": joint_names[0] if joint_names else "joint_1",
+            "held_out_poses": int(band.size),
+            "pos_rms_mm_before": band_before,
+            "pos_rms_mm_after": band_after,
+            "improvement_pct": 100 * band_gain,
+        },
+        "learning_curve": curve,
+    }
+    if gain >= keep_margin and band_gain >= keep_margin:
+        analysis.model, analysis.x = fit.model, fit.x
+        analysis.report["effects"].append(entry)
+        analysis.report["final"]["validation"] = after.as_dict()
+        analysis.report["final"]["train"] = entry["train"]
+        say(f"kept joint_maps: held-out position RMS {after.pos_rms_mm:.4f} mm")
+    else:
+        analysis.report["rejected"].append(entry)
+        say(f"not kept joint_maps: held-out {100 * gain:+.1f} %, band {100 * band_gain:+.1f} %")
