@@ -26,6 +26,7 @@ DIRECTION_DEADBAND = 1e-4  # rad/s: a joint slower than this keeps its last dire
 DELAY_SLEW = 0.001  # a new delay is approached at this many s per s of stream time
 MAX_PENDING = 2048
 MAX_MESSAGES = 32
+OUTSIDE_CALIBRATED_RANGE = "outside_calibrated_range"
 
 
 @dataclass(frozen=True)
@@ -88,6 +89,13 @@ class Estimator:
         self._delay_target: float | None = None
         self._prev_q: np.ndarray | None = None
         self._direction = np.zeros(self._nq)  # each joint's direction of its last move
+        # joint-angle maps hold their edge value outside the angles they were calibrated on:
+        # an estimate there is flagged (and counted), not extrapolated
+        ranges = cell.corrections.map_ranges() if cell.corrections is not None else []
+        spans = [(j, r) for j, r in enumerate(ranges) if r is not None]
+        self._map_joints = [j for j, _r in spans]
+        self._map_lo = np.array([r[0] for _j, r in spans])
+        self._map_hi = np.array([r[1] for _j, r in spans])
         self._recent_dt: deque[float] = deque(maxlen=64)
         self._step_cap: float | None = None
         self._dt_seen = 0
@@ -332,7 +340,13 @@ class Estimator:
                 return self._held(t, "observer_rejected", encoder_t)
         self._last_update_t = t
         self.counters["estimates"] += 1
-        est = Estimate(t, measured, self.observer.estimate, (), encoder_t, self.channels, joints)
+        flags: tuple[str, ...] = ()
+        if self._map_joints:
+            q = joints[self._map_joints]
+            if np.any(q < self._map_lo) or np.any(q > self._map_hi):
+                flags = (OUTSIDE_CALIBRATED_RANGE,)
+                self.counters[OUTSIDE_CALIBRATED_RANGE] += 1
+        est = Estimate(t, measured, self.observer.estimate, flags, encoder_t, self.channels, joints)
         self.last = est
         return est
 

@@ -127,7 +127,8 @@ def _penalty(n_other: int, knots: Sequence[np.ndarray]) -> np.ndarray:
 def _normal(A: np.ndarray, P: np.ndarray, smoothing: float) -> np.ndarray:
     AtA = A.T @ A
     ridge = RIDGE * float(np.trace(AtA)) / AtA.shape[0]
-    return AtA + smoothing * P.T @ P + ridge * np.eye(AtA.shape[0])
+    normal: np.ndarray = AtA + smoothing * P.T @ P + ridge * np.eye(AtA.shape[0])
+    return normal
 
 
 def _solve(A: np.ndarray, r: np.ndarray, P: np.ndarray, smoothing: float) -> np.ndarray:
