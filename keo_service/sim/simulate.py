@@ -71,6 +71,11 @@ class Scenario:
     compliance_rad_per_nm: float = 0.0  # every joint deflects this much per N m of gravity
     backlash_rad: float = 0.0  # every joint lags by this much behind its direction of motion
     cyclic_rad: float = 0.0  # 1st-harmonic error of joints 2 and 3 (a gear's runout)
+    # angle ripple (an encoder or gear transmission error): amplitude and period in the joint's
+    # own angle, on the joints listed (1-based, comma-separated, e.g. "2,3")
+    ripple_rad: float = 0.0
+    ripple_period_rad: float = 0.3
+    ripple_joints: str = "2,3"
     thermal_m_per_c: float = 0.0  # the sensor drifts along base x with temperature
     tracker_scale_ppm: float = 0.0  # a tracker distance-scale error (geometry absorbs it)
     periodic_drift_m: float = 0.0  # the sensor wanders along base x, 3 cycles per recording
@@ -351,6 +356,15 @@ def _static_poses(cell: Cell, scenario: Scenario, rng: np.random.Generator) -> n
     return np.array(poses)
 
 
+def angle_ripple(scenario: Scenario, q: np.ndarray) -> np.ndarray:
+    """The injected angle ripple at joints q (nq,): zero unless `ripple_rad` is set."""
+    out = np.zeros_like(q)
+    if scenario.ripple_rad:
+        for j in (int(k) - 1 for k in scenario.ripple_joints.split(",") if k.strip()):
+            out[j] = scenario.ripple_rad * math.sin(2 * math.pi * q[j] / scenario.ripple_period_rad)
+    return out
+
+
 def simulate_static(cell: Cell, scenario: Scenario, seed: int = 0) -> SimulatedRun:
     """Stop-and-measure: one encoder row and one tracker row per pose, at the same t."""
     rng = np.random.default_rng(seed)
@@ -373,6 +387,7 @@ def simulate_static(cell: Cell, scenario: Scenario, seed: int = 0) -> SimulatedR
         extra += scenario.backlash_rad * direction[i]
         if scenario.cyclic_rad:
             extra[1:3] += scenario.cyclic_rad * np.sin(q[i, 1:3])
+        extra += angle_ripple(scenario, q[i])
         T_bs = true_robot.sensor_pose(q[i], extra)
         if scenario.periodic_drift_m:
             wander = scenario.periodic_drift_m * math.sin(6 * math.pi * t[i] / t[-1])
