@@ -39,8 +39,8 @@ def ur10_table(folder: Path) -> str:
             f"| {stats(r['baseline']['validation'])} |"
         )
         for e in r["effects"]:
-            ident = e["parameters"].get("identifiable")
-            extra = f" ({ident} identifiable)" if ident else ""
+            ident = e["parameters"].get("identifiable") or e.get("parameter_count")
+            extra = f" ({ident} parameters)" if ident else ""
             lines.append(
                 f"| {label} | + {e['name']}{extra} | {e['validation']['n']} | "
                 f"{stats(e['validation'])} |"

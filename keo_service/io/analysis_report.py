@@ -170,6 +170,23 @@ def _plots(
     before = baseline_model.residuals(baseline_x, data, tau).reshape(-1, width)[:, :3] * 1e3
     after = result.model.residuals(result.x, data, tau).reshape(-1, width)[:, :3] * 1e3
     files = []
+    maps_entry = next((e for e in result.report["effects"] if e["name"] == MAPS), None)
+    for m in maps_entry["parameters"]["maps"] if maps_entry else []:
+        knots, values, se = (
+            np.asarray(m[k]) * 1e3 if k != "knots" else np.asarray(m[k])
+            for k in ("knots", "values", "se")
+        )
+        fig, ax = plt.subplots(figsize=(6, 2.5))
+        ax.fill_between(knots, values - 2 * se, values + 2 * se, alpha=0.3, label="+/- 2 se")
+        ax.plot(knots, values, marker=".", label="angle error map")
+        ax.set_xlabel(f"{m['joint']} angle (rad)")
+        ax.set_ylabel("angle error (mrad)")
+        ax.legend(loc="upper right", fontsize=7)
+        fig.tight_layout()
+        name = f"map_{m['joint']}.png"
+        fig.savefig(out / name, dpi=110)
+        plt.close(fig)
+        files.append(name)
     fig, ax = plt.subplots(figsize=(6, 3.5))
     bins = np.linspace(0, max(np.linalg.norm(before, axis=1).max(), 1e-3), 50).tolist()
     ax.hist(np.linalg.norm(before, axis=1), bins=bins, alpha=0.6, label="nominal model")
@@ -219,9 +236,10 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
         f"- nominal model, registration fitted: {_stats_line(report['baseline']['validation'])}",
     ]
     for e in report["effects"]:
+        count = _parameter_count(e)
         lines.append(
             f"- + {e['name']} ({e['description']}): {_stats_line(e['validation'])} "
-            f"({e['held_out_improvement_pct']:+.1f} %)"
+            f"({e['held_out_improvement_pct']:+.1f} %, {count} parameters)"
         )
     lines.append(f"- final: {_stats_line(report['final']['validation'])}")
     lines.append(f"- (final on the fitted poses: {_stats_line(report['final']['train'])})")
@@ -243,6 +261,9 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
     lines += ["", "## Parameters (value +/- standard error)", ""]
     for e in report["effects"]:
         p = e["parameters"]
+        if e["name"] == MAPS:
+            lines += _maps_markdown(e)
+            continue
         head = f"### {e['name']}"
         if "identifiable" in p:
             head += f" ({p['identifiable']} of {p['of']} combinations identifiable)"
@@ -257,6 +278,49 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
         lines += [head, "", body, ""]
     lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots]
     return "\n".join(lines) + "\n"
+
+
+def _parameter_count(entry: dict[str, Any]) -> int:
+    if "parameter_count" in entry:
+        return int(entry["parameter_count"])
+    p = entry["parameters"]
+    if "identifiable" in p:
+        return int(p["identifiable"])
+    return len(p.get("values", [])) or len(p)
+
+
+def _maps_markdown(entry: dict[str, Any]) -> list[str]:
+    band = entry["band_split"]
+    lines = [
+        f"### {MAPS}: knots every {entry['knot_spacing_rad']:g} rad, smoothing "
+        f"{entry['smoothing']:g} (chosen by cross-validation), {entry['parameter_count']} values",
+        "",
+        "Outside its calibrated range a map holds its edge value and `keo run` flags the "
+        "estimate `outside_calibrated_range`.",
+        "",
+        "| joint | calibrated range (rad) | knots | peak (mrad) | median se (mrad) |",
+        "|---|---|---|---|---|",
+    ]
+    for m in entry["parameters"]["maps"]:
+        lo, hi = m["range_rad"]
+        lines.append(
+            f"| {m['joint']} | {lo:+.3f} .. {hi:+.3f} | {len(m['knots'])} | "
+            f"{m['peak_mrad']:.3f} | {float(np.median(m['se'])) * 1e3:.4f} |"
+        )
+    lines += [
+        "",
+        f"Second split, a band of {band['joint']} held out ({band['held_out_poses']} poses): "
+        f"{band['pos_rms_mm_before']:.4f} -> {band['pos_rms_mm_after']:.4f} mm "
+        f"({band['improvement_pct']:+.1f} %).",
+        "",
+        "Learning curve (held-out position RMS against training poses): "
+        + ", ".join(
+            f"{c['train_poses']}: {c['held_out_pos_rms_mm']:.4f} mm"
+            for c in entry["learning_curve"]
+        ),
+        "",
+    ]
+    return lines
 
 
 def _is_static(config: Config, encoder: Path, tracker: Path) -> bool:
