@@ -13,9 +13,12 @@ sample that waited least, and fit a line through the block minima of the last `w
 seconds, refitted without blocks far above it (a block delivered late as a whole). The floor
 itself (the shortest transport time) cannot be seen from the host and stays in the offset.
 
-A device clock that steps (controller restart, resync) shows as samples far from the line or
-device time going backwards: after `step_confirm` such samples in a row the mapper forgets
-the old line and learns anew (a first offset at once, a drift after two blocks).
+A device clock that steps (controller restart, resync) shows as samples arriving earlier than
+the line allows (more than `step_threshold_s`) or device time going backwards: after
+`step_confirm` such samples in a row the mapper forgets the old line and learns anew (a first
+offset at once, a drift after two blocks). Late samples never count as a step: a stalled host
+delays them, and their mapped stamps are what removes the stall. (A host clock stepping
+forward looks like lateness: the line follows it once the old minima leave the window.)
 """
 
 from __future__ import annotations
@@ -103,8 +106,10 @@ class ClockMapper:
         if self._offset is None:
             return False
         gone_back = device_t < self._last_device - self.step_threshold_s
-        off_line = abs(host_t - self.predict(device_t)) > self.step_threshold_s
-        if not (gone_back or off_line):
+        # early beyond the threshold is impossible without a step (latency is never negative);
+        # late is only a stalled host or network, which the mapping is there to remove
+        early = host_t < self.predict(device_t) - self.step_threshold_s
+        if not (gone_back or early):
             self._outliers = 0
             return False
         self._outliers += 1
