@@ -54,19 +54,12 @@ class RecordStats:
     messages: list[str] = field(default_factory=list)
 
 
-class Recorder:
-    """Writes encoder.csv and tracker.csv in `out_dir` from samples as they arrive."""
+class _StreamRecorder:
+    """Decodes and checks what arrives; the subclasses write it."""
 
-    def __init__(self, out_dir: Path, nq: int) -> None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        self.out_dir = out_dir
+    def __init__(self, nq: int) -> None:
         self.nq = nq
         self.stats = RecordStats()
-        self._enc: TextIO = (out_dir / "encoder.csv").open("w", encoding="utf-8")
-        self._enc.write(",".join(["t", *(f"q{i + 1}" for i in range(nq))]) + "\n")
-        self._trk: TextIO | None = None
-        self._trk_has_q: bool | None = None
-        self._last_flush = time.monotonic()
 
     def _note(self, text: str) -> None:
         self.stats.rejected += 1
@@ -85,25 +78,64 @@ class Recorder:
                     f"joint sample seq {msg.seq} with {len(msg.q)} joints, expected {self.nq}"
                 )
                 return
-            self._enc.write(",".join(repr(float(v)) for v in (msg.t, *msg.q)) + "\n")
+            self._joints(msg)
             self.stats.encoder_rows += 1
         elif isinstance(msg, TrackerSample):
             if msg.status != "ok" or msg.p is None:
                 self.stats.tracker_gaps += 1
                 return
-            has_q = msg.q is not None
-            if self._trk is None:
-                self._trk = (self.out_dir / "tracker.csv").open("w", encoding="utf-8")
-                cols = TRACKER_POSE_COLUMNS if has_q else TRACKER_POSITION_COLUMNS
-                self._trk.write(",".join(cols) + "\n")
-                self._trk_has_q = has_q
-            if has_q != self._trk_has_q:
-                self._note(f"tracker sample seq {msg.seq}: orientation presence changed mid-stream")
-                return
-            values = (msg.t, *msg.p, *(msg.q or ()))
-            self._trk.write(",".join(repr(float(v)) for v in values) + "\n")
-            self.stats.tracker_rows += 1
+            if self._pose(msg):
+                self.stats.tracker_rows += 1
+        elif isinstance(msg, EstimateMessage) and msg.measured is not None:
+            self._estimate(msg)
         self.maybe_flush()
+
+    def _joints(self, msg: JointSample) -> None:
+        raise NotImplementedError
+
+    def _pose(self, msg: TrackerSample) -> bool:
+        raise NotImplementedError
+
+    def _estimate(self, msg: EstimateMessage) -> None:
+        pass
+
+    def maybe_flush(self, force: bool = False) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class Recorder(_StreamRecorder):
+    """Writes encoder.csv and tracker.csv in `out_dir` from samples as they arrive."""
+
+    def __init__(self, out_dir: Path, nq: int) -> None:
+        super().__init__(nq)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self.out_dir = out_dir
+        self._enc: TextIO = (out_dir / "encoder.csv").open("w", encoding="utf-8")
+        self._enc.write(",".join(["t", *(f"q{i + 1}" for i in range(nq))]) + "\n")
+        self._trk: TextIO | None = None
+        self._trk_has_q: bool | None = None
+        self._last_flush = time.monotonic()
+
+    def _joints(self, msg: JointSample) -> None:
+        self._enc.write(",".join(repr(float(v)) for v in (msg.t, *msg.q)) + "\n")
+
+    def _pose(self, msg: TrackerSample) -> bool:
+        assert msg.p is not None
+        has_q = msg.q is not None
+        if self._trk is None:
+            self._trk = (self.out_dir / "tracker.csv").open("w", encoding="utf-8")
+            cols = TRACKER_POSE_COLUMNS if has_q else TRACKER_POSITION_COLUMNS
+            self._trk.write(",".join(cols) + "\n")
+            self._trk_has_q = has_q
+        if has_q != self._trk_has_q:
+            self._note(f"tracker sample seq {msg.seq}: orientation presence changed mid-stream")
+            return False
+        values = (msg.t, *msg.p, *(msg.q or ()))
+        self._trk.write(",".join(repr(float(v)) for v in values) + "\n")
+        return True
 
     def maybe_flush(self, force: bool = False) -> None:
         now = time.monotonic()
@@ -120,39 +152,24 @@ class Recorder:
             self._trk.close()
 
 
-class McapRecorder(Recorder):
-    """The same streams, and the service's estimates, as a ROS 2 MCAP recording."""
+class McapRecorder(_StreamRecorder):
+    """The same streams, and the service's estimates, as a ROS 2 MCAP recording (rosbags
+    writes its chunks as they fill)."""
 
     def __init__(self, writer: McapWriter, nq: int) -> None:
+        super().__init__(nq)
         self.writer = writer
-        self.nq = nq
-        self.stats = RecordStats()
 
-    def on_payload(self, payload: bytes) -> None:
-        try:
-            msg = decode(payload)
-        except msgspec.DecodeError as exc:
-            self._note(f"undecodable payload: {exc}")
-            return
-        if isinstance(msg, JointSample):
-            if len(msg.q) != self.nq:
-                self._note(
-                    f"joint sample seq {msg.seq} with {len(msg.q)} joints, expected {self.nq}"
-                )
-                return
-            self.writer.joints(msg.t, msg.q, msg.dq)
-            self.stats.encoder_rows += 1
-        elif isinstance(msg, TrackerSample):
-            if msg.status != "ok" or msg.p is None:
-                self.stats.tracker_gaps += 1
-                return
-            self.writer.pose(msg.t, msg.p, msg.q)
-            self.stats.tracker_rows += 1
-        elif isinstance(msg, EstimateMessage) and msg.measured is not None:
-            self.writer.estimate(msg.stamp, msg.estimate)
+    def _joints(self, msg: JointSample) -> None:
+        self.writer.joints(msg.t, msg.q, msg.dq)
 
-    def maybe_flush(self, force: bool = False) -> None:
-        pass  # MCAP chunks are written by rosbags as they fill
+    def _pose(self, msg: TrackerSample) -> bool:
+        assert msg.p is not None
+        self.writer.pose(msg.t, msg.p, msg.q)
+        return True
+
+    def _estimate(self, msg: EstimateMessage) -> None:
+        self.writer.estimate(msg.stamp, msg.estimate)
 
     def close(self) -> None:
         self.writer.close()
