@@ -236,3 +236,15 @@ def test_demo_with_a_ur10_over_rtde_converges_to_the_injected_truth():
     assert summary["final_error_pos_mm"] < 0.02, summary
     assert summary["final_error_rot_mrad"] < 0.02, summary
     assert all(code == 0 for code in summary["exit_codes"].values())
+
+
+def test_mapped_stamps_never_go_back_while_the_fit_learns():
+    """The first samples of a connection wait longest: as faster ones arrive the offset
+    drops by milliseconds, which must not send a stamp before its predecessor."""
+    d = np.arange(200) * 0.001
+    lag = np.where(np.arange(200) < 20, 0.010 - np.arange(200) * 0.0004, 0.0002)
+    mapper = ClockMapper()
+    out = np.array([mapper.map(di, di + 5.0 + li) for di, li in zip(d, lag, strict=True)])
+    assert np.all(np.diff(out) > 0)
+    assert mapper.held_back > 0
+    assert out[-1] - (d[-1] + 5.0) == pytest.approx(0.0002, abs=1e-5)

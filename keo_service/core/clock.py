@@ -31,6 +31,8 @@ import numpy as np
 
 __all__ = ["ClockMapper", "ClockState"]
 
+MIN_STEP_S = 1e-6
+
 
 @dataclass(frozen=True)
 class ClockState:
@@ -39,6 +41,7 @@ class ClockState:
     residual_s: float  # RMS of the block minima about the fitted line
     blocks: int  # block minima in the current fit
     steps: int  # clock steps detected and re-learned
+    held_back: int  # stamps moved just after the previous one so that none goes back
 
 
 class ClockMapper:
@@ -56,6 +59,8 @@ class ClockMapper:
             maxlen=max(2, math.ceil(window_s / block_s))
         )
         self.steps = 0
+        self.held_back = 0
+        self._last_out = -math.inf  # the host clock does not step with the device's
         self._reset()
 
     def _reset(self) -> None:
@@ -83,7 +88,7 @@ class ClockMapper:
             self.steps += 1
             self._reset()
         elif self._outliers:
-            return host_t
+            return self._monotonic(host_t)
         self._last_device = max(self._last_device, device_t)
         lag = host_t - device_t
         index = math.floor(device_t / self.block_s)
@@ -100,7 +105,17 @@ class ClockMapper:
             # before a line: the least-late sample so far gives the offset, no drift
             best = min([self._block_min[0], *(y for _d, y in self._blocks)])
             self._offset, self._drift, self._ref = best, 0.0, device_t
-        return self.predict(device_t)
+        return self._monotonic(self.predict(device_t))
+
+    def _monotonic(self, t: float) -> float:
+        """Stamps never go back: while the fit learns (the first samples of a connection
+        wait longest, so the offset drops as faster ones arrive) a stamp that would fall
+        before the previous one is placed just after it, and counted."""
+        if t <= self._last_out:
+            t = self._last_out + MIN_STEP_S
+            self.held_back += 1
+        self._last_out = t
+        return t
 
     def _is_step(self, device_t: float, host_t: float) -> bool:
         if self._offset is None:
@@ -140,4 +155,5 @@ class ClockMapper:
             residual_s=self._residual,
             blocks=len(self._blocks),
             steps=self.steps,
+            held_back=self.held_back,
         )
