@@ -242,7 +242,7 @@ def test_mapped_stamps_never_go_back_while_the_fit_learns():
     """The first samples of a connection wait longest: as faster ones arrive the offset
     drops by milliseconds, which must not send a stamp before its predecessor."""
     d = np.arange(200) * 0.001
-    lag = np.where(np.arange(200) < 20, 0.010 - np.arange(200) * 0.0004, 0.0002)
+    lag = np.maximum(0.010 - np.arange(200) * 0.002, 0.0002)  # 2 ms less each 1 ms
     mapper = ClockMapper()
     out = np.array([mapper.map(di, di + 5.0 + li) for di, li in zip(d, lag, strict=True)])
     assert np.all(np.diff(out) > 0)
