@@ -315,3 +315,32 @@ def test_backlash_in_model_toml_is_applied_by_estimate(tmp_path):
         rms[name] = float(np.sqrt(np.mean(np.sum(meas[:, :3] ** 2, axis=1))))
     assert rms["nominal"] > 0.3e-3
     assert rms["model"] < 0.08e-3  # the noise alone is ~0.035 mm
+
+
+def test_parameters_are_named_per_joint_with_units():
+    from keo_service.fit.analysis import parameter_records
+
+    values = np.arange(12, dtype=float) * 1e-4
+    recs = parameter_records("geometry", values, values / 10, ["j1", "j2"])
+    assert [(r["joint"], r["parameter"], r["unit"]) for r in recs[4:8]] == [
+        ("j1", "link ry", "rad"),
+        ("j1", "link rz", "rad"),
+        ("j2", "link x", "m"),
+        ("j2", "link y", "m"),
+    ]
+    assert recs[6]["value"] == pytest.approx(6e-4)
+    assert recs[6]["se"] == pytest.approx(6e-5)
+    cyc = parameter_records("cyclic", np.ones(8), np.ones(8), ["a", "b"])
+    assert [r["parameter"] for r in cyc[:4]] == [
+        "1st harmonic sin",
+        "1st harmonic cos",
+        "2nd harmonic sin",
+        "2nd harmonic cos",
+    ]
+    assert cyc[4]["joint"] == "b"
+    drift = parameter_records("temperature", np.ones(3), np.ones(3), ["a"])
+    assert [(r["joint"], r["parameter"], r["unit"]) for r in drift][0] == (
+        "sensor",
+        "drift x",
+        "m/C",
+    )

@@ -11,7 +11,7 @@ probe, orientation (rad, scaled by ROT_WEIGHT m/rad). Fitted with scipy's robust
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -399,9 +399,69 @@ def split(n: int) -> tuple[np.ndarray, np.ndarray]:
     return idx[~val], idx[val]
 
 
+# what each number of an effect is, per joint: (parameter, unit), in the order of its values
+_PER_JOINT = {
+    "joint_offsets": [("zero offset", "rad")],
+    "compliance": [("compliance", "rad/(N m)")],
+    "backlash": [("backlash", "rad")],
+    "cyclic": [
+        ("1st harmonic sin", "rad"),
+        ("1st harmonic cos", "rad"),
+        ("2nd harmonic sin", "rad"),
+        ("2nd harmonic cos", "rad"),
+    ],
+    "geometry": [
+        ("link x", "m"),
+        ("link y", "m"),
+        ("link z", "m"),
+        ("link rx", "rad"),
+        ("link ry", "rad"),
+        ("link rz", "rad"),
+    ],
+}
+_SENSOR_DRIFT = {"temperature": "m/C", "time_drift": "m/s"}
+
+
+def parameter_records(
+    name: str, values: np.ndarray, se: np.ndarray, joint_names: Sequence[str]
+) -> list[dict[str, Any]]:
+    """An effect's numbers as named records {joint, parameter, unit, value, se} (SI units)."""
+    if name in _SENSOR_DRIFT:
+        return [
+            {
+                "joint": "sensor",
+                "parameter": f"drift {axis}",
+                "unit": _SENSOR_DRIFT[name],
+                "value": float(v),
+                "se": float(s),
+            }
+            for axis, v, s in zip("xyz", values, se, strict=True)
+        ]
+    per_joint = _PER_JOINT.get(name)
+    if per_joint is None:
+        return []
+    out = []
+    for i, (v, s) in enumerate(zip(values, se, strict=True)):
+        j, k = divmod(i, len(per_joint))
+        parameter, unit = per_joint[k]
+        joint = joint_names[j] if j < len(joint_names) else f"joint_{j + 1}"
+        out.append(
+            {
+                "joint": joint,
+                "parameter": parameter,
+                "unit": unit,
+                "value": float(v),
+                "se": float(s),
+            }
+        )
+    return out
+
+
 def _effect_parameters(model: Model, name: str, x: np.ndarray, se: np.ndarray) -> dict[str, Any]:
-    """An effect's parameters (and standard errors) in physical units."""
+    """An effect's parameters (and standard errors) in physical units, as arrays and as
+    named records per joint."""
     nq = model.chain.nq
+    names = model.chain.robot.joint_names
     k = model.n_reg
     for other, size in zip(model.effects, model.sizes(nq), strict=True):
         if other == name:
@@ -415,8 +475,13 @@ def _effect_parameters(model: Model, name: str, x: np.ndarray, se: np.ndarray) -
                     "of": int(B.shape[0]),
                     "values": values.tolist(),
                     "se": std.tolist(),
+                    "records": parameter_records(name, values, std, names),
                 }
-            return {"values": part.tolist(), "se": part_se.tolist()}
+            return {
+                "values": part.tolist(),
+                "se": part_se.tolist(),
+                "records": parameter_records(name, part, part_se, names),
+            }
         k += size
     raise KeyError(name)
 

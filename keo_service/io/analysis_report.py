@@ -267,6 +267,11 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
         head = f"### {e['name']}"
         if "identifiable" in p:
             head += f" ({p['identifiable']} of {p['of']} combinations identifiable)"
+        if p.get("records"):
+            lines += [head, ""]
+            lines += [_record_line(rec) for rec in p["records"]]
+            lines.append("")
+            continue
         if "values" in p:
             body = ", ".join(
                 f"{v:.3g} +/- {s:.2g}" for v, s in zip(p["values"], p["se"], strict=True)
@@ -278,6 +283,18 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
         lines += [head, "", body, ""]
     lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots]
     return "\n".join(lines) + "\n"
+
+
+_DISPLAY = {"m": (1e3, "mm"), "rad": (1e3, "mrad"), "m/C": (1e6, "um/C"), "m/s": (1e6, "um/s")}
+
+
+def _record_line(rec: dict[str, Any]) -> str:
+    """`shoulder_lift_joint  link x  +0.300 +/- 0.070 mm` (display units)."""
+    scale, unit = _DISPLAY.get(rec["unit"], (1.0, rec["unit"]))
+    return (
+        f"    {rec['joint']:<22} {rec['parameter']:<18} {rec['value'] * scale:+.4g} +/- "
+        f"{rec['se'] * scale:.2g} {unit}"
+    )
 
 
 def _parameter_count(entry: dict[str, Any]) -> int:
