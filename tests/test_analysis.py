@@ -339,8 +339,5 @@ def test_parameters_are_named_per_joint_with_units():
     ]
     assert cyc[4]["joint"] == "b"
     drift = parameter_records("temperature", np.ones(3), np.ones(3), ["a"])
-    assert [(r["joint"], r["parameter"], r["unit"]) for r in drift][0] == (
-        "sensor",
-        "drift x",
-        "m/C",
-    )
+    first = drift[0]
+    assert (first["joint"], first["parameter"], first["unit"]) == ("sensor", "drift x", "m/C")
