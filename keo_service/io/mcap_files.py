@@ -86,8 +86,8 @@ class McapWriter:
             self._write(self._topics["pose"], rm.POSE_STAMPED, t, msg)
 
     def estimate(self, t: float, estimate: Sequence[float]) -> None:
-        msg = rm.pose_with_covariance(self.types, t, f"{self.cell}_tool", estimate, None)
-        self._write(f"/keo/{self.cell}/kinematic_error", rm.POSE_COV, t, msg)
+        msg = rm.pose_with_covariance(self.types, t, rm.tool_frame(self.cell), estimate, None)
+        self._write(rm.estimate_topic(self.cell), rm.POSE_COV, t, msg)
 
     def close(self) -> None:
         self._writer.close()

@@ -33,6 +33,16 @@ STORES = {
 }
 
 
+def estimate_topic(cell: str) -> str:
+    """The ROS 2 topic of a cell's estimate."""
+    return f"/keo/{cell}/kinematic_error"
+
+
+def tool_frame(cell: str) -> str:
+    """The nominal tool frame's name in ROS (frame_id of the estimate)."""
+    return f"{cell}_tool"
+
+
 def typestore(distro: str = "jazzy") -> Any:
     return get_typestore(STORES[distro])
 

@@ -23,7 +23,6 @@ import itertools
 import os
 import struct
 import time
-from collections.abc import Callable
 from typing import Any
 
 import zenoh
@@ -46,7 +45,6 @@ __all__ = [
     "data_key",
     "dds_type_name",
     "mangle",
-    "parse_attachment",
     "seconds_of",
     "typestore",
 ]
@@ -81,14 +79,6 @@ def attachment(seq: int, source_ns: int, gid: bytes) -> bytes:
     return ATTACHMENT.pack(seq, source_ns, 16, gid)
 
 
-def parse_attachment(raw: bytes) -> tuple[int, int, bytes]:
-    """(sequence number, source time [ns], publisher id) of an rmw_zenoh attachment."""
-    seq, source_ns, length, gid = ATTACHMENT.unpack(raw)
-    if length != 16:
-        raise ValueError(f"publisher id of {length} bytes, expected 16")
-    return seq, source_ns, gid
-
-
 class Ros2Publisher:
     """One ROS 2 publisher: CDR payload, attachment, and its liveliness token."""
 
@@ -116,8 +106,8 @@ class Ros2Publisher:
 class Ros2Node:
     """A ROS 2 node on a Zenoh session: its node token, publishers and subscriptions.
 
-    Subscriptions hand the raw CDR payload and attachment to `on_sample` on Zenoh's thread;
-    callers pass a hand-off (for example an `AsyncSubscription`'s) rather than user code.
+    Callers subscribe to `subscription_key` through keo's bounded hand-off
+    (`AsyncSubscription`) and declare the subscription's token with `declare_subscription`.
     """
 
     def __init__(
@@ -169,14 +159,6 @@ class Ros2Node:
             self.endpoint_token("MS", next(self._entity_ids), topic, typename)
         )
         self._closables.append(token)
-
-    def subscribe(
-        self, topic: str, typename: str, on_sample: Callable[[zenoh.Sample], None]
-    ) -> None:
-        self.declare_subscription(topic, typename)
-        self._closables.append(
-            self.session.declare_subscriber(self.subscription_key(topic, typename), on_sample)
-        )
 
     def deserialize(self, payload: bytes, typename: str) -> Any:
         return self.store.deserialize_cdr(payload, typename)

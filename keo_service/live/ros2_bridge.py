@@ -23,32 +23,23 @@ from keo_service.live.messages import EstimateMessage
 from keo_service.live.ros2 import Ros2Node
 
 
-def estimate_topic(cell: str) -> str:
-    return f"/keo/{cell}/kinematic_error"
-
-
-def tool_frame(cell: str) -> str:
-    """The nominal tool frame's name in ROS (frame_id of the estimate)."""
-    return f"{cell}_tool"
-
-
 class EstimateBridge:
     def __init__(self, session: zenoh.Session, config: Config) -> None:
         ros = config.ros2
         self.cell = config.cell
         self.node = Ros2Node(session, f"keo_{config.cell}", ros.domain_id, ros.distro)
         self.types = self.node.store.types
-        self._pose = self.node.publisher(estimate_topic(config.cell), rm.POSE_COV)
+        self._pose = self.node.publisher(rm.estimate_topic(config.cell), rm.POSE_COV)
         self._tf = self.node.publisher("/tf", rm.TF_MESSAGE) if ros.publish_tf else None
         self.published = 0
 
     def pose_message(self, msg: EstimateMessage, variance: np.ndarray | None) -> Any:
         return rm.pose_with_covariance(
-            self.types, msg.stamp, tool_frame(self.cell), msg.estimate, variance
+            self.types, msg.stamp, rm.tool_frame(self.cell), msg.estimate, variance
         )
 
     def tf_message(self, msg: EstimateMessage) -> Any:
-        frame = tool_frame(self.cell)
+        frame = rm.tool_frame(self.cell)
         return rm.tf_message(self.types, msg.stamp, frame, f"{frame}_measured", msg.estimate)
 
     def publish(
