@@ -24,7 +24,7 @@ from adapters.connection import run_tcp_client
 from adapters.line_protocol import MAX_LINE, LineProtocolParser
 from adapters.rtde import Package, RtdeDecoder
 from adapters.simple_message import JointFeedback, RobotStatusFrame, SimpleMessageDecoder
-from keo_service.core.clock import ClockMapper
+from keo_service.core.clock import ClockMapper, ReceiptStamps
 from keo_service.core.rejects import RejectLog
 from keo_service.live.bus import AsyncSubscription, session_for_client_async
 from keo_service.live.messages import JointSample, RobotStatus, TrackerSample, encode, topic
@@ -103,6 +103,7 @@ class EncoderAdapter(_Adapter):
 
     def _declare(self, session: zenoh.Session) -> None:
         self.decoder = SimpleMessageDecoder(self.config.robot.byte_order)
+        self._stamps = ReceiptStamps()
         self._declare_publishers(session)
 
     def _declare_publishers(self, session: zenoh.Session) -> None:
@@ -119,6 +120,7 @@ class EncoderAdapter(_Adapter):
             **super().status(),
             "decoder": dict(self.decoder.counters),
             "messages": list(self.decoder.messages),
+            "stamps_held_back": self._stamps.held_back,
         }
 
     async def _run(self) -> None:
@@ -134,12 +136,23 @@ class EncoderAdapter(_Adapter):
                 if not data:
                     return
                 host_ns = time.time_ns()
-                for frame in self.decoder.feed(data):
-                    self.publish_frame(frame, host_ns)
+                frames = self.decoder.feed(data)
+                joints = [f for f in frames if isinstance(f, JointFeedback) and f.group == 0]
+                stamps = self._stamps.place(host_ns * 1e-9, len(joints))
+                if len(joints) > 1:
+                    self.counters["coalesced_frames"] += len(joints) - 1
+                for frame in frames:
+                    if isinstance(frame, JointFeedback) and frame.group == 0:
+                        self.publish_frame(frame, host_ns, stamps.pop(0))
+                    else:
+                        self.publish_frame(frame, host_ns)
         finally:
             self.decoder.reset()
 
-    def publish_frame(self, frame: JointFeedback | RobotStatusFrame, host_ns: int) -> None:
+    def publish_frame(
+        self, frame: JointFeedback | RobotStatusFrame, host_ns: int, t: float | None = None
+    ) -> None:
+        """One decoded frame out; `t` is the joint sample's host stamp (receipt time if None)."""
         if isinstance(frame, RobotStatusFrame):
             self._status_pub.put(encode(RobotStatus(host_ns=host_ns, **frame.__dict__)))
             return
@@ -150,11 +163,10 @@ class EncoderAdapter(_Adapter):
         q = list(frame.positions[: self.nq])
         dq = list(frame.velocities[: self.nq]) if frame.velocities is not None else None
         device_t = frame.time if frame.valid_fields & 1 else None
+        stamp = host_ns * 1e-9 if t is None else t
         self._pub.put(
             encode(
-                JointSample(
-                    t=host_ns * 1e-9, host_ns=host_ns, seq=self._seq, q=q, dq=dq, device_t=device_t
-                )
+                JointSample(t=stamp, host_ns=host_ns, seq=self._seq, q=q, dq=dq, device_t=device_t)
             )
         )
         self.counters["published"] += 1

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ClockMapper", "ClockState"]
+__all__ = ["ClockMapper", "ClockState", "ReceiptStamps"]
 
 MIN_STEP_S = 1e-6
 
@@ -157,3 +157,31 @@ class ClockMapper:
             steps=self.steps,
             held_back=self.held_back,
         )
+
+
+class ReceiptStamps:
+    """Host stamps for a device that gives none (MotoROS leaves its time at 0): receipt time.
+
+    Frames that reach the host in one read share a receipt time, yet were sent apart: the
+    earlier ones arrived somewhere after the previous read, so they are spread evenly between
+    the previous stamp and this receipt (the last frame keeps the receipt time). A stamp never
+    repeats or goes back (a host clock stepped back): it is placed just after its
+    predecessor, and counted."""
+
+    def __init__(self) -> None:
+        self._last = -math.inf
+        self.held_back = 0
+
+    def place(self, receipt_t: float, count: int) -> list[float]:
+        """Stamps for `count` frames received together at `receipt_t`, oldest first."""
+        if count <= 0:
+            return []
+        last = self._last
+        if receipt_t <= last:
+            self.held_back += 1
+            receipt_t = last + MIN_STEP_S * count
+        start = last if math.isfinite(last) else receipt_t - MIN_STEP_S * count
+        step = (receipt_t - start) / count
+        stamps = [start + step * (i + 1) for i in range(count - 1)] + [receipt_t]
+        self._last = receipt_t
+        return stamps
