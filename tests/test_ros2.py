@@ -249,9 +249,5 @@ async def test_mcap_recording_reads_back_with_mcap_and_rosbags_and_estimates_ali
         demo_config, tmp_path / "csv/encoder.csv", tmp_path / "csv/tracker.csv"
     )
     from_mcap = estimate_files(demo_config, out, out)
-    assert len(from_csv.estimates) == len(from_mcap.estimates)
-    diff = max(
-        float(np.max(np.abs(a.estimate - b.estimate)))
-        for a, b in zip(from_csv.estimates, from_mcap.estimates, strict=True)
-    )
-    assert diff < 1e-9
+    assert from_csv.t.size == from_mcap.t.size > 0
+    assert float(np.max(np.abs(from_csv.estimate - from_mcap.estimate))) < 1e-9

@@ -107,12 +107,13 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     from keo_service.io.estimate_files import estimate_files, write_estimates
 
     config = common.load(args.config)
-    result = estimate_files(config, args.encoder, args.tracker)
+    result = estimate_files(config, args.encoder, args.tracker, streaming=args.streaming)
     write_estimates(args.out, result)
-    held = sum(1 for e in result.estimates if e.held)
+    held = result.held
     summary = {
         "out": str(args.out),
-        "estimates": len(result.estimates),
+        "path": result.path,
+        "estimates": int(result.t.size),
         "held": held,
         "channels": list(result.channels),
         "counters": result.counters,
@@ -121,7 +122,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     if args.json:
         common.print_json(summary)
     else:
-        print(f"wrote {len(result.estimates)} estimates ({held} held) to {args.out}")
+        print(f"wrote {result.t.size} estimates ({held} held) to {args.out} [{result.path}]")
         skipped = {
             k: v
             for k, v in result.counters.items()
@@ -295,6 +296,12 @@ def register(add: common.AddCommand) -> None:
     p.add_argument("--encoder", type=Path, required=True)
     p.add_argument("--tracker", type=Path, required=True)
     p.add_argument("--out", type=Path, required=True)
+    p.add_argument(
+        "--streaming",
+        action="store_true",
+        help="feed the samples one at a time through the live estimator (a cross-check of "
+        "the default batch path; the same output, 10x slower)",
+    )
     p.add_argument("--json", action="store_true")
 
     p = add(

@@ -12,16 +12,30 @@ from __future__ import annotations
 
 import numpy as np
 import pinocchio as pin
-from scipy.spatial.transform import Rotation
 
 from keo_service.core.corrections import Corrections
 from keo_service.core.kinematics import RobotModel
 
 
-def _rot(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotations about a unit axis."""
-    rotations: np.ndarray = Rotation.from_rotvec(angles[:, None] * axis[None, :]).as_matrix()
-    return rotations
+def _skew(axis: np.ndarray) -> np.ndarray:
+    x, y, z = (float(v) for v in axis)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def _frame_with_z(axis: np.ndarray) -> np.ndarray:
+    """A rotation S whose third column is the unit `axis` (so R_axis(q) = S Rz(q) S^T)."""
+    a = axis / np.linalg.norm(axis)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(helper, a)
+    u /= np.linalg.norm(u)
+    return np.column_stack([u, np.cross(a, u), a])
+
+
+def _times_constant(T: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) @ (4, 4) as one matrix product over the stacked rows (a single BLAS call
+    instead of N small ones)."""
+    out: np.ndarray = (T.reshape(-1, 4) @ M).reshape(T.shape)
+    return out
 
 
 class Chain:
@@ -41,6 +55,20 @@ class Chain:
         for j in range(1, model.njoints):
             J = pin.getJointJacobian(model, data, j, pin.LOCAL)
             self.axes.append(J[3:, model.joints[j].idx_v].copy())
+        # Rodrigues: R(a) = I + sin(a) K + (1 - cos(a)) K^2 about each joint's unit axis
+        self._K = [_skew(a) for a in self.axes]
+        self._K2 = [K @ K for K in self._K]
+        # for `flange_frames`: each joint as a constant then a rotation about z; the constant
+        # absorbs the previous joint's axis frame (S_j R_z(q) S_j^T with S_j^T carried on)
+        self._steps: list[np.ndarray] = []
+        carried = np.eye(4)
+        for j in range(self.nq):
+            S = np.eye(4)
+            S[:3, :3] = _frame_with_z(self.axes[j])
+            self._steps.append(carried @ self.placements[j] @ S)
+            carried = np.eye(4)
+            carried[:3, :3] = S[:3, :3].T
+        self._carried = carried
         flange = model.frames[robot.flange_frame_id]
         if flange.parentJoint != model.njoints - 1:
             raise ValueError("the flange must hang on the last joint of a serial chain")
@@ -89,8 +117,46 @@ class Chain:
                     M
                     @ pin.exp6(pin.Motion(corr.placement[j][:3], corr.placement[j][3:])).homogeneous
                 )
-            T = T @ M
-            R = _rot(self.axes[j], q[:, j])
-            T[:, :3, :3] = T[:, :3, :3] @ R
-        flange: np.ndarray = T @ self.flange
+            T = _times_constant(T, M)
+            # the joint's rotation: A R(q) = A + sin(q) (A K) + 2 sin^2(q/2) (A K^2)
+            A = T[:, :3, :3]
+            rows = A.reshape(-1, 3)
+            AK = (rows @ self._K[j]).reshape(A.shape)
+            AK2 = (rows @ self._K2[j]).reshape(A.shape)
+            half = np.sin(0.5 * q[:, j])
+            T[:, :3, :3] = (
+                A + np.sin(q[:, j])[:, None, None] * AK + (2.0 * half * half)[:, None, None] * AK2
+            )
+        flange: np.ndarray = _times_constant(T, self.flange)
         return flange
+
+    def flange_frames(
+        self, q: np.ndarray, head: np.ndarray | None = None, tail: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """head @ (base -> flange) @ tail for joints q (N, nq), with constant 4x4 `head` (e.g.
+        tracker <- base) and `tail` (e.g. the tool), as
+        rotations (3, 3, N) and positions (3, N): component-major, so that every step is a
+        3x3 matrix product over contiguous rows or a mix of two columns by cos and sin. The
+        fast form of `flange_poses` for a model whose geometry is already in its placements."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        n = q.shape[0]
+        start = self.base_inv if head is None else head @ self.base_inv
+        R = np.empty((3, 3, n))
+        R[...] = start[:3, :3, None]
+        p = np.empty((3, n))
+        p[...] = start[:3, 3:]
+
+        def apply(C: np.ndarray) -> None:
+            for i in range(3):
+                p[i] += C[:3, 3] @ R[i]
+                R[i] = C[:3, :3].T @ R[i]
+
+        for j in range(self.nq):
+            apply(self._steps[j])
+            c, s = np.cos(q[:, j]), np.sin(q[:, j])
+            x, y = R[:, 0, :].copy(), R[:, 1, :]
+            R[:, 0, :] = x * c + y * s
+            R[:, 1, :] = y * c - x * s
+        last = self._carried @ self.flange
+        apply(last if tail is None else last @ tail)
+        return R, p

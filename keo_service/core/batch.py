@@ -1,0 +1,573 @@
+"""The estimator over whole recordings at once: the same output as feeding `Estimator` one
+sample at a time in time-stamp order (`run_offline`), computed with array operations.
+
+Streaming semantics, restated for arrays (see `estimator.py` for the one-sample version):
+
+* Input order is the two-pointer merge of the streams (encoder first on ties). Each sample
+  gets its position in that merged order ("event"); rejects are decided per sample from the
+  running maximum of earlier good stamps.
+* A tracker sample waits in a FIFO until the encoder stream reaches its delayed time or it
+  has waited `stale_after_s` of tracker time; it is resolved at the first event where either
+  holds, and never before its predecessor (a running maximum of those events).
+* At that event the encoder buffer holds the accepted encoder samples seen so far (at most
+  its capacity), so interpolation and its verdicts (gap, stale, too old) follow from the
+  number of encoder samples accepted by then.
+* The observer recursion x_k = (1 - a_k) x_{k-1} + a_k m_k with a_k = 1 - exp(-L dt_k) is a
+  linear recurrence: solved in blocks (a loop over the position inside a block for all
+  blocks at once, then a loop over blocks), which keeps each value within a few roundings
+  of the sequential loop.
+
+What it does not cover raises `BatchUnsupportedError` and the caller runs the streaming path:
+"latest" alignment, more than MAX_PENDING samples waiting at once, non-finite kinematics.
+No I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from keo_service.core.chain import Chain
+from keo_service.core.estimator import (
+    DIRECTION_DEADBAND,
+    MAX_MESSAGES,
+    MAX_PENDING,
+    OUTSIDE_CALIBRATED_RANGE,
+    UNIT_QUATERNION_TOLERANCE,
+    Estimate,
+    EstimatorSettings,
+)
+from keo_service.core.kinematics import Cell, channels_for
+
+__all__ = ["BatchResult", "BatchUnsupportedError", "estimate_batch", "measured_errors"]
+
+RECENT_INTERVALS = 64  # the estimator's window of tracker intervals for the step cap
+CAP_REFRESH = 16  # ... refreshed every this many intervals
+CAP_MIN_INTERVALS = 8
+CHUNK = 8192  # rows per pass of the kinematics
+# held reasons in the estimator's words; code 0 is "not held"
+HELD_REASONS = ("", "encoder_stale", "encoder_too_old", "encoder_gap")
+
+
+class BatchUnsupportedError(Exception):
+    """This input needs the streaming estimator (the message says why)."""
+
+
+@dataclass(frozen=True)
+class BatchResult:
+    """One row per estimate, in output order."""
+
+    t: np.ndarray  # (n,)
+    measured: np.ndarray  # (n, C); NaN where held
+    estimate: np.ndarray  # (n, C)
+    flags: list[str]  # "" or the flags joined by "|"
+    encoder_t: np.ndarray  # (n,) the encoder time evaluated
+    joints: np.ndarray  # (n, nq); NaN where held
+    channels: tuple[str, ...]
+    counters: dict[str, int]
+    messages: list[str]
+
+    @property
+    def held(self) -> np.ndarray:
+        held: np.ndarray = (
+            np.isnan(self.measured).any(axis=1)
+            if self.measured.size
+            else (np.zeros(self.t.size, dtype=bool))
+        )
+        return held
+
+    def to_estimates(self) -> list[Estimate]:
+        """The same rows as `Estimate` objects (what `run_offline` returns)."""
+        out = []
+        held = self.held
+        for k in range(self.t.size):
+            flags = tuple(self.flags[k].split("|")) if self.flags[k] else ()
+            if held[k]:
+                out.append(
+                    Estimate(
+                        float(self.t[k]),
+                        None,
+                        self.estimate[k].copy(),
+                        flags,
+                        float(self.encoder_t[k]),
+                        self.channels,
+                    )
+                )
+            else:
+                out.append(
+                    Estimate(
+                        float(self.t[k]),
+                        self.measured[k].copy(),
+                        self.estimate[k].copy(),
+                        flags,
+                        float(self.encoder_t[k]),
+                        self.channels,
+                        self.joints[k].copy(),
+                    )
+                )
+        return out
+
+
+# ---- kinematics over arrays ------------------------------------------------------------------
+
+
+def measured_errors(
+    cell: Cell,
+    chain: Chain,
+    q: np.ndarray,
+    p_ks: np.ndarray,
+    quat_ks: np.ndarray | None,
+    direction: np.ndarray | None = None,
+) -> np.ndarray:
+    """`kinematics.measured_error` for N samples at once: (N, 6), or (N, 3) without
+    orientation. `quat_ks` (N, 4) unit quaternions, scalar first."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    corr = cell.corrections
+    if corr is not None:
+        tau = None
+        if np.any(corr.compliance) and cell.nominal_model is not None:
+            from pinocchio import computeGeneralizedGravity
+
+            tau = np.array(
+                [computeGeneralizedGravity(cell.nominal_model, cell.gravity_data, qi) for qi in q]
+            )
+        q = corr.joint_angles(q, tau, direction)
+    # everything in the tracker frame k: T_kt = T_bk^-1 T_bt(q), then T_ts = T_kt^-1 T_ks
+    R_kt, p_kt = chain.flange_frames(
+        q, head=cell.T_bk.inverse().homogeneous, tail=cell.T_nt.homogeneous
+    )  # (3, 3, N), (3, N)
+    d = np.asarray(p_ks, dtype=float).T - p_kt
+    p_ts = R_kt[0] * d[0] + R_kt[1] * d[1] + R_kt[2] * d[2]  # R_kt^T (p_ks - p_kt)
+    out = np.empty((q.shape[0], 3 if quat_ks is None else 6))
+    out[:, :3] = p_ts.T
+    if quat_ks is None:
+        return out
+    R_ks = _quaternion_matrices(np.asarray(quat_ks, dtype=float))
+    R_ts = np.empty_like(R_ks)
+    for i in range(3):
+        for k in range(3):
+            R_ts[i, k] = R_kt[0, i] * R_ks[0, k] + R_kt[1, i] * R_ks[1, k] + R_kt[2, i] * R_ks[2, k]
+    out[:, 3:] = _log3(R_ts)
+    return out
+
+
+def _quaternion_matrices(wxyz: np.ndarray) -> np.ndarray:
+    """(3, 3, N) rotation matrices of quaternions (N, 4), scalar first, normalised here (as
+    Pinocchio does per sample)."""
+    w, x, y, z = (wxyz / np.sqrt(np.einsum("ij,ij->i", wxyz, wxyz))[:, None]).T
+    R = np.empty((3, 3, wxyz.shape[0]))
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    R[0, 0] = 1.0 - 2.0 * (yy + zz)
+    R[0, 1] = 2.0 * (xy - wz)
+    R[0, 2] = 2.0 * (xz + wy)
+    R[1, 0] = 2.0 * (xy + wz)
+    R[1, 1] = 1.0 - 2.0 * (xx + zz)
+    R[1, 2] = 2.0 * (yz - wx)
+    R[2, 0] = 2.0 * (xz - wy)
+    R[2, 1] = 2.0 * (yz + wx)
+    R[2, 2] = 1.0 - 2.0 * (xx + yy)
+    return R
+
+
+def _log3(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (N, 3) of rotations (3, 3, N): angle atan2(sin, cos) from the skew
+    part and the trace, exact near zero (the errors keo sees); within 0.45 rad of a half
+    turn, where the skew part vanishes, scipy's quaternion route takes over."""
+    v = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    sin = np.sqrt(np.einsum("in,in->n", v, v))
+    cos = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    angle = np.arctan2(sin, cos)
+    scale = np.ones_like(angle)
+    moving = sin > 0.0
+    scale[moving] = angle[moving] / sin[moving]
+    out: np.ndarray = (v * scale).T
+    far = cos < -0.9
+    if far.any():
+        from scipy.spatial.transform import Rotation  # rare: kept off the import path
+
+        out[far] = Rotation.from_matrix(np.moveaxis(R[:, :, far], 2, 0)).as_rotvec()
+    return out
+
+
+# ---- the linear recurrence -------------------------------------------------------------------
+
+
+def first_order_recursion(x0: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """x_k = b_k x_{k-1} + c_k for k = 0..n-1 (rows), from x0; returns (n, C).
+
+    Blocks of about sqrt(n): within each block from zero for all blocks at once, then the
+    block ends carried through in order, then every row gets its carry times the block's
+    running product. No product is divided by, so nothing overflows (an underflowed product
+    is a carry that really has decayed to nothing)."""
+    n, channels = c.shape
+    if n == 0:
+        return np.empty((0, channels))
+    size = max(16, math.isqrt(n))
+    blocks = -(-n // size)
+    pad = blocks * size - n
+    # (position in block, block, channel): each step below reads and writes contiguous rows
+    bb = np.concatenate([b, np.ones((pad, channels))]).reshape(blocks, size, channels)
+    cc = np.concatenate([c, np.zeros((pad, channels))]).reshape(blocks, size, channels)
+    bb = np.ascontiguousarray(bb.transpose(1, 0, 2))
+    local = np.ascontiguousarray(cc.transpose(1, 0, 2))  # becomes the from-zero solution
+    product = bb  # becomes the running product of b inside each block
+    scratch = np.empty((blocks, channels))
+    for k in range(1, size):
+        np.multiply(bb[k], local[k - 1], out=scratch)
+        local[k] += scratch
+        product[k] *= product[k - 1]
+    carry = np.empty((blocks, channels))  # the state entering each block
+    state = np.asarray(x0, dtype=float)
+    for i in range(blocks):
+        carry[i] = state
+        state = product[-1, i] * state + local[-1, i]
+    local += product * carry[None, :, :]
+    out: np.ndarray = local.transpose(1, 0, 2).reshape(blocks * size, channels)[:n]
+    return out
+
+
+# ---- the estimator -------------------------------------------------------------------------
+
+
+def _merge_counts(enc_t: np.ndarray, trk_t: np.ndarray) -> np.ndarray:
+    """For each tracker sample, how many encoder samples the time-stamp merge (encoder first
+    on ties, as `run_offline`) puts before it."""
+    if enc_t.size == 0:
+        return np.zeros(trk_t.size, dtype=np.int64)
+    if np.all(np.isfinite(enc_t)) and np.all(np.diff(enc_t) >= 0):
+        # the merge takes encoders while e <= t; NaN tracker stamps take all that are left
+        counts: np.ndarray = np.searchsorted(enc_t, trk_t, side="right")
+        return np.maximum.accumulate(counts) if counts.size else counts
+    out = np.empty(trk_t.size, dtype=np.int64)
+    e = enc_t.tolist()
+    i = 0
+    for j, tj in enumerate(trk_t.tolist()):
+        while i < len(e) and not e[i] > tj:
+            i += 1
+        out[j] = i
+    return out
+
+
+def _prior_max(t: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """For each sample, the largest stamp among earlier samples for which `counts` is True
+    (-inf when none)."""
+    masked = np.where(counts, t, -np.inf)
+    prior = np.empty_like(masked)
+    if masked.size:
+        prior[0] = -np.inf
+        prior[1:] = np.maximum.accumulate(masked)[:-1]
+    return prior
+
+
+def _first_beyond(t_acc: np.ndarray, limit: float) -> np.ndarray:
+    """For each accepted tracker sample a, the first later b with t_b - t_a > limit (the
+    estimator's own subtraction), or t_acc.size."""
+    n = t_acc.size
+    b = np.searchsorted(t_acc, t_acc + limit, side="right")
+    idx = np.arange(n)
+    for _ in range(8):  # rounding of t + limit vs t_b - t_a: settle the boundary
+        earlier = (b > idx + 1) & ((t_acc[np.maximum(b - 1, 0)] - t_acc) > limit)
+        later = (b < n) & ~((t_acc[np.minimum(b, n - 1)] - t_acc) > limit)
+        if not (earlier.any() or later.any()):
+            break
+        b = b - earlier + later
+    return np.maximum(b, idx + 1)
+
+
+def _step_caps(settings: EstimatorSettings, intervals: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """The estimator's cap on each update's dt (`Estimator._max_step`), for updates that saw
+    `seen` tracker intervals: max_dt_s until 8 were seen, then 3 x the median of the last 64,
+    recomputed at the first such update and whenever the count is a multiple of 16."""
+    caps = np.full(seen.size, settings.max_dt_s)
+    valid = seen >= CAP_MIN_INTERVALS
+    if not valid.any():
+        return caps
+    first = int(np.argmax(valid))
+    recompute = valid & (seen % CAP_REFRESH == 0)
+    recompute[first] = True
+    where = np.flatnonzero(recompute)
+    counts = seen[where]
+    values = np.empty(where.size)
+    full = counts >= RECENT_INTERVALS
+    if full.any():
+        windows = sliding_window_view(intervals, RECENT_INTERVALS)[counts[full] - RECENT_INTERVALS]
+        # np.median of an even count: the mean of the two middle values; a sort is 10x
+        # faster than median's partition here, and (a + b) / 2 is what median computes
+        middle = np.sort(windows, axis=1)[:, RECENT_INTERVALS // 2 - 1 : RECENT_INTERVALS // 2 + 1]
+        values[full] = (middle[:, 0] + middle[:, 1]) / 2.0
+    for k in np.flatnonzero(~full):
+        values[k] = np.median(intervals[: counts[k]])
+    values = np.minimum(settings.max_dt_s, 3.0 * values)
+    last = np.maximum.accumulate(np.where(recompute, np.arange(seen.size), -1))
+    caps[valid] = values[np.searchsorted(where, last[valid])]
+    return caps
+
+
+def _directions(t: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Each joint's direction of its last move after each accepted encoder sample."""
+    out = np.zeros_like(q)
+    if q.shape[0] < 2:
+        return out
+    step = np.diff(q, axis=0)
+    dt = np.maximum(np.diff(t), 1e-6)
+    moved = np.abs(step) > DIRECTION_DEADBAND * dt[:, None]
+    rows = np.arange(1, q.shape[0])[:, None]
+    last = np.maximum.accumulate(np.where(moved, rows, 0), axis=0)
+    signs = np.zeros_like(q)
+    signs[1:] = np.sign(step)
+    out[1:] = np.take_along_axis(signs, last, axis=0)
+    return out
+
+
+def estimate_batch(
+    cell: Cell,
+    settings: EstimatorSettings,
+    encoder_t: np.ndarray,
+    encoder_q: np.ndarray,
+    tracker_t: np.ndarray,
+    tracker_p: np.ndarray,
+    tracker_quat: np.ndarray | None,
+) -> BatchResult:
+    """What `run_offline(Estimator(cell, settings), ...)` returns, as arrays."""
+    if settings.alignment != "interpolate":
+        raise BatchUnsupportedError(f"alignment {settings.alignment!r} runs sample by sample")
+    if settings.start not in ("zero", "first"):
+        raise BatchUnsupportedError(f"observer start {settings.start!r}")
+    nq = cell.robot.nq
+    enc_t = np.asarray(encoder_t, dtype=float).reshape(-1)
+    enc_q = np.asarray(encoder_q, dtype=float).reshape(enc_t.size, nq)
+    trk_t = np.asarray(tracker_t, dtype=float).reshape(-1)
+    trk_p = np.asarray(tracker_p, dtype=float).reshape(trk_t.size, 3)
+    trk_quat = (
+        None if tracker_quat is None else np.asarray(tracker_quat, dtype=float).reshape(-1, 4)
+    )
+    counters: dict[str, int] = {}
+    rejects: list[tuple[int, str]] = []  # (event position, message)
+
+    def count(name: str, n: int) -> None:
+        if n:
+            counters[name] = counters.get(name, 0) + int(n)
+
+    # ---- merged order
+    before = _merge_counts(enc_t, trk_t)  # encoders ahead of each tracker sample
+    trk_pos = before + np.arange(trk_t.size)
+    enc_pos = np.arange(enc_t.size) + np.searchsorted(before, np.arange(enc_t.size), "right")
+
+    # ---- encoder acceptance
+    enc_finite = np.isfinite(enc_t) & np.isfinite(enc_q).all(axis=1)
+    enc_newest = _prior_max(enc_t, enc_finite)
+    enc_ok = enc_finite & (enc_t > enc_newest)
+    enc_dup = enc_finite & (enc_t == enc_newest)
+    enc_old = enc_finite & (enc_t < enc_newest)
+    for name, mask in (
+        ("encoder_non_finite", ~enc_finite),
+        ("encoder_duplicate", enc_dup),
+        ("encoder_out_of_order", enc_old),
+    ):
+        count(name, mask.sum())
+        count("rejected", mask.sum())
+    enc_bad = np.flatnonzero(~enc_ok)
+    for i in enc_bad:
+        t = float(enc_t[i])
+        if not enc_finite[i]:
+            msg = f"encoder sample at t={t!r}: non-finite time or joint value"
+        elif enc_dup[i]:
+            msg = f"encoder sample at t={t!r}: duplicate stamp"
+        else:
+            msg = f"encoder sample at t={t!r}: older than the newest ({float(enc_newest[i])!r})"
+        rejects.append((int(enc_pos[i]), msg))
+    if enc_ok.all():
+        E, Q, E_pos = enc_t, enc_q, enc_pos
+    else:
+        E, Q, E_pos = enc_t[enc_ok], enc_q[enc_ok], enc_pos[enc_ok]
+    count("encoder_samples", E.size)
+
+    # ---- tracker acceptance (time first, then values)
+    t_finite = np.isfinite(trk_t)
+    values_finite = np.isfinite(trk_p).all(axis=1)
+    norm = np.ones(trk_t.size)
+    if trk_quat is not None:
+        values_finite &= np.isfinite(trk_quat).all(axis=1)
+        with np.errstate(invalid="ignore"):
+            norm = np.sqrt(np.einsum("ij,ij->i", trk_quat, trk_quat))
+    unit = ~(np.abs(norm - 1.0) > UNIT_QUATERNION_TOLERANCE)
+    passing = t_finite & values_finite & unit
+    last_t = _prior_max(trk_t, passing)
+    dup = t_finite & (trk_t == last_t)
+    old = t_finite & (trk_t < last_t)
+    timely = t_finite & ~dup & ~old
+    non_finite_value = timely & ~values_finite
+    not_unit = timely & values_finite & ~unit
+    accepted = timely & values_finite & unit
+    for name, mask in (
+        ("tracker_non_finite", ~t_finite | non_finite_value),
+        ("tracker_duplicate", dup),
+        ("tracker_out_of_order", old),
+        ("tracker_not_unit_quaternion", not_unit),
+    ):
+        count(name, mask.sum())
+        count("rejected", mask.sum())
+    for j in np.flatnonzero(~accepted):
+        t = float(trk_t[j])
+        if not t_finite[j]:
+            msg = f"tracker sample: non-finite time {t!r}"
+        elif dup[j]:
+            msg = f"tracker sample at t={t!r}: duplicate stamp"
+        elif old[j]:
+            msg = f"tracker sample at t={t!r}: older than the previous one ({float(last_t[j])!r})"
+        elif non_finite_value[j]:
+            msg = f"tracker sample at t={t!r}: non-finite value"
+        else:
+            msg = f"tracker sample at t={t!r}: quaternion norm {float(norm[j]):.6g}, expected 1"
+        rejects.append((int(trk_pos[j]), msg))
+    rejects.sort(key=lambda item: item[0])
+    messages = [m for _p, m in rejects[-MAX_MESSAGES:]]
+
+    channels = channels_for(trk_quat is None)
+    every = bool(accepted.all())
+    T = trk_t if every else trk_t[accepted]
+    n = T.size
+    count("tracker_samples", n)
+    if n == 0:
+        return BatchResult(
+            np.empty(0),
+            np.empty((0, 0)),
+            np.empty((0, 0)),
+            [],
+            np.empty(0),
+            np.empty((0, nq)),
+            (),
+            counters,
+            messages,
+        )
+    counters["channels"] = len(channels)
+    P = trk_p if every else trk_p[accepted]
+    # normalised once, where the measured error is formed (the estimator normalises twice;
+    # the difference is a rounding)
+    quat = trk_quat if trk_quat is None or every else trk_quat[accepted]
+    arrival = trk_pos if every else trk_pos[accepted]
+
+    # ---- when each sample is resolved
+    never = np.iinfo(np.int64).max
+    target = T - (settings.delay.offset_s + settings.delay.drift * (T - settings.delay.t_ref))
+    first_cover = np.searchsorted(E, target, side="left")
+    covered_at = np.full(n, never)
+    if E.size:
+        covers = first_cover < E.size
+        covered_at[covers] = E_pos[first_cover[covers]]
+    stale_index = _first_beyond(T, settings.stale_after_s)
+    stale_at = np.where(stale_index < n, arrival[np.minimum(stale_index, n - 1)], never)
+    ready = np.minimum(np.maximum(arrival, covered_at), stale_at)
+    resolved = np.maximum.accumulate(ready)
+    waiting = np.arange(n) - np.minimum(np.arange(n), np.searchsorted(resolved, arrival, "left"))
+    if waiting.max() >= MAX_PENDING:
+        raise BatchUnsupportedError(f"more than {MAX_PENDING} tracker samples wait at once")
+    have = np.searchsorted(E_pos, resolved, side="right")  # encoder samples in the buffer by then
+    seen = np.searchsorted(arrival, resolved, side="right") - 1  # tracker intervals by then
+
+    # ---- interpolation and its verdicts
+    capacity = max(64, math.ceil(settings.buffer_s * 2000.0))
+    reason = np.zeros(n, dtype=np.int8)
+    newest = np.where(have > 0, E[np.maximum(have - 1, 0)] if E.size else 0.0, -np.inf)
+    oldest = np.where(have > 0, E[np.maximum(have - capacity, 0)] if E.size else 0.0, np.inf)
+    reason[(have == 0) | (target > newest)] = 1
+    reason[(reason == 0) & (target < oldest)] = 2
+    g = np.minimum(first_cover, max(E.size - 1, 0))
+    pending = reason == 0
+    exact = pending & (E[g] == target) if E.size else pending
+    between = pending & ~exact
+    g0 = np.maximum(g - 1, 0)
+    t0, t1 = (E[g0], E[g]) if E.size else (np.zeros(n), np.zeros(n))
+    reason[between & (t1 - t0 > settings.max_gap_s)] = 3
+    ok = reason == 0
+    reason[ok & (target < newest - settings.buffer_s)] = 2
+    ok = reason == 0
+    # ---- joints and measured error, in chunks that stay in cache (whole-recording
+    # temporaries cost more in page faults than in arithmetic)
+    channel_count = len(channels)
+    joints = np.full((n, nq), np.nan)
+    measured = np.full((n, channel_count), np.nan)
+    corr = cell.corrections
+    direction = None
+    if corr is not None and np.any(corr.backlash) and E.size:
+        direction = _directions(E, Q)[np.maximum(have - 1, 0)]
+    chain = Chain(cell.robot)
+    for lo in range(0, n if E.size and ok.any() else 0, CHUNK):
+        rows = slice(lo, lo + CHUNK)
+        q0, q1 = Q[g0[rows]], Q[g[rows]]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = (target[rows] - t0[rows]) / (t1[rows] - t0[rows])
+            chunk = np.where(exact[rows, None], q1, q0 + w[:, None] * (q1 - q0))
+        chunk[~ok[rows]] = 0.0  # held rows: any finite joints, their result is discarded
+        joints[rows] = chunk
+        measured[rows] = measured_errors(
+            cell,
+            chain,
+            chunk,
+            P[rows],
+            None if quat is None else quat[rows],
+            None if direction is None else direction[rows],
+        )
+    joints[~ok] = np.nan
+    measured[~ok] = np.nan
+    if not np.isfinite(measured[ok]).all():
+        raise BatchUnsupportedError("the kinematics gave a non-finite error")
+    gains = np.asarray(settings.gains[: len(channels)], dtype=float)
+    upd = np.flatnonzero(ok)
+    estimate = np.zeros((n, len(channels)))
+    if upd.size:
+        m = measured[upd]
+        if settings.start == "first":
+            x0 = m[0]
+        else:
+            first_dt = 1.0 / settings.sample_rate_hz  # as if one sample period had passed
+            x0 = -np.expm1(-gains * first_dt) * m[0]
+        intervals = np.diff(T)
+        caps = _step_caps(settings, intervals, seen[upd[1:]])
+        dt = np.minimum(np.diff(T[upd]), caps)
+        states = np.empty((upd.size, len(channels)))
+        states[0] = x0
+        state = x0
+        for lo in range(0, dt.size, CHUNK):  # chunks stay in cache; the state carries over
+            rows = slice(lo, lo + CHUNK)
+            alpha = -np.expm1(-gains[None, :] * dt[rows, None])
+            block = first_order_recursion(state, 1.0 - alpha, alpha * m[1:][rows])
+            states[1 + lo : 1 + lo + block.shape[0]] = block
+            state = block[-1]
+        # every row carries the state after the newest update at or before it
+        latest = np.maximum.accumulate(np.where(ok, np.arange(n), -1))
+        has = latest >= 0
+        estimate[has] = states[np.searchsorted(upd, latest[has])]
+    count("estimates", upd.size)
+
+    # ---- flags and counters
+    names = np.array(HELD_REASONS, dtype=object)
+    flags = names[reason]
+    for code, name in enumerate(HELD_REASONS):
+        if code:
+            count(f"held_{name}", int(np.sum(reason == code)))
+    ranges = corr.map_ranges() if corr is not None else []
+    spans = [(j, r) for j, r in enumerate(ranges) if r is not None]
+    if spans and ok.any():
+        cols = [j for j, _r in spans]
+        low = np.array([r[0] for _j, r in spans])
+        high = np.array([r[1] for _j, r in spans])
+        outside = ok.copy()
+        outside[ok] = np.any((joints[ok][:, cols] < low) | (joints[ok][:, cols] > high), axis=1)
+        flags[outside] = OUTSIDE_CALIBRATED_RANGE
+        count(OUTSIDE_CALIBRATED_RANGE, int(outside.sum()))
+    return BatchResult(
+        t=T,
+        measured=measured,
+        estimate=estimate,
+        flags=flags.tolist(),
+        encoder_t=target,
+        joints=joints,
+        channels=channels,
+        counters=counters,
+        messages=messages,
+    )

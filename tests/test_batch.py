@@ -1,0 +1,239 @@
+"""The batch path (`core.batch.estimate_batch`) against the streaming estimator fed sample by
+sample (`run_offline`): the same rows, values to 1e-12, flags, counters and messages, on every
+simulator scenario and on hand-made faults in both streams."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from keo_service.core.batch import (
+    BatchUnsupportedError,
+    estimate_batch,
+    first_order_recursion,
+    measured_errors,
+)
+from keo_service.core.chain import Chain
+from keo_service.core.corrections import Corrections
+from keo_service.core.estimator import Estimator, run_offline
+from keo_service.core.kinematics import Cell, measured_error
+from keo_service.core.timing import DelayModel
+from keo_service.io.cell import estimator_settings
+from keo_service.io.interchange import read_estimates
+from keo_service.sim.simulate import SCENARIOS, make_scenario, simulate
+from tests.conftest import DEMO, keo
+
+TOL = 1e-12
+
+
+def compare(cell, settings, enc_t, enc_q, trk_t, trk_p, trk_quat):
+    streaming = Estimator(cell, settings)
+    reference = run_offline(streaming, enc_t, enc_q, trk_t, trk_p, trk_quat)
+    batch = estimate_batch(cell, settings, enc_t, enc_q, trk_t, trk_p, trk_quat)
+    got = batch.to_estimates()
+    assert len(got) == len(reference)
+    for g, r in zip(got, reference, strict=True):
+        assert g.t == r.t
+        assert g.flags == r.flags, (g.t, g.flags, r.flags)
+        assert (g.measured is None) == (r.measured is None), g.t
+        if r.measured is not None:
+            assert np.max(np.abs(g.measured - r.measured)) < TOL
+            assert np.max(np.abs(g.joints - r.joints)) < TOL
+        assert np.max(np.abs(g.estimate - r.estimate), initial=0.0) < TOL
+        assert g.encoder_t == pytest.approx(r.encoder_t, abs=0.0)
+    assert batch.counters == dict(streaming.counters)
+    assert batch.messages == list(streaming.messages)
+    return batch, reference
+
+
+def streams(run):
+    return (run.encoder.t, run.encoder.q, run.tracker.t, run.tracker.p, run.tracker.quat)
+
+
+@pytest.mark.parametrize("scenario", SCENARIOS)
+@pytest.mark.parametrize("start", ["zero", "first"])
+def test_every_scenario_equals_the_streaming_estimator(demo_cell, demo_config, scenario, start):
+    run = simulate(demo_cell, make_scenario(scenario), seed=11)
+    settings = dataclasses.replace(estimator_settings(demo_config), start=start)
+    batch, reference = compare(demo_cell, settings, *streams(run))
+    assert len(reference) > 100
+    if scenario != "static-poses":  # poses far apart in time: every step is an encoder gap
+        assert batch.counters["estimates"] > 0
+
+
+def test_position_only_equals_the_streaming_estimator(demo_cell, demo_config):
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "6"}), seed=2)
+    enc_t, enc_q, trk_t, trk_p, _quat = streams(run)
+    batch, _ = compare(demo_cell, estimator_settings(demo_config), enc_t, enc_q, trk_t, trk_p, None)
+    assert batch.channels == ("px", "py", "pz")
+
+
+def _faulty(run):
+    """Bad rows of every kind in both streams, and dropouts long enough to hold steps."""
+    enc_t, enc_q = run.encoder.t.copy(), run.encoder.q.copy()
+    trk_t, trk_p = run.tracker.t.copy(), run.tracker.p.copy()
+    quat = run.tracker.quat.copy()
+    enc_q[10, 2] = np.nan  # non-finite joint
+    enc_t[20] = enc_t[19]  # duplicate stamp
+    enc_t[30] = enc_t[25]  # older than the newest
+    enc_t[40] = np.inf
+    keep = (run.encoder.t < 3.0) | (run.encoder.t > 3.6)  # a 0.6 s hole: encoder gap
+    enc_t, enc_q = enc_t[keep], enc_q[keep]
+    trk_p[5, 1] = np.nan
+    quat[7] = [0.9, 0.1, 0.0, 0.0]  # not a unit quaternion
+    quat[8, 0] = np.inf
+    trk_t[50] = trk_t[49]  # duplicate
+    trk_t[60] = trk_t[55]  # out of order
+    trk_t[70] = np.nan
+    tkeep = (run.tracker.t < 5.0) | (run.tracker.t > 5.4)  # a tracker dropout
+    return enc_t, enc_q, trk_t[tkeep], trk_p[tkeep], quat[tkeep]
+
+
+def test_faults_in_both_streams_equal_the_streaming_estimator(demo_cell, demo_config):
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "10"}), seed=5)
+    batch, _ = compare(demo_cell, estimator_settings(demo_config), *_faulty(run))
+    c = batch.counters
+    for name in (
+        "encoder_non_finite",
+        "encoder_duplicate",
+        "encoder_out_of_order",
+        "tracker_non_finite",
+        "tracker_duplicate",
+        "tracker_out_of_order",
+        "tracker_not_unit_quaternion",
+        "held_encoder_gap",
+    ):
+        assert c.get(name, 0) > 0, name
+
+
+def test_encoder_ending_early_and_too_old_and_stale(demo_cell, demo_config):
+    """The encoder stops before the tracker (stale, resolved at flush) and a delay longer than
+    the buffer (too old)."""
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "8"}), seed=6)
+    enc_t, enc_q, trk_t, trk_p, quat = streams(run)
+    keep = enc_t < 6.0
+    settings = estimator_settings(demo_config)
+    batch, _ = compare(demo_cell, settings, enc_t[keep], enc_q[keep], trk_t, trk_p, quat)
+    assert batch.counters["held_encoder_stale"] > 0
+    late = dataclasses.replace(settings, delay=DelayModel(offset_s=-2.5), buffer_s=1.0)
+    batch, _ = compare(demo_cell, late, enc_t, enc_q, trk_t, trk_p, quat)
+    assert (
+        batch.counters.get("held_encoder_too_old", 0) + batch.counters.get("held_encoder_stale", 0)
+        > 0
+    )
+    drift = dataclasses.replace(settings, delay=DelayModel(0.004, 2e-4, 1.0))
+    compare(demo_cell, drift, enc_t, enc_q, trk_t, trk_p, quat)
+
+
+def test_a_corrected_model_with_backlash_compliance_and_maps(demo_cell, demo_config):
+    """Every joint correction the live estimator applies, including the direction of motion
+    for backlash and the flag outside a map's calibrated range."""
+    nq = demo_cell.robot.nq
+    rng = np.random.default_rng(3)
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "6"}), seed=9)
+    lo, hi = np.percentile(run.encoder.q[:, 0], [25, 75])
+    knots = np.linspace(lo, hi, 11)  # joint 1 leaves this range: flagged there
+    corr = Corrections(
+        nq,
+        joint_offsets=rng.normal(0, 1e-4, nq),
+        compliance=np.full(nq, 1e-7),
+        backlash=np.full(nq, 5e-5),
+        cyclic=rng.normal(0, 1e-5, (nq, 2, 2)),
+        maps=((knots, rng.normal(0, 2e-4, knots.size)),) + ((np.empty(0), np.empty(0)),) * (nq - 1),
+    )
+    nominal = demo_cell.robot.model
+    cell = Cell(
+        demo_cell.robot,
+        demo_cell.T_nt,
+        demo_cell.T_bk,
+        corrections=corr,
+        nominal_model=nominal,
+        gravity_data=nominal.createData(),
+    )
+    batch, _ = compare(cell, estimator_settings(demo_config), *streams(run))
+    assert batch.counters.get("outside_calibrated_range", 0) > 0
+
+
+def test_vectorised_measured_error_equals_the_per_sample_one(demo_cell):
+    rng = np.random.default_rng(1)
+    n = 300
+    robot = demo_cell.robot
+    q = rng.uniform(np.maximum(robot.lower, -3), np.minimum(robot.upper, 3), (n, robot.nq))
+    p = rng.normal(0, 1.0, (n, 3))
+    quat = rng.normal(size=(n, 4))
+    quat /= np.linalg.norm(quat, axis=1)[:, None]
+    got = measured_errors(demo_cell, Chain(robot), q, p, quat)
+    data = robot.create_data()
+    want = np.array([measured_error(demo_cell, data, q[k], p[k], quat[k]) for k in range(n)])
+    assert np.max(np.abs(got - want)) < TOL
+
+
+def test_recursion_equals_the_sequential_loop():
+    rng = np.random.default_rng(0)
+    n = 5000
+    b = np.exp(-rng.uniform(0, 3, (n, 2)))  # including steps that forget almost everything
+    c = rng.normal(size=(n, 2))
+    x0 = np.array([1.0, -2.0])
+    want = np.empty((n, 2))
+    x = x0
+    for k in range(n):
+        x = b[k] * x + c[k]
+        want[k] = x
+    assert np.max(np.abs(first_order_recursion(x0, b, c) - want)) < 1e-12
+
+
+def test_latest_alignment_is_left_to_the_streaming_estimator(demo_cell, demo_config):
+    run = simulate(demo_cell, make_scenario("paper-step"), seed=1)
+    settings = dataclasses.replace(estimator_settings(demo_config), alignment="latest")
+    with pytest.raises(BatchUnsupportedError, match="latest"):
+        estimate_batch(demo_cell, settings, *streams(run))
+
+
+def test_keo_estimate_writes_what_the_streaming_estimator_gives(demo_cell, demo_config, tmp_path):
+    """The command end to end (files in, file out) against the per-sample estimator."""
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "8"}), seed=4)
+    enc_t, enc_q, trk_t, trk_p, quat = _faulty(run)
+    header = "t,x,y,z,qw,qx,qy,qz\n"
+    rows = np.column_stack([trk_t, trk_p, quat])
+    (tmp_path / "tracker.csv").write_text(
+        header + "\n".join(",".join(repr(float(v)) for v in r) for r in rows) + "\n"
+    )
+    enc_rows = np.column_stack([enc_t, enc_q])
+    (tmp_path / "encoder.csv").write_text(
+        "t,"
+        + ",".join(f"q{i + 1}" for i in range(enc_q.shape[1]))
+        + "\n"
+        + "\n".join(",".join(repr(float(v)) for v in r) for r in enc_rows)
+        + "\n"
+    )
+    res = keo(
+        "estimate",
+        "--config",
+        str(DEMO),
+        "--encoder",
+        str(tmp_path / "encoder.csv"),
+        "--tracker",
+        str(tmp_path / "tracker.csv"),
+        "--out",
+        str(tmp_path / "e.csv"),
+        "--json",
+    )
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(res.stdout)
+    assert summary["path"] == "batch"
+    table = read_estimates(tmp_path / "e.csv")
+    est = Estimator(demo_cell, estimator_settings(demo_config))
+    reference = run_offline(est, enc_t, enc_q, trk_t, trk_p, quat)
+    assert table.t.size == len(reference)
+    assert summary["counters"] == dict(est.counters)
+    want_meas = np.array(
+        [r.measured if r.measured is not None else [np.nan] * 6 for r in reference]
+    )
+    assert np.array_equal(np.isnan(table.measured), np.isnan(want_meas))
+    ok = ~np.isnan(want_meas)
+    assert np.max(np.abs(table.measured[ok] - want_meas[ok])) < TOL
+    assert np.max(np.abs(table.estimate - np.array([r.estimate for r in reference]))) < TOL
+    assert table.flags == ["|".join(r.flags) for r in reference]
