@@ -9,6 +9,8 @@ from __future__ import annotations
 import dataclasses
 import os
 import platform
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -30,7 +32,7 @@ from keo_service.io.config import Config, config_to_toml
 from keo_service.live.bus import session_for_client
 from keo_service.live.client import SyncClient
 from keo_service.live.messages import EstimateMessage, decode, topic
-from keo_service.sim.simulate import SimulatedRun, make_scenario, simulate
+from keo_service.sim.simulate import SimulatedRun, make_scenario, simulate, write_run
 
 TICK = os.sysconf("SC_CLK_TCK")
 
@@ -159,6 +161,52 @@ def naive_floor(config: Config, seconds: float, repeats: int = 5) -> dict[str, f
         rates.append(n / (time.process_time() - cpu0))
     rate = float(np.median(rates))
     return {"samples": n, "repeats": repeats, "samples_per_s": rate, "us_per_sample": 1e6 / rate}
+
+
+# ---- recordings: keo estimate as a command ----------------------------------------------------
+
+
+def _timed_command(args: list[str], log: Path) -> dict[str, float]:
+    """Run a keo command as its own process: wall and CPU seconds, peak resident memory."""
+    with log.open("w") as out:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen([sys.executable, "-m", "keo_service.cli", *args], stdout=out)
+        _pid, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise KeoError(f"keo {args[0]} exited {proc.returncode}: {log.read_text()[-500:]}")
+    return {
+        "wall_s": wall,
+        "cpu_s": usage.ru_utime + usage.ru_stime,
+        "peak_rss_mb": usage.ru_maxrss / 1024.0,
+    }
+
+
+def recording(
+    config: Config, seconds: float, floor_us_per_sample: float, streaming_too: bool = True
+) -> dict[str, Any]:
+    """`keo estimate` over `seconds` of a 1 kHz tracker and a 250 Hz robot (CSV in, CSV out,
+    process start included), beside the naive per-sample floor over the same tracker samples
+    and, when asked, the same command on the per-sample streaming path."""
+    run = _khz_run(config, seconds)
+    out: dict[str, Any] = {
+        "seconds": seconds,
+        "tracker_samples": int(run.tracker.t.size),
+        "encoder_samples": int(run.encoder.t.size),
+    }
+    out["floor_s"] = floor_us_per_sample * 1e-6 * run.tracker.t.size
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        write_run(run, folder)
+        cfg = folder / "keo.toml"
+        cfg.write_text(config_to_toml(config))
+        args = ["estimate", "--config", str(cfg), "--encoder", str(folder / "encoder.csv")]
+        args += ["--tracker", str(folder / "tracker.csv"), "--out", str(folder / "e.csv")]
+        out["batch"] = _timed_command(args, folder / "batch.log")
+        if streaming_too:
+            out["streaming"] = _timed_command([*args, "--streaming"], folder / "streaming.log")
+    return out
 
 
 # ---- 2./3. end to end --------------------------------------------------------------------------
@@ -423,6 +471,9 @@ def run_bench(config: Config, quick: bool) -> dict[str, Any]:
     out["naive_floor"] = naive_floor(config, hp_seconds)
     out["hot_path"] = hot_path(config, hp_seconds, with_rerun=False)
     out["hot_path_rerun"] = hot_path(config, hp_seconds, with_rerun=True)
+    out["recording"] = recording(
+        config, 60.0 if quick else 600.0, out["naive_floor"]["us_per_sample"]
+    )
     out["end_to_end"] = end_to_end(loopback_config(config), e2e_seconds)
     out["transport_floor"] = end_to_end(loopback_config(config), e2e_seconds, relay_only=True)
     if not quick:
@@ -464,6 +515,25 @@ def bench_table(r: dict[str, Any]) -> str:
         f"| hot path with Rerun logging (batched at 10 Hz) | {hpr['samples_per_s']:,.0f} "
         f"(x{hp['samples_per_s'] / hpr['samples_per_s']:.2f} the cost) |",
     ]
+
+    if "recording" in r:
+        rec = r["recording"]
+        b = rec["batch"]
+        lines.append(
+            f"| keo estimate, {rec['seconds']:.0f} s at 1 kHz ({rec['tracker_samples']:,} tracker, "
+            f"{rec['encoder_samples']:,} encoder rows; CSV in and out, process start included) | "
+            f"{b['wall_s']:.2f} s wall, {b['cpu_s']:.2f} s CPU, "
+            f"peak RSS {b['peak_rss_mb']:.0f} MB; "
+            f"naive floor over the same samples {rec['floor_s']:.2f} s; command / floor = "
+            f"{b['wall_s'] / rec['floor_s']:.2f} (wall), {b['cpu_s'] / rec['floor_s']:.2f} (CPU) |"
+        )
+        if "streaming" in rec:
+            st = rec["streaming"]
+            lines.append(
+                f"| keo estimate --streaming (per-sample path), same files | {st['wall_s']:.2f} s "
+                f"wall, {st['cpu_s']:.2f} s CPU, peak RSS {st['peak_rss_mb']:.0f} MB; batch is "
+                f"x{st['wall_s'] / b['wall_s']:.1f} faster |"
+            )
 
     def ms(d: dict[str, float | None]) -> str:
         return ", ".join(f"{k} {v:.2f} ms" for k, v in d.items() if v is not None)

@@ -42,9 +42,12 @@ class EstimatorSettings:
     start: str = "zero"  # observer's initial state: "zero" (the reference) or "first"
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Estimate:
-    """One observer output. `measured` is None when the step was held (see `flags`)."""
+    """One observer output. `measured` is None when the step was held (see `flags`).
+
+    Read-only by convention (not frozen: a frozen dataclass costs a fifth of the hot path's
+    budget to build, once per tracker sample)."""
 
     t: float
     measured: np.ndarray | None
@@ -60,7 +63,7 @@ class Estimate:
         return self.measured is None
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class _TrackerSample:
     t: float
     p: np.ndarray | None  # None: a gap reported by the tracker
@@ -188,25 +191,41 @@ class Estimator:
             self._last_tracker_t = t
             self.counters["tracker_gaps"] += 1
             return self._enqueue(_TrackerSample(t, None, None, tag))
-        p_arr = np.asarray(p, dtype=float)
-        q_arr = None if quat is None else np.asarray(quat, dtype=float)
-        if p_arr.shape != (3,) or (q_arr is not None and q_arr.shape != (4,)):
+        # validation on plain floats: for a good sample it costs less than one numpy call
+        p_list = p.tolist() if isinstance(p, np.ndarray) else list(p)
+        q_list = (
+            None
+            if quat is None
+            else quat.tolist()
+            if isinstance(quat, np.ndarray)
+            else (list(quat))
+        )
+        if len(p_list) != 3 or (q_list is not None and len(q_list) != 4):
             return self._reject(
                 "tracker_wrong_length",
                 f"tracker sample at t={t!r}: expected 3 position and 4 quaternion values",
             )
-        if not all_finite(p_arr) or (q_arr is not None and not all_finite(q_arr)):
+        try:
+            finite = math.isfinite(sum(p_list) + (0.0 if q_list is None else sum(q_list)))
+        except TypeError:
+            finite = False
+        if not finite and not (
+            all(_finite(v) for v in p_list) and all(_finite(v) for v in q_list or ())
+        ):
             return self._reject(
                 "tracker_non_finite", f"tracker sample at t={t!r}: non-finite value"
             )
-        if q_arr is not None:
-            norm = math.sqrt(float(q_arr @ q_arr))
+        p_arr = np.array(p_list, dtype=float)
+        q_arr = None
+        if q_list is not None:
+            w, x, y, z = (float(v) for v in q_list)
+            norm = math.sqrt(w * w + x * x + y * y + z * z)
             if abs(norm - 1.0) > UNIT_QUATERNION_TOLERANCE:
                 return self._reject(
                     "tracker_not_unit_quaternion",
                     f"tracker sample at t={t!r}: quaternion norm {norm:.6g}, expected 1",
                 )
-            q_arr = q_arr / norm
+            q_arr = np.array([w / norm, x / norm, y / norm, z / norm])
         channels = channels_for(q_arr is None)
         if self.channels is None:
             self.channels = channels
@@ -297,15 +316,8 @@ class Estimator:
         return out
 
     def _resolve(self, sample: _TrackerSample) -> Estimate:
-        est = self._resolve_untagged(sample)
-        if sample.tag is None:
-            return est
-        self.last = dataclasses.replace(est, source=sample.tag)
-        return self.last
-
-    def _resolve_untagged(self, sample: _TrackerSample) -> Estimate:
         if sample.p is None:
-            return self._held(sample.t, "tracker_gap", None)
+            return self._held(sample.t, "tracker_gap", None, sample.tag)
         target = self._delay.encoder_time(sample.t)
         coverage, q = self.encoder.interpolate(target, self.settings.max_gap_s)
         if coverage is Coverage.OK and target < self.encoder.newest_t - self.settings.buffer_s:
@@ -317,12 +329,17 @@ class Estimator:
                 Coverage.TOO_OLD: "encoder_too_old",
                 Coverage.GAP: "encoder_gap",
             }[coverage]
-            return self._held(sample.t, reason, target)
+            return self._held(sample.t, reason, target, sample.tag)
         measured = measured_error(self.cell, self._data, q, sample.p, sample.quat, self._direction)
-        return self._update(sample.t, measured, target, q)
+        return self._update(sample.t, measured, target, q, sample.tag)
 
     def _update(
-        self, t: float, measured: np.ndarray, encoder_t: float, joints: np.ndarray
+        self,
+        t: float,
+        measured: np.ndarray,
+        encoder_t: float,
+        joints: np.ndarray,
+        tag: object = None,
     ) -> Estimate:
         assert self.observer is not None
         assert self.channels is not None
@@ -337,7 +354,7 @@ class Estimator:
             dt = min(t - self._last_update_t, self._max_step())
             if not self.observer.update(measured, dt):
                 self.counters["observer_rejected"] += 1
-                return self._held(t, "observer_rejected", encoder_t)
+                return self._held(t, "observer_rejected", encoder_t, tag)
         self._last_update_t = t
         self.counters["estimates"] += 1
         flags: tuple[str, ...] = ()
@@ -346,15 +363,17 @@ class Estimator:
             if np.any(q < self._map_lo) or np.any(q > self._map_hi):
                 flags = (OUTSIDE_CALIBRATED_RANGE,)
                 self.counters[OUTSIDE_CALIBRATED_RANGE] += 1
-        est = Estimate(t, measured, self.observer.estimate, flags, encoder_t, self.channels, joints)
+        est = Estimate(
+            t, measured, self.observer.estimate, flags, encoder_t, self.channels, joints, tag
+        )
         self.last = est
         return est
 
-    def _held(self, t: float, reason: str, encoder_t: float | None) -> Estimate:
+    def _held(self, t: float, reason: str, encoder_t: float | None, tag: object = None) -> Estimate:
         self.counters[f"held_{reason}"] += 1
         channels = self.channels or ()
         state = self.observer.estimate if self.observer is not None else np.zeros(len(channels))
-        est = Estimate(t, None, state, (reason,), encoder_t, channels)
+        est = Estimate(t, None, state, (reason,), encoder_t, channels, None, tag)
         self.last = est
         return est
 
@@ -397,8 +416,16 @@ class Estimator:
         measured = measured_error(self.cell, self._data, enc[1], trk.p, trk.quat, self._direction)
         est = self._update(tau, measured, enc[0], enc[1])
         if trk.tag is not None and not est.held:
-            self.last = est = dataclasses.replace(est, source=trk.tag)
+            est.source = trk.tag
         return est
+
+
+def _finite(value: object) -> bool:
+    """A finite number (a huge but finite sum lands here, as does a non-number)."""
+    try:
+        return math.isfinite(float(value))  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return False
 
 
 def run_offline(

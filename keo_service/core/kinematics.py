@@ -39,7 +39,7 @@ def se3_from_xyz_quat(
     p: Sequence[float] | np.ndarray, q_wxyz: Sequence[float] | np.ndarray
 ) -> pin.SE3:
     """Pose from a position and a unit quaternion, scalar first (the wire and file order)."""
-    w, x, y, z = (float(v) for v in q_wxyz)
+    w, x, y, z = q_wxyz.tolist() if isinstance(q_wxyz, np.ndarray) else q_wxyz
     norm = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
     # one Pinocchio call (x, y, z, qx, qy, qz, qw): a quarter of Quaternion -> matrix -> SE3
     xyzquat = [p[0], p[1], p[2], x / norm, y / norm, z / norm, w / norm]
@@ -136,7 +136,12 @@ def tool_pose(
     each joint's direction of its last move, for backlash)."""
     if cell.corrections is not None:
         q = corrected_joints(cell, q, direction)
-    return flange_pose(cell.robot, data, q) * cell.T_nt
+    robot = cell.robot
+    pin.framesForwardKinematics(robot.model, data, q)
+    T_on = data.oMf[robot.flange_frame_id]  # a view into data: used before the next call
+    if robot.base_frame_id == 0:
+        return T_on * cell.T_nt
+    return data.oMf[robot.base_frame_id].actInv(T_on) * cell.T_nt
 
 
 def corrected_joints(cell: Cell, q: np.ndarray, direction: np.ndarray | None = None) -> np.ndarray:

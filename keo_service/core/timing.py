@@ -88,6 +88,20 @@ class EncoderBuffer:
     def interpolate(self, t: float, max_gap: float) -> tuple[Coverage, np.ndarray | None]:
         if self._count == 0:
             return Coverage.EMPTY, None
+        # the usual case at tracker rates: t within one of the newest few intervals (the
+        # delay is a few encoder periods); a short walk back costs less than a search
+        last = self._next + self.capacity - 1
+        t1 = float(self._t[last])
+        for k in range(last, last - min(self._count - 1, 8), -1):
+            t0 = float(self._t[k - 1])
+            if t0 < t < t1:
+                if t1 - t0 > max_gap:
+                    return Coverage.GAP, None
+                q0 = self._q[k - 1]
+                return Coverage.OK, q0 + ((t - t0) / (t1 - t0)) * (self._q[k] - q0)
+            if t >= t1:
+                break
+            t1 = t0
         ts, qs = self._window()
         if t > ts[-1]:
             return Coverage.NOT_YET, None
