@@ -191,6 +191,41 @@ def measured_error(
     return pose_error(T_bt, cell.T_bk * se3_from_xyz_quat(p_ks, q_ks))
 
 
+@dataclass(frozen=True)
+class FoldedFrames:
+    """The cell's constant transforms folded once, so that one measured error costs one forward
+    kinematics and three SE3 products: e = T_tn (T_on^-1 (T_ok T_ks)), with T_tn = T_nt^-1 and
+    T_ok = T_ob T_bk (the base frame is fixed in the model's origin frame)."""
+
+    flange_frame_id: int
+    T_tn: pin.SE3
+    T_ok: pin.SE3
+
+
+def fold_frames(cell: Cell) -> FoldedFrames | None:
+    """None when the base frame moves with a joint (then only `measured_error` applies)."""
+    robot = cell.robot
+    if robot.model.frames[robot.base_frame_id].parentJoint != 0:
+        return None
+    data = robot.create_data()
+    pin.framesForwardKinematics(robot.model, data, pin.neutral(robot.model))
+    T_ob = pin.SE3(data.oMf[robot.base_frame_id])
+    return FoldedFrames(robot.flange_frame_id, cell.T_nt.inverse(), T_ob * cell.T_bk)
+
+
+def measured_error_folded(
+    frames: FoldedFrames, model: pin.Model, data: pin.Data, q: np.ndarray, sensor: np.ndarray
+) -> np.ndarray:
+    """`measured_error` for joints q (already corrected, if the cell has corrections) and the
+    sensor as [x, y, z, qx, qy, qz, qw] (Pinocchio's order, unit quaternion) or [x, y, z]."""
+    pin.forwardKinematics(model, data, q)
+    T_on = pin.updateFramePlacement(model, data, frames.flange_frame_id)
+    if len(sensor) == 3:
+        return np.asarray(frames.T_tn.act(T_on.actInv(frames.T_ok.act(sensor))))
+    T_ts = frames.T_tn * T_on.actInv(frames.T_ok * pin.XYZQUATToSE3(sensor))
+    return np.concatenate((T_ts.translation, pin.log3(T_ts.rotation)))
+
+
 def sensor_pose_from_error(T_bt: pin.SE3, error: np.ndarray) -> pin.SE3:
     """Inverse of pose_error: the sensor pose T_bs that produces `error` at tool pose T_bt."""
     T_ts = pin.SE3(pin.exp3(np.asarray(error[3:], dtype=float)), np.asarray(error[:3], dtype=float))

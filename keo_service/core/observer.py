@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -30,7 +31,10 @@ class KinematicErrorObserver:
         if not np.all(np.isfinite(gain)) or np.any(gain <= 0):
             raise ValueError(f"every gain must be finite and > 0, got {gain.tolist()}")
         self._gain = gain
-        self._state = np.zeros_like(gain)
+        # the step runs on plain floats: for a handful of channels, Python arithmetic costs a
+        # third of the equivalent numpy calls
+        self._neg_gain = [-g for g in gain.tolist()]
+        self._state = [0.0] * gain.size
         self._initialized = False
         self.rejected = 0
         self.updates = 0
@@ -47,7 +51,7 @@ class KinematicErrorObserver:
 
     @property
     def estimate(self) -> np.ndarray:
-        return self._state.copy()
+        return np.array(self._state)
 
     def set_gain(self, gains: Sequence[float] | np.ndarray) -> None:
         """Change gains without touching the state (used by a live reload)."""
@@ -55,26 +59,31 @@ class KinematicErrorObserver:
         if gain.shape != self._gain.shape or np.any(~np.isfinite(gain)) or np.any(gain <= 0):
             raise ValueError(f"need {self.channels} finite gains > 0, got {gain.tolist()}")
         self._gain = gain
+        self._neg_gain = [-g for g in gain.tolist()]
 
     def reset(self, initial: Sequence[float] | np.ndarray | None = None) -> None:
         """Restart from `initial` (default zero: the reference experiment's start)."""
         value = np.zeros_like(self._gain) if initial is None else np.asarray(initial, dtype=float)
         if value.shape != self._gain.shape or not np.all(np.isfinite(value)):
             raise ValueError(f"initial state must be {self.channels} finite numbers")
-        self._state = value.copy()
+        self._state = value.tolist()
         self._initialized = True
 
-    def update(self, measured: np.ndarray, dt: float) -> bool:
+    def update(self, measured: np.ndarray | Sequence[float], dt: float) -> bool:
         """One exact ZOH step. Returns False (state unchanged, counted) for bad input."""
+        values = measured.tolist() if isinstance(measured, np.ndarray) else list(measured)
         if (
             not (dt > 0.0 and math.isfinite(dt))
-            or measured.shape != self._gain.shape
-            or not all_finite(measured)
+            or len(values) != len(self._state)
+            or not finite_numbers(values)
         ):
             self.rejected += 1
             return False
-        alpha = -np.expm1(-self._gain * dt)
-        self._state = self._state + alpha * (measured - self._state)
+        expm1 = math.expm1
+        self._state = [
+            s - expm1(g * dt) * (m - s)
+            for s, g, m in zip(self._state, self._neg_gain, values, strict=True)
+        ]
         self.updates += 1
         return True
 
@@ -145,6 +154,17 @@ def best_gain(noise_std: float, drift: float, rate_hz: float) -> float:
     if a >= 1.0:
         return math.inf
     return -math.log1p(-a) / period
+
+
+def finite_numbers(values: list[Any]) -> bool:
+    """True when every item is a finite number (a nested list or a string is not). A finite
+    sum proves it for the good case; only a non-finite sum (or an overflow) looks closer."""
+    try:
+        if math.isfinite(sum(values)):
+            return True
+        return all(math.isfinite(v) for v in values)
+    except TypeError:
+        return False
 
 
 def all_finite(values: np.ndarray) -> bool:

@@ -7,8 +7,10 @@ bounded buffer of encoder samples; `latest` (the reference method) is in `pipeli
 
 from __future__ import annotations
 
+import bisect
 import enum
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,78 +42,76 @@ class Coverage(enum.Enum):
 class EncoderBuffer:
     """Bounded ring of (t, q) with strictly increasing t; linear interpolation by time.
 
-    Each sample is written twice (at i and i + capacity) so the newest `count` samples are
-    always one contiguous slice, which keeps lookups a single searchsorted.
+    Times are a list of floats and joints a list of row arrays: a lookup bisects the list
+    and hands two rows to `lerp`, with no numpy call but the interpolation itself. Each
+    sample is written twice (at i and i + capacity) so the newest `count` samples are always
+    one contiguous run, which keeps lookups a single bisection.
     """
 
-    def __init__(self, nq: int, capacity: int) -> None:
+    def __init__(
+        self,
+        nq: int,
+        capacity: int,
+        lerp: Callable[[np.ndarray, np.ndarray, float], np.ndarray] | None = None,
+    ) -> None:
+        """`lerp(q0, q1, w)` = q0 + w (q1 - q0); the estimator passes Pinocchio's
+        `interpolate` (one call, the same arithmetic, for the revolute joints keo loads)."""
         if capacity < 2:
             raise ValueError("capacity must be >= 2")
         self.nq = nq
         self.capacity = capacity
-        self._t = np.zeros(2 * capacity)
-        self._q = np.zeros((2 * capacity, nq))
+        self._times = [0.0] * (2 * capacity)
+        self._rows: list[np.ndarray] = [np.zeros(nq)] * (2 * capacity)
+        self._lerp = lerp or _lerp
         self._next = 0  # write position in [0, capacity)
         self._count = 0
+        self.newest_t = -math.inf
 
     def __len__(self) -> int:
         return self._count
 
     @property
-    def newest_t(self) -> float:
-        return float(self._t[self._next + self.capacity - 1]) if self._count else -math.inf
-
-    @property
     def oldest_t(self) -> float:
-        return float(self._window()[0][0]) if self._count else math.inf
-
-    def _window(self) -> tuple[np.ndarray, np.ndarray]:
-        end = self._next + self.capacity
-        start = end - self._count
-        return self._t[start:end], self._q[start:end]
+        return self._times[self._next + self.capacity - self._count] if self._count else math.inf
 
     def push(self, t: float, q: np.ndarray) -> None:
-        """Append; the caller has checked that t is finite and newer than newest_t."""
+        """Append (q is kept, not copied); the caller has checked that t is finite and newer
+        than newest_t and owns no other reference to q."""
         i = self._next
-        self._t[i] = self._t[i + self.capacity] = t
-        self._q[i] = self._q[i + self.capacity] = q
+        t = float(t)
+        self._times[i] = self._times[i + self.capacity] = t
+        self._rows[i] = self._rows[i + self.capacity] = q
         self._next = (i + 1) % self.capacity
         self._count = min(self._count + 1, self.capacity)
+        self.newest_t = t
 
     def latest_at_or_before(self, t: float) -> tuple[float, np.ndarray] | None:
-        ts, qs = self._window()
-        k = int(np.searchsorted(ts, t, side="right")) - 1
-        if k < 0:
+        end = self._next + self.capacity
+        start = end - self._count
+        k = bisect.bisect_right(self._times, t, start, end) - 1
+        if k < start:
             return None
-        return float(ts[k]), qs[k].copy()
+        return self._times[k], self._rows[k].copy()
 
     def interpolate(self, t: float, max_gap: float) -> tuple[Coverage, np.ndarray | None]:
         if self._count == 0:
             return Coverage.EMPTY, None
-        # the usual case at tracker rates: t within one of the newest few intervals (the
-        # delay is a few encoder periods); a short walk back costs less than a search
-        last = self._next + self.capacity - 1
-        t1 = float(self._t[last])
-        for k in range(last, last - min(self._count - 1, 8), -1):
-            t0 = float(self._t[k - 1])
-            if t0 < t < t1:
-                if t1 - t0 > max_gap:
-                    return Coverage.GAP, None
-                q0 = self._q[k - 1]
-                return Coverage.OK, q0 + ((t - t0) / (t1 - t0)) * (self._q[k] - q0)
-            if t >= t1:
-                break
-            t1 = t0
-        ts, qs = self._window()
-        if t > ts[-1]:
+        end = self._next + self.capacity
+        start = end - self._count
+        times = self._times
+        if t > times[end - 1]:
             return Coverage.NOT_YET, None
-        if t < ts[0]:
+        if t < times[start]:
             return Coverage.TOO_OLD, None
-        k = int(np.searchsorted(ts, t, side="left"))
-        if ts[k] == t:
-            return Coverage.OK, qs[k].copy()
-        t0, t1 = ts[k - 1], ts[k]
+        k = bisect.bisect_left(times, t, start, end)
+        t1 = times[k]
+        if t1 == t:
+            return Coverage.OK, self._rows[k].copy()
+        t0 = times[k - 1]
         if t1 - t0 > max_gap:
             return Coverage.GAP, None
-        w = (t - t0) / (t1 - t0)
-        return Coverage.OK, qs[k - 1] + w * (qs[k] - qs[k - 1])
+        return Coverage.OK, self._lerp(self._rows[k - 1], self._rows[k], (t - t0) / (t1 - t0))
+
+
+def _lerp(q0: np.ndarray, q1: np.ndarray, w: float) -> np.ndarray:
+    return np.asarray(q0 + w * (q1 - q0))
