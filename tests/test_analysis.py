@@ -61,6 +61,16 @@ def test_geometry_is_found_with_only_identifiable_combinations(demo_cell):
     assert "geometry" in names
     geo = effect(result.report, "geometry")["parameters"]
     assert 0 < geo["identifiable"] < geo["of"] == 36
+    # what cannot be identified is said in words, one sentence per unseen direction; the
+    # first joint's placement sits before any joint moves, so the tracker registration
+    # absorbs all six of its numbers
+    unseen = geo["unidentifiable"]
+    assert len(unseen) == geo["of"] - geo["identifiable"]
+    named = {m["parameter"] for u in unseen for m in u["members"]}
+    first = demo_cell.robot.joint_names[0]
+    for axis in ("x", "y", "z", "rx", "ry", "rz"):
+        assert f"{first} link {axis}" in named
+    assert all(u["text"] for u in unseen)
     assert result.report["baseline"]["validation"]["pos_rms_mm"] > 0.5
     assert result.report["final"]["validation"]["pos_rms_mm"] < 0.05
 
@@ -239,6 +249,19 @@ def test_real_ur10_data_imports_and_improves(tmp_path):
     assert 0.7 < base < 1.5  # the data README: 0.8-1.1 mm with registration and tool fitted
     assert final < 0.6 * base
     assert "geometry" in [e["name"] for e in report["effects"]]
+    # Series B repeats poses: their spread (the data README and a separate study: 16-27 um)
+    # is the floor the report sets the remaining error against
+    rep = report["repeatability"]
+    assert rep["poses"] > 5
+    assert 0.010 < rep["rms_mm"] < 0.040
+    assert "x the repeatability measured in this data" in report["against_repeatability"]
+    # ten times the repeatability is model error, whatever the correlations say
+    assert "consistent with noise" not in report["unexplained"]
+    comps = report["residual_components_mm"]["final_held_out"]
+    assert np.sqrt(sum(v**2 for v in comps.values())) == pytest.approx(final, rel=0.02)
+    md = (tmp_path / "an" / "report.md").read_text()
+    assert "What these poses cannot tell apart" in md
+    assert (tmp_path / "an" / "residual_components_vs_joints.png").stat().st_size > 10_000
 
 
 def test_time_delay_found_from_motion_data(tmp_path):

@@ -23,10 +23,12 @@ from scipy.stats import median_abs_deviation
 from keo_service.core.chain import Chain
 from keo_service.core.corrections import Corrections
 from keo_service.core.kinematics import RobotModel
+from keo_service.fit.diagnostics import describe_null_space, repeatability
 
 ROT_WEIGHT = 0.5  # m per rad: 20 um of position ~ 40 urad of orientation
 KEEP_MARGIN = 0.05  # an effect must lower the held-out position RMS by 5 % to be kept
 MAPS = "joint_maps"  # joint-angle error maps (fit.angle_maps): knots depend on the data
+NOISE_MARGIN = 2.0  # a residual above this many times the data's repeatability is not noise
 RANK_TOL = 1e-3  # relative singular value below which a direction counts as unidentifiable
 
 
@@ -354,9 +356,11 @@ def fit(
 
 def identifiable_basis(
     model: Model, data: Data, tau: np.ndarray, x: np.ndarray, name: str
-) -> tuple[np.ndarray, int, int]:
+) -> tuple[np.ndarray, int, int, np.ndarray]:
     """Directions of an effect's parameters that the data can determine alongside the
-    registration: the right singular vectors of the identification Jacobian above RANK_TOL."""
+    registration: the right singular vectors of the identification Jacobian above RANK_TOL
+    (basis, rank, parameter count), and the directions below it (the null space, in the
+    same scaled parameters) that the report puts into words."""
     nq = model.chain.nq
     full = EFFECTS[name].size(nq)
     trial = Model(
@@ -384,7 +388,14 @@ def identifiable_basis(
     rank = int(np.sum(RANK_TOL * S[0] < S)) if S.size and S[0] > 0 else 0
     basis = Vt[:rank].T / scale[:, None]
     basis /= np.linalg.norm(basis, axis=0)
-    return basis, rank, full
+    # the unseen directions: the rest of the right singular vectors (all of them come with
+    # the thin SVD unless there are fewer residuals than parameters)
+    if Vt.shape[0] < full:
+        Vt = np.linalg.svd(J_perp / scale, full_matrices=True)[2]
+    null = Vt[rank:].T / scale[:, None]
+    if null.size:
+        null /= np.linalg.norm(null, axis=0)
+    return basis, rank, full, null
 
 
 # ---- the analysis ----------------------------------------------------------------------------
@@ -597,12 +608,14 @@ def analyze(
         say(f"trying {name}")
         trial_basis = dict(model.basis)
         if name in EFFECTS:  # never fit what the data cannot tell apart from what is there
-            B, rank, full = identifiable_basis(model, train, tau_tr, x, name)
+            B, rank, full, null = identifiable_basis(model, train, tau_tr, x, name)
             if rank == 0:
                 say(f"{name}: nothing identifiable from these poses")
                 continue
             trial_basis[name] = B
             say(f"{name}: {rank} of {full} parameters identifiable from these poses")
+        else:
+            null = np.zeros((0, 0))
         trial = Model(chain, position_only, [*model.effects, name], x, trial_basis, temp_ref, t_ref)
         size = trial.sizes(chain.nq)[-1]
         x0 = np.concatenate([x, np.zeros(size)])
@@ -622,6 +635,14 @@ def analyze(
                 else "sensor position drift per second (m/s)"
             ),
         }
+        if null.size:
+            labels = [
+                f"{rec['joint']} {rec['parameter']}"
+                for rec in parameter_records(
+                    name, np.zeros(null.shape[0]), np.zeros(null.shape[0]), chain.robot.joint_names
+                )
+            ]
+            entry["parameters"]["unidentifiable"] = describe_null_space(null, labels)
         gain = 1 - val_stats.pos_rms_mm / current_val
         entry["held_out_improvement_pct"] = 100 * gain
         if gain >= KEEP_MARGIN:
@@ -637,9 +658,9 @@ def analyze(
         "train": stats(model, x, train, tau_tr).as_dict(),
         "validation": stats(model, x, val, tau_va).as_dict(),
     }
-    corr = correlations(model, x, data, tau_all)
-    report["correlations"] = corr[:10]
-    report["unexplained"] = _verdict(report, corr)
+    rep = repeatability(data.q, data.p_ks)
+    report["repeatability"] = None if rep is None else rep.as_dict()
+    describe_remaining(report, model, x, data)
     T_bk, T_ns, _c, _d = model.unpack(x)
     report["registration"] = {
         "T_bk": T_bk.tolist(),
@@ -663,15 +684,30 @@ def _check_registration(model: Model, data: Data, tau: np.ndarray) -> None:
         )
 
 
+def describe_remaining(report: dict[str, Any], model: Model, x: np.ndarray, data: Data) -> None:
+    """What the residual of `model` still correlates with, and the verdict in words (called
+    again when a later stage, the angle maps, changes the final model)."""
+    corr = correlations(model, x, data, model.chain.gravity_torques(data.q))
+    report["correlations"] = corr[:10]
+    report["unexplained"] = _verdict(report, corr)
+
+
 def _verdict(report: dict[str, Any], corr: list[dict[str, Any]]) -> str:
     strong = [c for c in corr if c["r2"] > max(0.15, 5 * c["chance"])]
     final = report["final"]["validation"]["pos_rms_mm"]
+    rep = report.get("repeatability")
     if not strong:
-        return (
+        head = (
             f"the remaining {final:.4f} mm RMS shows no structure against the candidate "
-            "variables (largest R^2 "
-            f"{corr[0]['r2']:.2f} with {corr[0]['variable']}): consistent with noise"
+            f"variables (largest R^2 {corr[0]['r2']:.2f} with {corr[0]['variable']})"
         )
+        if rep is not None and final > NOISE_MARGIN * rep["rms_mm"]:
+            return (
+                f"{head}, yet it is {final / rep['rms_mm']:.1f}x this data's repeatability "
+                f"({rep['rms_mm']:.4f} mm): model error that none of these variables explains "
+                "alone, not noise"
+            )
+        return f"{head}: consistent with noise"
     names = ", ".join(f"{c['variable']} (R^2 {c['r2']:.2f})" for c in strong[:4])
     return (
         f"structured residual remains ({final:.4f} mm RMS held out) that no effect in the "

@@ -27,9 +27,11 @@ from keo_service.fit.analysis import (
     Model,
     NotIdentifiableError,
     analyze,
+    describe_remaining,
     split,
 )
 from keo_service.fit.angle_maps import try_maps
+from keo_service.fit.diagnostics import residual_components
 from keo_service.io.cell import cell_from_config, delay_model, robot_from_config
 from keo_service.io.config import Config, ModelConfig, config_to_toml
 from keo_service.io.interchange import read_encoder, read_tracker
@@ -217,6 +219,23 @@ def _plots(
     fig.savefig(out / "residual_vs_variables.png", dpi=90)
     plt.close(fig)
     files.append("residual_vs_variables.png")
+    nq = data.q.shape[1]
+    fig, axes = plt.subplots(3, nq, figsize=(2.6 * nq, 7), squeeze=False, sharey="row")
+    for row, axis in enumerate("xyz"):
+        for col in range(nq):
+            ax = axes[row, col]
+            ax.plot(data.q[:, col], before[:, row], ".", ms=2, alpha=0.3, label="nominal")
+            ax.plot(data.q[:, col], after[:, row], ".", ms=2, alpha=0.4, label="identified")
+            ax.axhline(0.0, color="grey", lw=0.5)
+            if row == 2:
+                ax.set_xlabel(f"{chain.robot.joint_names[col]} (rad)", fontsize=7)
+            if col == 0:
+                ax.set_ylabel(f"base {axis} residual (mm)")
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "residual_components_vs_joints.png", dpi=90)
+    plt.close(fig)
+    files.append("residual_components_vs_joints.png")
     return files
 
 
@@ -247,10 +266,23 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
         lines += ["", "Tried and not kept (held-out change below 5 %):", ""]
         for e in report["rejected"]:
             lines.append(f"- {e['name']}: {e['held_out_improvement_pct']:+.1f} %")
+    lines += ["", "## What remains", ""]
+    if "against_repeatability" in report:
+        lines += [report["against_repeatability"], ""]
+    comps = report.get("residual_components_mm")
+    if comps:
+        lines += [
+            "| signed position residual, base frame (RMS, mm) | x | y | z |",
+            "|---|---|---|---|",
+        ]
+        for label, key in (
+            ("nominal model (all poses)", "nominal_all_poses"),
+            ("identified model (held out)", "final_held_out"),
+        ):
+            c = comps[key]
+            lines.append(f"| {label} | {c['x']:.4f} | {c['y']:.4f} | {c['z']:.4f} |")
+        lines += ["", "(against each joint: residual_components_vs_joints.png)", ""]
     lines += [
-        "",
-        "## What remains",
-        "",
         report["unexplained"],
         "",
         "| variable | R^2 of the residual | by chance |",
@@ -271,6 +303,10 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
             lines += [head, ""]
             lines += [_record_line(rec) for rec in p["records"]]
             lines.append("")
+            if p.get("unidentifiable"):
+                lines += ["What these poses cannot tell apart:", ""]
+                lines += [f"- {u['text']}" for u in p["unidentifiable"]]
+                lines.append("")
             continue
         if "values" in p:
             body = ", ".join(
@@ -338,6 +374,42 @@ def _maps_markdown(entry: dict[str, Any]) -> list[str]:
         "",
     ]
     return lines
+
+
+def _add_diagnostics(
+    report: dict[str, Any], result: Analysis, data: Data, base_x: np.ndarray, baseline: Model
+) -> None:
+    """The data's own repeatability against what remains, and the residual per base-frame
+    component: held out for the identified model, all rows for the nominal one."""
+    rep = report.get("repeatability")
+    chain = result.model.chain
+    _train_idx, val_idx = split(data.n)
+    val = data.subset(val_idx)
+    width = 3 if result.model.position_only or data.R_ks is None else 6
+    after = result.model.residuals(result.x, val, chain.gravity_torques(val.q))
+    before = baseline.residuals(base_x, data, chain.gravity_torques(data.q))
+    report["residual_components_mm"] = {
+        "nominal_all_poses": residual_components(before.reshape(-1, width)[:, :3] * 1e3),
+        "final_held_out": residual_components(after.reshape(-1, width)[:, :3] * 1e3),
+    }
+    final = report["final"]["validation"]["pos_rms_mm"]
+    if rep is None:
+        report["against_repeatability"] = (
+            f"{final:.3f} mm RMS held out; these data repeat no pose, so their repeatability "
+            "is not measured here"
+        )
+    else:
+        report["against_repeatability"] = (
+            f"{final:.3f} mm RMS held out, {final / rep['rms_mm']:.1f}x the repeatability "
+            f"measured in this data ({rep['rms_mm']:.4f} mm RMS over {rep['measurements']} "
+            f"measurements of {rep['poses']} repeated poses"
+            + (
+                f"; {rep['left_out_poses']} poses with equal joints but a scatter over 5x the "
+                "median's left out as no repeat)"
+                if rep["left_out_poses"]
+                else ")"
+            )
+        )
 
 
 def _is_static(config: Config, encoder: Path, tracker: Path) -> bool:
@@ -428,6 +500,8 @@ def run_analysis(
     if fixed is None:
         train_idx, val_idx = split(data.n)
         try_maps(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
+        if MAPS in result.model.effects:  # the verdict was on the model before the maps
+            describe_remaining(result.report, result.model, result.x, data)
     out.mkdir(parents=True, exist_ok=True)
     baseline = Model(chain, position_only, [], result.x[: result.model.n_reg])
     from keo_service.fit.analysis import fit, initial_registration
@@ -442,6 +516,7 @@ def run_analysis(
     ).x
     plots = _plots(out, result, data, base_x, baseline)
     report = result.report
+    _add_diagnostics(report, result, data, base_x, baseline)
     if delay_entry is not None:
         if delay_entry.pop("kept"):
             report["baseline"] = delay_entry.pop("baseline")
