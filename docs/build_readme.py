@@ -55,18 +55,43 @@ def ur10_table(folder: Path) -> str:
         lines.append(f"| {label} | not kept: {rejected} | | | | |")
     for fit_on, reg_on in (("A", "B"), ("B", "A")):
         r = json.loads((folder / reg_on / "reg.json").read_text())
+        carried = r.get("carried_maps")
+        if carried:
+            lines.append(
+                f"| Series {reg_on} | model of Series {fit_on} without its maps, registration "
+                f"only | {r['final']['validation']['n']} | "
+                f"{carried['held_out_pos_rms_mm_without']:.3f} | | |"
+            )
         lines.append(
-            f"| Series {reg_on} | model of Series {fit_on}, registration only | "
-            f"{r['final']['validation']['n']} | {stats(r['final']['validation'])} |"
+            f"| Series {reg_on} | model of Series {fit_on}"
+            + (" with its maps" if carried and carried["kept"] else "")
+            + f", registration only | {r['final']['validation']['n']} | "
+            f"{stats(r['final']['validation'])} |"
         )
-    a = json.loads((folder / "A" / "an.json").read_text())
-    b = json.loads((folder / "B" / "an.json").read_text())
-    lines += [
-        "",
-        f"What is left (Series A): {a['unexplained']}.",
-        "",
-        f"What is left (Series B): {b['unexplained']}.",
-    ]
+    lines.append("")
+    for series in ("A", "B"):
+        r = json.loads((folder / series / "an.json").read_text())
+        lines += [f"What is left (Series {series}): {r['unexplained']}.", ""]
+        if r.get("against_repeatability"):
+            lines += [f"Against the data's own repeatability: {r['against_repeatability']}.", ""]
+    for fit_on, reg_on in (("A", "B"), ("B", "A")):
+        carried = json.loads((folder / reg_on / "reg.json").read_text()).get("carried_maps")
+        if carried:
+            lines += [
+                f"Series {fit_on}'s maps on Series {reg_on}: "
+                f"{carried['poses_outside_calibrated_range_pct']:.0f} % of its poses lie outside "
+                "the angles they were calibrated on (there a map holds its edge value).",
+                "",
+            ]
+    for series in ("A", "B"):
+        plots = sorted((folder / series / "maps").glob("map_*.png"))
+        if plots:
+            lines += [f"Joint-angle error maps, Series {series} (each with its +/- 2 se band):", ""]
+            lines += [
+                f"![{p.stem} Series {series}]({p.resolve().relative_to(HERE.parent).as_posix()})"
+                for p in plots
+            ]
+            lines.append("")
     return "\n".join(lines) + "\n"
 
 

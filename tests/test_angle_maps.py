@@ -120,3 +120,32 @@ def test_the_live_estimator_applies_a_map_as_the_analysis_predicts(demo_config, 
     assert out
     assert out[-1].flags == ("outside_calibrated_range",)
     assert est.counters["outside_calibrated_range"] == 1
+
+
+def test_maps_carried_to_new_data_are_kept_only_where_they_help(demo_cell):
+    """--registration-only with a model that has maps: on data with the same ripple they are
+    applied (the held-out error stays at the noise) and kept; on data of a robot without the
+    ripple they only add error and are dropped, the model written without them."""
+    # the simulated robot's geometry is drawn per seed: without geometric errors, data of
+    # any seed come from the same robot, so the carried model fits new, independent poses
+    nominal = {"geometric_errors": "false"}
+    _run, _data, source = _analysed(demo_cell, {**RIPPLE, **nominal})
+    assert MAPS in source.model.effects
+    for sets, kept in (({**RIPPLE, **nominal}, True), (nominal, False)):
+        run = simulate(demo_cell, make_scenario("static-poses", {"poses": "800", **sets}), seed=23)
+        R = Rotation.from_quat(run.tracker.quat, scalar_first=True).as_matrix()
+        data = Data(
+            run.encoder.q, run.tracker.p, R, run.tracker.t, {}, approach_directions(run.encoder.q)
+        )
+        carried = analyze(demo_cell.robot, data, False, fixed_model=source.model)
+        judged = carried.report["carried_maps"]
+        assert judged["kept"] is kept, judged
+        assert (MAPS in carried.model.effects) is kept
+        with_maps = judged["held_out_pos_rms_mm_with"]
+        without = judged["held_out_pos_rms_mm_without"]
+        if kept:  # the maps remove the ripple: about the noise floor of the clean analysis
+            assert with_maps < 0.6 * without
+        else:
+            assert with_maps >= 0.95 * without
+        final = carried.report["final"]["validation"]["pos_rms_mm"]
+        assert final == pytest.approx(min(with_maps, without) if kept else without)

@@ -594,11 +594,15 @@ def analyze(
             dict(fixed_model.basis),
             fixed_model.temperature_ref,
             fixed_model.time_ref,
+            fixed_model.knots,
         )
         fixed = np.zeros(model.x.size, dtype=bool)
         fixed[model.n_reg :] = True
         x = fit(model, train, tau_tr, model.x, noise, fixed=fixed).x
         candidates = ()
+        if MAPS in model.effects:
+            model, x = _judge_carried_maps(model, x, data, train, val, noise, report)
+            say(f"carried joint maps {'kept' if MAPS in model.effects else 'dropped'}")
     current_val = stats(model, x, val, tau_va).pos_rms_mm
     for name in candidates:
         if name == "temperature" and "temperature_c" not in data.extra:
@@ -682,6 +686,54 @@ def _check_registration(model: Model, data: Data, tau: np.ndarray) -> None:
             f"{S[0] / max(S[-1], 1e-300):.1e}): e.g. only one joint moved; use poses that move "
             "several joints and orientations"
         )
+
+
+def _judge_carried_maps(
+    model: Model,
+    x: np.ndarray,
+    data: Data,
+    train: Data,
+    val: Data,
+    noise: float,
+    report: dict[str, Any],
+) -> tuple[Model, np.ndarray]:
+    """Angle maps carried to new data (registration refitted, model fixed) are judged like
+    any effect: on the new data's held-out blocks, against the same model without them, and
+    dropped unless they lower the held-out error by KEEP_MARGIN. Part of what a map absorbs
+    belongs to the setup it was identified in (the tracker's own angle error moves with the
+    tracker), and outside its calibrated angles a map only holds its edge value."""
+    k = model.n_reg
+    sizes = model.sizes(model.chain.nq)
+    at = model.effects.index(MAPS)
+    start = k + sum(sizes[:at])
+    keep = np.r_[0:start, start + sizes[at] : x.size]
+    without = Model(
+        model.chain,
+        model.position_only,
+        [e for e in model.effects if e != MAPS],
+        x[keep],
+        dict(model.basis),
+        model.temperature_ref,
+        model.time_ref,
+    )
+    fixed = np.zeros(without.x.size, dtype=bool)
+    fixed[without.n_reg :] = True
+    tau_tr = without.chain.gravity_torques(train.q)
+    tau_va = without.chain.gravity_torques(val.q)
+    x_without = fit(without, train, tau_tr, without.x, noise, fixed=fixed).x
+    with_maps = stats(model, x, val, tau_va).pos_rms_mm
+    without_maps = stats(without, x_without, val, tau_va).pos_rms_mm
+    lo = np.array([kn[0] if kn.size else -np.inf for kn in model.knots])
+    hi = np.array([kn[-1] if kn.size else np.inf for kn in model.knots])
+    outside = np.any((data.q < lo) | (data.q > hi), axis=1)
+    kept = 1 - with_maps / without_maps >= KEEP_MARGIN
+    report["carried_maps"] = {
+        "held_out_pos_rms_mm_with": with_maps,
+        "held_out_pos_rms_mm_without": without_maps,
+        "kept": bool(kept),
+        "poses_outside_calibrated_range_pct": 100.0 * float(np.mean(outside)),
+    }
+    return (model, x) if kept else (without, x_without)
 
 
 def describe_remaining(report: dict[str, Any], model: Model, x: np.ndarray, data: Data) -> None:

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 SAME_POSE_RAD = 2e-4  # joint vectors this close on every joint: one pose measured again
+MIN_REPEATED_POSES = 5  # fewer repeated poses say little about a repeatability
 OUTLIER_FACTOR = 5.0  # a repeated pose this far above the median pose's scatter is no repeat
 COUPLING_SHARE = 0.2  # a parameter takes part in a combination above this share of its largest
 
@@ -40,7 +41,7 @@ def repeatability(
 ) -> Repeatability | None:
     """From rows whose joints agree within `tol_rad` on every joint (chained: the connected
     groups of such pairs; two readings of one commanded pose differ by encoder counts,
-    distinct poses by far more). None without repeats. `p` in metres, any fixed frame (a
+    distinct poses by far more). None below MIN_REPEATED_POSES. `p` in metres, any fixed frame (a
     rigid change of frame keeps distances)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -63,6 +64,8 @@ def repeatability(
     repeated = np.flatnonzero(counts > 1)
     spread = np.sqrt(sq[repeated] / (counts[repeated] - 1))
     keep = repeated[spread <= OUTLIER_FACTOR * np.median(spread)]
+    if keep.size < MIN_REPEATED_POSES:
+        return None
     m = int(counts[keep].sum())
     rms = float(np.sqrt(sq[keep].sum() / (m - keep.size)))
     return Repeatability(int(keep.size), m, rms * 1e3, int(repeated.size - keep.size))

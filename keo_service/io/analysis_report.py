@@ -260,6 +260,16 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
             f"- + {e['name']} ({e['description']}): {_stats_line(e['validation'])} "
             f"({e['held_out_improvement_pct']:+.1f} %, {count} parameters)"
         )
+    carried = report.get("carried_maps")
+    if carried:
+        lines.append(
+            f"- carried {MAPS} (registration refitted): held out "
+            f"{carried['held_out_pos_rms_mm_with']:.4f} mm with them, "
+            f"{carried['held_out_pos_rms_mm_without']:.4f} mm without: "
+            + ("kept" if carried["kept"] else "dropped, the model is written without them")
+            + f"; {carried['poses_outside_calibrated_range_pct']:.0f} % of these poses lie "
+            "outside the angles the maps were calibrated on (there a map holds its edge value)"
+        )
     lines.append(f"- final: {_stats_line(report['final']['validation'])}")
     lines.append(f"- (final on the fitted poses: {_stats_line(report['final']['train'])})")
     if report["rejected"]:
@@ -395,8 +405,8 @@ def _add_diagnostics(
     final = report["final"]["validation"]["pos_rms_mm"]
     if rep is None:
         report["against_repeatability"] = (
-            f"{final:.3f} mm RMS held out; these data repeat no pose, so their repeatability "
-            "is not measured here"
+            f"{final:.3f} mm RMS held out; these data repeat fewer than 5 poses, so their "
+            "repeatability is not measured here"
         )
     else:
         report["against_repeatability"] = (
