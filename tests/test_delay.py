@@ -245,3 +245,31 @@ def test_real_ur10_static_data_is_refused(tmp_path):
     )
     assert res.returncode == 1, res.stdout
     assert "static stop-and-measure data" in res.stderr
+
+
+def test_tool_states_over_arrays_match_pinocchio_sample_by_sample(demo_cell):
+    """The delay fit's poses and velocities, all samples at once, against Pinocchio's forward
+    kinematics per sample and central differences written out here."""
+    import pinocchio as pin
+
+    from keo_service.core.kinematics import tool_pose
+    from keo_service.fit.delay import VELOCITY_STEP_S, _tool_states
+
+    rng = np.random.default_rng(8)
+    enc_t = np.arange(200) * 0.004
+    enc_q = np.cumsum(rng.normal(0, 0.01, (200, demo_cell.robot.nq)), axis=0)
+    t = np.sort(rng.uniform(0.05, 0.75, 60))
+    q, p, R, v, w = _tool_states(demo_cell, enc_t, enc_q, t)
+    data = demo_cell.robot.create_data()
+    h = VELOCITY_STEP_S
+    for i, ti in enumerate(t):
+        qi = np.array([np.interp(ti, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])])
+        qm = np.array([np.interp(ti - h, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])])
+        qp = np.array([np.interp(ti + h, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])])
+        T = tool_pose(demo_cell, data, qi)
+        Tm, Tp = tool_pose(demo_cell, data, qm), tool_pose(demo_cell, data, qp)
+        assert np.allclose(q[i], qi, atol=1e-15)
+        assert np.allclose(p[i], T.translation, atol=1e-12)
+        assert np.allclose(R[i], T.rotation, atol=1e-12)
+        assert np.allclose(v[i], (Tp.translation - Tm.translation) / (2 * h), atol=1e-8)
+        assert np.allclose(w[i], pin.log3(Tp.rotation @ Tm.rotation.T) / (2 * h), atol=1e-8)

@@ -124,17 +124,7 @@ def measured_errors(
 ) -> np.ndarray:
     """`kinematics.measured_error` for N samples at once: (N, 6), or (N, 3) without
     orientation. `quat_ks` (N, 4) unit quaternions, scalar first."""
-    q = np.atleast_2d(np.asarray(q, dtype=float))
-    corr = cell.corrections
-    if corr is not None:
-        tau = None
-        if np.any(corr.compliance) and cell.nominal_model is not None:
-            from pinocchio import computeGeneralizedGravity
-
-            tau = np.array(
-                [computeGeneralizedGravity(cell.nominal_model, cell.gravity_data, qi) for qi in q]
-            )
-        q = corr.joint_angles(q, tau, direction)
+    q = corrected_joint_arrays(cell, q, direction)
     # everything in the tracker frame k: T_kt = T_bk^-1 T_bt(q), then T_ts = T_kt^-1 T_ks
     R_kt, p_kt = chain.flange_frames(
         q, head=cell.T_bk.inverse().homogeneous, tail=cell.T_nt.homogeneous
@@ -145,16 +135,47 @@ def measured_errors(
     out[:, :3] = p_ts.T
     if quat_ks is None:
         return out
-    R_ks = _quaternion_matrices(np.asarray(quat_ks, dtype=float))
+    R_ks = quaternion_matrices(np.asarray(quat_ks, dtype=float))
     R_ts = np.empty_like(R_ks)
     for i in range(3):
         for k in range(3):
             R_ts[i, k] = R_kt[0, i] * R_ks[0, k] + R_kt[1, i] * R_ks[1, k] + R_kt[2, i] * R_ks[2, k]
-    out[:, 3:] = _log3(R_ts)
+    out[:, 3:] = log3_many(R_ts)
     return out
 
 
-def _quaternion_matrices(wxyz: np.ndarray) -> np.ndarray:
+def corrected_joint_arrays(
+    cell: Cell, q: np.ndarray, direction: np.ndarray | None = None
+) -> np.ndarray:
+    """`kinematics.corrected_joints` for N samples (N, nq); q itself without corrections."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    corr = cell.corrections
+    if corr is None:
+        return q
+    tau = None
+    if np.any(corr.compliance) and cell.nominal_model is not None:
+        from pinocchio import computeGeneralizedGravity
+
+        tau = np.array(
+            [computeGeneralizedGravity(cell.nominal_model, cell.gravity_data, qi) for qi in q]
+        )
+    return np.asarray(corr.joint_angles(q, tau, direction))
+
+
+def tool_frames(cell: Cell, chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`kinematics.tool_pose` for N samples: T_bt as rotations (3, 3, N) and positions
+    (3, N), on the identified model when the cell has one (in chunks that stay in cache)."""
+    q = corrected_joint_arrays(cell, q)
+    n = q.shape[0]
+    R, p = np.empty((3, 3, n)), np.empty((3, n))
+    tail = cell.T_nt.homogeneous
+    for lo in range(0, n, CHUNK):
+        rows = slice(lo, lo + CHUNK)
+        R[:, :, rows], p[:, rows] = chain.flange_frames(q[rows], tail=tail)
+    return R, p
+
+
+def quaternion_matrices(wxyz: np.ndarray) -> np.ndarray:
     """(3, 3, N) rotation matrices of quaternions (N, 4), scalar first, normalised here (as
     Pinocchio does per sample)."""
     w, x, y, z = (wxyz / np.sqrt(np.einsum("ij,ij->i", wxyz, wxyz))[:, None]).T
@@ -173,7 +194,7 @@ def _quaternion_matrices(wxyz: np.ndarray) -> np.ndarray:
     return R
 
 
-def _log3(R: np.ndarray) -> np.ndarray:
+def log3_many(R: np.ndarray) -> np.ndarray:
     """Rotation vectors (N, 3) of rotations (3, 3, N): angle atan2(sin, cos) from the skew
     part and the trace, exact near zero (the errors keo sees); within 0.45 rad of a half
     turn, where the skew part vanishes, scipy's quaternion route takes over."""

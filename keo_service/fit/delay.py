@@ -24,10 +24,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import pinocchio as pin
 from scipy.stats import median_abs_deviation
 
-from keo_service.core.kinematics import Cell, tool_pose
+from keo_service.core.batch import log3_many, quaternion_matrices, tool_frames
+from keo_service.core.chain import Chain
+from keo_service.core.kinematics import Cell
 
 VELOCITY_STEP_S = 0.005  # central differences for the tool's velocity
 MIN_SPEED = 0.005  # m/s: slower than this is "at rest"
@@ -63,25 +64,17 @@ def _interp_joints(enc_t: np.ndarray, enc_q: np.ndarray, t: np.ndarray) -> np.nd
 def _tool_states(
     cell: Cell, enc_t: np.ndarray, enc_q: np.ndarray, t: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Tool pose, linear and angular velocity (base frame) at encoder times t."""
-    data = cell.robot.create_data()
+    """Tool pose, linear and angular velocity (base frame) at encoder times t, all samples
+    at once (central differences over VELOCITY_STEP_S)."""
+    chain = Chain(cell.robot)
     h = VELOCITY_STEP_S
     q0 = _interp_joints(enc_t, enc_q, t)
-    qm = _interp_joints(enc_t, enc_q, t - h)
-    qp = _interp_joints(enc_t, enc_q, t + h)
-    n = t.size
-    p = np.empty((n, 3))
-    R = np.empty((n, 3, 3))
-    v = np.empty((n, 3))
-    w = np.empty((n, 3))
-    for i in range(n):
-        T = tool_pose(cell, data, q0[i])
-        Tm = tool_pose(cell, data, qm[i])
-        Tp = tool_pose(cell, data, qp[i])
-        p[i], R[i] = T.translation, T.rotation
-        v[i] = (Tp.translation - Tm.translation) / (2 * h)
-        w[i] = pin.log3(Tp.rotation @ Tm.rotation.T) / (2 * h)
-    return q0, p, R, v, w
+    R, p = tool_frames(cell, chain, q0)
+    R_m, p_m = tool_frames(cell, chain, _interp_joints(enc_t, enc_q, t - h))
+    R_p, p_p = tool_frames(cell, chain, _interp_joints(enc_t, enc_q, t + h))
+    v = ((p_p - p_m) / (2 * h)).T
+    w = log3_many(np.einsum("ian,kan->ikn", R_p, R_m)) / (2 * h)  # log3(R_p R_m^T)
+    return q0, np.ascontiguousarray(p.T), np.moveaxis(R, 2, 0), v, w
 
 
 def _measured_base_errors(
@@ -91,8 +84,7 @@ def _measured_base_errors(
     pos: np.ndarray = p_bs - p_bt
     if R_bs is None:
         return pos
-    rot = np.array([pin.log3(R_bs[i] @ R_bt[i].T) for i in range(p_bt.shape[0])])
-    return np.hstack([pos, rot])
+    return np.hstack([pos, log3_many(np.einsum("nij,nkj->ikn", R_bs, R_bt))])
 
 
 def _features(q: np.ndarray, p: np.ndarray, kind: str) -> np.ndarray:
@@ -156,13 +148,11 @@ def fit_delay(
             f"only {trk_t.size} tracker samples overlap the encoder stream"
         )
     T_bk = cell.T_bk
-    p_bs = np.array([T_bk.act(p) for p in trk_p])
+    p_bs = trk_p @ T_bk.rotation.T + T_bk.translation
     R_bs = None
     if trk_quat is not None:
-        R_k = np.array(
-            [pin.Quaternion(w, x, y, z).normalized().matrix() for w, x, y, z in trk_quat]
-        )
-        R_bs = np.einsum("ij,njk->nik", T_bk.rotation, R_k)
+        R_k = quaternion_matrices(trk_quat)  # (3, 3, N), normalised
+        R_bs = np.einsum("ij,jkn->nik", T_bk.rotation, R_k)
     t_ref = float(np.mean(trk_t))
     delay = initial
     drift = 0.0
@@ -190,24 +180,20 @@ def fit_delay(
         groups = [slice(0, 3)] + ([slice(3, 6)] if nch == 6 else [])
         for g in groups:
             scale[g] = np.median(scale[g])
-        F = _features(q, p_bt, features)
-        rows_y, rows_x, rows_f = [], [], []
+        # partial out the configuration features (Frisch-Waugh-Lovell): each channel has its
+        # own coefficients on the same features, so the projection is one per channel onto
+        # span(F) (a block-diagonal design would hold nch^2 copies of F)
+        Qf, _ = np.linalg.qr(_features(q, p_bt, features), mode="reduced")
+        rows_y: list[np.ndarray] = []
+        rows_x: list[np.ndarray] = []
         for c in range(nch):
-            rows_y.append(err[:, c] / scale[c])
             cols = [vel[:, c] / scale[c]]
             if with_drift:
                 cols.append(vel[:, c] * (trk_t - t_ref) / scale[c])
-            rows_x.append(np.column_stack(cols))
-            block = np.zeros((F.shape[0], F.shape[1] * nch))
-            block[:, c * F.shape[1] : (c + 1) * F.shape[1]] = F / scale[c]
-            rows_f.append(block)
-        y = np.concatenate(rows_y)
-        X = np.vstack(rows_x)
-        Fm = np.vstack(rows_f)
-        # partial out the configuration features (Frisch-Waugh-Lovell)
-        Qf, _ = np.linalg.qr(Fm, mode="reduced")
-        y_p = y - Qf @ (Qf.T @ y)
-        X_p = X - Qf @ (Qf.T @ X)
+            for rows, a in ((rows_y, err[:, c] / scale[c]), (rows_x, np.column_stack(cols))):
+                rows.append(a - Qf @ (Qf.T @ a))
+        y_p = np.concatenate(rows_y)
+        X_p = np.vstack(rows_x)
         beta, *_ = np.linalg.lstsq(X_p, y_p, rcond=None)
         resid = y_p - X_p @ beta
         inflate = np.mean(
@@ -219,7 +205,7 @@ def fit_delay(
             meat = (X_p * (resid**2)[:, None]).T @ X_p
             cov = bread @ meat @ bread * inflate
         except np.linalg.LinAlgError:
-            cov = np.full((X.shape[1], X.shape[1]), np.inf)
+            cov = np.full((X_p.shape[1], X_p.shape[1]), np.inf)
         # e(t; d) = e_true + v (d - d_true): the fitted coefficient is how far off we are
         step = float(beta[0])
         delay -= step
@@ -344,23 +330,21 @@ def reference_method(
     if trk_t.size < 10:
         return []
     _q, p_bt, _R, v, _w = _tool_states(cell, enc_t, enc_q, trk_t)
-    p_bs = np.array([cell.T_bk.act(p) for p in trk_p])
+    p_bs = trk_p @ cell.T_bk.rotation.T + cell.T_bk.translation
     err = p_bs - p_bt
     speed = np.linalg.norm(v, axis=1)
+    fast = speed > 10 * MIN_SPEED
+    may_start = speed >= 10 * MIN_SPEED
     segments: list[ReferenceSegment] = []
     i = 0
     n = trk_t.size
     while i < n:
-        if speed[i] < 10 * MIN_SPEED:
-            i += 1
-            continue
-        j = i
-        while (
-            j + 1 < n
-            and speed[j + 1] > 10 * MIN_SPEED
-            and np.linalg.norm(v[j + 1] - v[i]) < 0.05 * speed[i]
-        ):
-            j += 1
+        if not may_start[i]:
+            nxt = np.flatnonzero(may_start[i:])
+            if nxt.size == 0:
+                break
+            i += int(nxt[0])
+        j = _stroke_end(v, fast, i, 0.05 * speed[i])
         if trk_t[j] - trk_t[i] >= min_duration:
             # the error changes along the stroke: compare with the rests on both sides
             before = (trk_t < trk_t[i] - 0.5) & (trk_t > trk_t[i] - 3.5) & (speed < MIN_SPEED)
@@ -380,6 +364,21 @@ def reference_method(
                 )
         i = j + 1
     return segments
+
+
+def _stroke_end(v: np.ndarray, fast: np.ndarray, i: int, tolerance: float) -> int:
+    """The last sample j >= i such that every sample in (i, j] moves fast with a velocity
+    within `tolerance` of v[i]; searched a block at a time (strokes are thousands long)."""
+    n = int(v.shape[0])
+    lo = i + 1
+    block = 256
+    while lo < n:
+        hi = min(n, lo + block)
+        same = fast[lo:hi] & (np.linalg.norm(v[lo:hi] - v[i], axis=1) < tolerance)
+        if not same.all():
+            return lo + int(np.argmin(same)) - 1
+        lo, block = hi, block * 2
+    return n - 1
 
 
 class OnlineDelayTracker:
