@@ -559,10 +559,14 @@ def estimate_batch(
             block = first_order_recursion(state, 1.0 - alpha, alpha * m[1:][rows])
             states[1 + lo : 1 + lo + block.shape[0]] = block
             state = block[-1]
-        # every row carries the state after the newest update at or before it
-        latest = np.maximum.accumulate(np.where(ok, np.arange(n), -1))
-        has = latest >= 0
-        estimate[has] = states[np.searchsorted(upd, latest[has])]
+        # every row carries the state after the newest update at or before it: the number
+        # of updates so far, less one, is that update's place in `states`
+        if upd.size == n:
+            estimate = states
+        else:
+            place = np.cumsum(ok) - 1
+            has = place >= 0
+            estimate[has] = states[place[has]]
     count("estimates", upd.size)
 
     # ---- flags and counters
