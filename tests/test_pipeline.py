@@ -143,3 +143,16 @@ def test_latest_alignment_runs_at_the_fixed_rate(demo_cell, run):
     )
     t = np.array([e.t for e in out])
     assert np.allclose(np.diff(t), 0.025)
+
+
+def test_persisted_directions_equal_a_row_by_row_forward_fill():
+    from keo_service.core.corrections import persist_directions
+
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        d = rng.choice([-1.0, 0.0, 0.0, 1.0], size=(int(rng.integers(1, 40)), 6))
+        expected = d.copy()
+        for i in range(1, expected.shape[0]):  # a joint that stands keeps its last direction
+            still = expected[i] == 0
+            expected[i, still] = expected[i - 1, still]
+        assert np.array_equal(persist_directions(d), expected)

@@ -474,7 +474,7 @@ def estimate_batch(
 
     # ---- when each sample is resolved
     never = np.iinfo(np.int64).max
-    target = T - (settings.delay.offset_s + settings.delay.drift * (T - settings.delay.t_ref))
+    target = settings.delay.encoder_times(T)
     first_cover = np.searchsorted(E, target, side="left")
     covered_at = np.full(n, never)
     if E.size:

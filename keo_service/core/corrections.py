@@ -87,8 +87,11 @@ def approach_directions(q: np.ndarray) -> np.ndarray:
 
 def persist_directions(direction: np.ndarray) -> np.ndarray:
     """A joint that does not move keeps the direction of its last move (its backlash side)."""
-    out = direction.copy()
-    for i in range(1, out.shape[0]):
-        still = out[i] == 0
-        out[i, still] = out[i - 1, still]
+    direction = np.asarray(direction)
+    if direction.shape[0] == 0:
+        return direction.copy()
+    # forward fill per joint: each row takes the newest row at or before it that moved
+    rows = np.arange(direction.shape[0])[:, None]
+    newest = np.maximum.accumulate(np.where(direction != 0, rows, 0), axis=0)
+    out: np.ndarray = np.take_along_axis(direction, newest, axis=0)
     return out

@@ -30,6 +30,12 @@ class DelayModel:
     def encoder_time(self, t_sensor: float) -> float:
         return t_sensor - self.at(t_sensor)
 
+    def encoder_times(self, t_sensor: np.ndarray) -> np.ndarray:
+        """`encoder_time` over an array of tracker stamps (the same arithmetic)."""
+        t = np.asarray(t_sensor, dtype=float)
+        out: np.ndarray = t - (self.offset_s + self.drift * (t - self.t_ref))
+        return out
+
 
 class Coverage(enum.Enum):
     OK = "ok"

@@ -56,7 +56,7 @@ def load_data(
     if delay is None:
         timing = config.timing
         delay = delay_model(timing)
-    target = trk.t.copy() if static else np.array([delay.encoder_time(t) for t in trk.t])
+    target = trk.t.copy() if static else delay.encoder_times(trk.t)
     ok = np.isfinite(trk.t) & np.all(np.isfinite(trk.p), axis=1)
     ok &= (target >= enc_t[0]) & (target <= enc_t[-1])
     if trk.quat is not None:
