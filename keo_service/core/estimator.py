@@ -15,6 +15,7 @@ import statistics
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -456,10 +457,10 @@ def _sensor_vector(
     return np.array([x, y, z, qx / norm, qy / norm, qz / norm, qw / norm], dtype=float)
 
 
-def _finite(value: object) -> bool:
+def _finite(value: Any) -> bool:
     """A finite number (a huge but finite sum lands here, as does a non-number)."""
     try:
-        return math.isfinite(float(value))  # type: ignore[arg-type]
+        return math.isfinite(float(value))
     except (TypeError, ValueError):
         return False
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -73,7 +74,7 @@ def estimate_files(
     )
 
 
-def _streaming(estimator: Estimator, streams: tuple, path: str) -> OfflineResult:  # type: ignore[type-arg]
+def _streaming(estimator: Estimator, streams: tuple[Any, ...], path: str) -> OfflineResult:
     estimates = run_offline(estimator, *streams)
     channels = estimator.channels or ()
     nan = np.full(len(channels), np.nan)
