@@ -539,9 +539,12 @@ def estimate_batch(
         raise BatchUnsupportedError("the kinematics gave a non-finite error")
     gains = np.asarray(settings.gains[: len(channels)], dtype=float)
     upd = np.flatnonzero(ok)
-    estimate = np.zeros((n, len(channels)))
+    every_row = upd.size == n
+    # the alignment's whole-recording temporaries are done with: give their pages back
+    del covered_at, stale_at, ready, waiting, newest, oldest, g, g0, t0, t1, exact, between
+    estimate = np.empty((0, len(channels))) if every_row else np.zeros((n, len(channels)))
     if upd.size:
-        m = measured[upd]
+        m = measured if every_row else measured[upd]
         if settings.start == "first":
             x0 = m[0]
         else:
@@ -561,7 +564,7 @@ def estimate_batch(
             state = block[-1]
         # every row carries the state after the newest update at or before it: the number
         # of updates so far, less one, is that update's place in `states`
-        if upd.size == n:
+        if every_row:
             estimate = states
         else:
             place = np.cumsum(ok) - 1
