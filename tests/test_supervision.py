@@ -275,3 +275,18 @@ async def test_a_fault_in_the_recorder_ends_the_recording_with_its_cause(tmp_pat
                 await recording
     finally:
         session.close()
+
+
+def test_rates_of_a_burst_handled_at_one_instant_do_not_crash_the_status():
+    """The first encoder sample releases every tracker sample that waited for it: their
+    estimates are published at one instant, and the status (10 Hz) once divided by the
+    zero span of those ticks and stopped the service (seen under CI load)."""
+    from keo_service.live.service import RateMeter
+
+    meter = RateMeter()
+    for _ in range(5):
+        meter.tick(10.0)
+    assert meter.rate(10.0) == 0.0
+    meter.tick(10.5)
+    assert meter.rate(10.5) == 5 / 0.5
+    assert meter.rate(13.0) == 0.0  # nothing for over 2 s

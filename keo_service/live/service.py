@@ -75,7 +75,10 @@ class RateMeter:
     def rate(self, now: float) -> float:
         if len(self._times) < 2 or now - self._times[-1] > 2.0:
             return 0.0
-        return (len(self._times) - 1) / (self._times[-1] - self._times[0])
+        span = self._times[-1] - self._times[0]
+        if span <= 0.0:  # a burst handled at one instant (e.g. the first encoder sample
+            return 0.0  # releasing the tracker samples that waited for it): no rate yet
+        return (len(self._times) - 1) / span
 
 
 class ServiceFailedError(KeoError):
