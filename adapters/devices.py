@@ -137,15 +137,12 @@ class EncoderAdapter(_Adapter):
                     return
                 host_ns = time.time_ns()
                 frames = self.decoder.feed(data)
-                joints = [f for f in frames if isinstance(f, JointFeedback) and f.group == 0]
-                stamps = self._stamps.place(host_ns * 1e-9, len(joints))
-                if len(joints) > 1:
-                    self.counters["coalesced_frames"] += len(joints) - 1
-                for frame in frames:
-                    if isinstance(frame, JointFeedback) and frame.group == 0:
-                        self.publish_frame(frame, host_ns, stamps.pop(0))
-                    else:
-                        self.publish_frame(frame, host_ns)
+                joints = [isinstance(f, JointFeedback) and f.group == 0 for f in frames]
+                stamps = iter(self._stamps.place(host_ns * 1e-9, sum(joints)))
+                if sum(joints) > 1:
+                    self.counters["coalesced_frames"] += sum(joints) - 1
+                for frame, is_joint in zip(frames, joints, strict=True):
+                    self.publish_frame(frame, host_ns, next(stamps) if is_joint else None)
         finally:
             self.decoder.reset()
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from keo_service.core.batch import (
+    BatchResult,
     BatchUnsupportedError,
     estimate_batch,
     first_order_recursion,
@@ -22,7 +23,13 @@ from keo_service.core.estimator import Estimator, run_offline
 from keo_service.core.kinematics import Cell, measured_error
 from keo_service.core.timing import DelayModel
 from keo_service.io.cell import estimator_settings
-from keo_service.io.interchange import read_estimates
+from keo_service.io.interchange import (
+    EncoderData,
+    TrackerData,
+    read_estimates,
+    write_encoder,
+    write_tracker,
+)
 from keo_service.sim.simulate import SCENARIOS, make_scenario, simulate
 from tests.conftest import DEMO, keo
 
@@ -46,6 +53,13 @@ def compare(cell, settings, enc_t, enc_q, trk_t, trk_p, trk_quat):
         assert g.encoder_t == pytest.approx(r.encoder_t, abs=0.0)
     assert batch.counters == dict(streaming.counters)
     assert batch.messages == list(streaming.messages)
+    # and back: the streaming rows as arrays (what `keo estimate --streaming` writes)
+    back = BatchResult.from_estimates(
+        reference, batch.channels, cell.robot.nq, batch.counters, batch.messages
+    )
+    assert back.flags == batch.flags
+    for name in ("t", "measured", "estimate", "encoder_t", "joints"):
+        np.testing.assert_allclose(getattr(back, name), getattr(batch, name), rtol=0, atol=TOL)
     return batch, reference
 
 
@@ -196,19 +210,8 @@ def test_keo_estimate_writes_what_the_streaming_estimator_gives(demo_cell, demo_
     """The command end to end (files in, file out) against the per-sample estimator."""
     run = simulate(demo_cell, make_scenario("path", {"duration_s": "8"}), seed=4)
     enc_t, enc_q, trk_t, trk_p, quat = _faulty(run)
-    header = "t,x,y,z,qw,qx,qy,qz\n"
-    rows = np.column_stack([trk_t, trk_p, quat])
-    (tmp_path / "tracker.csv").write_text(
-        header + "\n".join(",".join(repr(float(v)) for v in r) for r in rows) + "\n"
-    )
-    enc_rows = np.column_stack([enc_t, enc_q])
-    (tmp_path / "encoder.csv").write_text(
-        "t,"
-        + ",".join(f"q{i + 1}" for i in range(enc_q.shape[1]))
-        + "\n"
-        + "\n".join(",".join(repr(float(v)) for v in r) for r in enc_rows)
-        + "\n"
-    )
+    write_tracker(tmp_path / "tracker.csv", TrackerData(trk_t, trk_p, quat))
+    write_encoder(tmp_path / "encoder.csv", EncoderData(enc_t, enc_q))
     res = keo(
         "estimate",
         "--config",
@@ -237,3 +240,17 @@ def test_keo_estimate_writes_what_the_streaming_estimator_gives(demo_cell, demo_
     assert np.max(np.abs(table.measured[ok] - want_meas[ok])) < TOL
     assert np.max(np.abs(table.estimate - np.array([r.estimate for r in reference]))) < TOL
     assert table.flags == ["|".join(r.flags) for r in reference]
+
+
+def test_more_rejects_than_messages_kept_give_the_same_newest_messages(demo_cell, demo_config):
+    """Every reject is counted; only the newest 32 are put in words, interleaved across the
+    two streams in arrival order as the streaming estimator keeps them."""
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "6"}), seed=7)
+    enc_t, enc_q, trk_t, trk_p, quat = (a.copy() for a in streams(run))
+    enc_q[5::6, 1] = np.nan  # one encoder row in 6
+    trk_p[3::9, 0] = np.inf  # one tracker row in 9
+    batch, _ = compare(demo_cell, estimator_settings(demo_config), enc_t, enc_q, trk_t, trk_p, quat)
+    assert batch.counters["rejected"] > 64
+    assert len(batch.messages) == 32
+    assert any(m.startswith("encoder") for m in batch.messages)
+    assert any(m.startswith("tracker") for m in batch.messages)

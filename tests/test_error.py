@@ -12,8 +12,10 @@ from scipy.spatial.transform import Rotation
 
 from keo_service.core.kinematics import (
     Cell,
+    fold_frames,
     log3,
     measured_error,
+    measured_error_folded,
     quat_wxyz,
     se3_from_xyz_quat,
     tool_pose,
@@ -127,3 +129,23 @@ def test_pose_from_position_and_quaternion_matches_scipy(q_wxyz, p):
     pose = se3_from_xyz_quat(p, q_wxyz)
     assert np.allclose(pose.rotation, expected, atol=1e-12)
     assert np.allclose(pose.translation, p, atol=0)
+
+
+def test_folded_measured_error_equals_the_frame_by_frame_one(demo_cell):
+    """The hot path's measured error (constant frames folded once) against the definition
+    evaluated frame by frame, for poses and for a single reflector."""
+    frames = fold_frames(demo_cell)
+    assert frames is not None
+    model, data = demo_cell.robot.model, demo_cell.robot.create_data()
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        q = pin.randomConfiguration(model)
+        p = rng.uniform(-2.0, 2.0, 3)
+        wxyz = Rotation.random(random_state=rng).as_quat(scalar_first=True)
+        sensor = np.array([*p, wxyz[1], wxyz[2], wxyz[3], wxyz[0]])
+        want = measured_error(demo_cell, demo_cell.robot.create_data(), q, p, wxyz)
+        got = measured_error_folded(frames, model, data, q, sensor)
+        assert np.max(np.abs(got - want)) < 1e-12
+        want3 = measured_error(demo_cell, demo_cell.robot.create_data(), q, p, None)
+        got3 = measured_error_folded(frames, model, data, q, p)
+        assert np.max(np.abs(got3 - want3)) < 1e-12

@@ -249,5 +249,5 @@ async def test_mcap_recording_reads_back_with_mcap_and_rosbags_and_estimates_ali
         demo_config, tmp_path / "csv/encoder.csv", tmp_path / "csv/tracker.csv"
     )
     from_mcap = estimate_files(demo_config, out, out)
-    assert from_csv.t.size == from_mcap.t.size > 0
-    assert float(np.max(np.abs(from_csv.estimate - from_mcap.estimate))) < 1e-9
+    assert from_csv.table.t.size == from_mcap.table.t.size > 0
+    assert float(np.max(np.abs(from_csv.table.estimate - from_mcap.table.estimate))) < 1e-9

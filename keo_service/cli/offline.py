@@ -109,28 +109,29 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     config = common.load(args.config)
     result = estimate_files(config, args.encoder, args.tracker, streaming=args.streaming)
     write_estimates(args.out, result)
-    held = result.held
+    table = result.table
+    held = int(table.held.sum())
     summary = {
         "out": str(args.out),
         "path": result.path,
-        "estimates": int(result.t.size),
+        "estimates": int(table.t.size),
         "held": held,
-        "channels": list(result.channels),
-        "counters": result.counters,
-        "messages": result.messages[-10:],
+        "channels": list(table.channels),
+        "counters": table.counters,
+        "messages": table.messages[-10:],
     }
     if args.json:
         common.print_json(summary)
     else:
-        print(f"wrote {result.t.size} estimates ({held} held) to {args.out} [{result.path}]")
+        print(f"wrote {table.t.size} estimates ({held} held) to {args.out} [{result.path}]")
         skipped = {
             k: v
-            for k, v in result.counters.items()
+            for k, v in table.counters.items()
             if k.startswith(("encoder_", "tracker_")) and not k.endswith("samples")
         }
         if skipped:
             print("skipped rows: " + ", ".join(f"{k}={v}" for k, v in sorted(skipped.items())))
-            for m in result.messages[-5:]:
+            for m in table.messages[-5:]:
                 print(f"  {m}")
     return common.EXIT_OK
 

@@ -79,6 +79,31 @@ class BatchResult:
         )
         return held
 
+    @classmethod
+    def from_estimates(
+        cls,
+        estimates: list[Estimate],
+        channels: tuple[str, ...],
+        nq: int,
+        counters: dict[str, int],
+        messages: list[str],
+    ) -> BatchResult:
+        """The same rows from `Estimate` objects (what `run_offline` returns)."""
+        nan_c, nan_q = np.full(len(channels), np.nan), np.full(nq, np.nan)
+        return cls(
+            np.array([e.t for e in estimates], dtype=float),
+            np.array([nan_c if e.measured is None else e.measured for e in estimates]).reshape(
+                -1, len(channels)
+            ),
+            np.array([e.estimate for e in estimates]).reshape(-1, len(channels)),
+            ["|".join(e.flags) for e in estimates],
+            np.array([np.nan if e.encoder_t is None else e.encoder_t for e in estimates]),
+            np.array([nan_q if e.joints is None else e.joints for e in estimates]).reshape(-1, nq),
+            channels,
+            counters,
+            messages,
+        )
+
     def to_estimates(self) -> list[Estimate]:
         """The same rows as `Estimate` objects (what `run_offline` returns)."""
         out = []
@@ -367,7 +392,6 @@ def estimate_batch(
         None if tracker_quat is None else np.asarray(tracker_quat, dtype=float).reshape(-1, 4)
     )
     counters: dict[str, int] = {}
-    rejects: list[tuple[int, str]] = []  # (event position, message)
 
     def count(name: str, n: int) -> None:
         if n:
@@ -384,28 +408,6 @@ def estimate_batch(
     enc_ok = enc_finite & (enc_t > enc_newest)
     enc_dup = enc_finite & (enc_t == enc_newest)
     enc_old = enc_finite & (enc_t < enc_newest)
-    for name, mask in (
-        ("encoder_non_finite", ~enc_finite),
-        ("encoder_duplicate", enc_dup),
-        ("encoder_out_of_order", enc_old),
-    ):
-        count(name, mask.sum())
-        count("rejected", mask.sum())
-    enc_bad = np.flatnonzero(~enc_ok)
-    for i in enc_bad:
-        t = float(enc_t[i])
-        if not enc_finite[i]:
-            msg = f"encoder sample at t={t!r}: non-finite time or joint value"
-        elif enc_dup[i]:
-            msg = f"encoder sample at t={t!r}: duplicate stamp"
-        else:
-            msg = f"encoder sample at t={t!r}: older than the newest ({float(enc_newest[i])!r})"
-        rejects.append((int(enc_pos[i]), msg))
-    if enc_ok.all():
-        E, Q, E_pos = enc_t, enc_q, enc_pos
-    else:
-        E, Q, E_pos = enc_t[enc_ok], enc_q[enc_ok], enc_pos[enc_ok]
-    count("encoder_samples", E.size)
 
     # ---- tracker acceptance (time first, then values)
     t_finite = np.isfinite(trk_t)
@@ -424,7 +426,12 @@ def estimate_batch(
     non_finite_value = timely & ~values_finite
     not_unit = timely & values_finite & ~unit
     accepted = timely & values_finite & unit
+
+    # ---- rejects: every one counted, the newest MAX_MESSAGES (in arrival order) in words
     for name, mask in (
+        ("encoder_non_finite", ~enc_finite),
+        ("encoder_duplicate", enc_dup),
+        ("encoder_out_of_order", enc_old),
         ("tracker_non_finite", ~t_finite | non_finite_value),
         ("tracker_duplicate", dup),
         ("tracker_out_of_order", old),
@@ -432,7 +439,20 @@ def estimate_batch(
     ):
         count(name, mask.sum())
         count("rejected", mask.sum())
-    for j in np.flatnonzero(~accepted):
+    enc_bad, trk_bad = np.flatnonzero(~enc_ok), np.flatnonzero(~accepted)
+    bad_pos = np.concatenate([enc_pos[enc_bad], trk_pos[trk_bad]])
+    newest_kept = np.sort(bad_pos)[-MAX_MESSAGES] if bad_pos.size > MAX_MESSAGES else -1
+    rejects: list[tuple[int, str]] = []  # (event position, message)
+    for i in enc_bad[enc_pos[enc_bad] >= newest_kept]:
+        t = float(enc_t[i])
+        if not enc_finite[i]:
+            msg = f"encoder sample at t={t!r}: non-finite time or joint value"
+        elif enc_dup[i]:
+            msg = f"encoder sample at t={t!r}: duplicate stamp"
+        else:
+            msg = f"encoder sample at t={t!r}: older than the newest ({float(enc_newest[i])!r})"
+        rejects.append((int(enc_pos[i]), msg))
+    for j in trk_bad[trk_pos[trk_bad] >= newest_kept]:
         t = float(trk_t[j])
         if not t_finite[j]:
             msg = f"tracker sample: non-finite time {t!r}"
@@ -447,6 +467,12 @@ def estimate_batch(
         rejects.append((int(trk_pos[j]), msg))
     rejects.sort(key=lambda item: item[0])
     messages = [m for _p, m in rejects[-MAX_MESSAGES:]]
+
+    if enc_ok.all():
+        E, Q, E_pos = enc_t, enc_q, enc_pos
+    else:
+        E, Q, E_pos = enc_t[enc_ok], enc_q[enc_ok], enc_pos[enc_ok]
+    count("encoder_samples", E.size)
 
     channels = channels_for(trk_quat is None)
     every = bool(accepted.all())

@@ -8,11 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
-import numpy as np
-
-from keo_service.core.batch import BatchUnsupportedError, estimate_batch
+from keo_service.core.batch import BatchResult, BatchUnsupportedError, estimate_batch
 from keo_service.core.estimator import Estimator, EstimatorSettings, run_offline
 from keo_service.io.cell import cell_from_config, estimator_settings
 from keo_service.io.config import Config
@@ -22,18 +19,8 @@ from keo_service.io.mcap_files import is_mcap, read_mcap
 
 @dataclass
 class OfflineResult:
-    t: np.ndarray
-    measured: np.ndarray  # NaN where held
-    estimate: np.ndarray
-    flags: list[str]  # "" or flags joined by "|"
-    counters: dict[str, int]
-    messages: list[str]
-    channels: tuple[str, ...]
+    table: BatchResult  # one row per estimate
     path: str  # "batch", or "streaming (<why>)"
-
-    @property
-    def held(self) -> int:
-        return int(np.isnan(self.measured).any(axis=1).sum()) if self.measured.size else 0
 
 
 def estimate_files(
@@ -56,43 +43,24 @@ def estimate_files(
     )
     settings = settings or estimator_settings(config)
     streams = (encoder.t, encoder.q, tracker.t, tracker.p, tracker.quat)
-    if streaming:
-        return _streaming(Estimator(cell, settings), streams, "streaming (asked for)")
-    try:
-        batch = estimate_batch(cell, settings, *streams)
-    except BatchUnsupportedError as why:
-        return _streaming(Estimator(cell, settings), streams, f"streaming ({why})")
-    return OfflineResult(
-        batch.t,
-        batch.measured,
-        batch.estimate,
-        batch.flags,
-        batch.counters,
-        batch.messages,
-        batch.channels,
-        "batch",
-    )
-
-
-def _streaming(estimator: Estimator, streams: tuple[Any, ...], path: str) -> OfflineResult:
+    why = "asked for"
+    if not streaming:
+        try:
+            return OfflineResult(estimate_batch(cell, settings, *streams), "batch")
+        except BatchUnsupportedError as exc:
+            why = str(exc)
+    estimator = Estimator(cell, settings)
     estimates = run_offline(estimator, *streams)
-    channels = estimator.channels or ()
-    nan = np.full(len(channels), np.nan)
-    return OfflineResult(
-        np.array([e.t for e in estimates]),
-        np.array([nan if e.measured is None else e.measured for e in estimates]).reshape(
-            -1, len(channels)
-        ),
-        np.array([e.estimate for e in estimates]).reshape(-1, len(channels)),
-        ["|".join(e.flags) for e in estimates],
+    table = BatchResult.from_estimates(
+        estimates,
+        estimator.channels or (),
+        cell.robot.nq,
         dict(estimator.counters),
         list(estimator.messages),
-        channels,
-        path,
     )
+    return OfflineResult(table, f"streaming ({why})")
 
 
 def write_estimates(path: str | Path, result: OfflineResult) -> None:
-    write_estimate_table(
-        path, result.t, result.measured, result.estimate, result.flags, result.channels
-    )
+    t = result.table
+    write_estimate_table(path, t.t, t.measured, t.estimate, t.flags, t.channels)
