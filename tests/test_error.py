@@ -132,20 +132,33 @@ def test_pose_from_position_and_quaternion_matches_scipy(q_wxyz, p):
 
 
 def test_folded_measured_error_equals_the_frame_by_frame_one(demo_cell):
-    """The hot path's measured error (constant frames folded once) against the definition
-    evaluated frame by frame, for poses and for a single reflector."""
+    """The hot path's measured error (constant frames folded into the model, the rotation
+    vector from a quaternion) against the definition evaluated frame by frame with Pinocchio,
+    its rotation vector from scipy; for poses, half turns included, and a single reflector."""
     frames = fold_frames(demo_cell)
     assert frames is not None
-    model, data = demo_cell.robot.model, demo_cell.robot.create_data()
+    model, data = demo_cell.robot.model, frames.model.createData()
     rng = np.random.default_rng(3)
-    for _ in range(200):
+    for k in range(300):
         q = pin.randomConfiguration(model)
+        T_bt = tool_pose(demo_cell, demo_cell.robot.create_data(), q)
         p = rng.uniform(-2.0, 2.0, 3)
-        wxyz = Rotation.random(random_state=rng).as_quat(scalar_first=True)
-        sensor = np.array([*p, wxyz[1], wxyz[2], wxyz[3], wxyz[0]])
-        want = measured_error(demo_cell, demo_cell.robot.create_data(), q, p, wxyz)
-        got = measured_error_folded(frames, model, data, q, sensor)
-        assert np.max(np.abs(got - want)) < 1e-12
+        if k % 3 == 0:  # the sensor turned 3.1-pi rad from the nominal tool
+            axis = rng.normal(size=3)
+            angle = rng.uniform(3.1, math.pi)
+            R_bs = (
+                T_bt.rotation
+                @ Rotation.from_rotvec(angle * axis / np.linalg.norm(axis)).as_matrix()
+            )
+            R_ks = demo_cell.T_bk.rotation.T @ R_bs
+            wxyz = Rotation.from_matrix(R_ks).as_quat(scalar_first=True)
+        else:
+            wxyz = Rotation.random(random_state=rng).as_quat(scalar_first=True)
+        sensor = [*p, wxyz[1], wxyz[2], wxyz[3], wxyz[0]]
+        T_ts = T_bt.actInv(demo_cell.T_bk * se3_from_xyz_quat(p, wxyz))
+        want = np.r_[T_ts.translation, Rotation.from_matrix(T_ts.rotation).as_rotvec()]
+        got = np.array(measured_error_folded(frames, data, q, sensor))
+        assert np.max(np.abs(got - want)) < 1e-12, (k, got, want)
         want3 = measured_error(demo_cell, demo_cell.robot.create_data(), q, p, None)
-        got3 = measured_error_folded(frames, model, data, q, p)
+        got3 = np.array(measured_error_folded(frames, data, q, p.tolist()))
         assert np.max(np.abs(got3 - want3)) < 1e-12

@@ -93,6 +93,37 @@ def test_bad_steps_are_rejected_and_state_kept():
         KinematicErrorObserver([1.0, 0.0])
 
 
+def test_a_step_that_would_leave_the_finite_numbers_is_refused():
+    obs = KinematicErrorObserver([2.0, 2.0, 2.0], initial=[1.0, -1e308, 3.0])
+    assert not obs.update([0.0, 1e308, 0.0], 1.0)  # finite in, m - e overflows
+    assert not obs.update([0.0, "1", 0.0], 0.01)
+    assert not obs.update([0.0, 0.0, 0.0], math.nan)
+    assert obs.rejected == 3
+    assert obs.values == [1.0, -1e308, 3.0]
+    # a finite state whose sum overflows is still a finite state
+    obs.reset([0.0, 0.0, 0.0])
+    assert obs.update([1e308, 1e308, 1e308], 1e3)
+    assert obs.values == [1e308, 1e308, 1e308]
+
+
+@pytest.mark.parametrize("gains", [[0.7] * 6, [3.0, 3.0, 3.0, 0.5, 0.5, 0.5], [1, 2, 3, 4, 5, 6]])
+def test_one_step_is_the_exact_zero_order_hold_per_channel(gains):
+    """e_k = e_{k-1} + (1 - exp(-L dt)) (m - e_{k-1}) per channel, written out here."""
+    start = [0.1, -0.2, 0.3, -0.4, 0.5, -0.6]
+    measured = [1.0, 2.0, -3.0, 0.25, -0.5, 4.0]
+    obs = KinematicErrorObserver(gains, initial=start)
+    assert obs.update(measured, 0.013)
+    want = [
+        s + (1 - math.exp(-g * 0.013)) * (m - s)
+        for s, g, m in zip(start, gains, measured, strict=True)
+    ]
+    assert np.allclose(obs.values, want, rtol=1e-14, atol=1e-15)
+    obs.set_gain([9.0] * 6)
+    assert obs.update(measured, 0.5)
+    want = [w + (1 - math.exp(-9.0 * 0.5)) * (m - w) for w, m in zip(want, measured, strict=True)]
+    assert np.allclose(obs.estimate, want, rtol=1e-14, atol=1e-15)
+
+
 def test_channels_come_from_the_gains():
     assert KinematicErrorObserver([1.0] * 3).channels == 3
     assert KinematicErrorObserver([1.0] * 6).channels == 6

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from keo_service.core.estimator import Estimator, EstimatorSettings, run_offline
-from keo_service.core.timing import DelayModel, EncoderBuffer
+from keo_service.core.timing import Coverage, DelayModel, EncoderBuffer
 from keo_service.sim.simulate import make_scenario, simulate
 
 
@@ -117,6 +119,31 @@ def test_tracker_gap_and_bad_samples(demo_cell):
     assert "t=0.11" in " ".join(est.messages)
 
 
+def test_malformed_tracker_values_are_refused_by_name(demo_cell):
+    """Wrong counts, non-numbers and infinities in any position, as lists (the service's
+    decoded messages) and as arrays: each is counted under its name, none reaches the
+    observer, and a good sample after them is estimated."""
+    est = Estimator(demo_cell, settings(delay=DelayModel(0.0)))
+    for k in range(20):
+        est.on_encoder(k * 0.025, [0.0] * 6)
+    p, quat = [1.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0]
+    wrong_length = [([1.0, 0.0], quat), (p, []), (p, [1.0, 0.0, 0.0]), (p, [1, 0, 0, 0, 0])]
+    wrong_length += [(np.zeros((1, 3)), quat), (5.0, quat)]
+    non_finite = [([1.0, "x", 0.0], quat), (p, [1.0, 0.0, math.inf, 0.0]), ([None, 0, 0], quat)]
+    non_finite += [(np.array([0.0, -math.inf, 0.0]), np.array(quat))]
+    t = 0.1
+    for bad_p, bad_q in wrong_length + non_finite:
+        t += 0.001
+        assert est.on_tracker(t, bad_p, bad_q) == [], (bad_p, bad_q)
+    c = est.counters
+    assert c["tracker_wrong_length"] == len(wrong_length)
+    assert c["tracker_non_finite"] == len(non_finite)
+    assert c["estimates"] == 0
+    (good,) = est.on_tracker(t + 0.001, ["1.0", 0, 1], quat)  # numbers as text pass as numbers
+    assert good.measured is not None
+    assert np.all(np.isfinite(good.measured))
+
+
 def test_encoder_buffer_is_bounded_and_interpolates_linearly():
     buf = EncoderBuffer(2, capacity=8)
     for k in range(20):
@@ -124,12 +151,13 @@ def test_encoder_buffer_is_bounded_and_interpolates_linearly():
     assert len(buf) == 8
     assert buf.oldest_t == 12.0
     assert buf.newest_t == 19.0
-    status, q = buf.interpolate(15.25, max_gap=2.0)
-    assert status.value == "ok"
+    q = buf.interpolate(15.25, max_gap=2.0)
+    assert isinstance(q, np.ndarray)
     assert np.allclose(q, [15.25, -30.5])
-    assert buf.interpolate(11.0, 2.0)[0].value == "too_old"
-    assert buf.interpolate(19.5, 2.0)[0].value == "not_yet"
-    assert buf.interpolate(15.5, 0.5)[0].value == "gap"
+    assert buf.interpolate(11.0, 2.0) is Coverage.TOO_OLD
+    assert buf.interpolate(19.5, 2.0) is Coverage.NOT_YET
+    assert buf.interpolate(15.5, 0.5) is Coverage.GAP
+    assert EncoderBuffer(2, capacity=8).interpolate(1.0, 2.0) is Coverage.EMPTY
 
 
 def test_latest_alignment_runs_at_the_fixed_rate(demo_cell, run):

@@ -83,16 +83,20 @@ def _hot_path_pass(
 
         tmp = tempfile.TemporaryDirectory()
         sink = RerunSink(cell, rrd=Path(tmp.name) / "bench.rrd")
+    # the samples as the service gets them from decoded messages: floats and lists of floats
+    quat = run.tracker.quat
+    assert quat is not None  # the benchmark scenario is a 6-DoF probe
+    enc_t, enc_q = run.encoder.t.tolist(), run.encoder.q.tolist()
+    trk_t, trk_p, trk_q = run.tracker.t.tolist(), run.tracker.p.tolist(), quat.tolist()
+    n_enc = len(enc_t)
     cpu0 = time.process_time()
     n = 0
     i = 0
-    quat = run.tracker.quat
-    assert quat is not None  # the benchmark scenario is a 6-DoF probe
-    for j in range(run.tracker.t.size):
-        while i < run.encoder.t.size and run.encoder.t[i] <= run.tracker.t[j]:
-            est.on_encoder(run.encoder.t[i], run.encoder.q[i])
+    for j, t in enumerate(trk_t):
+        while i < n_enc and enc_t[i] <= t:
+            est.on_encoder(enc_t[i], enc_q[i])
             i += 1
-        for e in est.on_tracker(run.tracker.t[j], run.tracker.p[j], quat[j]):
+        for e in est.on_tracker(t, trk_p[j], trk_q[j]):
             n += 1
             if sink is not None:
                 sink.add(e)

@@ -21,8 +21,9 @@ import numpy as np
 import pinocchio as pin
 
 from keo_service.core.kinematics import (
+    POSE_CHANNELS,
+    POSITION_CHANNELS,
     Cell,
-    channels_for,
     corrected_joints,
     fold_frames,
     measured_error,
@@ -53,25 +54,77 @@ class EstimatorSettings:
     start: str = "zero"  # observer's initial state: "zero" (the reference) or "first"
 
 
-@dataclass(slots=True)
 class Estimate:
     """One observer output. `measured` is None when the step was held (see `flags`).
 
-    Read-only by convention (not frozen: a frozen dataclass costs a fifth of the hot path's
-    budget to build, once per tracker sample)."""
+    Read-only by convention. The two vectors are kept as they were made (plain floats on the
+    hot path: two arrays per tracker sample cost a twelfth of its budget) and become arrays on
+    first read; `measured_values` and `estimate_values` give the floats without arrays."""
 
-    t: float
-    measured: np.ndarray | None
-    estimate: np.ndarray
-    flags: tuple[str, ...]
-    encoder_t: float | None  # stream time at which the joints were evaluated
-    channels: tuple[str, ...]
-    joints: np.ndarray | None = None  # the joints the measured error was computed with
-    source: object = None  # passed through from on_tracker(tag=...), e.g. the device time
+    __slots__ = (
+        "_estimate",
+        "_measured",
+        "channels",
+        "encoder_t",
+        "flags",
+        "joints",
+        "source",
+        "t",
+    )
+
+    def __init__(
+        self,
+        t: float,
+        measured: np.ndarray | list[float] | None,
+        estimate: np.ndarray | list[float],
+        flags: tuple[str, ...],
+        encoder_t: float | None,  # stream time at which the joints were evaluated
+        channels: tuple[str, ...],
+        joints: np.ndarray | None = None,  # the joints the measured error was computed with
+        source: object = None,  # passed through from on_tracker(tag=...), e.g. the device time
+    ) -> None:
+        self.t = t
+        self._measured = measured
+        self._estimate = estimate
+        self.flags = flags
+        self.encoder_t = encoder_t
+        self.channels = channels
+        self.joints = joints
+        self.source = source
+
+    @property
+    def measured(self) -> np.ndarray | None:
+        m = self._measured
+        if m is None or isinstance(m, np.ndarray):
+            return m
+        self._measured = m = np.array(m, dtype=float)
+        return m
+
+    @property
+    def estimate(self) -> np.ndarray:
+        e = self._estimate
+        if isinstance(e, np.ndarray):
+            return e
+        self._estimate = e = np.array(e, dtype=float)
+        return e
+
+    def measured_values(self) -> list[float] | None:
+        m = self._measured
+        return m.tolist() if isinstance(m, np.ndarray) else m
+
+    def estimate_values(self) -> list[float]:
+        e = self._estimate
+        return e.tolist() if isinstance(e, np.ndarray) else e
 
     @property
     def held(self) -> bool:
-        return self.measured is None
+        return self._measured is None
+
+    def __repr__(self) -> str:
+        return (
+            f"Estimate(t={self.t!r}, measured={self.measured_values()!r}, "
+            f"estimate={self.estimate_values()!r}, flags={self.flags!r})"
+        )
 
 
 @dataclass(slots=True)
@@ -79,7 +132,7 @@ class _TrackerSample:
     t: float
     # [x, y, z, qx, qy, qz, qw] (Pinocchio's order, unit quaternion) or [x, y, z] for a
     # single reflector; None: a gap reported by the tracker
-    sensor: np.ndarray | None
+    sensor: list[float] | None
     tag: object = None
 
 
@@ -94,7 +147,13 @@ class Estimator:
         self._data = cell.robot.create_data()
         self._model = cell.robot.model
         self._folded = fold_frames(cell)
+        self._folded_data = self._folded.model.createData() if self._folded else None
+        # where the folded model alone gives the measured error (no joint corrections)
+        self._folded_only = self._folded if cell.corrections is None else None
         self._nq = cell.robot.nq
+        self._max_gap_s = settings.max_gap_s  # read once per sample: kept at hand
+        self._buffer_s = settings.buffer_s
+        self._interpolating = settings.alignment == "interpolate"
         capacity = max(64, math.ceil(settings.buffer_s * 2000.0))
         self.encoder = EncoderBuffer(
             self._nq, capacity, functools.partial(pin.interpolate, self._model)
@@ -160,16 +219,18 @@ class Estimator:
             self.observer.set_gain(self._gains_for(len(self.observer.gain)))
 
     def on_encoder(self, t: float, q: Sequence[float] | np.ndarray) -> list[Estimate]:
-        q_arr = np.array(q, dtype=float)  # our own copy: the buffer keeps it
-        if q_arr.shape != (self._nq,):
+        values = q.tolist() if isinstance(q, np.ndarray) else q
+        if not isinstance(values, list) or len(values) != self._nq:
+            size = np.size(q) if isinstance(q, Sequence | np.ndarray) else 1
             return self._reject(
                 "encoder_wrong_length",
-                f"encoder sample at t={t!r}: {q_arr.size} joints, expected {self._nq}",
+                f"encoder sample at t={t!r}: {size} joints, expected {self._nq}",
             )
-        if not (math.isfinite(t) and finite_numbers(q_arr.tolist())):
+        if not (math.isfinite(t) and finite_numbers(values)):
             return self._reject(
                 "encoder_non_finite", f"encoder sample at t={t!r}: non-finite time or joint value"
             )
+        q_arr = np.array(values, dtype=float)  # our own copy: the buffer keeps it
         newest = self.encoder.newest_t
         if t == newest:
             return self._reject("encoder_duplicate", f"encoder sample at t={t!r}: duplicate stamp")
@@ -199,42 +260,40 @@ class Estimator:
         tag: object = None,
     ) -> list[Estimate]:
         """A tracker sample; `ok=False` (or p None) is a gap the tracker reported."""
-        if not math.isfinite(t):
-            return self._reject("tracker_non_finite", f"tracker sample: non-finite time {t!r}")
-        if t == self._last_tracker_t:
-            return self._reject("tracker_duplicate", f"tracker sample at t={t!r}: duplicate stamp")
-        if t < self._last_tracker_t:
-            return self._reject(
-                "tracker_out_of_order",
-                f"tracker sample at t={t!r}: older than "
-                f"the previous one ({self._last_tracker_t!r})",
-            )
-        self._slew_delay(t)
+        last = self._last_tracker_t
+        if not last < t < math.inf:  # one comparison for a good stamp
+            return self._reject(*_stamp_problem(t, last))
+        if self._delay_target is not None:
+            self._slew_delay(t)
         if not ok or p is None:
             self._last_tracker_t = t
             self.counters["tracker_gaps"] += 1
             return self._enqueue(_TrackerSample(t, None, tag))
-        sensor = _sensor_vector(p, quat)
+        sensor = _sensor_values(p, quat)
         if isinstance(sensor, tuple):
             counter, what = sensor
             return self._reject(counter, f"tracker sample at t={t!r}: {what}")
-        position_only = len(sensor) == 3
-        channels = channels_for(position_only)
-        if self.channels is None:
-            self.channels = channels
-            self.observer = KinematicErrorObserver(self._gains_for(len(channels)))
-            self.counters["channels"] = len(channels)
-        elif channels != self.channels:
-            return self._reject(
-                "tracker_channel_mismatch",
-                f"tracker sample at t={t!r}: "
-                f"{len(channels)} channels on a {len(self.channels)}-channel stream",
-            )
-        if math.isfinite(self._last_tracker_t):
-            self._recent_dt.append(t - self._last_tracker_t)
+        channels = POSITION_CHANNELS if len(sensor) == 3 else POSE_CHANNELS
+        if channels is not self.channels:
+            if self.channels is None:
+                self.channels = channels
+                self.observer = KinematicErrorObserver(self._gains_for(len(channels)))
+                self.counters["channels"] = len(channels)
+            else:
+                return self._reject(
+                    "tracker_channel_mismatch",
+                    f"tracker sample at t={t!r}: "
+                    f"{len(channels)} channels on a {len(self.channels)}-channel stream",
+                )
+        if last > -math.inf:
+            self._recent_dt.append(t - last)
             self._dt_seen += 1
         self._last_tracker_t = t
         self.counters["tracker_samples"] += 1
+        if self._interpolating and not self._pending:
+            target = self._delay.encoder_time(t)
+            if self.encoder.newest_t >= target:  # the steady state: nothing waits
+                return [self._resolve_at(t, target, sensor, tag)]
         return self._enqueue(_TrackerSample(t, sensor, tag))
 
     @property
@@ -316,31 +375,35 @@ class Estimator:
         if sample.sensor is None:
             return self._held(sample.t, "tracker_gap", None, sample.tag)
         target = self._delay.encoder_time(sample.t)
-        coverage, q = self.encoder.interpolate(target, self.settings.max_gap_s)
-        if coverage is Coverage.OK and target < self.encoder.newest_t - self.settings.buffer_s:
-            coverage, q = Coverage.TOO_OLD, None
-        if coverage is not Coverage.OK or q is None:
-            reason = {
-                Coverage.NOT_YET: "encoder_stale",
-                Coverage.EMPTY: "encoder_stale",
-                Coverage.TOO_OLD: "encoder_too_old",
-                Coverage.GAP: "encoder_gap",
-            }[coverage]
-            return self._held(sample.t, reason, target, sample.tag)
-        return self._update(sample.t, self._measure(q, sample.sensor), target, q, sample.tag)
+        return self._resolve_at(sample.t, target, sample.sensor, sample.tag)
 
-    def _measure(self, q: np.ndarray, sensor: np.ndarray) -> np.ndarray:
-        if self._folded is None:
-            p, quat = sensor[:3], None if len(sensor) == 3 else sensor[[6, 3, 4, 5]]
-            return measured_error(self.cell, self._data, q, p, quat, self._direction)
+    def _resolve_at(self, t: float, target: float, sensor: list[float], tag: object) -> Estimate:
+        q = self.encoder.interpolate(target, self._max_gap_s)
+        if not isinstance(q, np.ndarray):
+            return self._held(t, _HELD_BECAUSE[q], target, tag)
+        if target < self.encoder.newest_t - self._buffer_s:
+            return self._held(t, "encoder_too_old", target, tag)
+        if self._folded_only is not None:
+            measured = measured_error_folded(self._folded_only, self._folded_data, q, sensor)
+        else:
+            measured = self._measure(q, sensor)
+        return self._update(t, measured, target, q, tag)
+
+    def _measure(self, q: np.ndarray, sensor: list[float]) -> list[float]:
+        if self._folded is None or self._folded_data is None:
+            p = sensor[:3]
+            quat = None if len(sensor) == 3 else [sensor[6], sensor[3], sensor[4], sensor[5]]
+            error = measured_error(self.cell, self._data, q, p, quat, self._direction)
+            values: list[float] = error.tolist()
+            return values
         if self.cell.corrections is not None:
             q = corrected_joints(self.cell, q, self._direction)
-        return measured_error_folded(self._folded, self._model, self._data, q, sensor)
+        return measured_error_folded(self._folded, self._folded_data, q, sensor)
 
     def _update(
         self,
         t: float,
-        measured: np.ndarray,
+        measured: list[float],
         encoder_t: float,
         joints: np.ndarray,
         tag: object = None,
@@ -355,8 +418,11 @@ class Estimator:
                 # the reference start: zero state, first step as if one sample period passed
                 self.observer.update(measured, 1.0 / self.settings.sample_rate_hz)
         else:
-            dt = min(t - self._last_update_t, self._max_step())
-            if not self.observer.update(measured, dt):
+            cap = self._step_cap
+            if cap is None or self._dt_seen % 16 == 0:
+                cap = self._max_step()
+            dt = t - self._last_update_t
+            if not self.observer.update(measured, cap if dt > cap else dt):
                 self.counters["observer_rejected"] += 1
                 return self._held(t, "observer_rejected", encoder_t, tag)
         self._last_update_t = t
@@ -368,7 +434,14 @@ class Estimator:
                 flags = (OUTSIDE_CALIBRATED_RANGE,)
                 self.counters[OUTSIDE_CALIBRATED_RANGE] += 1
         est = Estimate(
-            t, measured, self.observer.estimate, flags, encoder_t, self.channels, joints, tag
+            t,
+            measured,
+            self.observer.values,
+            flags,
+            encoder_t,
+            self.channels,
+            joints,
+            tag,
         )
         self.last = est
         return est
@@ -376,7 +449,7 @@ class Estimator:
     def _held(self, t: float, reason: str, encoder_t: float | None, tag: object = None) -> Estimate:
         self.counters[f"held_{reason}"] += 1
         channels = self.channels or ()
-        state = self.observer.estimate if self.observer is not None else np.zeros(len(channels))
+        state = self.observer.values if self.observer is not None else [0.0] * len(channels)
         est = Estimate(t, None, state, (reason,), encoder_t, channels, None, tag)
         self.last = est
         return est
@@ -424,37 +497,55 @@ class Estimator:
 
 
 _WRONG_LENGTH = ("tracker_wrong_length", "expected 3 position and 4 quaternion values")
+_HELD_BECAUSE = {
+    Coverage.NOT_YET: "encoder_stale",
+    Coverage.EMPTY: "encoder_stale",
+    Coverage.TOO_OLD: "encoder_too_old",
+    Coverage.GAP: "encoder_gap",
+}
 
 
-def _sensor_vector(
+def _stamp_problem(t: float, last: float) -> tuple[str, str]:
+    """Why a tracker stamp is refused (counter, message)."""
+    if not math.isfinite(t):
+        return "tracker_non_finite", f"tracker sample: non-finite time {t!r}"
+    if t == last:
+        return "tracker_duplicate", f"tracker sample at t={t!r}: duplicate stamp"
+    return (
+        "tracker_out_of_order",
+        f"tracker sample at t={t!r}: older than the previous one ({last!r})",
+    )
+
+
+def _sensor_values(
     p: Sequence[float] | np.ndarray, quat: Sequence[float] | np.ndarray | None
-) -> np.ndarray | tuple[str, str]:
+) -> list[float] | tuple[str, str]:
     """The tracker's pose as [x, y, z, qx, qy, qz, qw] (unit quaternion) or [x, y, z], or
     (counter, what is wrong) for a bad one. Checked on plain floats: for a good sample this
     costs less than one numpy call."""
-    values = p.tolist() if isinstance(p, np.ndarray) else list(p)
-    if len(values) != 3:
-        return _WRONG_LENGTH
-    if quat is not None:
-        q_list = quat.tolist() if isinstance(quat, np.ndarray) else list(quat)
-        if len(q_list) != 4:
-            return _WRONG_LENGTH
-        values += q_list
     try:
-        finite = math.isfinite(sum(values))
+        x, y, z = p.tolist() if type(p) is np.ndarray else p
+        if quat is None:
+            qw, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
+        else:
+            qw, qx, qy, qz = quat.tolist() if type(quat) is np.ndarray else quat
+    except (TypeError, ValueError):  # not 3 (and 4) values
+        return _WRONG_LENGTH
+    try:
+        finite = math.isfinite(x + y + z + qw + qx + qy + qz)
     except TypeError:
         finite = False
     if not finite:
+        values = (x, y, z, qw, qx, qy, qz)
         if not all(_finite(v) for v in values):
             return ("tracker_non_finite", "non-finite value")
-        values = [float(v) for v in values]
+        x, y, z, qw, qx, qy, qz = (float(v) for v in values)
     if quat is None:
-        return np.array(values, dtype=float)
-    x, y, z, qw, qx, qy, qz = values
+        return [x, y, z]
     norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
     if abs(norm - 1.0) > UNIT_QUATERNION_TOLERANCE:
         return ("tracker_not_unit_quaternion", f"quaternion norm {norm:.6g}, expected 1")
-    return np.array([x, y, z, qx / norm, qy / norm, qz / norm, qw / norm], dtype=float)
+    return [x, y, z, qx / norm, qy / norm, qz / norm, qw / norm]
 
 
 def _finite(value: Any) -> bool:

@@ -176,8 +176,8 @@ def measured_error(
     cell: Cell,
     data: pin.Data,
     q: np.ndarray,
-    p_ks: np.ndarray,
-    q_ks: np.ndarray | None,
+    p_ks: Sequence[float] | np.ndarray,
+    q_ks: Sequence[float] | np.ndarray | None,
     direction: np.ndarray | None = None,
 ) -> np.ndarray:
     """The measured error for joints q and a tracker measurement in the tracker frame.
@@ -193,13 +193,14 @@ def measured_error(
 
 @dataclass(frozen=True)
 class FoldedFrames:
-    """The cell's constant transforms folded once, so that one measured error costs one forward
-    kinematics and three SE3 products: e = T_tn (T_on^-1 (T_ok T_ks)), with T_tn = T_nt^-1 and
-    T_ok = T_ob T_bk (the base frame is fixed in the model's origin frame)."""
+    """The cell's constant transforms folded into a copy of the robot model, so that one
+    measured error costs one forward kinematics, one frame placement and one SE3 product:
+    the copy's origin is the tracker frame k (its root joint placed by T_ko = (T_ob T_bk)^-1)
+    and its flange frame carries the nominal tool (placement times T_nt), so the frame
+    placement it computes is T_kt(q) and T_ts = T_kt^-1 T_ks."""
 
-    flange_frame_id: int
-    T_tn: pin.SE3
-    T_ok: pin.SE3
+    model: pin.Model
+    tool_frame_id: int
 
 
 def fold_frames(cell: Cell) -> FoldedFrames | None:
@@ -209,21 +210,36 @@ def fold_frames(cell: Cell) -> FoldedFrames | None:
         return None
     data = robot.create_data()
     pin.framesForwardKinematics(robot.model, data, pin.neutral(robot.model))
-    T_ob = pin.SE3(data.oMf[robot.base_frame_id])
-    return FoldedFrames(robot.flange_frame_id, cell.T_nt.inverse(), T_ob * cell.T_bk)
+    T_ko = (data.oMf[robot.base_frame_id] * cell.T_bk).inverse()
+    model = pin.Model(robot.model)
+    for joint in range(1, model.njoints):
+        if model.parents[joint] == 0:
+            model.jointPlacements[joint] = T_ko * model.jointPlacements[joint]
+    tool = model.frames[robot.flange_frame_id]
+    tool.placement = tool.placement * cell.T_nt
+    model.frames[robot.flange_frame_id] = tool
+    return FoldedFrames(model, robot.flange_frame_id)
 
 
 def measured_error_folded(
-    frames: FoldedFrames, model: pin.Model, data: pin.Data, q: np.ndarray, sensor: np.ndarray
-) -> np.ndarray:
+    frames: FoldedFrames, data: pin.Data, q: np.ndarray, sensor: list[float]
+) -> list[float]:
     """`measured_error` for joints q (already corrected, if the cell has corrections) and the
-    sensor as [x, y, z, qx, qy, qz, qw] (Pinocchio's order, unit quaternion) or [x, y, z]."""
-    pin.forwardKinematics(model, data, q)
-    T_on = pin.updateFramePlacement(model, data, frames.flange_frame_id)
+    sensor as [x, y, z, qx, qy, qz, qw] (Pinocchio's order, unit quaternion) or [x, y, z];
+    `data` is `frames.model`'s. Plain floats out: the observer steps on them."""
+    pin.forwardKinematics(frames.model, data, q)
+    T_kt = pin.updateFramePlacement(frames.model, data, frames.tool_frame_id)
     if len(sensor) == 3:
-        return np.asarray(frames.T_tn.act(T_on.actInv(frames.T_ok.act(sensor))))
-    T_ts = frames.T_tn * T_on.actInv(frames.T_ok * pin.XYZQUATToSE3(sensor))
-    return np.concatenate((T_ts.translation, pin.log3(T_ts.rotation)))
+        p_ts: list[float] = T_kt.actInv(np.array(sensor)).tolist()
+        return p_ts
+    # log3 from the quaternion of T_ts (axis times angle, the angle in [0, pi]): one call
+    # fewer than log3 of the matrix, and exact near a half turn, where the matrix loses digits
+    x, y, z, qx, qy, qz, qw = pin.SE3ToXYZQUAT(T_kt.actInv(pin.XYZQUATToSE3(sensor))).tolist()
+    s = math.sqrt(qx * qx + qy * qy + qz * qz)  # |sin(angle / 2)|
+    k = 2.0 * math.atan2(s, abs(qw)) / s if s > 0.0 else 2.0
+    if qw < 0.0:  # q and -q are one rotation: the short way round
+        k = -k
+    return [x, y, z, k * qx, k * qy, k * qz]
 
 
 def sensor_pose_from_error(T_bt: pin.SE3, error: np.ndarray) -> pin.SE3:

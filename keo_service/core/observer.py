@@ -34,6 +34,7 @@ class KinematicErrorObserver:
         # the step runs on plain floats: for a handful of channels, Python arithmetic costs a
         # third of the equivalent numpy calls
         self._neg_gain = [-g for g in gain.tolist()]
+        self._one_neg_gain = self._neg_gain[0] if len(set(self._neg_gain)) == 1 else None
         self._state = [0.0] * gain.size
         self._initialized = False
         self.rejected = 0
@@ -53,6 +54,12 @@ class KinematicErrorObserver:
     def estimate(self) -> np.ndarray:
         return np.array(self._state)
 
+    @property
+    def values(self) -> list[float]:
+        """The state as plain floats: a list the observer never changes (each step makes a
+        new one), so it may be kept as it is."""
+        return self._state
+
     def set_gain(self, gains: Sequence[float] | np.ndarray) -> None:
         """Change gains without touching the state (used by a live reload)."""
         gain = np.asarray(gains, dtype=float)
@@ -60,6 +67,7 @@ class KinematicErrorObserver:
             raise ValueError(f"need {self.channels} finite gains > 0, got {gain.tolist()}")
         self._gain = gain
         self._neg_gain = [-g for g in gain.tolist()]
+        self._one_neg_gain = self._neg_gain[0] if len(set(self._neg_gain)) == 1 else None
 
     def reset(self, initial: Sequence[float] | np.ndarray | None = None) -> None:
         """Restart from `initial` (default zero: the reference experiment's start)."""
@@ -70,20 +78,34 @@ class KinematicErrorObserver:
         self._initialized = True
 
     def update(self, measured: np.ndarray | Sequence[float], dt: float) -> bool:
-        """One exact ZOH step. Returns False (state unchanged, counted) for bad input."""
-        values = measured.tolist() if isinstance(measured, np.ndarray) else list(measured)
-        if (
-            not (dt > 0.0 and math.isfinite(dt))
-            or len(values) != len(self._state)
-            or not finite_numbers(values)
-        ):
+        """One exact ZOH step. Returns False (state unchanged, counted) for bad input: a dt
+        that is not a finite positive number, the wrong number of values, or values that are
+        not finite numbers (or would take the state out of the finite numbers)."""
+        if type(measured) is list:
+            values = measured
+        else:
+            values = measured.tolist() if isinstance(measured, np.ndarray) else list(measured)
+        if not 0.0 < dt < math.inf or len(values) != len(self._state):
             self.rejected += 1
             return False
-        expm1 = math.expm1
-        self._state = [
-            s - expm1(g * dt) * (m - s)
-            for s, g, m in zip(self._state, self._neg_gain, values, strict=True)
-        ]
+        try:
+            if self._one_neg_gain is not None:  # one gain for all: one exponential
+                a = math.expm1(self._one_neg_gain * dt)
+                state = [s - a * (m - s) for s, m in zip(self._state, values, strict=True)]
+            else:
+                expm1 = math.expm1
+                state = [
+                    s - expm1(g * dt) * (m - s)
+                    for s, g, m in zip(self._state, self._neg_gain, values, strict=True)
+                ]
+            # one check of the result covers the input; a finite sum proves it
+            finite = math.isfinite(sum(state)) or all(map(math.isfinite, state))
+        except TypeError:
+            finite = False
+        if not finite:
+            self.rejected += 1
+            return False
+        self._state = state
         self.updates += 1
         return True
 

@@ -99,24 +99,25 @@ class EncoderBuffer:
             return None
         return self._times[k], self._rows[k].copy()
 
-    def interpolate(self, t: float, max_gap: float) -> tuple[Coverage, np.ndarray | None]:
+    def interpolate(self, t: float, max_gap: float) -> np.ndarray | Coverage:
+        """The joints at time t (a new array), or why there are none."""
         if self._count == 0:
-            return Coverage.EMPTY, None
+            return Coverage.EMPTY
         end = self._next + self.capacity
         start = end - self._count
         times = self._times
         if t > times[end - 1]:
-            return Coverage.NOT_YET, None
+            return Coverage.NOT_YET
         if t < times[start]:
-            return Coverage.TOO_OLD, None
+            return Coverage.TOO_OLD
         k = bisect.bisect_left(times, t, start, end)
         t1 = times[k]
         if t1 == t:
-            return Coverage.OK, self._rows[k].copy()
+            return self._rows[k].copy()
         t0 = times[k - 1]
         if t1 - t0 > max_gap:
-            return Coverage.GAP, None
-        return Coverage.OK, self._lerp(self._rows[k - 1], self._rows[k], (t - t0) / (t1 - t0))
+            return Coverage.GAP
+        return self._lerp(self._rows[k - 1], self._rows[k], (t - t0) / (t1 - t0))
 
 
 def _lerp(q0: np.ndarray, q1: np.ndarray, w: float) -> np.ndarray:
