@@ -1,9 +1,9 @@
-"""Live commands: run, adapter, mock, echo, status, record, replay, router."""
+"""Live commands: run, adapter, mock, echo, status, record, replay, router. asyncio is
+imported by the commands that run a loop: the offline commands start without it."""
 
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
 import logging
 import signal
@@ -23,12 +23,16 @@ def _setup_logging(verbose: bool = False, fmt: str = "auto") -> None:
 
 
 def _install_stop(stop: Callable[[], None]) -> None:
+    import asyncio
+
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    import asyncio
+
     from keo_service.live.service import run_service
 
     config = common.load(args.config)
@@ -38,6 +42,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_adapter(args: argparse.Namespace) -> int:
+    import asyncio
+
     from adapters.devices import (
         Ros2JointStateAdapter,
         encoder_adapter_for,
@@ -85,6 +91,8 @@ def _pair(text: str | None, option: str) -> tuple[float, float] | None:
 
 
 def cmd_mock(args: argparse.Namespace) -> int:
+    import asyncio
+
     from adapters.mock_devices import MockRobot, MockRtdeController, MockTracker
     from keo_service.io.cell import cell_from_config
     from keo_service.sim.simulate import make_scenario, simulate
@@ -147,6 +155,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
 
 
 def cmd_echo(args: argparse.Namespace) -> int:
+    import asyncio
+
     import msgspec
 
     from keo_service.live.bus import AsyncSubscription, session_for_client_async
@@ -221,6 +231,8 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_router(args: argparse.Namespace) -> int:
+    import asyncio
+
     from keo_service.live.bus import open_session
 
     _setup_logging()
@@ -322,6 +334,8 @@ def register(add: common.AddCommand) -> None:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
+    import asyncio
+
     from keo_service.io.cell import robot_from_config
     from keo_service.live.bus import session_for_client_async
     from keo_service.live.recorder import record
@@ -360,6 +374,8 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    import asyncio
+
     from keo_service.io.cell import robot_from_config
     from keo_service.live.bus import session_for_client_async
     from keo_service.live.recorder import replay

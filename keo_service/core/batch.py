@@ -340,7 +340,12 @@ def _step_caps(settings: EstimatorSettings, intervals: np.ndarray, seen: np.ndar
     values = np.empty(where.size)
     full = counts >= RECENT_INTERVALS
     if full.any():
-        windows = sliding_window_view(intervals, RECENT_INTERVALS)[counts[full] - RECENT_INTERVALS]
+        starts = counts[full] - RECENT_INTERVALS
+        every_window = sliding_window_view(intervals, RECENT_INTERVALS)
+        if starts.size > 1 and (np.diff(starts) == CAP_REFRESH).all():  # the usual: a view
+            windows = every_window[starts[0] :: CAP_REFRESH][: starts.size]
+        else:
+            windows = every_window[starts]
         # np.median of an even count: the mean of the two middle values; a sort is 10x
         # faster than median's partition here, and (a + b) / 2 is what median computes
         middle = np.sort(windows, axis=1)[:, RECENT_INTERVALS // 2 - 1 : RECENT_INTERVALS // 2 + 1]
@@ -536,22 +541,25 @@ def estimate_batch(
     # ---- joints and measured error, in chunks that stay in cache (whole-recording
     # temporaries cost more in page faults than in arithmetic)
     channel_count = len(channels)
-    joints = np.full((n, nq), np.nan)
-    measured = np.full((n, channel_count), np.nan)
+    joints = np.empty((n, nq))  # each row written once, in its chunk: fresh pages cost
+    measured = np.empty((n, channel_count))
     corr = cell.corrections
     direction = None
     if corr is not None and np.any(corr.backlash) and E.size:
         direction = _directions(E, Q)[np.maximum(have - 1, 0)]
     chain = Chain(cell.robot)
+    if not (E.size and ok.any()):
+        joints.fill(np.nan)
+        measured.fill(np.nan)
     for lo in range(0, n if E.size and ok.any() else 0, CHUNK):
         rows = slice(lo, lo + CHUNK)
+        held = ~ok[rows]
         q0, q1 = Q[g0[rows]], Q[g[rows]]
         with np.errstate(invalid="ignore", divide="ignore"):
             w = (target[rows] - t0[rows]) / (t1[rows] - t0[rows])
             chunk = np.where(exact[rows, None], q1, q0 + w[:, None] * (q1 - q0))
-        chunk[~ok[rows]] = 0.0  # held rows: any finite joints, their result is discarded
-        joints[rows] = chunk
-        measured[rows] = measured_errors(
+        chunk[held] = 0.0  # held rows: any finite joints, their result is discarded
+        errors = measured_errors(
             cell,
             chain,
             chunk,
@@ -559,16 +567,18 @@ def estimate_batch(
             None if quat is None else quat[rows],
             None if direction is None else direction[rows],
         )
-    joints[~ok] = np.nan
-    measured[~ok] = np.nan
-    if not np.isfinite(measured[ok]).all():
-        raise BatchUnsupportedError("the kinematics gave a non-finite error")
+        chunk[held] = np.nan
+        errors[held] = np.nan
+        if not np.isfinite(errors[~held]).all():
+            raise BatchUnsupportedError("the kinematics gave a non-finite error")
+        joints[rows] = chunk
+        measured[rows] = errors
     gains = np.asarray(settings.gains[: len(channels)], dtype=float)
     upd = np.flatnonzero(ok)
     every_row = upd.size == n
     # the alignment's whole-recording temporaries are done with: give their pages back
     del covered_at, stale_at, ready, waiting, newest, oldest, g, g0, t0, t1, exact, between
-    estimate = np.empty((0, len(channels))) if every_row else np.zeros((n, len(channels)))
+    estimate = np.zeros((n if upd.size == 0 else 0, len(channels)))
     if upd.size:
         m = measured if every_row else measured[upd]
         if settings.start == "first":
@@ -579,7 +589,10 @@ def estimate_batch(
         intervals = np.diff(T)
         caps = _step_caps(settings, intervals, seen[upd[1:]])
         dt = np.minimum(np.diff(T[upd]), caps)
-        states = np.empty((upd.size, len(channels)))
+        # a zero row ahead of the states: what rows before the first update carry
+        padded = np.empty((upd.size + 1, len(channels)))
+        padded[0] = 0.0
+        states = padded[1:]
         states[0] = x0
         state = x0
         for lo in range(0, dt.size, CHUNK):  # chunks stay in cache; the state carries over
@@ -588,14 +601,13 @@ def estimate_batch(
             block = first_order_recursion(state, 1.0 - alpha, alpha * m[1:][rows])
             states[1 + lo : 1 + lo + block.shape[0]] = block
             state = block[-1]
-        # every row carries the state after the newest update at or before it: the number
-        # of updates so far, less one, is that update's place in `states`
+        # every row carries the state after the newest update at or before it: each
+        # update's state repeated up to the next update, zeros before the first
         if every_row:
             estimate = states
         else:
-            place = np.cumsum(ok) - 1
-            has = place >= 0
-            estimate[has] = states[place[has]]
+            runs = np.diff(upd, prepend=0, append=n)
+            estimate = np.repeat(padded, runs, axis=0)
     count("estimates", upd.size)
 
     # ---- flags and counters

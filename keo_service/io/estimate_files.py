@@ -14,7 +14,6 @@ from keo_service.core.estimator import Estimator, EstimatorSettings, run_offline
 from keo_service.io.cell import cell_from_config, estimator_settings
 from keo_service.io.config import Config
 from keo_service.io.interchange import read_encoder, read_tracker, write_estimate_table
-from keo_service.io.mcap_files import is_mcap, read_mcap
 
 
 @dataclass
@@ -33,14 +32,18 @@ def estimate_files(
     cell = cell_from_config(config)
     names = cell.robot.joint_names
     # a ROS 2 MCAP recording may stand for either file (or both)
-    encoder = (
-        read_mcap(encoder_path, names)[0]
-        if is_mcap(encoder_path)
-        else read_encoder(encoder_path, nq=cell.robot.nq)
-    )
-    tracker = (
-        read_mcap(tracker_path, names)[1] if is_mcap(tracker_path) else read_tracker(tracker_path)
-    )
+    if _maybe_mcap(encoder_path):
+        from keo_service.io.mcap_files import read_mcap
+
+        encoder = read_mcap(encoder_path, names)[0]
+    else:
+        encoder = read_encoder(encoder_path, nq=cell.robot.nq)
+    if _maybe_mcap(tracker_path):
+        from keo_service.io.mcap_files import read_mcap
+
+        tracker = read_mcap(tracker_path, names)[1]
+    else:
+        tracker = read_tracker(tracker_path)
     settings = settings or estimator_settings(config)
     streams = (encoder.t, encoder.q, tracker.t, tracker.p, tracker.quat)
     why = "asked for"
@@ -59,6 +62,15 @@ def estimate_files(
         list(estimator.messages),
     )
     return OfflineResult(table, f"streaming ({why})")
+
+
+def _maybe_mcap(path: str | Path) -> bool:
+    """An MCAP recording (rosbags, ~40 ms to import, is loaded only for one)."""
+    if not (Path(path).suffix == ".mcap" or Path(path).is_dir()):
+        return False
+    from keo_service.io.mcap_files import is_mcap
+
+    return is_mcap(path)
 
 
 def write_estimates(path: str | Path, result: OfflineResult) -> None:

@@ -41,11 +41,11 @@ class TrackerData:
         return self.quat is None
 
 
-def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
-    """Header and numbers of a CSV file. Polars parses a well-formed file (in native code, 6x
-    numpy's loadtxt on a 10-minute 1 kHz recording); a file it refuses goes to numpy, and one
-    numpy refuses too is parsed again cell by cell only to say which line and column is
-    wrong."""
+def _read_table(path: Path) -> tuple[list[str], list[np.ndarray]]:
+    """Header and columns of numbers of a CSV file. Polars parses a well-formed file (in
+    native code, 6x numpy's loadtxt on a 10-minute 1 kHz recording; its columns are handed
+    over without a copy); a file it refuses goes to numpy, and one numpy refuses too is parsed
+    again cell by cell only to say which line and column is wrong."""
     try:
         with path.open(encoding="utf-8", newline="") as f:
             first = f.readline()
@@ -56,22 +56,22 @@ def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
     header = [h.strip() for h in next(csv.reader([first]), [])]
     if len(set(header)) != len(header):
         raise DataFormatError(str(path), 1, "-", f"repeated column names in {header}")
-    data = _read_fast(path, header)
-    if data is not None:
-        return header, data
+    columns = _read_fast(path, header)
+    if columns is not None:
+        return header, columns
     body = path.read_text(encoding="utf-8").splitlines()[1:]
     if not any(line.strip() for line in body):
-        return header, np.empty((0, len(header)))
+        return header, list(np.empty((len(header), 0)))
     try:
         data = np.loadtxt(body, delimiter=",", dtype=float, ndmin=2, comments=None)
     except ValueError:
         data = None
-    if data is not None and data.shape[1] == len(header):
-        return header, data
-    return header, _parse_cells(path, header, body)
+    if data is None or data.shape[1] != len(header):
+        data = _parse_cells(path, header, body)
+    return header, list(data.T)
 
 
-def _read_fast(path: Path, header: list[str]) -> np.ndarray | None:
+def _read_fast(path: Path, header: list[str]) -> list[np.ndarray] | None:
     """All numbers of a well-formed file, or None for anything unusual (a bad cell, an empty
     cell, a ragged row, a blank line) which the careful path then reads or reports."""
     schema = {f"c{i}": pl.Float64 for i in range(len(header))}
@@ -81,7 +81,12 @@ def _read_fast(path: Path, header: list[str]) -> np.ndarray | None:
         return None
     if frame.height == 0 or any(frame.null_count().row(0)):
         return None
-    return frame.to_numpy(order="c")
+    return [column.to_numpy() for column in frame.get_columns()]  # read-only views
+
+
+def _stack(columns: list[np.ndarray], rows: int) -> np.ndarray:
+    """Columns side by side as one (rows, len(columns)) array of our own."""
+    return np.column_stack(columns) if columns else np.empty((rows, 0))
 
 
 def _parse_cells(path: Path, header: list[str], body: list[str]) -> np.ndarray:
@@ -110,7 +115,7 @@ def _parse_cells(path: Path, header: list[str], body: list[str]) -> np.ndarray:
 
 def read_encoder(path: str | Path, nq: int | None = None) -> EncoderData:
     path = Path(path)
-    header, data = _read_table(path)
+    header, columns = _read_table(path)
     if not header or header[0] != "t":
         raise DataFormatError(
             str(path), 1, header[0] if header else "-", "first column must be 't'"
@@ -125,14 +130,14 @@ def read_encoder(path: str | Path, nq: int | None = None) -> EncoderData:
         raise DataFormatError(
             str(path), 1, joints[-1], f"{len(joints)} joint columns, the robot model has {nq}"
         )
-    return EncoderData(t=data[:, 0].copy(), q=data[:, 1:].copy())
+    return EncoderData(t=np.array(columns[0]), q=np.column_stack(columns[1:]))
 
 
 def read_tracker(path: str | Path) -> TrackerData:
     path = Path(path)
-    header, data = _read_table(path)
+    header, columns = _read_table(path)
     if tuple(header[:8]) == TRACKER_POSE_COLUMNS:
-        core, quat = 8, data[:, 4:8].copy()
+        core, quat = 8, np.column_stack(columns[4:8])
     elif tuple(header[:4]) == TRACKER_POSITION_COLUMNS and not {"qw", "qx", "qy", "qz"} & set(
         header
     ):
@@ -145,8 +150,10 @@ def read_tracker(path: str | Path) -> TrackerData:
             "columns must start with t,x,y,z,qw,qx,qy,qz "
             f"(6-DoF) or t,x,y,z (single reflector); got {','.join(header)}",
         )
-    extra = {name: data[:, i].copy() for i, name in enumerate(header) if i >= core}
-    return TrackerData(t=data[:, 0].copy(), p=data[:, 1:4].copy(), quat=quat, extra=extra)
+    extra = {name: np.array(columns[i]) for i, name in enumerate(header) if i >= core}
+    return TrackerData(
+        t=np.array(columns[0]), p=np.column_stack(columns[1:4]), quat=quat, extra=extra
+    )
 
 
 def _fmt(value: float) -> str:
@@ -192,10 +199,10 @@ def write_truth(
 
 def read_truth(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     path = Path(path)
-    header, data = _read_table(path)
+    header, columns = _read_table(path)
     if header[0] != "t" or not all(h.startswith("true_") for h in header[1:]):
         raise DataFormatError(str(path), 1, "-", "columns must be t,true_px,...")
-    return data[:, 0], data[:, 1:], [h[5:] for h in header[1:]]
+    return np.array(columns[0]), _stack(columns[1:], columns[0].size), [h[5:] for h in header[1:]]
 
 
 class EstimateWriter:
