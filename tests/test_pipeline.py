@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from keo_service.core.estimator import Estimator, EstimatorSettings, run_offline
+from keo_service.core.estimator import Estimate, Estimator, EstimatorSettings, run_offline
 from keo_service.core.timing import Coverage, DelayModel, EncoderBuffer
 from keo_service.sim.simulate import make_scenario, simulate
 
@@ -184,3 +184,26 @@ def test_persisted_directions_equal_a_row_by_row_forward_fill():
             still = expected[i] == 0
             expected[i, still] = expected[i - 1, still]
         assert np.array_equal(persist_directions(d), expected)
+
+
+def test_an_estimate_reads_the_same_as_floats_and_as_arrays(demo_cell):
+    """The hot path keeps plain floats; readers get arrays of the same numbers, the service
+    gets the floats, and the joints are the ones the measured error used."""
+    est = Estimator(demo_cell, settings(delay=DelayModel(0.0)))
+    for k in range(20):
+        est.on_encoder(k * 0.025, [0.1 * k, 0.2, -0.3, 0.0, 0.5, 0.0])
+    (e,) = est.on_tracker(0.1, [1.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0])
+    floats, state = e.measured_values(), e.estimate_values()
+    assert isinstance(floats, list)
+    assert isinstance(state, list)
+    assert isinstance(e.measured, np.ndarray)
+    assert e.measured.tolist() == floats
+    assert e.estimate.tolist() == state
+    assert e.measured is e.measured  # made once
+    assert np.allclose(e.joints, [0.4, 0.2, -0.3, 0.0, 0.5, 0.0], atol=1e-15)
+    held = Estimate(1.0, None, np.zeros(3), ("tracker_gap",), None, ("px", "py", "pz"))
+    assert held.held
+    assert held.measured is None
+    assert held.measured_values() is None
+    assert held.estimate_values() == [0.0, 0.0, 0.0]
+    assert "tracker_gap" in repr(held)
