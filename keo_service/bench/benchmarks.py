@@ -226,6 +226,7 @@ def recording(
         write_run(run, folder)
         cfg = folder / "keo.toml"
         cfg.write_text(config_to_toml(config))
+        os.sync()  # the kernel writes our input files back now, not during the timed command
         args = ["estimate", "--config", str(cfg), "--encoder", str(folder / "encoder.csv")]
         args += ["--tracker", str(folder / "tracker.csv"), "--out", str(folder / "e.csv")]
         out["batch"] = _timed_command(args, folder / "batch.log")
