@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from keo_service.core.estimator import Estimate, Estimator, EstimatorSettings, run_offline
+from keo_service.core.kinematics import POSE_CHANNELS
+from keo_service.core.observer import KinematicErrorObserver
 from keo_service.core.timing import Coverage, DelayModel, EncoderBuffer
 from keo_service.sim.simulate import make_scenario, simulate
 
@@ -207,3 +209,19 @@ def test_an_estimate_reads_the_same_as_floats_and_as_arrays(demo_cell):
     assert held.measured_values() is None
     assert held.estimate_values() == [0.0, 0.0, 0.0]
     assert "tracker_gap" in repr(held)
+
+
+def test_channels_equal_to_the_streams_pass_whatever_tuple_holds_them(demo_cell):
+    """The channel check compares values: a stream whose channels were set from an equal
+    tuple (e.g. restored state) is not a mismatch."""
+    est = Estimator(demo_cell, settings(delay=DelayModel(0.0)))
+    equal = (*POSE_CHANNELS[:3], *POSE_CHANNELS[3:])
+    assert equal == POSE_CHANNELS
+    assert equal is not POSE_CHANNELS
+    est.channels = equal
+    for k in range(20):
+        est.on_encoder(k * 0.025, [0.0] * 6)
+    est.observer = KinematicErrorObserver([2.0] * 6)
+    (e,) = est.on_tracker(0.1, [1.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0])
+    assert e.measured is not None
+    assert est.counters["tracker_channel_mismatch"] == 0

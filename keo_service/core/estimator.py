@@ -274,12 +274,12 @@ class Estimator:
             counter, what = sensor
             return self._reject(counter, f"tracker sample at t={t!r}: {what}")
         channels = POSITION_CHANNELS if len(sensor) == 3 else POSE_CHANNELS
-        if channels is not self.channels:
+        if channels is not self.channels:  # a good sample: the same tuple, one comparison
             if self.channels is None:
                 self.channels = channels
                 self.observer = KinematicErrorObserver(self._gains_for(len(channels)))
                 self.counters["channels"] = len(channels)
-            else:
+            elif channels != self.channels:
                 return self._reject(
                     "tracker_channel_mismatch",
                     f"tracker sample at t={t!r}: "
