@@ -109,13 +109,16 @@ def test_tracker_gap_and_bad_samples(demo_cell):
     assert est.on_encoder(est.encoder.newest_t, q) == []  # the newest stamp again
     assert est.on_encoder(0.1, q) == []
     assert est.on_encoder(1.0, [0.0] * 5) == []
+    assert est.on_encoder(1.0, np.zeros((6, 1))) == []  # six values, not six joints
+    est.on_encoder(0.5, (0.0,) * 6)  # a tuple is joints too
+    assert est.encoder.newest_t == 0.5
     c = est.counters
     assert (c["tracker_duplicate"], c["tracker_out_of_order"], c["tracker_non_finite"]) == (1, 1, 1)
     assert (c["tracker_not_unit_quaternion"], c["tracker_channel_mismatch"]) == (1, 1)
     assert (c["encoder_out_of_order"], c["encoder_duplicate"], c["encoder_wrong_length"]) == (
         1,
         1,
-        1,
+        2,
     )
     assert len(est.messages) > 0
     assert "t=0.11" in " ".join(est.messages)

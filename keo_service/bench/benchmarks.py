@@ -237,7 +237,7 @@ def recording(
         args += ["--tracker", str(folder / "tracker.csv"), "--out", str(folder / "e.csv")]
         runs = sorted(
             (_timed_command(args, folder / "batch.log") for _ in range(repeats)),
-            key=lambda run: run["wall_s"],
+            key=lambda timing: timing["wall_s"],
         )
         out["batch"] = {**runs[len(runs) // 2], "runs_wall_s": [r["wall_s"] for r in runs]}
         if streaming_too:

@@ -35,10 +35,15 @@ from keo_service.core.estimator import (
     DIRECTION_DEADBAND,
     MAX_MESSAGES,
     MAX_PENDING,
+    NON_FINITE_VALUE,
     OUTSIDE_CALIBRATED_RANGE,
     UNIT_QUATERNION_TOLERANCE,
     Estimate,
     EstimatorSettings,
+    encoder_non_finite,
+    encoder_stamp_problem,
+    not_unit_quaternion,
+    tracker_stamp_problem,
 )
 from keo_service.core.kinematics import Cell, channels_for
 
@@ -450,25 +455,18 @@ def estimate_batch(
     rejects: list[tuple[int, str]] = []  # (event position, message)
     for i in enc_bad[enc_pos[enc_bad] >= newest_kept]:
         t = float(enc_t[i])
-        if not enc_finite[i]:
-            msg = f"encoder sample at t={t!r}: non-finite time or joint value"
-        elif enc_dup[i]:
-            msg = f"encoder sample at t={t!r}: duplicate stamp"
+        if enc_finite[i]:
+            _name, msg = encoder_stamp_problem(t, float(enc_newest[i]))
         else:
-            msg = f"encoder sample at t={t!r}: older than the newest ({float(enc_newest[i])!r})"
+            _name, msg = encoder_non_finite(t)
         rejects.append((int(enc_pos[i]), msg))
     for j in trk_bad[trk_pos[trk_bad] >= newest_kept]:
         t = float(trk_t[j])
-        if not t_finite[j]:
-            msg = f"tracker sample: non-finite time {t!r}"
-        elif dup[j]:
-            msg = f"tracker sample at t={t!r}: duplicate stamp"
-        elif old[j]:
-            msg = f"tracker sample at t={t!r}: older than the previous one ({float(last_t[j])!r})"
-        elif non_finite_value[j]:
-            msg = f"tracker sample at t={t!r}: non-finite value"
+        if not timely[j]:
+            _name, msg = tracker_stamp_problem(t, float(last_t[j]))
         else:
-            msg = f"tracker sample at t={t!r}: quaternion norm {float(norm[j]):.6g}, expected 1"
+            what = NON_FINITE_VALUE if non_finite_value[j] else not_unit_quaternion(norm[j])
+            msg = f"tracker sample at t={t!r}: {what[1]}"
         rejects.append((int(trk_pos[j]), msg))
     rejects.sort(key=lambda item: item[0])
     messages = [m for _p, m in rejects[-MAX_MESSAGES:]]
@@ -548,10 +546,11 @@ def estimate_batch(
     if corr is not None and np.any(corr.backlash) and E.size:
         direction = _directions(E, Q)[np.maximum(have - 1, 0)]
     chain = Chain(cell.robot)
-    if not (E.size and ok.any()):
+    computing = bool(E.size and ok.any())
+    if not computing:
         joints.fill(np.nan)
         measured.fill(np.nan)
-    for lo in range(0, n if E.size and ok.any() else 0, CHUNK):
+    for lo in range(0, n if computing else 0, CHUNK):
         rows = slice(lo, lo + CHUNK)
         held = ~ok[rows]
         q0, q1 = Q[g0[rows]], Q[g[rows]]

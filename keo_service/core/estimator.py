@@ -219,26 +219,21 @@ class Estimator:
             self.observer.set_gain(self._gains_for(len(self.observer.gain)))
 
     def on_encoder(self, t: float, q: Sequence[float] | np.ndarray) -> list[Estimate]:
-        values = q.tolist() if isinstance(q, np.ndarray) else q
-        if not isinstance(values, list) or len(values) != self._nq:
-            size = np.size(q) if isinstance(q, Sequence | np.ndarray) else 1
+        if isinstance(q, np.ndarray):
+            values = q.tolist() if q.shape == (self._nq,) else []
+        else:
+            values = q if isinstance(q, list) else list(q) if isinstance(q, Sequence) else []
+        if len(values) != self._nq:
             return self._reject(
                 "encoder_wrong_length",
-                f"encoder sample at t={t!r}: {size} joints, expected {self._nq}",
+                f"encoder sample at t={t!r}: {np.size(q)} joints, expected {self._nq}",
             )
         if not (math.isfinite(t) and finite_numbers(values)):
-            return self._reject(
-                "encoder_non_finite", f"encoder sample at t={t!r}: non-finite time or joint value"
-            )
+            return self._reject(*encoder_non_finite(t))
         q_arr = np.array(values, dtype=float)  # our own copy: the buffer keeps it
         newest = self.encoder.newest_t
-        if t == newest:
-            return self._reject("encoder_duplicate", f"encoder sample at t={t!r}: duplicate stamp")
-        if t < newest:
-            return self._reject(
-                "encoder_out_of_order",
-                f"encoder sample at t={t!r}: older than the newest ({newest!r})",
-            )
+        if not t > newest:
+            return self._reject(*encoder_stamp_problem(t, newest))
         if self._track_direction:
             if self._prev_q is not None:
                 step = q_arr - self._prev_q
@@ -262,7 +257,7 @@ class Estimator:
         """A tracker sample; `ok=False` (or p None) is a gap the tracker reported."""
         last = self._last_tracker_t
         if not last < t < math.inf:  # one comparison for a good stamp
-            return self._reject(*_stamp_problem(t, last))
+            return self._reject(*tracker_stamp_problem(t, last))
         if self._delay_target is not None:
             self._slew_delay(t)
         if not ok or p is None:
@@ -497,6 +492,7 @@ class Estimator:
 
 
 _WRONG_LENGTH = ("tracker_wrong_length", "expected 3 position and 4 quaternion values")
+NON_FINITE_VALUE = ("tracker_non_finite", "non-finite value")
 _HELD_BECAUSE = {
     Coverage.NOT_YET: "encoder_stale",
     Coverage.EMPTY: "encoder_stale",
@@ -505,8 +501,23 @@ _HELD_BECAUSE = {
 }
 
 
-def _stamp_problem(t: float, last: float) -> tuple[str, str]:
-    """Why a tracker stamp is refused (counter, message)."""
+# ---- the estimator's words for what it refuses (counter, message); the batch path says the
+# same, so they live here once
+
+
+def encoder_non_finite(t: float) -> tuple[str, str]:
+    return "encoder_non_finite", f"encoder sample at t={t!r}: non-finite time or joint value"
+
+
+def encoder_stamp_problem(t: float, newest: float) -> tuple[str, str]:
+    """A finite encoder stamp that is not newer than the newest accepted one."""
+    if t == newest:
+        return "encoder_duplicate", f"encoder sample at t={t!r}: duplicate stamp"
+    return "encoder_out_of_order", f"encoder sample at t={t!r}: older than the newest ({newest!r})"
+
+
+def tracker_stamp_problem(t: float, last: float) -> tuple[str, str]:
+    """Why a tracker stamp is refused: not finite, or not newer than the last accepted one."""
     if not math.isfinite(t):
         return "tracker_non_finite", f"tracker sample: non-finite time {t!r}"
     if t == last:
@@ -515,6 +526,10 @@ def _stamp_problem(t: float, last: float) -> tuple[str, str]:
         "tracker_out_of_order",
         f"tracker sample at t={t!r}: older than the previous one ({last!r})",
     )
+
+
+def not_unit_quaternion(norm: float) -> tuple[str, str]:
+    return "tracker_not_unit_quaternion", f"quaternion norm {norm:.6g}, expected 1"
 
 
 def _sensor_values(
@@ -538,13 +553,13 @@ def _sensor_values(
     if not finite:
         values = (x, y, z, qw, qx, qy, qz)
         if not all(_finite(v) for v in values):
-            return ("tracker_non_finite", "non-finite value")
+            return NON_FINITE_VALUE
         x, y, z, qw, qx, qy, qz = (float(v) for v in values)
     if quat is None:
         return [x, y, z]
     norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
     if abs(norm - 1.0) > UNIT_QUATERNION_TOLERANCE:
-        return ("tracker_not_unit_quaternion", f"quaternion norm {norm:.6g}, expected 1")
+        return not_unit_quaternion(norm)
     return [x, y, z, qx / norm, qy / norm, qz / norm, qw / norm]
 
 
