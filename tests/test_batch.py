@@ -13,6 +13,7 @@ import pytest
 from keo_service.core.batch import (
     BatchResult,
     BatchUnsupportedError,
+    _first_beyond,
     estimate_batch,
     first_order_recursion,
     measured_errors,
@@ -197,6 +198,21 @@ def test_recursion_equals_the_sequential_loop():
         x = b[k] * x + c[k]
         want[k] = x
     assert np.max(np.abs(first_order_recursion(x0, b, c) - want)) < 1e-12
+
+
+@pytest.mark.parametrize("limit", [0.003, 0.0025, 0.01])
+def test_stale_boundary_uses_the_estimators_subtraction(limit):
+    # stamps on a millisecond grid far from zero: t_a + limit and t_b - t_a round apart at
+    # many boundaries, and the estimator decides by the subtraction
+    t = 1000.0 + 0.001 * np.arange(3000) + np.where(np.arange(3000) % 7 == 0, 1e-13, 0.0)
+    want = []
+    for a in range(t.size):
+        b = a + 1
+        while b < t.size and not t[b] - t[a] > limit:
+            b += 1
+        want.append(b)
+    got = _first_beyond(t, limit)
+    assert got.tolist() == want
 
 
 def test_latest_alignment_is_left_to_the_streaming_estimator(demo_cell, demo_config):

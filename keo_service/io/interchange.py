@@ -41,11 +41,13 @@ class TrackerData:
         return self.quat is None
 
 
-def _read_table(path: Path) -> tuple[list[str], list[np.ndarray]]:
-    """Header and columns of numbers of a CSV file. Polars parses a well-formed file (in
-    native code, 6x numpy's loadtxt on a 10-minute 1 kHz recording; its columns are handed
-    over without a copy); a file it refuses goes to numpy, and one numpy refuses too is parsed
-    again cell by cell only to say which line and column is wrong."""
+def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
+    """Header and numbers (rows, columns) of a CSV file. Polars parses a well-formed file (in
+    native code, 6x numpy's loadtxt on a 10-minute 1 kHz recording) into one column-major
+    array: each column is contiguous, and the callers' column groups are views of it, not
+    copies (a copy of a recording costs more in fresh pages than in arithmetic). A file it
+    refuses goes to numpy, and one numpy refuses too is parsed again cell by cell only to say
+    which line and column is wrong."""
     try:
         with path.open(encoding="utf-8", newline="") as f:
             first = f.readline()
@@ -56,22 +58,22 @@ def _read_table(path: Path) -> tuple[list[str], list[np.ndarray]]:
     header = [h.strip() for h in next(csv.reader([first]), [])]
     if len(set(header)) != len(header):
         raise DataFormatError(str(path), 1, "-", f"repeated column names in {header}")
-    columns = _read_fast(path, header)
-    if columns is not None:
-        return header, columns
+    table = _read_fast(path, header)
+    if table is not None:
+        return header, table
     body = path.read_text(encoding="utf-8").splitlines()[1:]
     if not any(line.strip() for line in body):
-        return header, list(np.empty((len(header), 0)))
+        return header, np.empty((0, len(header)))
     try:
         data = np.loadtxt(body, delimiter=",", dtype=float, ndmin=2, comments=None)
     except ValueError:
         data = None
     if data is None or data.shape[1] != len(header):
         data = _parse_cells(path, header, body)
-    return header, list(data.T)
+    return header, data
 
 
-def _read_fast(path: Path, header: list[str]) -> list[np.ndarray] | None:
+def _read_fast(path: Path, header: list[str]) -> np.ndarray | None:
     """All numbers of a well-formed file, or None for anything unusual (a bad cell, an empty
     cell, a ragged row, a blank line) which the careful path then reads or reports."""
     schema = {f"c{i}": pl.Float64 for i in range(len(header))}
@@ -81,12 +83,8 @@ def _read_fast(path: Path, header: list[str]) -> list[np.ndarray] | None:
         return None
     if frame.height == 0 or any(frame.null_count().row(0)):
         return None
-    return [column.to_numpy() for column in frame.get_columns()]  # read-only views
-
-
-def _stack(columns: list[np.ndarray], rows: int) -> np.ndarray:
-    """Columns side by side as one (rows, len(columns)) array of our own."""
-    return np.column_stack(columns) if columns else np.empty((rows, 0))
+    table: np.ndarray = frame.to_numpy(order="fortran")  # one copy out of polars' chunks
+    return table
 
 
 def _parse_cells(path: Path, header: list[str], body: list[str]) -> np.ndarray:
@@ -115,7 +113,7 @@ def _parse_cells(path: Path, header: list[str], body: list[str]) -> np.ndarray:
 
 def read_encoder(path: str | Path, nq: int | None = None) -> EncoderData:
     path = Path(path)
-    header, columns = _read_table(path)
+    header, table = _read_table(path)
     if not header or header[0] != "t":
         raise DataFormatError(
             str(path), 1, header[0] if header else "-", "first column must be 't'"
@@ -130,14 +128,14 @@ def read_encoder(path: str | Path, nq: int | None = None) -> EncoderData:
         raise DataFormatError(
             str(path), 1, joints[-1], f"{len(joints)} joint columns, the robot model has {nq}"
         )
-    return EncoderData(t=np.array(columns[0]), q=np.column_stack(columns[1:]))
+    return EncoderData(t=table[:, 0], q=table[:, 1:])
 
 
 def read_tracker(path: str | Path) -> TrackerData:
     path = Path(path)
-    header, columns = _read_table(path)
+    header, table = _read_table(path)
     if tuple(header[:8]) == TRACKER_POSE_COLUMNS:
-        core, quat = 8, np.column_stack(columns[4:8])
+        core, quat = 8, table[:, 4:8]
     elif tuple(header[:4]) == TRACKER_POSITION_COLUMNS and not {"qw", "qx", "qy", "qz"} & set(
         header
     ):
@@ -150,10 +148,8 @@ def read_tracker(path: str | Path) -> TrackerData:
             "columns must start with t,x,y,z,qw,qx,qy,qz "
             f"(6-DoF) or t,x,y,z (single reflector); got {','.join(header)}",
         )
-    extra = {name: np.array(columns[i]) for i, name in enumerate(header) if i >= core}
-    return TrackerData(
-        t=np.array(columns[0]), p=np.column_stack(columns[1:4]), quat=quat, extra=extra
-    )
+    extra = {name: table[:, i] for i, name in enumerate(header) if i >= core}
+    return TrackerData(t=table[:, 0], p=table[:, 1:4], quat=quat, extra=extra)
 
 
 def _fmt(value: float) -> str:
@@ -199,10 +195,10 @@ def write_truth(
 
 def read_truth(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     path = Path(path)
-    header, columns = _read_table(path)
+    header, table = _read_table(path)
     if header[0] != "t" or not all(h.startswith("true_") for h in header[1:]):
         raise DataFormatError(str(path), 1, "-", "columns must be t,true_px,...")
-    return np.array(columns[0]), _stack(columns[1:], columns[0].size), [h[5:] for h in header[1:]]
+    return table[:, 0], table[:, 1:], [h[5:] for h in header[1:]]
 
 
 class EstimateWriter:
