@@ -554,6 +554,7 @@ def estimate_batch(
     channel_count = len(channels)
     joints = np.empty((n, nq))  # each row written once, in its chunk: fresh pages cost
     measured = np.empty((n, channel_count))
+    estimate = np.empty((n, channel_count))
     corr = cell.corrections
     direction = None
     if corr is not None and np.any(corr.backlash) and E.size:
@@ -563,83 +564,92 @@ def estimate_batch(
     if not computing:
         joints.fill(np.nan)
         measured.fill(np.nan)
-    for lo in range(0, n if computing else 0, CHUNK):
-        rows = slice(lo, lo + CHUNK)
-        held = ~ok[rows]
-        q0, q1 = Q[g0[rows]], Q[g[rows]]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            w = (target[rows] - t0[rows]) / (t1[rows] - t0[rows])
-            chunk = np.where(exact[rows, None], q1, q0 + w[:, None] * (q1 - q0))
-        chunk[held] = 0.0  # held rows: any finite joints, their result is discarded
-        errors = measured_errors(
-            cell,
-            chain,
-            chunk,
-            P[rows],
-            None if quat is None else quat[rows],
-            None if direction is None else direction[rows],
-        )
-        chunk[held] = np.nan
-        errors[held] = np.nan
-        if not np.isfinite(errors[~held]).all():
-            raise BatchUnsupportedError("the kinematics gave a non-finite error")
-        joints[rows] = chunk
-        measured[rows] = errors
-    gains = np.asarray(settings.gains[: len(channels)], dtype=float)
-    upd = np.flatnonzero(ok)
-    every_row = upd.size == n
-    # the alignment's whole-recording temporaries are done with: give their pages back
-    del covered_at, stale_at, ready, waiting, newest, oldest, g, g0, t0, t1, exact, between
-    # the states go straight into their output rows (a copy of a recording-sized array
-    # costs more in fresh pages than the recursion does in arithmetic)
-    estimate = np.empty((n, len(channels)))
-    if upd.size == 0:
-        estimate.fill(0.0)
-    else:
-        first = measured[upd[0]]
-        if settings.start == "first":
-            x0 = first.copy()
-        else:
-            first_dt = 1.0 / settings.sample_rate_hz  # as if one sample period had passed
-            x0 = -np.expm1(-gains * first_dt) * first
-        caps = _step_caps(settings, np.diff(T), seen[upd[1:]])
-        dt = np.minimum(np.diff(T[upd]), caps)
-        estimate[upd[0]] = x0
-        state = x0
-        for lo in range(0, dt.size, CHUNK):  # chunks stay in cache; the state carries over
-            hi = min(lo + CHUNK, dt.size)
-            update_rows: slice | np.ndarray = (
-                slice(1 + lo, 1 + hi) if every_row else upd[1 + lo : 1 + hi]
-            )
-            alpha = -np.expm1(-gains[None, :] * dt[lo:hi, None])
-            block = first_order_recursion(state, 1.0 - alpha, alpha * measured[update_rows])
-            estimate[update_rows] = block
-            state = block[-1]
-        if not every_row:
-            # a held row carries the state of the newest update before it, zeros before the
-            # first update
-            held_rows = np.flatnonzero(~ok)
-            newest_update = np.searchsorted(upd, held_rows) - 1
-            estimate[held_rows] = estimate[upd[np.maximum(newest_update, 0)]]
-            estimate[held_rows[newest_update < 0]] = 0.0
-    count("estimates", upd.size)
-
-    # ---- flags and counters
-    names = np.array(HELD_REASONS, dtype=object)
-    flags = names[reason]
+    flags = np.array(HELD_REASONS, dtype=object)[reason]
     for code, name in enumerate(HELD_REASONS):
         if code:
             count(f"held_{name}", int(np.sum(reason == code)))
     ranges = corr.map_ranges() if corr is not None else []
     spans = [(j, r) for j, r in enumerate(ranges) if r is not None]
-    if spans and ok.any():
-        cols = [j for j, _r in spans]
-        low = np.array([r[0] for _j, r in spans])
-        high = np.array([r[1] for _j, r in spans])
-        outside = ok.copy()
-        outside[ok] = np.any((joints[ok][:, cols] < low) | (joints[ok][:, cols] > high), axis=1)
-        flags[outside] = OUTSIDE_CALIBRATED_RANGE
-        count(OUTSIDE_CALIBRATED_RANGE, int(outside.sum()))
+    range_cols = [j for j, _r in spans]
+    range_low = np.array([r[0] for _j, r in spans])
+    range_high = np.array([r[1] for _j, r in spans])
+
+    # the alignment's whole-recording temporaries the chunks do not read: give their pages back
+    del covered_at, stale_at, ready, waiting, newest, oldest, between
+
+    # ---- the observer's inputs over all updates
+    gains = np.asarray(settings.gains[: len(channels)], dtype=float)
+    upd = np.flatnonzero(ok)
+    every_row = upd.size == n
+    dt = np.empty(0)
+    if upd.size:
+        caps = _step_caps(settings, np.diff(T), seen[upd[1:]])
+        dt = np.minimum(np.diff(T[upd]), caps)  # dt[k - 1] leads to update k
+    else:
+        estimate.fill(0.0)
+    count("estimates", upd.size)
+
+    # ---- row chunks that stay in cache (whole-recording temporaries cost more in page
+    # faults than in arithmetic): joints, measured error, flags, observer
+    state = np.zeros(channel_count)  # what rows before the first update carry
+    done_updates = 0  # updates before this chunk
+    for lo in range(0, n, CHUNK):
+        hi = min(lo + CHUNK, n)
+        rows = slice(lo, hi)
+        if computing:
+            held = ~ok[rows]
+            q0, q1 = Q[g0[rows]], Q[g[rows]]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                w = (target[rows] - t0[rows]) / (t1[rows] - t0[rows])
+                chunk = np.where(exact[rows, None], q1, q0 + w[:, None] * (q1 - q0))
+            chunk[held] = 0.0  # held rows: any finite joints, their result is discarded
+            errors = measured_errors(
+                cell,
+                chain,
+                chunk,
+                P[rows],
+                None if quat is None else quat[rows],
+                None if direction is None else direction[rows],
+            )
+            chunk[held] = np.nan
+            errors[held] = np.nan
+            if not np.isfinite(errors[~held]).all():
+                raise BatchUnsupportedError("the kinematics gave a non-finite error")
+            joints[rows] = chunk
+            measured[rows] = errors
+            if spans:
+                outside = ~held & np.any(
+                    (chunk[:, range_cols] < range_low) | (chunk[:, range_cols] > range_high),
+                    axis=1,
+                )
+                flags[rows][outside] = OUTSIDE_CALIBRATED_RANGE
+                count(OUTSIDE_CALIBRATED_RANGE, int(outside.sum()))
+        # the observer over this chunk's updates; the state carries over
+        first = done_updates
+        last = hi if every_row else int(np.searchsorted(upd, hi))
+        if first == 0 and last > 0:
+            m0 = measured[upd[0]]
+            if settings.start == "first":
+                state = m0.copy()
+            else:
+                first_dt = 1.0 / settings.sample_rate_hz  # as if one sample period had passed
+                state = -np.expm1(-gains * first_dt) * m0
+            estimate[upd[0]] = state
+            first = 1
+        if last > first:
+            update_rows: slice | np.ndarray = slice(first, last) if every_row else upd[first:last]
+            alpha = -np.expm1(-gains[None, :] * dt[first - 1 : last - 1, None])
+            block = first_order_recursion(state, 1.0 - alpha, alpha * measured[update_rows])
+            estimate[update_rows] = block
+            state = block[-1]
+        if not every_row and upd.size:
+            # a held row carries the state of the newest update before it (this chunk's or an
+            # earlier one's), zeros before the first update
+            held_rows = lo + np.flatnonzero(~ok[rows])
+            newest_update = np.searchsorted(upd, held_rows) - 1
+            estimate[held_rows] = estimate[upd[np.maximum(newest_update, 0)]]
+            estimate[held_rows[newest_update < 0]] = 0.0
+        done_updates = last
     return BatchResult(
         t=T,
         measured=measured,
