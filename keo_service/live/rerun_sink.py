@@ -1,6 +1,6 @@
 """Rerun logging, kept at the edge: `blueprint()` sets up the layout, `RerunSink` batches
-estimates and sends them at display rate, and `RerunWorker` runs the sink on its own thread
-so that logging never sits in the estimator's path or on the event loop.
+estimates and sends them at display rate (`rerun_process` runs it in a process of its own,
+so that logging never sits in the estimator's path, on the event loop or on its GIL).
 
 Entities (values in mm and mrad, on the `stream_time` timeline of the samples):
     keo/error/<px|py|pz|rx|ry|rz>     time series of [measured, estimate]
@@ -10,11 +10,7 @@ Entities (values in mm and mrad, on the `stream_time` timeline of the samples):
 
 from __future__ import annotations
 
-import logging
-import queue
-import threading
-import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -24,8 +20,6 @@ import rerun.blueprint as rrb
 
 from keo_service.core.estimator import Estimate
 from keo_service.core.kinematics import Cell, sensor_pose_from_error, tool_pose
-
-log = logging.getLogger("keo.rerun")
 
 TIMELINE = "stream_time"
 MAX_BATCH = 20_000  # rows kept between flushes at most; a flush is forced beyond
@@ -198,78 +192,3 @@ class RerunSink:
         self.flush()
         self._rec.flush(timeout_sec=5.0)
         self._rec.disconnect()
-
-
-class RerunWorker:
-    """A RerunSink on its own thread, so that Rerun (forward kinematics of the scene,
-    encoding, file and network I/O) never runs on the service's event loop.
-
-    The loop only enqueues: `submit` never blocks; when the bounded queue is full the item is
-    dropped and counted in `dropped`. The thread drains the queue and flushes at display rate.
-    A failure on the thread is kept in `failure` (and logged) for the service's supervisor.
-    """
-
-    def __init__(
-        self, sink_factory: Callable[[], RerunSink], maxsize: int = 50_000, period_s: float = 0.1
-    ) -> None:
-        self._factory = sink_factory
-        self._queue: queue.Queue[Estimate | dict[str, object]] = queue.Queue(maxsize)
-        self._period_s = period_s
-        self._stopping = threading.Event()
-        self.dropped = 0
-        self.failure: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="keo.rerun", daemon=True)
-        self._ready = threading.Event()
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def submit(self, item: Estimate | dict[str, object]) -> None:
-        """An estimate, or a status snapshot (plain dict). Never blocks."""
-        try:
-            self._queue.put_nowait(item)
-        except queue.Full:
-            self.dropped += 1
-
-    def _run(self) -> None:
-        try:
-            sink = self._factory()
-            status: dict[str, object] | None = None
-            next_flush = time.monotonic() + self._period_s
-            while not self._stopping.is_set():
-                timeout = max(0.0, next_flush - time.monotonic())
-                try:
-                    item = self._queue.get(timeout=timeout)
-                except queue.Empty:
-                    item = None
-                if isinstance(item, dict):
-                    status = item
-                elif item is not None:
-                    sink.add(item)
-                if time.monotonic() >= next_flush:
-                    sink.flush(status)
-                    status = None
-                    next_flush = time.monotonic() + self._period_s
-            self._drain(sink, deadline=time.monotonic() + 0.5)
-            sink.close()
-        except BaseException as exc:  # kept for the supervisor, which stops the service
-            self.failure = exc
-            log.error("Rerun logging failed: %s: %s", type(exc).__name__, exc, exc_info=exc)
-
-    def _drain(self, sink: RerunSink, deadline: float) -> None:
-        """What is queued at shutdown, as far as a bounded time allows (SIGTERM: 2 s)."""
-        while time.monotonic() < deadline:
-            try:
-                item = self._queue.get_nowait()
-            except queue.Empty:
-                return
-            if not isinstance(item, dict):
-                sink.add(item)
-
-    def close(self, timeout: float = 1.5) -> None:
-        self._stopping.set()
-        self._thread.join(timeout)
-        if self._thread.is_alive():
-            log.warning(
-                "Rerun logging did not finish within %.1f s; its file may lack the end", timeout
-            )

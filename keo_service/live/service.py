@@ -54,7 +54,7 @@ def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 if TYPE_CHECKING:
     from keo_service.fit.delay import OnlineDelayTracker
-    from keo_service.live.rerun_sink import RerunWorker
+    from keo_service.live.rerun_process import RerunWorker
     from keo_service.live.ros2_bridge import EstimateBridge
 
 log = logging.getLogger("keo.service")
@@ -104,9 +104,9 @@ class KeoService:
             self._delay_tracker = OnlineDelayTracker(cell)
         self._viz: RerunWorker | None = None
         if rrd is not None or viewer is not None:
-            from keo_service.live.rerun_sink import RerunSink, RerunWorker
+            from keo_service.live.rerun_process import RerunWorker
 
-            self._viz = RerunWorker(lambda: RerunSink(cell, rrd=rrd, viewer=viewer))
+            self._viz = RerunWorker(cell, rrd=rrd, viewer=viewer)
         self._noise = NoiseMeter()
         self._ros2: EstimateBridge | None = None
         self._own_session = session is None
@@ -342,8 +342,8 @@ class KeoService:
         assert self._viz is not None
         while not self._stop.is_set():
             await asyncio.sleep(VIZ_PERIOD_S)
-            if self._viz.failure is not None:  # the Rerun thread died: fail like any task
-                raise RuntimeError("Rerun logging thread failed") from self._viz.failure
+            if self._viz.failure is not None:  # the Rerun process died: fail like any task
+                raise RuntimeError("Rerun logging failed") from self._viz.failure
             self._viz.submit(msgspec.to_builtins(self.status()))
 
     def _on_latest_query(self, query: zenoh.Query) -> None:  # zenoh thread

@@ -1,0 +1,259 @@
+"""Rerun logging in its own process, so that it never takes the service's GIL or CPU time.
+
+In the service's process Rerun's calls hold the GIL for a few milliseconds at every flush
+(part of that in native code, which no switch interval preempts): the samples that arrive
+meanwhile wait, and at 1 kHz those waits were the service's 99th percentile. Here the service
+only encodes each estimate (msgpack, about a microsecond) into a bounded buffer and writes
+the buffer to a pipe, a few times a second, without ever blocking; this module's `main`, run
+as `python -m keo_service.live.rerun_process`, reads the pipe and runs the `RerunSink`.
+
+The pipe carries frames: a 4-byte little-endian length, then the payload. The first payload
+is the pickled `(cell, rrd, viewer)` from the parent; then msgpack arrays, an estimate as
+`["e", t, measured | None, estimate, flags, joints | None, channels]`, a status snapshot as
+`["s", {...}]`. End of file is the only stop: the child ignores SIGINT and SIGTERM (a
+supervisor that signals the whole group stops the service, and the service closes the pipe),
+drains what is left, closes the recording and exits 0. A dead parent closes the pipe too.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import pickle
+import select
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+
+from keo_service.core.estimator import Estimate
+from keo_service.core.kinematics import Cell
+
+__all__ = ["RerunWorker", "main"]
+
+log = logging.getLogger("keo.rerun")
+
+HEADER = 4  # bytes of a frame's length
+WRITE_AT = 16_384  # buffered bytes that trigger a write (about 60 estimates)
+MAX_BUFFER = 4 << 20  # buffered bytes at most (about 15 s at 1 kHz); newer estimates dropped
+READ_SIZE = 1 << 20
+FLUSH_PERIOD_S = 0.1  # the child's flushes to Rerun: display rate
+NICENESS = 10  # added to the child's nice value
+DRAIN_S = 0.5  # at shutdown, time to write what is buffered before the pipe is closed
+
+
+def _frame(payload: bytes) -> bytes:
+    return len(payload).to_bytes(HEADER, "little") + payload
+
+
+class RerunWorker:
+    """The service's end: `submit` never blocks and never raises; what does not fit the
+    bounded buffer is dropped and counted in `dropped`. A child that dies is reported by
+    `failure` (its own error is in the log, on the same stderr) for the service's supervisor.
+    """
+
+    def __init__(
+        self,
+        cell: Cell,
+        rrd: Path | None = None,
+        viewer: str | None = None,
+        max_buffer: int = MAX_BUFFER,
+    ) -> None:
+        self._init = pickle.dumps((cell, None if rrd is None else str(rrd), viewer))
+        self._max_buffer = max_buffer
+        self._buffer = bytearray()
+        self._encode = msgspec.msgpack.Encoder().encode
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._fd = -1
+        self._failure: BaseException | None = None
+        self._closing = False
+        self.dropped = 0
+
+    def start(self) -> None:
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "keo_service.live.rerun_process"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.DEVNULL,
+        )
+        assert self._proc.stdin is not None
+        self._fd = self._proc.stdin.fileno()
+        self._buffer[:0] = _frame(self._init)  # first, ahead of anything submitted before
+        os.set_blocking(self._fd, False)
+        self._write()
+
+    def submit(self, item: Estimate | dict[str, object]) -> None:
+        """An estimate, or a status snapshot (plain dict). Never blocks."""
+        if isinstance(item, dict):
+            payload = self._encode(("s", item))
+        else:
+            joints = item.joints
+            payload = self._encode(
+                (
+                    "e",
+                    item.t,
+                    item.measured_values(),
+                    item.estimate_values(),
+                    item.flags,
+                    joints.tolist() if isinstance(joints, np.ndarray) else joints,
+                    item.channels,
+                )
+            )
+        if len(self._buffer) + HEADER + len(payload) > self._max_buffer:
+            self.dropped += 1
+            return
+        self._buffer += _frame(payload)
+        if len(self._buffer) >= WRITE_AT or isinstance(item, dict):
+            self._write()
+
+    def _write(self) -> None:
+        """As much of the buffer as the pipe takes now."""
+        if self._fd < 0 or not self._buffer or self._failure is not None:
+            return
+        try:
+            written = os.write(self._fd, self._buffer)
+        except BlockingIOError:
+            return
+        except OSError as exc:  # the child is gone (BrokenPipeError)
+            self._failure = exc
+            self._buffer.clear()
+            return
+        del self._buffer[:written]
+
+    @property
+    def failure(self) -> BaseException | None:
+        proc = self._proc
+        if self._failure is None and proc is not None and not self._closing:
+            code = proc.poll()
+            if code is not None:
+                self._failure = RuntimeError(
+                    f"the Rerun logging process exited with code {code}; its error is logged above"
+                )
+        return self._failure
+
+    def close(self, timeout: float = 1.5) -> None:
+        """Write what is buffered (for a bounded time), close the pipe and wait for the
+        child to finish the recording; a child that takes longer is killed, with a warning."""
+        self._closing = True
+        proc = self._proc
+        if proc is None or proc.stdin is None:
+            return
+        deadline = time.monotonic() + min(DRAIN_S, timeout)
+        while self._buffer and self._failure is None and time.monotonic() < deadline:
+            select.select([], [self._fd], [], max(0.0, deadline - time.monotonic()))
+            self._write()
+        with contextlib.suppress(OSError):  # the child may be gone already
+            proc.stdin.close()
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            log.warning(
+                "Rerun logging did not finish within %.1f s; stopped, its file may lack the end",
+                timeout,
+            )
+            proc.kill()
+            proc.wait()
+
+
+# ---- the child -------------------------------------------------------------------------------
+
+
+class _Frames:
+    """Frames out of a byte stream that arrives in arbitrary pieces."""
+
+    def __init__(self) -> None:
+        self._data = bytearray()
+
+    def feed(self, data: bytes) -> list[bytes]:
+        self._data += data
+        out = []
+        start = 0
+        while len(self._data) - start >= HEADER:
+            size = int.from_bytes(self._data[start : start + HEADER], "little")
+            if len(self._data) - start - HEADER < size:
+                break
+            out.append(bytes(self._data[start + HEADER : start + HEADER + size]))
+            start += HEADER + size
+        del self._data[:start]
+        return out
+
+
+def _read_frames(fd: int, frames: _Frames, timeout: float | None) -> list[bytes] | None:
+    """Whole frames read within `timeout` (possibly none), or None at end of file."""
+    ready, _w, _x = select.select([fd], [], [], timeout)
+    if not ready:
+        return []
+    data = os.read(fd, READ_SIZE)
+    if not data:
+        return None
+    return frames.feed(data)
+
+
+def _serve(fd: int) -> None:
+    from keo_service.live.rerun_sink import RerunSink  # rerun: only in this process
+
+    frames = _Frames()
+    pending: list[bytes] = []
+    while not pending:
+        got = _read_frames(fd, frames, None)
+        if got is None:
+            return  # closed before it began
+        pending = got
+    cell, rrd, viewer = pickle.loads(pending.pop(0))  # from our own parent
+    sink = RerunSink(cell, rrd=None if rrd is None else Path(rrd), viewer=viewer)
+    decode = msgspec.msgpack.Decoder().decode
+    status: dict[str, Any] | None = None
+    next_flush = time.monotonic() + FLUSH_PERIOD_S
+    while True:
+        for payload in pending:
+            item = decode(payload)
+            if item[0] == "s":
+                status = item[1]
+                continue
+            _kind, t, measured, estimate, flags, joints, channels = item
+            sink.add(
+                Estimate(
+                    t,
+                    measured,
+                    estimate,
+                    tuple(flags),
+                    None,
+                    tuple(channels),
+                    None if joints is None else np.asarray(joints, dtype=float),
+                )
+            )
+        if time.monotonic() >= next_flush:
+            sink.flush(status)
+            status = None
+            next_flush = time.monotonic() + FLUSH_PERIOD_S
+        got = _read_frames(fd, frames, max(0.0, next_flush - time.monotonic()))
+        if got is None:
+            break
+        pending = got
+    sink.flush(status)
+    sink.close()
+
+
+def main() -> int:
+    # the parent decides when this ends, by closing the pipe (see the module's docstring)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # the display is worth less than the estimates: when cores are short, the service, the
+    # adapters and the subscribers go first (Rerun's own threads inherit this)
+    os.nice(NICENESS)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        _serve(sys.stdin.fileno())
+    except Exception as exc:  # logged with its cause; the parent sees the exit code
+        log.error("Rerun logging failed: %s: %s", type(exc).__name__, exc, exc_info=exc)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
