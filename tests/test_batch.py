@@ -172,6 +172,24 @@ def test_a_corrected_model_with_backlash_compliance_and_maps(demo_cell, demo_con
     assert batch.counters.get("outside_calibrated_range", 0) > 0
 
 
+@pytest.mark.parametrize(("chunk", "observer_rows"), [(50, 120), (64, 64), (7, 1000)])
+def test_chunk_boundaries_change_nothing(demo_cell, demo_config, monkeypatch, chunk, observer_rows):
+    """Recordings here fit one chunk of the real sizes: small chunks put faults, held rows
+    and observer steps across chunk boundaries (the state and the held rows' carry)."""
+    from keo_service.core import batch as batch_module
+
+    monkeypatch.setattr(batch_module, "CHUNK", chunk)
+    monkeypatch.setattr(batch_module, "OBSERVER_ROWS", observer_rows)
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "10"}), seed=5)
+    settings = estimator_settings(demo_config)
+    batch, _ = compare(demo_cell, settings, *_faulty(run))
+    assert batch.counters["held_encoder_gap"] > 0
+    enc_t, enc_q, trk_t, trk_p, quat = streams(run)
+    keep = enc_t < 6.0  # the encoder ends early: stale rows after the last update
+    batch, _ = compare(demo_cell, settings, enc_t[keep], enc_q[keep], trk_t, trk_p, quat)
+    assert batch.counters["held_encoder_stale"] > 0
+
+
 def test_vectorised_measured_error_equals_the_per_sample_one(demo_cell):
     rng = np.random.default_rng(1)
     n = 300

@@ -25,6 +25,8 @@ No I/O.
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,6 +55,9 @@ RECENT_INTERVALS = 64  # the estimator's window of tracker intervals for the ste
 CAP_REFRESH = 16  # ... refreshed every this many intervals
 CAP_MIN_INTERVALS = 8
 CHUNK = 8192  # rows per pass of the kinematics
+KINEMATICS_THREADS = min(2, os.cpu_count() or 1)
+OBSERVER_ROWS = 8 * CHUNK  # rows per step of the observer's recursion
+MEDIAN_WINDOWS = 1024  # step-cap windows sorted at once
 # held reasons in the estimator's words; code 0 is "not held"
 HELD_REASONS = ("", "encoder_stale", "encoder_too_old", "encoder_gap")
 
@@ -356,8 +361,9 @@ def _step_caps(settings: EstimatorSettings, intervals: np.ndarray, seen: np.ndar
         else:
             windows = every_window[starts]
         medians = np.empty(windows.shape[0])
-        for lo in range(0, windows.shape[0], CHUNK // 8):  # sorted copies that stay in cache
-            medians[lo : lo + CHUNK // 8] = _sorted_median(np.sort(windows[lo : lo + CHUNK // 8]))
+        for lo in range(0, windows.shape[0], MEDIAN_WINDOWS):  # sorted copies stay in cache
+            rows = slice(lo, lo + MEDIAN_WINDOWS)
+            medians[rows] = _sorted_median(np.sort(windows[rows]))
         values[full] = medians
     for k in np.flatnonzero(~full):
         values[k] = _sorted_median(np.sort(intervals[: counts[k]])[None, :])[0]
@@ -590,66 +596,83 @@ def estimate_batch(
     count("estimates", upd.size)
 
     # ---- row chunks that stay in cache (whole-recording temporaries cost more in page
-    # faults than in arithmetic): joints, measured error, flags, observer
-    state = np.zeros(channel_count)  # what rows before the first update carry
-    done_updates = 0  # updates before this chunk
-    for lo in range(0, n, CHUNK):
-        hi = min(lo + CHUNK, n)
-        rows = slice(lo, hi)
-        if computing:
-            held = ~ok[rows]
-            q0, q1 = Q[g0[rows]], Q[g[rows]]
-            with np.errstate(invalid="ignore", divide="ignore"):
-                w = (target[rows] - t0[rows]) / (t1[rows] - t0[rows])
-                chunk = np.where(exact[rows, None], q1, q0 + w[:, None] * (q1 - q0))
-            chunk[held] = 0.0  # held rows: any finite joints, their result is discarded
-            errors = measured_errors(
-                cell,
-                chain,
-                chunk,
-                P[rows],
-                None if quat is None else quat[rows],
-                None if direction is None else direction[rows],
-            )
-            chunk[held] = np.nan
-            errors[held] = np.nan
-            if not np.isfinite(errors[~held]).all():
-                raise BatchUnsupportedError("the kinematics gave a non-finite error")
-            joints[rows] = chunk
-            measured[rows] = errors
-            if spans:
-                outside = ~held & np.any(
-                    (chunk[:, range_cols] < range_low) | (chunk[:, range_cols] > range_high),
-                    axis=1,
+    # faults than in arithmetic): joints, measured error and flags on worker threads (numpy
+    # lets go of the GIL in its loops), the observer in order on this one as chunks come in
+    def kinematics(lo: int) -> int:
+        """Joints, measured errors and range flags of one chunk; how many rows are outside
+        the calibrated range."""
+        rows = slice(lo, lo + CHUNK)
+        held = ~ok[rows]
+        q0, q1 = Q[g0[rows]], Q[g[rows]]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = (target[rows] - t0[rows]) / (t1[rows] - t0[rows])
+            chunk = np.where(exact[rows, None], q1, q0 + w[:, None] * (q1 - q0))
+        chunk[held] = 0.0  # held rows: any finite joints, their result is discarded
+        errors = measured_errors(
+            cell,
+            chain,
+            chunk,
+            P[rows],
+            None if quat is None else quat[rows],
+            None if direction is None else direction[rows],
+        )
+        chunk[held] = np.nan
+        errors[held] = np.nan
+        if not np.isfinite(errors[~held]).all():
+            raise BatchUnsupportedError("the kinematics gave a non-finite error")
+        joints[rows] = chunk
+        measured[rows] = errors
+        if not spans:
+            return 0
+        outside = ~held & np.any(
+            (chunk[:, range_cols] < range_low) | (chunk[:, range_cols] > range_high), axis=1
+        )
+        flags[rows][outside] = OUTSIDE_CALIBRATED_RANGE
+        return int(outside.sum())
+
+    starts = range(0, n, CHUNK)
+    pool = ThreadPoolExecutor(max_workers=KINEMATICS_THREADS, thread_name_prefix="keo-batch")
+    try:
+        outside_counts = pool.map(kinematics, starts) if computing else iter([0] * len(starts))
+        state = np.zeros(channel_count)  # what rows before the first update carry
+        done_updates = 0  # updates before the rows observed next
+        observed = 0  # rows observed so far
+        for start, outside_count in zip(starts, outside_counts, strict=True):
+            count(OUTSIDE_CALIBRATED_RANGE, outside_count)
+            hi = min(start + CHUNK, n)
+            if hi - observed < OBSERVER_ROWS and hi < n:
+                continue  # the recursion's cost per call falls with its length: gather rows
+            lo, observed = observed, hi
+            # the observer over these rows' updates; the state carries over
+            first = done_updates
+            last = hi if every_row else int(np.searchsorted(upd, hi))
+            if first == 0 and last > 0:
+                m0 = measured[upd[0]]
+                if settings.start == "first":
+                    state = m0.copy()
+                else:
+                    first_dt = 1.0 / settings.sample_rate_hz  # as if one period had passed
+                    state = -np.expm1(-gains * first_dt) * m0
+                estimate[upd[0]] = state
+                first = 1
+            if last > first:
+                update_rows: slice | np.ndarray = (
+                    slice(first, last) if every_row else upd[first:last]
                 )
-                flags[rows][outside] = OUTSIDE_CALIBRATED_RANGE
-                count(OUTSIDE_CALIBRATED_RANGE, int(outside.sum()))
-        # the observer over this chunk's updates; the state carries over
-        first = done_updates
-        last = hi if every_row else int(np.searchsorted(upd, hi))
-        if first == 0 and last > 0:
-            m0 = measured[upd[0]]
-            if settings.start == "first":
-                state = m0.copy()
-            else:
-                first_dt = 1.0 / settings.sample_rate_hz  # as if one sample period had passed
-                state = -np.expm1(-gains * first_dt) * m0
-            estimate[upd[0]] = state
-            first = 1
-        if last > first:
-            update_rows: slice | np.ndarray = slice(first, last) if every_row else upd[first:last]
-            alpha = -np.expm1(-gains[None, :] * dt[first - 1 : last - 1, None])
-            block = first_order_recursion(state, 1.0 - alpha, alpha * measured[update_rows])
-            estimate[update_rows] = block
-            state = block[-1]
-        if not every_row and upd.size:
-            # a held row carries the state of the newest update before it (this chunk's or an
-            # earlier one's), zeros before the first update
-            held_rows = lo + np.flatnonzero(~ok[rows])
-            newest_update = np.searchsorted(upd, held_rows) - 1
-            estimate[held_rows] = estimate[upd[np.maximum(newest_update, 0)]]
-            estimate[held_rows[newest_update < 0]] = 0.0
-        done_updates = last
+                alpha = -np.expm1(-gains[None, :] * dt[first - 1 : last - 1, None])
+                block = first_order_recursion(state, 1.0 - alpha, alpha * measured[update_rows])
+                estimate[update_rows] = block
+                state = block[-1]
+            if not every_row and upd.size:
+                # a held row carries the state of the newest update before it (these rows'
+                # or an earlier one's), zeros before the first update
+                held_rows = lo + np.flatnonzero(~ok[lo:hi])
+                newest_update = np.searchsorted(upd, held_rows) - 1
+                estimate[held_rows] = estimate[upd[np.maximum(newest_update, 0)]]
+                estimate[held_rows[newest_update < 0]] = 0.0
+            done_updates = last
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
     return BatchResult(
         t=T,
         measured=measured,
