@@ -75,7 +75,7 @@ class BatchResult:
     estimate: np.ndarray  # (n, C)
     flags: list[str]  # "" or the flags joined by "|"
     encoder_t: np.ndarray  # (n,) the encoder time evaluated
-    joints: np.ndarray  # (n, nq); NaN where held
+    joints: np.ndarray | None  # (n, nq); NaN where held; None when not asked for
     channels: tuple[str, ...]
     counters: dict[str, int]
     messages: list[str]
@@ -140,7 +140,7 @@ class BatchResult:
                         flags,
                         float(self.encoder_t[k]),
                         self.channels,
-                        self.joints[k].copy(),
+                        None if self.joints is None else self.joints[k].copy(),
                     )
                 )
         return out
@@ -406,8 +406,10 @@ def estimate_batch(
     tracker_t: np.ndarray,
     tracker_p: np.ndarray,
     tracker_quat: np.ndarray | None,
+    keep_joints: bool = True,
 ) -> BatchResult:
-    """What `run_offline(Estimator(cell, settings), ...)` returns, as arrays."""
+    """What `run_offline(Estimator(cell, settings), ...)` returns, as arrays (without the
+    joints of each row unless `keep_joints`: an estimate file does not hold them)."""
     if settings.alignment != "interpolate":
         raise BatchUnsupportedError(f"alignment {settings.alignment!r} runs sample by sample")
     if settings.start not in ("zero", "first"):
@@ -558,7 +560,8 @@ def estimate_batch(
     # ---- joints and measured error, in chunks that stay in cache (whole-recording
     # temporaries cost more in page faults than in arithmetic)
     channel_count = len(channels)
-    joints = np.empty((n, nq))  # each row written once, in its chunk: fresh pages cost
+    # each row written once, in its chunk: fresh pages cost
+    joints = np.empty((n, nq)) if keep_joints else None
     measured = np.empty((n, channel_count))
     estimate = np.empty((n, channel_count))
     corr = cell.corrections
@@ -568,7 +571,8 @@ def estimate_batch(
     chain = Chain(cell.robot)
     computing = bool(E.size and ok.any())
     if not computing:
-        joints.fill(np.nan)
+        if joints is not None:
+            joints.fill(np.nan)
         measured.fill(np.nan)
     flags = np.array(HELD_REASONS, dtype=object)[reason]
     for code, name in enumerate(HELD_REASONS):
@@ -620,7 +624,8 @@ def estimate_batch(
         errors[held] = np.nan
         if not np.isfinite(errors[~held]).all():
             raise BatchUnsupportedError("the kinematics gave a non-finite error")
-        joints[rows] = chunk
+        if joints is not None:
+            joints[rows] = chunk
         measured[rows] = errors
         if not spans:
             return 0

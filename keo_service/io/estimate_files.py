@@ -49,7 +49,8 @@ def estimate_files(
     why = "asked for"
     if not streaming:
         try:
-            return OfflineResult(estimate_batch(cell, settings, *streams), "batch")
+            table = estimate_batch(cell, settings, *streams, keep_joints=False)
+            return OfflineResult(table, "batch")
         except BatchUnsupportedError as exc:
             why = str(exc)
     estimator = Estimator(cell, settings)
