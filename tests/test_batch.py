@@ -190,6 +190,28 @@ def test_chunk_boundaries_change_nothing(demo_cell, demo_config, monkeypatch, ch
     assert batch.counters["held_encoder_stale"] > 0
 
 
+def test_a_sample_on_the_first_encoder_stamp_after_a_gap(demo_cell, demo_config):
+    """A tracker time that falls exactly on an encoder stamp takes that sample's joints, even
+    just after a hole in the encoder stream; one between the two samples around the hole is
+    held as a gap."""
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "6"}), seed=3)
+    enc_t, enc_q, trk_t, trk_p, quat = streams(run)
+    keep = (enc_t < 2.0) | (enc_t > 2.5)
+    enc_t, enc_q = enc_t[keep], enc_q[keep]
+    after = enc_t[np.argmax(enc_t > 2.5)]
+    inside = 0.5 * (2.0 + after)
+    # two tracker samples moved onto those times (their neighbours keep their order)
+    k_after = int(np.argmin(np.abs(trk_t - after)))
+    k_inside = int(np.argmin(np.abs(trk_t - inside)))
+    trk_t = trk_t.copy()
+    trk_t[k_after], trk_t[k_inside] = after, inside
+    settings = dataclasses.replace(estimator_settings(demo_config), delay=DelayModel(0.0))
+    _batch, reference = compare(demo_cell, settings, enc_t, enc_q, trk_t, trk_p, quat)
+    by_t = {e.t: e for e in reference}
+    assert by_t[after].flags == ()  # on the sample: joints, no gap
+    assert by_t[inside].flags == ("encoder_gap",)
+
+
 def test_vectorised_measured_error_equals_the_per_sample_one(demo_cell):
     rng = np.random.default_rng(1)
     n = 300

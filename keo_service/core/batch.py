@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -522,97 +523,41 @@ def estimate_batch(
     quat = trk_quat if trk_quat is None or every else trk_quat[accepted]
     arrival = trk_pos if every else trk_pos[accepted]
 
-    # ---- when each sample is resolved
-    never = np.iinfo(np.int64).max
+    # ---- where each sample's encoder time falls, and the kinematics there: they do not depend
+    # on whether the sample ends up held, so they run on worker threads (numpy lets go of the
+    # GIL in its loops) while this thread works out which samples are held; in row chunks
+    # that stay in cache (whole-recording temporaries cost more in page faults than in
+    # arithmetic). Held rows' results are discarded.
     target = settings.delay.encoder_times(T)
     first_cover = np.searchsorted(E, target, side="left")
-    covered_at = np.full(n, never)
-    if E.size:
-        covers = first_cover < E.size
-        covered_at[covers] = E_pos[first_cover[covers]]
-    stale_index = _first_beyond(T, settings.stale_after_s)
-    stale_at = np.where(stale_index < n, arrival[np.minimum(stale_index, n - 1)], never)
-    ready = np.minimum(np.maximum(arrival, covered_at), stale_at)
-    resolved = np.maximum.accumulate(ready)
-    waiting = np.arange(n) - np.minimum(np.arange(n), np.searchsorted(resolved, arrival, "left"))
-    if waiting.max() >= MAX_PENDING:
-        raise BatchUnsupportedError(f"more than {MAX_PENDING} tracker samples wait at once")
-    have = np.searchsorted(E_pos, resolved, side="right")  # encoder samples in the buffer by then
-    seen = np.searchsorted(arrival, resolved, side="right") - 1  # tracker intervals by then
-
-    # ---- interpolation and its verdicts
-    capacity = max(64, math.ceil(settings.buffer_s * 2000.0))
-    reason = np.zeros(n, dtype=np.int8)
-    newest = np.where(have > 0, E[np.maximum(have - 1, 0)] if E.size else 0.0, -np.inf)
-    oldest = np.where(have > 0, E[np.maximum(have - capacity, 0)] if E.size else 0.0, np.inf)
-    reason[(have == 0) | (target > newest)] = 1
-    reason[(reason == 0) & (target < oldest)] = 2
     g = np.minimum(first_cover, max(E.size - 1, 0))
-    pending = reason == 0
-    exact = pending & (E[g] == target) if E.size else pending
-    between = pending & ~exact
     g0 = np.maximum(g - 1, 0)
     t0, t1 = (E[g0], E[g]) if E.size else (np.zeros(n), np.zeros(n))
-    reason[between & (t1 - t0 > settings.max_gap_s)] = 3
-    ok = reason == 0
-    reason[ok & (target < newest - settings.buffer_s)] = 2
-    ok = reason == 0
-    # ---- joints and measured error, in chunks that stay in cache (whole-recording
-    # temporaries cost more in page faults than in arithmetic)
+    on_sample = E[g] == target if E.size else np.zeros(n, dtype=bool)
     channel_count = len(channels)
     # each row written once, in its chunk: fresh pages cost
     joints = np.empty((n, nq)) if keep_joints else None
     measured = np.empty((n, channel_count))
     estimate = np.empty((n, channel_count))
     corr = cell.corrections
-    direction = None
-    if corr is not None and np.any(corr.backlash) and E.size:
-        direction = _directions(E, Q)[np.maximum(have - 1, 0)]
     chain = Chain(cell.robot)
-    computing = bool(E.size and ok.any())
-    if not computing:
-        if joints is not None:
-            joints.fill(np.nan)
-        measured.fill(np.nan)
-    flags = np.array(HELD_REASONS, dtype=object)[reason]
-    for code, name in enumerate(HELD_REASONS):
-        if code:
-            count(f"held_{name}", int(np.sum(reason == code)))
+    direction: np.ndarray | None = None  # backlash: the joints' directions, known below
     ranges = corr.map_ranges() if corr is not None else []
     spans = [(j, r) for j, r in enumerate(ranges) if r is not None]
     range_cols = [j for j, _r in spans]
     range_low = np.array([r[0] for _j, r in spans])
     range_high = np.array([r[1] for _j, r in spans])
 
-    # the alignment's whole-recording temporaries the chunks do not read: give their pages back
-    del covered_at, stale_at, ready, waiting, newest, oldest, between
-
-    # ---- the observer's inputs over all updates
-    gains = np.asarray(settings.gains[: len(channels)], dtype=float)
-    upd = np.flatnonzero(ok)
-    every_row = upd.size == n
-    dt = np.empty(0)
-    if upd.size:
-        caps = _step_caps(settings, np.diff(T), seen[upd[1:]])
-        dt = np.minimum(np.diff(T[upd]), caps)  # dt[k - 1] leads to update k
-    else:
-        estimate.fill(0.0)
-    count("estimates", upd.size)
-
-    # ---- row chunks that stay in cache (whole-recording temporaries cost more in page
-    # faults than in arithmetic): joints, measured error and flags on worker threads (numpy
-    # lets go of the GIL in its loops), the observer in order on this one as chunks come in
-    def kinematics(lo: int) -> int:
-        """Joints, measured errors and range flags of one chunk; how many rows are outside
-        the calibrated range."""
+    def kinematics(lo: int) -> np.ndarray | None:
+        """The chunk's joints and measured errors; its joints back when the range flags
+        need them."""
         rows = slice(lo, lo + CHUNK)
-        held = ~ok[rows]
         q0, q1 = Q[g0[rows]], Q[g[rows]]
         with np.errstate(invalid="ignore", divide="ignore"):
             w = (target[rows] - t0[rows]) / (t1[rows] - t0[rows])
-            chunk = np.where(exact[rows, None], q1, q0 + w[:, None] * (q1 - q0))
-        chunk[held] = 0.0  # held rows: any finite joints, their result is discarded
-        errors = measured_errors(
+            chunk = np.where(on_sample[rows, None], q1, q0 + w[:, None] * (q1 - q0))
+        chunk[~np.isfinite(chunk).all(axis=1)] = 0.0  # outside the encoder data: held
+        measured[rows] = measured_errors(
             cell,
             chain,
             chunk,
@@ -620,33 +565,102 @@ def estimate_batch(
             None if quat is None else quat[rows],
             None if direction is None else direction[rows],
         )
-        chunk[held] = np.nan
-        errors[held] = np.nan
-        if not np.isfinite(errors[~held]).all():
-            raise BatchUnsupportedError("the kinematics gave a non-finite error")
         if joints is not None:
             joints[rows] = chunk
-        measured[rows] = errors
-        if not spans:
-            return 0
-        outside = ~held & np.any(
-            (chunk[:, range_cols] < range_low) | (chunk[:, range_cols] > range_high), axis=1
-        )
-        flags[rows][outside] = OUTSIDE_CALIBRATED_RANGE
-        return int(outside.sum())
+        return chunk if spans else None
 
     starts = range(0, n, CHUNK)
-    pool = ThreadPoolExecutor(max_workers=KINEMATICS_THREADS, thread_name_prefix="keo-batch")
+    backlash = corr is not None and bool(np.any(corr.backlash))
+    # compliance: Pinocchio's gravity per row on the cell's one data object, in Python; one
+    # worker keeps that data to one thread
+    compliance = corr is not None and bool(np.any(corr.compliance))
+    workers = 1 if compliance else KINEMATICS_THREADS
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="keo-batch")
     try:
-        outside_counts = pool.map(kinematics, starts) if computing else iter([0] * len(starts))
+        chunks_done: Iterator[np.ndarray | None] = iter([None] * len(starts))
+        if E.size and not backlash:
+            chunks_done = pool.map(kinematics, starts)
+
+        # ---- when each sample is resolved
+        never = np.iinfo(np.int64).max
+        covered_at = np.full(n, never)
+        if E.size:
+            covers = first_cover < E.size
+            covered_at[covers] = E_pos[first_cover[covers]]
+        stale_index = _first_beyond(T, settings.stale_after_s)
+        stale_at = np.where(stale_index < n, arrival[np.minimum(stale_index, n - 1)], never)
+        ready = np.minimum(np.maximum(arrival, covered_at), stale_at)
+        resolved = np.maximum.accumulate(ready)
+        waiting = np.arange(n) - np.minimum(
+            np.arange(n), np.searchsorted(resolved, arrival, "left")
+        )
+        if waiting.max() >= MAX_PENDING:
+            raise BatchUnsupportedError(f"more than {MAX_PENDING} tracker samples wait at once")
+        have = np.searchsorted(E_pos, resolved, side="right")  # encoder samples buffered then
+        seen = np.searchsorted(arrival, resolved, side="right") - 1  # tracker intervals by then
+        del covered_at, stale_at, ready, waiting
+
+        # ---- interpolation's verdicts
+        capacity = max(64, math.ceil(settings.buffer_s * 2000.0))
+        reason = np.zeros(n, dtype=np.int8)
+        newest = np.where(have > 0, E[np.maximum(have - 1, 0)] if E.size else 0.0, -np.inf)
+        oldest = np.where(have > 0, E[np.maximum(have - capacity, 0)] if E.size else 0.0, np.inf)
+        reason[(have == 0) | (target > newest)] = 1
+        reason[(reason == 0) & (target < oldest)] = 2
+        reason[(reason == 0) & ~on_sample & (t1 - t0 > settings.max_gap_s)] = 3
+        reason[(reason == 0) & (target < newest - settings.buffer_s)] = 2
+        ok = reason == 0
+        del newest, oldest
+        if E.size and backlash:
+            direction = _directions(E, Q)[np.maximum(have - 1, 0)]
+            chunks_done = pool.map(kinematics, starts)
+        flags = np.array(HELD_REASONS, dtype=object)[reason]
+        for code, name in enumerate(HELD_REASONS):
+            if code:
+                count(f"held_{name}", int(np.sum(reason == code)))
+
+        # ---- the observer's inputs over all updates
+        gains = np.asarray(settings.gains[: len(channels)], dtype=float)
+        upd = np.flatnonzero(ok)
+        every_row = upd.size == n
+        dt = np.empty(0)
+        if upd.size:
+            caps = _step_caps(settings, np.diff(T), seen[upd[1:]])
+            dt = np.minimum(np.diff(T[upd]), caps)  # dt[k - 1] leads to update k
+        else:
+            estimate.fill(0.0)
+        count("estimates", upd.size)
+
+        # ---- chunk by chunk as the workers finish: held rows emptied, range flags, and the
+        # observer in order (in steps of OBSERVER_ROWS: the recursion's cost per call falls
+        # with its length)
         state = np.zeros(channel_count)  # what rows before the first update carry
         done_updates = 0  # updates before the rows observed next
         observed = 0  # rows observed so far
-        for start, outside_count in zip(starts, outside_counts, strict=True):
-            count(OUTSIDE_CALIBRATED_RANGE, outside_count)
+        for start, chunk_joints in zip(starts, chunks_done, strict=True):
             hi = min(start + CHUNK, n)
+            rows = slice(start, hi)
+            held = ~ok[rows]
+            if not E.size:
+                measured[rows] = np.nan
+            elif held.any():
+                measured[rows][held] = np.nan
+                if joints is not None:
+                    joints[rows][held] = np.nan
+            if not np.isfinite(measured[rows][~held]).all():
+                raise BatchUnsupportedError("the kinematics gave a non-finite error")
+            if joints is not None and not E.size:
+                joints[rows] = np.nan
+            if chunk_joints is not None:
+                outside = ~held & np.any(
+                    (chunk_joints[:, range_cols] < range_low)
+                    | (chunk_joints[:, range_cols] > range_high),
+                    axis=1,
+                )
+                flags[rows][outside] = OUTSIDE_CALIBRATED_RANGE
+                count(OUTSIDE_CALIBRATED_RANGE, int(outside.sum()))
             if hi - observed < OBSERVER_ROWS and hi < n:
-                continue  # the recursion's cost per call falls with its length: gather rows
+                continue
             lo, observed = observed, hi
             # the observer over these rows' updates; the state carries over
             first = done_updates
