@@ -4,9 +4,13 @@ sample is answered and that the stage split adds up."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
+import numpy as np
 import pytest
 
-from keo_service.bench.benchmarks import bench_table, end_to_end
+from keo_service.bench.benchmarks import _timed_command, _watch_peak, bench_table, end_to_end
 from keo_service.bench.demo import loopback_config
 
 
@@ -62,3 +66,22 @@ def test_bench_table_states_the_ratio_over_the_floor():
     table = bench_table(report)
     assert "p50 x2.00, p99 x1.50" in table
     assert "transport floor" in table
+
+
+def test_a_commands_peak_memory_is_its_own_not_the_benchs(tmp_path):
+    """rusage of a child counts the parent's size at the fork; the bench reads the command's
+    own high-water mark instead."""
+    ballast = np.ones(50_000_000)  # 400 MB in the bench's process
+    got = _timed_command(["--help"], tmp_path / "help.log")
+    assert ballast[-1] == 1.0
+    assert 5.0 < got["peak_rss_mb"] < 150.0  # `keo --help` itself: tens of MB
+
+
+def test_the_peak_watcher_sees_what_a_process_allocates():
+    code = "import numpy, time; a = numpy.ones(25_000_000); time.sleep(0.3)"  # 200 MB
+    argv = [sys.executable, "-c", code]
+    proc = subprocess.Popen(argv)
+    peak_kb = [0]
+    _watch_peak(proc.pid, argv, peak_kb)
+    proc.wait()
+    assert 195.0 < peak_kb[0] / 1024.0 < 400.0

@@ -34,6 +34,7 @@ import numpy as np
 
 from keo_service.core.estimator import Estimate
 from keo_service.core.kinematics import Cell
+from keo_service.live.systemd import JsonFormatter, setup_logging
 
 __all__ = ["RerunWorker", "main"]
 
@@ -76,8 +77,11 @@ class RerunWorker:
         self.dropped = 0
 
     def start(self) -> None:
+        # the child logs as the service does (JSON lines under journald)
+        formatters = [h.formatter for h in logging.getLogger().handlers]
+        log_format = "json" if any(isinstance(f, JsonFormatter) for f in formatters) else "text"
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "keo_service.live.rerun_process"],
+            [sys.executable, "-m", "keo_service.live.rerun_process", log_format],
             stdin=subprocess.PIPE,
             stdout=subprocess.DEVNULL,
         )
@@ -244,9 +248,12 @@ def main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     # the display is worth less than the estimates: when cores are short, the service, the
-    # adapters and the subscribers go first (Rerun's own threads inherit this)
+    # adapters and the subscribers go first (Rerun's own threads inherit this); a real-time
+    # policy inherited from the service (systemd's CPUSchedulingPolicy) is dropped first
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     os.nice(NICENESS)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    setup_logging(fmt=sys.argv[1] if len(sys.argv) > 1 else "text")
     try:
         _serve(sys.stdin.fileno())
     except Exception as exc:  # logged with its cause; the parent sees the exit code
