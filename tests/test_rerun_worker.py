@@ -43,12 +43,12 @@ def test_a_full_buffer_drops_and_counts_without_blocking(demo_cell, tmp_path):
 def test_every_estimate_of_a_steady_stream_reaches_the_file(demo_cell, tmp_path):
     rrd = tmp_path / "s.rrd"
     worker = RerunWorker(demo_cell, rrd=rrd)
-    worker.start()
-    for i in range(3000):
+    for i in range(3000):  # more than a pipe holds, before the child can read any of it
         worker.submit(_estimate(i * 0.001))
         if i % 500 == 0:
             worker.submit({"delay_s": 0.004, "counters": {"rejected": i}})
-    worker.close(timeout=30.0)
+    worker.start()
+    worker.close(timeout=30.0)  # the child is still importing Rerun: close waits for it
     assert worker.failure is None
     assert worker.dropped == 0
     assert _rows(rrd, "/keo/error/rz") == 3000

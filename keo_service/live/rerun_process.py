@@ -46,7 +46,6 @@ MAX_BUFFER = 4 << 20  # buffered bytes at most (about 15 s at 1 kHz); newer esti
 READ_SIZE = 1 << 20
 FLUSH_PERIOD_S = 0.1  # the child's flushes to Rerun: display rate
 NICENESS = 10  # added to the child's nice value
-DRAIN_S = 0.5  # at shutdown, time to write what is buffered before the pipe is closed
 
 
 def _frame(payload: bytes) -> bytes:
@@ -141,20 +140,26 @@ class RerunWorker:
         return self._failure
 
     def close(self, timeout: float = 1.5) -> None:
-        """Write what is buffered (for a bounded time), close the pipe and wait for the
-        child to finish the recording; a child that takes longer is killed, with a warning."""
+        """Within `timeout` in all: write what is buffered (for at most half of it: a child
+        still starting reads nothing yet), close the pipe and wait for the child to finish
+        the recording; a child that takes longer is killed, with a warning."""
         self._closing = True
         proc = self._proc
         if proc is None or proc.stdin is None:
             return
-        deadline = time.monotonic() + min(DRAIN_S, timeout)
-        while self._buffer and self._failure is None and time.monotonic() < deadline:
-            select.select([], [self._fd], [], max(0.0, deadline - time.monotonic()))
+        start = time.monotonic()
+        drain_until = start + timeout / 2
+        while self._buffer and self._failure is None and time.monotonic() < drain_until:
+            select.select([], [self._fd], [], max(0.0, drain_until - time.monotonic()))
             self._write()
+        if self._buffer:
+            log.warning(
+                "Rerun logging: %d bytes of estimates not written at shutdown", len(self._buffer)
+            )
         with contextlib.suppress(OSError):  # the child may be gone already
             proc.stdin.close()
         try:
-            proc.wait(timeout)
+            proc.wait(max(0.1, start + timeout - time.monotonic()))
         except subprocess.TimeoutExpired:
             log.warning(
                 "Rerun logging did not finish within %.1f s; stopped, its file may lack the end",
