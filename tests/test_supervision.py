@@ -107,6 +107,49 @@ def test_a_fault_in_the_data_path_stops_the_service_with_its_cause(demo_config, 
     assert "Traceback" in text
 
 
+def _rerun_child(service_pid: int, timeout: float = 20.0) -> int:
+    """The pid of the Rerun process `keo run --rrd` started."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for entry in Path("/proc").iterdir():
+            if not entry.name.isdigit():
+                continue
+            with contextlib.suppress(OSError):
+                stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+                cmdline = (entry / "cmdline").read_bytes()
+                if int(stat[1]) == service_pid and b"keo_service.live.rerun_process" in cmdline:
+                    return int(entry.name)
+        time.sleep(0.1)
+    raise AssertionError("no Rerun process under the service")
+
+
+def test_a_dead_rerun_process_stops_the_service_with_its_cause(demo_config, tmp_path):
+    config, cfg = _config_file(demo_config, tmp_path)
+    log = tmp_path / "service.log"
+    rrd = tmp_path / "run.rrd"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "keo_service.cli", "run", "--config", str(cfg), "--rrd", str(rrd)],
+        stdout=log.open("wb"),
+        stderr=subprocess.STDOUT,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    try:
+        wait_for_status(config)
+        os.kill(_rerun_child(proc.pid), signal.SIGKILL)
+        killed = time.monotonic()
+        rc = proc.wait(timeout=10)
+        exited_after = time.monotonic() - killed
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    text = log.read_text()
+    assert rc == 1, text
+    assert exited_after < 2.0, exited_after
+    assert "Rerun logging failed" in text
+    assert "exited with code -9" in text
+    assert "keo.service.viz" in text  # the failed task is named
+
+
 def test_a_stalled_data_path_withholds_the_watchdog(demo_config, tmp_path):
     config, cfg = _config_file(demo_config, tmp_path)
     sock_path = str(tmp_path / "notify.sock")

@@ -130,13 +130,17 @@ class RerunWorker:
 
     @property
     def failure(self) -> BaseException | None:
+        """Why the child is gone (its exit code, also when a write found the pipe broken
+        first), or None."""
         proc = self._proc
-        if self._failure is None and proc is not None and not self._closing:
+        if proc is not None and not self._closing and not isinstance(self._failure, RuntimeError):
             code = proc.poll()
             if code is not None:
-                self._failure = RuntimeError(
+                failure = RuntimeError(
                     f"the Rerun logging process exited with code {code}; its error is logged above"
                 )
+                failure.__cause__ = self._failure  # a broken pipe, if a write saw it first
+                self._failure = failure
         return self._failure
 
     def close(self, timeout: float = 1.5) -> None:
