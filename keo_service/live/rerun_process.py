@@ -1,4 +1,4 @@
-"""Rerun logging in its own process, so that it never takes the service's GIL or CPU time.
+"""Rerun logging in its own process, so that it never holds the service's GIL.
 
 In the service's process Rerun's calls hold the GIL for a few milliseconds at every flush
 (part of that in native code, which no switch interval preempts): the samples that arrive
