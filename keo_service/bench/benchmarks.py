@@ -597,7 +597,8 @@ def bench_table(r: dict[str, Any]) -> str:
         f"each); hot path / floor = {_over_floor(hp, r['naive_floor'])} |"
         if "naive_floor" in r
         else "| naive per-sample floor | not measured in this run |",
-        f"| hot path with Rerun logging (batched at 10 Hz) | {hpr['samples_per_s']:,.0f} "
+        f"| hot path with the Rerun sink in the same thread (batched at 10 Hz; `keo run "
+        f"--rrd` runs the sink in a process of its own) | {hpr['samples_per_s']:,.0f} "
         f"(x{hp['samples_per_s'] / hpr['samples_per_s']:.2f} the cost) |",
     ]
 
