@@ -212,6 +212,15 @@ def test_a_sample_on_the_first_encoder_stamp_after_a_gap(demo_cell, demo_config)
     assert by_t[inside].flags == ("encoder_gap",)
 
 
+def test_no_encoder_data_holds_every_row(demo_cell, demo_config):
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "2"}), seed=1)
+    _enc_t, _enc_q, trk_t, trk_p, quat = streams(run)
+    settings = estimator_settings(demo_config)
+    batch, _ = compare(demo_cell, settings, np.empty(0), np.empty((0, 6)), trk_t, trk_p, quat)
+    assert np.isnan(batch.measured).all()
+    assert batch.counters["held_encoder_stale"] == trk_t.size
+
+
 def test_vectorised_measured_error_equals_the_per_sample_one(demo_cell):
     rng = np.random.default_rng(1)
     n = 300

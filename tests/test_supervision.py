@@ -12,6 +12,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import msgspec
@@ -33,7 +34,7 @@ RUNNER = """
 import sys
 {patch}
 from keo_service.cli import main
-sys.exit(main(["run", "--config", sys.argv[1]]))
+sys.exit(main(["run", "--config", *sys.argv[1:]]))
 """
 
 RAISE_IN_ESTIMATOR = """
@@ -60,10 +61,16 @@ def _config_file(demo_config: Config, tmp_path: Path) -> tuple[Config, Path]:
     return config, path
 
 
-def _start_patched(patch: str, cfg: Path, log: Path, env: dict[str, str] | None = None):
+def _start_patched(
+    patch: str,
+    cfg: Path,
+    log: Path,
+    env: dict[str, str] | None = None,
+    options: tuple[str, ...] = (),
+):
     code = RUNNER.format(patch=textwrap.dedent(patch))
     return subprocess.Popen(
-        [sys.executable, "-c", code, str(cfg)],
+        [sys.executable, "-c", code, str(cfg), *options],
         stdout=log.open("wb"),
         stderr=subprocess.STDOUT,
         env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
@@ -86,20 +93,30 @@ def _tracker_samples(config: Config, n: int) -> None:
         session.close()
 
 
+def _exit_after_fault(
+    proc: subprocess.Popen, config: Config, log: Path, fault: Callable[[], None]
+) -> tuple[int, float, str]:
+    """Once the service answers, `fault()`; then its exit code, seconds from the fault to
+    the exit, and its log."""
+    try:
+        wait_for_status(config)
+        fault()
+        faulted = time.monotonic()
+        rc = proc.wait(timeout=10)
+        exited_after = time.monotonic() - faulted
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return rc, exited_after, log.read_text()
+
+
 def test_a_fault_in_the_data_path_stops_the_service_with_its_cause(demo_config, tmp_path):
     config, cfg = _config_file(demo_config, tmp_path)
     log = tmp_path / "service.log"
     proc = _start_patched(RAISE_IN_ESTIMATOR, cfg, log)
-    try:
-        wait_for_status(config)
-        _tracker_samples(config, 1)
-        sent = time.monotonic()
-        rc = proc.wait(timeout=10)
-        exited_after = time.monotonic() - sent
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    text = log.read_text()
+    rc, exited_after, text = _exit_after_fault(
+        proc, config, log, lambda: _tracker_samples(config, 1)
+    )
     assert rc == 1, text
     assert exited_after < 2.0, exited_after
     assert "injected fault in the estimator" in text
@@ -127,22 +144,10 @@ def test_a_dead_rerun_process_stops_the_service_with_its_cause(demo_config, tmp_
     config, cfg = _config_file(demo_config, tmp_path)
     log = tmp_path / "service.log"
     rrd = tmp_path / "run.rrd"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "keo_service.cli", "run", "--config", str(cfg), "--rrd", str(rrd)],
-        stdout=log.open("wb"),
-        stderr=subprocess.STDOUT,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    proc = _start_patched("", cfg, log, options=("--rrd", str(rrd)))
+    rc, exited_after, text = _exit_after_fault(
+        proc, config, log, lambda: os.kill(_rerun_child(proc.pid), signal.SIGKILL)
     )
-    try:
-        wait_for_status(config)
-        os.kill(_rerun_child(proc.pid), signal.SIGKILL)
-        killed = time.monotonic()
-        rc = proc.wait(timeout=10)
-        exited_after = time.monotonic() - killed
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    text = log.read_text()
     assert rc == 1, text
     assert exited_after < 2.0, exited_after
     assert "Rerun logging failed" in text

@@ -640,17 +640,13 @@ def estimate_batch(
         for start, chunk_joints in zip(starts, chunks_done, strict=True):
             hi = min(start + CHUNK, n)
             rows = slice(start, hi)
-            held = ~ok[rows]
-            if not E.size:
-                measured[rows] = np.nan
-            elif held.any():
+            held = ~ok[rows]  # every row when there is no encoder data (nothing computed)
+            if held.any():
                 measured[rows][held] = np.nan
                 if joints is not None:
                     joints[rows][held] = np.nan
             if not np.isfinite(measured[rows][~held]).all():
                 raise BatchUnsupportedError("the kinematics gave a non-finite error")
-            if joints is not None and not E.size:
-                joints[rows] = np.nan
             if chunk_joints is not None:
                 outside = ~held & np.any(
                     (chunk_joints[:, range_cols] < range_low)
