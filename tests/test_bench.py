@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import tempfile
 
 import numpy as np
 import pytest
@@ -15,8 +16,12 @@ from keo_service.bench.demo import loopback_config
 
 
 @pytest.mark.parametrize("relay_only", [False, True], ids=["service", "transport-floor"])
-def test_end_to_end_chain_answers_every_tracker_sample(demo_config, relay_only):
+def test_end_to_end_chain_answers_every_tracker_sample(
+    demo_config, relay_only, tmp_path, monkeypatch
+):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # where the run's folder goes
     res = end_to_end(loopback_config(demo_config), seconds=3.0, relay_only=relay_only)
+    assert list(tmp_path.iterdir()) == []  # the logs' folder is gone after a clean run
     assert res["tracker_samples_sent"] == 3000
     assert res["lost"] == 0
     total = res["latency_ms"]
@@ -50,6 +55,22 @@ def test_bench_table_states_the_ratio_over_the_floor():
         "quick": False,
         "hot_path": hot,
         "hot_path_rerun": {**hot, "samples_per_s": 10000.0},
+        "recording": {
+            "seconds": 600.0,
+            "tracker_samples": 600000,
+            "encoder_samples": 150000,
+            "floor_s": 3.0,
+            "over_floor": 0.45,
+            "over_floor_best": 0.41,
+            "over_floor_worst": 0.52,
+            "batch": {
+                "wall_s": 1.5,
+                "cpu_s": 2.1,
+                "peak_rss_mb": 450.0,
+                "runs_wall_s": [1.5, 1.4, 1.6],
+                "warmup_wall_s": 1.9,
+            },
+        },
         "end_to_end": e2e(1.0, 3.0),
         "transport_floor": e2e(0.5, 2.0),
         "capacity": {"highest_rate_without_drops_hz": 4000.0, "steps": []},
@@ -65,6 +86,9 @@ def test_bench_table_states_the_ratio_over_the_floor():
     }
     table = bench_table(report)
     assert "p50 x2.00, p99 x1.50" in table
+    # the recording's ratio is the pairs' median, not the median run over the median floor
+    assert "command / floor = 0.45 (median of 3 pairs" in table
+    assert "0.41 to 0.52" in table
     assert "transport floor" in table
 
 
