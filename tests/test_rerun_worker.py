@@ -3,6 +3,7 @@ counts drops, and learns when the process dies."""
 
 from __future__ import annotations
 
+import contextlib
 import time
 
 import numpy as np
@@ -67,6 +68,40 @@ def test_a_dead_process_is_reported_to_the_supervisor(demo_cell, tmp_path):
         time.sleep(0.05)
     assert "exited with code 1" in str(worker.failure)  # also when a write saw the pipe first
     worker.close()
+
+
+def test_a_backlog_is_offered_to_the_pipe_once_per_write_size_not_per_estimate(
+    demo_cell, monkeypatch
+):
+    """A child still starting (or one that cannot keep up) leaves a backlog; the service must
+    not pay a refused write per estimate meanwhile."""
+    import os
+
+    from keo_service.live import rerun_process
+
+    read_end, write_end = os.pipe()
+    os.set_blocking(write_end, False)
+    with contextlib.suppress(BlockingIOError):
+        while True:  # a pipe nobody reads: full
+            os.write(write_end, b"x" * 65536)
+    tries = []
+    real_write = os.write
+
+    def counting_write(fd: int, data: bytes) -> int:
+        tries.append(len(data))
+        return real_write(fd, data)
+
+    worker = RerunWorker(demo_cell)
+    worker._fd = write_end  # the pipe of a child that reads nothing yet
+    monkeypatch.setattr(rerun_process.os, "write", counting_write)
+    for i in range(2000):
+        worker.submit(_estimate(i * 0.001))
+    monkeypatch.undo()
+    submitted = len(worker._buffer)
+    assert submitted > 20 * rerun_process.WRITE_AT  # the backlog built up
+    assert 0 < len(tries) <= submitted // rerun_process.WRITE_AT + 1
+    os.close(read_end)
+    os.close(write_end)
 
 
 @pytest.mark.parametrize("piece", [1, 3, 7, 1000])

@@ -68,6 +68,7 @@ class RerunWorker:
         self._init = pickle.dumps((cell, None if rrd is None else str(rrd), viewer))
         self._max_buffer = max_buffer
         self._buffer = bytearray()
+        self._unsent = 0  # bytes buffered since the last write was tried
         self._encode = msgspec.msgpack.Encoder().encode
         self._proc: subprocess.Popen[bytes] | None = None
         self._fd = -1
@@ -111,11 +112,15 @@ class RerunWorker:
             self.dropped += 1
             return
         self._buffer += _frame(payload)
-        if len(self._buffer) >= WRITE_AT or isinstance(item, dict):
+        self._unsent += HEADER + len(payload)
+        # one write per WRITE_AT bytes submitted, also while a backlog waits for the child (a
+        # child still starting, or one that cannot keep up): not a refused write per estimate
+        if self._unsent >= WRITE_AT or isinstance(item, dict):
             self._write()
 
     def _write(self) -> None:
         """As much of the buffer as the pipe takes now."""
+        self._unsent = 0
         if self._fd < 0 or not self._buffer or self._failure is not None:
             return
         try:
