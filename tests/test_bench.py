@@ -11,7 +11,13 @@ import tempfile
 import numpy as np
 import pytest
 
-from keo_service.bench.benchmarks import _timed_command, _watch_peak, bench_table, end_to_end
+from keo_service.bench.benchmarks import (
+    _timed_command,
+    _watch_peak,
+    bench_table,
+    end_to_end,
+    hot_path,
+)
 from keo_service.bench.demo import loopback_config
 
 
@@ -54,7 +60,7 @@ def test_bench_table_states_the_ratio_over_the_floor():
         "machine": {"cpu": "test", "cores": 2, "python": "3.11"},
         "quick": False,
         "hot_path": hot,
-        "hot_path_rerun": {**hot, "samples_per_s": 10000.0},
+        "hot_path_rerun": {**hot, "samples_per_s": 10000.0, "rerun": "process"},
         "recording": {
             "seconds": 600.0,
             "tracker_samples": 600000,
@@ -89,6 +95,8 @@ def test_bench_table_states_the_ratio_over_the_floor():
     # the recording's ratio is the pairs' median, not the median run over the median floor
     assert "command / floor = 0.45 (median of 3 pairs" in table
     assert "0.41 to 0.52" in table
+    assert "Rerun worker" in table
+    assert "x2.00 the cost" in table
     assert "transport floor" in table
 
 
@@ -109,3 +117,20 @@ def test_the_peak_watcher_sees_what_a_process_allocates():
     _watch_peak(proc.pid, argv, peak_kb)
     proc.wait()
     assert 195.0 < peak_kb[0] / 1024.0 < 400.0
+
+
+def test_the_rerun_pass_runs_the_services_worker_and_its_process_logs_everything(demo_config):
+    """The pass raises when the Rerun process fails or an estimate is dropped."""
+    res = hot_path(loopback_config(demo_config), 2.0, with_rerun=True, repeats=1)
+    assert res["samples"] > 1900
+    assert res["rerun"] == "process"
+
+
+def test_the_rrd_run_reports_the_rerun_process_apart(demo_config, tmp_path, monkeypatch):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    res = end_to_end(loopback_config(demo_config), seconds=3.0, rrd=True)
+    assert res["lost"] == 0
+    rerun = res["processes"]["rerun-process"]  # the service's child, not counted in its CPU
+    assert rerun["cpu_pct"] > 0.0
+    assert rerun["peak_rss_mb"] > 20.0  # Python with Rerun and Pinocchio loaded
+    assert list(tmp_path.iterdir()) == []
