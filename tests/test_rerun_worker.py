@@ -13,6 +13,7 @@ from rerun.chunk import RrdReader
 from keo_service.core.estimator import Estimate
 from keo_service.core.kinematics import POSE_CHANNELS
 from keo_service.live.rerun_process import RerunWorker, _frame, _Frames
+from keo_service.live.rerun_sink import RerunSink
 
 
 def _estimate(t: float) -> Estimate:
@@ -68,6 +69,29 @@ def test_a_dead_process_is_reported_to_the_supervisor(demo_cell, tmp_path):
         time.sleep(0.05)
     assert "exited with code 1" in str(worker.failure)  # also when a write saw the pipe first
     worker.close()
+
+
+def test_a_long_recording_rolls_into_files_of_one_recording(demo_cell, tmp_path):
+    """The SDK holds an index entry per chunk of an open file: a daemon's recording is split
+    into files so that closing one frees them; each file whole, one recording id across."""
+    rrd = tmp_path / "cell.rrd"
+    sink = RerunSink(demo_cell, rrd=rrd, roll_after_s=0.0)  # due at every batch
+    for batch in range(3):
+        for i in range(100):
+            sink.add(_estimate(batch * 0.1 + i * 0.001))
+        sink.flush()
+    sink.close()
+    files = [rrd, tmp_path / "cell-0001.rrd", tmp_path / "cell-0002.rrd"]
+    assert sorted(tmp_path.iterdir()) == sorted(files)  # no empty file at the end
+    ids = set()
+    for path in files:
+        reader = RrdReader(str(path))
+        ids |= {entry.recording_id for entry in reader.recordings()}
+        chunks = list(reader.stream().to_chunks())
+        static = {c.entity_path for c in chunks if c.is_static}
+        assert {"/world/tracker", "/keo/error/px"} <= static  # frames and series style in each
+        assert _rows(path, "/keo/error/px") == 100
+    assert len(ids) == 1
 
 
 def test_a_backlog_is_offered_to_the_pipe_once_per_write_size_not_per_estimate(
