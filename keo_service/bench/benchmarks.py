@@ -110,7 +110,10 @@ def _hot_path_pass(
     if worker is not None:
         worker.close(timeout=120.0)  # the Rerun process finishes the recording
         if worker.failure is not None or worker.dropped:
-            raise KeoError(f"the Rerun process did not log every estimate: {worker.failure}")
+            raise KeoError(
+                f"the Rerun process did not log every estimate ({worker.dropped} dropped): "
+                f"{worker.failure}"
+            )
     if tmp is not None:
         tmp.cleanup()
     return n, cpu
@@ -300,8 +303,13 @@ def recording(
 # ---- 2./3. end to end --------------------------------------------------------------------------
 
 
+def _stat_fields(pid: int | str) -> list[str]:
+    """/proc/<pid>/stat after the command name (which may hold spaces): state, ppid, ..."""
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+
+
 def _proc_cpu_s(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    fields = _stat_fields(pid)
     return (int(fields[11]) + int(fields[12])) / TICK
 
 
@@ -361,7 +369,7 @@ def _children(pid: int) -> list[int]:
         if not entry.name.isdigit():
             continue
         try:
-            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            fields = _stat_fields(entry.name)
         except OSError:
             continue  # gone meanwhile
         if int(fields[1]) == pid:
@@ -391,7 +399,14 @@ def end_to_end(
     work = Path(tempfile.mkdtemp(prefix="keo-bench-"))
     try:
         res = _end_to_end(
-            work, config, seconds, tracker_hz, encoder_hz, rrd, sample_every, relay_only
+            work,
+            config,
+            seconds,
+            tracker_hz=tracker_hz,
+            encoder_hz=encoder_hz,
+            rrd=rrd,
+            sample_every=sample_every,
+            relay_only=relay_only,
         )
     except BaseException as exc:
         exc.add_note(f"the processes' logs: {work}")
@@ -404,6 +419,7 @@ def _end_to_end(
     work: Path,
     config: Config,
     seconds: float,
+    *,
     tracker_hz: float,
     encoder_hz: float,
     rrd: bool,

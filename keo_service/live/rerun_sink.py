@@ -122,9 +122,13 @@ class RerunSink:
             or time.monotonic() - self._opened_at < self._roll_after_s
         ):
             return
+        self._end_stream()
+        self._open()
+
+    def _end_stream(self) -> None:
+        """Everything logged so far to its sinks, then the file closed (and its index freed)."""
         self._rec.flush(timeout_sec=5.0)
         self._rec.disconnect()
-        self._open()
 
     def _log_static_frames(self) -> None:
         T = self.cell.T_bk
@@ -233,5 +237,4 @@ class RerunSink:
 
     def close(self) -> None:
         self.flush()
-        self._rec.flush(timeout_sec=5.0)
-        self._rec.disconnect()
+        self._end_stream()
