@@ -110,12 +110,24 @@ def soak_text(d: dict) -> str:
     fds = ", ".join(
         f"{label} {s[n]['fds_first']} → {s[n]['fds_last']}" for n, label in names.items()
     )
+    rrd = d.get("rrd", False)
+    command = f"keo bench --soak {d['seconds']:.0f}" + (" --rrd" if rrd else "")
+    rerun = ""
+    if "rerun-process" in s:
+        r, rec = s["rerun-process"], d["recording"]
+        rerun = (
+            f" The Rerun process (the service's child) {r['rss_first_mb']:.1f} → "
+            f"{r['rss_last_mb']:.1f} MB, at most {r['rss_max_mb']:.1f} MB; the recording "
+            f"rolled into {rec['files']} files ({', '.join(f'{mb:.0f}' for mb in rec['mb'])} "
+            "MB)."
+        )
     return (
-        f"Soak (`keo bench --soak {d['seconds']:.0f}`, 1 kHz tracker, 250 Hz robot, every "
-        f"process its own): resident memory from a third of the run to its end: {rss}; "
+        f"Soak (`{command}`, 1 kHz tracker, 250 Hz robot, every "
+        f"process its own{', the service recording to Rerun' if rrd else ''}): resident "
+        f"memory from a third of the run to its end: {rss}; "
         f"open files: {fds}; {d['estimates_received']} estimates for "
         f"{d['tracker_samples_sent']} tracker samples; latency p50 {lat['p50']:.2f} ms, "
-        f"p99 {lat['p99']:.2f} ms, max {lat['max']:.1f} ms. Queues are bounded by "
+        f"p99 {lat['p99']:.2f} ms, max {lat['max']:.1f} ms.{rerun} Queues are bounded by "
         "construction (deques with a maximum length everywhere).\n"
     )
 
@@ -127,7 +139,9 @@ def main() -> None:
     p.add_argument("--bench", type=Path, required=True)
     p.add_argument("--ur10", type=Path, required=True)
     p.add_argument("--notes", type=Path, help="markdown appended after the UR10 table")
-    p.add_argument("--soak", type=Path, required=True, help="keo bench --soak 600 --json")
+    p.add_argument(
+        "--soak", type=Path, nargs="+", required=True, help="keo bench --soak 600 [--rrd] --json"
+    )
     p.add_argument("--rtde", type=Path, required=True, help="clock numbers of tests/test_rtde.py")
     args = p.parse_args()
     text = (HERE / "README.template.md").read_text()
@@ -138,7 +152,8 @@ def main() -> None:
     if args.notes:
         ur10 += "\n" + args.notes.read_text()
     text = text.replace("@UR10@", ur10)
-    text = text.replace("@SOAK@", soak_text(json.loads(args.soak.read_text())))
+    soaks = [soak_text(json.loads(path.read_text())) for path in args.soak]
+    text = text.replace("@SOAK@", "\n".join(soaks))
     clock = json.loads(args.rtde.read_text())
     text = text.replace("@RTDE_RECEIPT@", f"{clock['receipt_jitter_p99_ms']:.2f}")
     text = text.replace("@RTDE_MAPPED@", f"{clock['mapped_jitter_p99_ms']:.3f}")

@@ -17,6 +17,7 @@ from keo_service.bench.benchmarks import (
     bench_table,
     end_to_end,
     hot_path,
+    soak,
 )
 from keo_service.bench.demo import loopback_config
 
@@ -134,3 +135,26 @@ def test_the_rrd_run_reports_the_rerun_process_apart(demo_config, tmp_path, monk
     assert rerun["cpu_pct"] > 0.0
     assert rerun["peak_rss_mb"] > 20.0  # Python with Rerun and Pinocchio loaded
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_soak_with_rrd_traces_the_rerun_process_and_its_recording(
+    demo_config, tmp_path, monkeypatch
+):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    res = soak(demo_config, 4.0, rrd=True, sample_every=0.5)
+    assert res["rrd"]
+    assert res["lost"] == 0
+    assert len(res["trace"]) >= 3
+    rerun = res["summary"]["rerun-process"]  # traced beside the service, not inside it
+    assert rerun["rss_first_mb"] > 20.0
+    assert rerun["rss_max_mb"] >= rerun["rss_last_mb"]
+    assert "service" in res["summary"]
+    assert res["recording"]["files"] == 1  # shorter than a roll
+    assert res["recording"]["mb"][0] > 0.0
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bench_refuses_rrd_without_a_soak():
+    from keo_service.cli import main
+
+    assert main(["bench", "--rrd"]) == 2

@@ -500,7 +500,7 @@ def _end_to_end(
         }
         for n in pids
     }
-    return {
+    out: dict[str, Any] = {
         "tracker_hz": tracker_hz,
         "encoder_hz": encoder_hz,
         "seconds": seconds,
@@ -516,6 +516,13 @@ def _end_to_end(
         "rerun_dropped": counters.get("rerun_dropped", 0),
         "service_counters": counters,
     }
+    if rrd:  # the recording rolls every ROLL_AFTER_S: bench.rrd, bench-0001.rrd, ...
+        files = sorted(work.glob("bench*.rrd"))
+        out["recording"] = {
+            "files": len(files),
+            "mb": [round(f.stat().st_size / 2**20, 1) for f in files],
+        }
+    return out
 
 
 def _percentiles(ms: np.ndarray) -> dict[str, float | None]:
@@ -590,9 +597,14 @@ def accuracy(config: Config, seed: int = 1) -> dict[str, Any]:
 # ---- all ---------------------------------------------------------------------------------------
 
 
-def soak(config: Config, seconds: float) -> dict[str, Any]:
-    """A long run at 1 kHz: RSS and open files sampled every 10 s, per process."""
-    res = end_to_end(loopback_config(config), seconds, sample_every=10.0)
+def soak(
+    config: Config, seconds: float, rrd: bool = False, sample_every: float = 10.0
+) -> dict[str, Any]:
+    """A long run at 1 kHz: RSS and open files sampled every `sample_every` seconds, per
+    process. `rrd`: the service records to Rerun as `keo run --rrd` does (its Rerun process
+    listed apart; over 10 minutes the recording rolls to a new file)."""
+    res = end_to_end(loopback_config(config), seconds, rrd=rrd, sample_every=sample_every)
+    res["rrd"] = rrd
     summary = {}
     for name in res["processes"]:
         rss = [s["rss_mb"][name] for s in res["trace"]]

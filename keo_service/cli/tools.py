@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from keo_service.cli import common
+from keo_service.core.errors import ConfigError
 from keo_service.resources import demo_config_path
 
 
@@ -16,15 +17,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.soak is not None:
         from keo_service.bench.benchmarks import soak
 
-        result = soak(common.load(args.config), args.soak)
+        result = soak(common.load(args.config), args.soak, rrd=args.rrd)
         if not args.json:
-            result = {
-                "summary": result["summary"],
-                "latency_ms": result["latency_ms"],
-                "lost": result["lost"],
-            }
+            keep = ("summary", "latency_ms", "lost", "recording")
+            result = {k: result[k] for k in keep if k in result}
         common.print_json(result)
         return common.EXIT_OK
+    if args.rrd:
+        raise ConfigError("command line", "--rrd", "goes with --soak SECONDS")
     report = run_bench(common.load(args.config), quick=args.quick)
     if args.json:
         common.print_json(report)
@@ -66,5 +66,10 @@ def register(add: common.AddCommand) -> None:
         type=float,
         metavar="SECONDS",
         help="instead: a soak run at 1 kHz (e.g. 600), RSS and open files over time",
+    )
+    p.add_argument(
+        "--rrd",
+        action="store_true",
+        help="with --soak: the service records to Rerun (its Rerun process listed apart)",
     )
     p.add_argument("--json", action="store_true")
