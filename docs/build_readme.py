@@ -2,7 +2,8 @@
 
     python docs/build_readme.py --paper docs/results/paper.md --delay docs/results/delay.md \
         --bench docs/results/bench.json --ur10 docs/results/ur10 \
-        --notes docs/results/ur10_notes.md --soak docs/results/soak.json \
+        --notes docs/results/ur10_notes.md \
+        --soak docs/results/soak.json docs/results/soak_rrd.json \
         --rtde docs/results/rtde_clock.json
 
 DIR holds analyses of the shared UR10 data: A/an.json, B/an.json (full analyses) and
@@ -12,6 +13,7 @@ A/reg.json, B/reg.json (registration-only with the other series' model.toml).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 from pathlib import Path
 
@@ -115,11 +117,15 @@ def soak_text(d: dict) -> str:
     rerun = ""
     if "rerun-process" in s:
         r, rec = s["rerun-process"], d["recording"]
+        trace = [(x["t_s"], x["rss_mb"]["rerun-process"]) for x in d["trace"]]
+        drop = min(itertools.pairwise(trace), key=lambda pair: pair[1][1] - pair[0][1])
+        (t_before, before), (t_after, after) = drop
         rerun = (
             f" The Rerun process (the service's child) {r['rss_first_mb']:.1f} → "
-            f"{r['rss_last_mb']:.1f} MB, at most {r['rss_max_mb']:.1f} MB; the recording "
-            f"rolled into {rec['files']} files ({', '.join(f'{mb:.0f}' for mb in rec['mb'])} "
-            "MB)."
+            f"{r['rss_last_mb']:.1f} MB, at most {r['rss_max_mb']:.1f} MB ({before:.1f} MB "
+            f"at {t_before:.0f} s into the run, {after:.1f} MB at {t_after:.0f} s: the "
+            f"recording rolled to its next file); {rec['files']} files "
+            f"({', '.join(f'{mb:.0f}' for mb in rec['mb'])} MB)."
         )
     return (
         f"Soak (`{command}`, 1 kHz tracker, 250 Hz robot, every "

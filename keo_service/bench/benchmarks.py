@@ -517,7 +517,7 @@ def _end_to_end(
         "service_counters": counters,
     }
     if rrd:  # the recording rolls every ROLL_AFTER_S: bench.rrd, bench-0001.rrd, ...
-        files = sorted(work.glob("bench*.rrd"))
+        files = sorted(work.glob("bench*.rrd"), key=lambda f: (f.name != "bench.rrd", f.name))
         out["recording"] = {
             "files": len(files),
             "mb": [round(f.stat().st_size / 2**20, 1) for f in files],
