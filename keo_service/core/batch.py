@@ -399,36 +399,36 @@ def _directions(t: np.ndarray, q: np.ndarray) -> np.ndarray:
     return out
 
 
-def estimate_batch(
-    cell: Cell,
-    settings: EstimatorSettings,
-    encoder_t: np.ndarray,
-    encoder_q: np.ndarray,
-    tracker_t: np.ndarray,
-    tracker_p: np.ndarray,
-    tracker_quat: np.ndarray | None,
-    keep_joints: bool = True,
-) -> BatchResult:
-    """What `run_offline(Estimator(cell, settings), ...)` returns, as arrays (without the
-    joints of each row unless `keep_joints`: an estimate file does not hold them)."""
-    if settings.alignment != "interpolate":
-        raise BatchUnsupportedError(f"alignment {settings.alignment!r} runs sample by sample")
-    if settings.start not in ("zero", "first"):
-        raise BatchUnsupportedError(f"observer start {settings.start!r}")
-    nq = cell.robot.nq
-    enc_t = np.asarray(encoder_t, dtype=float).reshape(-1)
-    enc_q = np.asarray(encoder_q, dtype=float).reshape(enc_t.size, nq)
-    trk_t = np.asarray(tracker_t, dtype=float).reshape(-1)
-    trk_p = np.asarray(tracker_p, dtype=float).reshape(trk_t.size, 3)
-    trk_quat = (
-        None if tracker_quat is None else np.asarray(tracker_quat, dtype=float).reshape(-1, 4)
-    )
+@dataclass(frozen=True)
+class _Accepted:
+    """The samples the estimator accepts, in stamp order, and what it said about the rest."""
+
+    E: np.ndarray  # encoder stamps (m,)
+    Q: np.ndarray  # encoder joints (m, nq)
+    E_pos: np.ndarray  # each one's position in the merged order (m,)
+    T: np.ndarray  # tracker stamps (n,)
+    P: np.ndarray  # positions (n, 3)
+    quat: np.ndarray | None  # quaternions (n, 4), scalar first; None for a single reflector
+    arrival: np.ndarray  # each tracker sample's position in the merged order (n,)
+    counters: dict[str, int]
+    messages: list[str]
+
+
+def _count(counters: dict[str, int], name: str, n: int) -> None:
+    if n:
+        counters[name] = counters.get(name, 0) + int(n)
+
+
+def _accept(
+    enc_t: np.ndarray,
+    enc_q: np.ndarray,
+    trk_t: np.ndarray,
+    trk_p: np.ndarray,
+    trk_quat: np.ndarray | None,
+) -> _Accepted:
+    """The merged order of the two streams, which samples the estimator accepts, and its
+    counters and messages for the others (the newest MAX_MESSAGES, in arrival order)."""
     counters: dict[str, int] = {}
-
-    def count(name: str, n: int) -> None:
-        if n:
-            counters[name] = counters.get(name, 0) + int(n)
-
     # ---- merged order
     before = _merge_counts(enc_t, trk_t)  # encoders ahead of each tracker sample
     trk_pos = before + np.arange(trk_t.size)
@@ -469,8 +469,8 @@ def estimate_batch(
         ("tracker_out_of_order", old),
         ("tracker_not_unit_quaternion", not_unit),
     ):
-        count(name, mask.sum())
-        count("rejected", mask.sum())
+        _count(counters, name, mask.sum())
+        _count(counters, "rejected", mask.sum())
     enc_bad, trk_bad = np.flatnonzero(~enc_ok), np.flatnonzero(~accepted)
     bad_pos = np.concatenate([enc_pos[enc_bad], trk_pos[trk_bad]])
     newest_kept = np.sort(bad_pos)[-MAX_MESSAGES] if bad_pos.size > MAX_MESSAGES else -1
@@ -497,13 +497,100 @@ def estimate_batch(
         E, Q, E_pos = enc_t, enc_q, enc_pos
     else:
         E, Q, E_pos = enc_t[enc_ok], enc_q[enc_ok], enc_pos[enc_ok]
-    count("encoder_samples", E.size)
-
-    channels = channels_for(trk_quat is None)
+    _count(counters, "encoder_samples", E.size)
     every = bool(accepted.all())
     T = trk_t if every else trk_t[accepted]
+    _count(counters, "tracker_samples", T.size)
+    return _Accepted(
+        E=E,
+        Q=Q,
+        E_pos=E_pos,
+        T=T,
+        P=trk_p if every else trk_p[accepted],
+        # normalised once, where the measured error is formed (the estimator normalises
+        # twice; the difference is a rounding)
+        quat=trk_quat if trk_quat is None or every else trk_quat[accepted],
+        arrival=trk_pos if every else trk_pos[accepted],
+        counters=counters,
+        messages=messages,
+    )
+
+
+def _resolution(
+    settings: EstimatorSettings, streams: _Accepted, first_cover: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """When each tracker sample is resolved (its encoder data came, or it went stale), as
+    what the estimator had seen by then: (encoder samples buffered, tracker intervals)."""
+    n = streams.T.size
+    never = np.iinfo(np.int64).max
+    covered_at = np.full(n, never)
+    if streams.E.size:
+        covers = first_cover < streams.E.size
+        covered_at[covers] = streams.E_pos[first_cover[covers]]
+    stale_index = _first_beyond(streams.T, settings.stale_after_s)
+    stale_at = np.where(stale_index < n, streams.arrival[np.minimum(stale_index, n - 1)], never)
+    ready = np.minimum(np.maximum(streams.arrival, covered_at), stale_at)
+    resolved = np.maximum.accumulate(ready)
+    waiting = np.arange(n) - np.minimum(
+        np.arange(n), np.searchsorted(resolved, streams.arrival, "left")
+    )
+    if waiting.max() >= MAX_PENDING:
+        raise BatchUnsupportedError(f"more than {MAX_PENDING} tracker samples wait at once")
+    have = np.searchsorted(streams.E_pos, resolved, side="right")  # encoder samples buffered then
+    seen = np.searchsorted(streams.arrival, resolved, side="right") - 1  # tracker intervals by then
+    return have, seen
+
+
+def _held_reasons(
+    settings: EstimatorSettings,
+    E: np.ndarray,
+    have: np.ndarray,
+    target: np.ndarray,
+    bracket: tuple[np.ndarray, np.ndarray, np.ndarray],
+) -> np.ndarray:
+    """Interpolation's verdict per tracker sample, as an index into HELD_REASONS (0: none),
+    from the encoder samples buffered when it was resolved; `bracket` is (t0, t1, on_sample)."""
+    t0, t1, on_sample = bracket
+    capacity = max(64, math.ceil(settings.buffer_s * 2000.0))
+    reason = np.zeros(target.size, dtype=np.int8)
+    newest = np.where(have > 0, E[np.maximum(have - 1, 0)] if E.size else 0.0, -np.inf)
+    oldest = np.where(have > 0, E[np.maximum(have - capacity, 0)] if E.size else 0.0, np.inf)
+    reason[(have == 0) | (target > newest)] = 1
+    reason[(reason == 0) & (target < oldest)] = 2
+    reason[(reason == 0) & ~on_sample & (t1 - t0 > settings.max_gap_s)] = 3
+    reason[(reason == 0) & (target < newest - settings.buffer_s)] = 2
+    return reason
+
+
+def estimate_batch(
+    cell: Cell,
+    settings: EstimatorSettings,
+    encoder_t: np.ndarray,
+    encoder_q: np.ndarray,
+    tracker_t: np.ndarray,
+    tracker_p: np.ndarray,
+    tracker_quat: np.ndarray | None,
+    keep_joints: bool = True,
+) -> BatchResult:
+    """What `run_offline(Estimator(cell, settings), ...)` returns, as arrays (without the
+    joints of each row unless `keep_joints`: an estimate file does not hold them)."""
+    if settings.alignment != "interpolate":
+        raise BatchUnsupportedError(f"alignment {settings.alignment!r} runs sample by sample")
+    if settings.start not in ("zero", "first"):
+        raise BatchUnsupportedError(f"observer start {settings.start!r}")
+    nq = cell.robot.nq
+    enc_t = np.asarray(encoder_t, dtype=float).reshape(-1)
+    trk_t = np.asarray(tracker_t, dtype=float).reshape(-1)
+    streams = _accept(
+        enc_t,
+        np.asarray(encoder_q, dtype=float).reshape(enc_t.size, nq),
+        trk_t,
+        np.asarray(tracker_p, dtype=float).reshape(trk_t.size, 3),
+        None if tracker_quat is None else np.asarray(tracker_quat, dtype=float).reshape(-1, 4),
+    )
+    E, Q, T, P, quat = streams.E, streams.Q, streams.T, streams.P, streams.quat
+    counters = streams.counters
     n = T.size
-    count("tracker_samples", n)
     if n == 0:
         return BatchResult(
             np.empty(0),
@@ -514,14 +601,10 @@ def estimate_batch(
             np.empty((0, nq)),
             (),
             counters,
-            messages,
+            streams.messages,
         )
+    channels = channels_for(tracker_quat is None)
     counters["channels"] = len(channels)
-    P = trk_p if every else trk_p[accepted]
-    # normalised once, where the measured error is formed (the estimator normalises twice;
-    # the difference is a rounding)
-    quat = trk_quat if trk_quat is None or every else trk_quat[accepted]
-    arrival = trk_pos if every else trk_pos[accepted]
 
     # ---- where each sample's encoder time falls, and the kinematics there: they do not depend
     # on whether the sample ends up held, so they run on worker threads (numpy lets go of the
@@ -581,43 +664,17 @@ def estimate_batch(
         if E.size and not backlash:
             chunks_done = pool.map(kinematics, starts)
 
-        # ---- when each sample is resolved
-        never = np.iinfo(np.int64).max
-        covered_at = np.full(n, never)
-        if E.size:
-            covers = first_cover < E.size
-            covered_at[covers] = E_pos[first_cover[covers]]
-        stale_index = _first_beyond(T, settings.stale_after_s)
-        stale_at = np.where(stale_index < n, arrival[np.minimum(stale_index, n - 1)], never)
-        ready = np.minimum(np.maximum(arrival, covered_at), stale_at)
-        resolved = np.maximum.accumulate(ready)
-        waiting = np.arange(n) - np.minimum(
-            np.arange(n), np.searchsorted(resolved, arrival, "left")
-        )
-        if waiting.max() >= MAX_PENDING:
-            raise BatchUnsupportedError(f"more than {MAX_PENDING} tracker samples wait at once")
-        have = np.searchsorted(E_pos, resolved, side="right")  # encoder samples buffered then
-        seen = np.searchsorted(arrival, resolved, side="right") - 1  # tracker intervals by then
-        del covered_at, stale_at, ready, waiting
-
-        # ---- interpolation's verdicts
-        capacity = max(64, math.ceil(settings.buffer_s * 2000.0))
-        reason = np.zeros(n, dtype=np.int8)
-        newest = np.where(have > 0, E[np.maximum(have - 1, 0)] if E.size else 0.0, -np.inf)
-        oldest = np.where(have > 0, E[np.maximum(have - capacity, 0)] if E.size else 0.0, np.inf)
-        reason[(have == 0) | (target > newest)] = 1
-        reason[(reason == 0) & (target < oldest)] = 2
-        reason[(reason == 0) & ~on_sample & (t1 - t0 > settings.max_gap_s)] = 3
-        reason[(reason == 0) & (target < newest - settings.buffer_s)] = 2
+        # ---- when each sample is resolved, and interpolation's verdicts then
+        have, seen = _resolution(settings, streams, first_cover)
+        reason = _held_reasons(settings, E, have, target, (t0, t1, on_sample))
         ok = reason == 0
-        del newest, oldest
         if E.size and backlash:
             direction = _directions(E, Q)[np.maximum(have - 1, 0)]
             chunks_done = pool.map(kinematics, starts)
         flags = np.array(HELD_REASONS, dtype=object)[reason]
         for code, name in enumerate(HELD_REASONS):
             if code:
-                count(f"held_{name}", int(np.sum(reason == code)))
+                _count(counters, f"held_{name}", int(np.sum(reason == code)))
 
         # ---- the observer's inputs over all updates
         gains = np.asarray(settings.gains[: len(channels)], dtype=float)
@@ -629,7 +686,7 @@ def estimate_batch(
             dt = np.minimum(np.diff(T[upd]), caps)  # dt[k - 1] leads to update k
         else:
             estimate.fill(0.0)
-        count("estimates", upd.size)
+        _count(counters, "estimates", upd.size)
 
         # ---- chunk by chunk as the workers finish: held rows emptied, range flags, and the
         # observer in order (in steps of OBSERVER_ROWS: the recursion's cost per call falls
@@ -654,7 +711,7 @@ def estimate_batch(
                     axis=1,
                 )
                 flags[rows][outside] = OUTSIDE_CALIBRATED_RANGE
-                count(OUTSIDE_CALIBRATED_RANGE, int(outside.sum()))
+                _count(counters, OUTSIDE_CALIBRATED_RANGE, int(outside.sum()))
             if hi - observed < OBSERVER_ROWS and hi < n:
                 continue
             lo, observed = observed, hi
@@ -697,5 +754,5 @@ def estimate_batch(
         joints=joints,
         channels=channels,
         counters=counters,
-        messages=messages,
+        messages=streams.messages,
     )
