@@ -4,7 +4,9 @@ counts drops, and learns when the process dies."""
 from __future__ import annotations
 
 import contextlib
+import os
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -56,6 +58,28 @@ def test_every_estimate_of_a_steady_stream_reaches_the_file(demo_cell, tmp_path)
     assert _rows(rrd, "/keo/error/rz") == 3000
     assert _rows(rrd, "/keo/status/counters/rejected") >= 1
     assert _rows(rrd, "/world/tool") >= 1  # the scene from the joints that came along
+
+
+def test_the_rerun_process_and_its_threads_run_on_idle_time_only(demo_cell, tmp_path):
+    """SCHED_IDLE, set before Rerun starts its threads: every thread of the process has it."""
+    worker = RerunWorker(demo_cell, rrd=tmp_path / "i.rrd")
+    worker.start()
+    for i in range(200):
+        worker.submit(_estimate(i * 0.001))
+    assert worker._proc is not None
+    tasks = Path(f"/proc/{worker._proc.pid}/task")
+    deadline = time.monotonic() + 30.0  # the child imports Rerun and Pinocchio first
+    policies: list[int] = []
+    while time.monotonic() < deadline:
+        with contextlib.suppress(OSError):  # a thread that ended meanwhile
+            policies = [os.sched_getscheduler(int(t.name)) for t in tasks.iterdir()]
+        if len(policies) >= 3:  # the recording stream is up: Rerun's own threads too
+            break
+        time.sleep(0.05)
+    worker.close(timeout=30.0)
+    assert worker.failure is None
+    assert len(policies) >= 3
+    assert set(policies) == {os.SCHED_IDLE}
 
 
 def test_a_dead_process_is_reported_to_the_supervisor(demo_cell, tmp_path):

@@ -257,16 +257,28 @@ def _serve(fd: int) -> None:
     sink.close()
 
 
+def _yield_to_the_data_path() -> None:
+    """The display is worth less than the estimates: this process runs only on time no
+    other process wants (SCHED_IDLE: a waking service, adapter or subscriber takes the core
+    at once, where a nice value only shares it less). Set on every thread there is (the
+    imports started some: numpy's BLAS pool); Rerun's threads, started later, inherit it.
+    Where the policy is refused, a nice value; a real-time policy inherited from the service
+    (systemd's CPUSchedulingPolicy) is dropped either way."""
+    try:
+        for task in os.listdir("/proc/self/task"):
+            with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+                os.sched_setscheduler(int(task), os.SCHED_IDLE, os.sched_param(0))
+    except (OSError, AttributeError):
+        with contextlib.suppress(OSError, AttributeError):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        os.nice(NICENESS)
+
+
 def main() -> int:
     # the parent decides when this ends, by closing the pipe (see the module's docstring)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    # the display is worth less than the estimates: when cores are short, the service, the
-    # adapters and the subscribers go first (Rerun's own threads inherit this); a real-time
-    # policy inherited from the service (systemd's CPUSchedulingPolicy) is dropped first
-    with contextlib.suppress(OSError, AttributeError):
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    os.nice(NICENESS)
+    _yield_to_the_data_path()
     setup_logging(fmt=sys.argv[1] if len(sys.argv) > 1 else "text")
     try:
         _serve(sys.stdin.fileno())
