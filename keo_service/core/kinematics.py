@@ -230,7 +230,7 @@ def measured_error_folded(
 
     Three native calls (kinematics, frame placement, T_kt as position and quaternion); the
     error transform T_ts = T_kt^-1 T_ks is formed on plain floats: in the service each
-    sample wakes a cold CPU, where a native call costs 3-8 us and a line of float
+    sample wakes a cold CPU, where a native call costs 5-12 us and a line of float
     arithmetic a fraction of that."""
     pin.forwardKinematics(frames.model, data, q)
     T_kt = pin.updateFramePlacement(frames.model, data, frames.tool_frame_id)
