@@ -7,6 +7,7 @@ run are what to compare. `--quick` (CI's smoke test) shortens every part.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 import platform
 import shutil
@@ -444,7 +445,8 @@ def _end_to_end(
     play = ["--scenario", "path", "--seed", "1", "--t0", repr(t0), *set_args]
     names = ["service", "mock-robot", "mock-tracker", "adapter-encoder", "adapter-tracker"]
     with process_group(work) as procs:
-        extra = ["--rrd", str(work / "bench.rrd")] if rrd else []
+        recording = work / "bench.rrd"
+        extra = ["--rrd", str(recording)] if rrd else []
         procs.start_cell(
             cfg, play, service=extra, tracker=["--wall-clock-device-time"], relay_only=relay_only
         )
@@ -516,8 +518,12 @@ def _end_to_end(
         "rerun_dropped": counters.get("rerun_dropped", 0),
         "service_counters": counters,
     }
-    if rrd:  # the recording rolls every ROLL_AFTER_S: bench.rrd, bench-0001.rrd, ...
-        files = sorted(work.glob("bench*.rrd"), key=lambda f: (f.name != "bench.rrd", f.name))
+    if rrd:  # the recording rolls every 10 minutes: its files in the sink's own order
+        from keo_service.live.rerun_sink import rolled_path  # imports Rerun: only here
+
+        files = list(
+            itertools.takewhile(Path.exists, (rolled_path(recording, i) for i in itertools.count()))
+        )
         out["recording"] = {
             "files": len(files),
             "mb": [round(f.stat().st_size / 2**20, 1) for f in files],

@@ -43,6 +43,7 @@ from keo_service.core.estimator import (
     UNIT_QUATERNION_TOLERANCE,
     Estimate,
     EstimatorSettings,
+    encoder_capacity,
     encoder_non_finite,
     encoder_stamp_problem,
     not_unit_quaternion,
@@ -551,7 +552,7 @@ def _held_reasons(
     """Interpolation's verdict per tracker sample, as an index into HELD_REASONS (0: none),
     from the encoder samples buffered when it was resolved; `bracket` is (t0, t1, on_sample)."""
     t0, t1, on_sample = bracket
-    capacity = max(64, math.ceil(settings.buffer_s * 2000.0))
+    capacity = encoder_capacity(settings)
     reason = np.zeros(target.size, dtype=np.int8)
     newest = np.where(have > 0, E[np.maximum(have - 1, 0)] if E.size else 0.0, -np.inf)
     oldest = np.where(have > 0, E[np.maximum(have - capacity, 0)] if E.size else 0.0, np.inf)

@@ -136,6 +136,12 @@ class _TrackerSample:
     tag: object = None
 
 
+def encoder_capacity(settings: EstimatorSettings) -> int:
+    """Encoder samples the buffer holds: buffer_s of a stream of up to 2 kHz (64 at least).
+    The batch path reproduces the buffer's verdicts from this same number."""
+    return max(64, math.ceil(settings.buffer_s * 2000.0))
+
+
 class Estimator:
     """Feeds samples through alignment, the measured error and the observer."""
 
@@ -154,9 +160,8 @@ class Estimator:
         self._max_gap_s = settings.max_gap_s  # read once per sample: kept at hand
         self._buffer_s = settings.buffer_s
         self._interpolating = settings.alignment == "interpolate"
-        capacity = max(64, math.ceil(settings.buffer_s * 2000.0))
         self.encoder = EncoderBuffer(
-            self._nq, capacity, functools.partial(pin.interpolate, self._model)
+            self._nq, encoder_capacity(settings), functools.partial(pin.interpolate, self._model)
         )
         self._rejects = RejectLog(keep=MAX_MESSAGES)
         self.counters = self._rejects.counters
