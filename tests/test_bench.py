@@ -16,7 +16,9 @@ from keo_service.bench.benchmarks import (
     _watch_peak,
     bench_table,
     end_to_end,
+    end_to_end_rounds,
     hot_path,
+    round_ratios,
     soak,
 )
 from keo_service.bench.demo import loopback_config
@@ -41,23 +43,24 @@ def test_end_to_end_chain_answers_every_tracker_sample(
     assert res["processes"]["service"]["cpu_pct"] > 0.0
 
 
-def test_bench_table_states_the_ratio_over_the_floor():
-    def e2e(p50: float, p99: float) -> dict:
-        lat = {"p50": p50, "p99": p99, "max": 2 * p99}
-        return {
-            "tracker_hz": 1000.0,
-            "encoder_hz": 250.0,
-            "seconds": 30.0,
-            "estimates_received": 30000,
-            "tracker_samples_sent": 30000,
-            "latency_ms": lat,
-            "latency_to_service_publish_ms": lat,
-            "latency_publish_to_subscriber_ms": lat,
-            "processes": {},
-        }
+def _e2e(p50: float, p99: float) -> dict:
+    lat = {"p50": p50, "p99": p99, "max": 2 * p99}
+    return {
+        "tracker_hz": 1000.0,
+        "encoder_hz": 250.0,
+        "seconds": 30.0,
+        "estimates_received": 30000,
+        "tracker_samples_sent": 30000,
+        "latency_ms": lat,
+        "latency_to_service_publish_ms": lat,
+        "latency_publish_to_subscriber_ms": lat,
+        "processes": {},
+    }
 
+
+def _table_report() -> dict:
     hot = {"samples_per_s": 20000.0, "us_per_sample": 50.0, "core_share_at_1kHz_pct": 5.0}
-    report = {
+    return {
         "machine": {"cpu": "test", "cores": 2, "python": "3.11"},
         "quick": False,
         "hot_path": hot,
@@ -78,8 +81,6 @@ def test_bench_table_states_the_ratio_over_the_floor():
                 "warmup_wall_s": 1.9,
             },
         },
-        "end_to_end": e2e(1.0, 3.0),
-        "transport_floor": e2e(0.5, 2.0),
         "capacity": {"highest_rate_without_drops_hz": 4000.0, "steps": []},
         "accuracy": {
             "scenario": "s",
@@ -91,6 +92,11 @@ def test_bench_table_states_the_ratio_over_the_floor():
             "reference_over_keo": 17.5,
         },
     }
+
+
+def test_bench_table_states_the_ratio_over_the_floor():
+    # a report from before rounds: one pair, its ratio
+    report = {**_table_report(), "end_to_end": _e2e(1.0, 3.0), "transport_floor": _e2e(0.5, 2.0)}
     table = bench_table(report)
     assert "p50 x2.00, p99 x1.50" in table
     # the recording's ratio is the pairs' median, not the median run over the median floor
@@ -158,3 +164,96 @@ def test_bench_refuses_rrd_without_a_soak():
     from keo_service.cli import main
 
     assert main(["bench", "--quick", "--rrd"]) == 2  # (were it run: a minute, exit 0)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["--rounds", "0"], ["--soak", "5", "--rounds", "2"]],
+    ids=["no-rounds", "rounds-with-soak"],
+)
+def test_bench_refuses_rounds_it_cannot_run(argv, capsys):
+    from keo_service.cli import main
+
+    assert main(["bench", "--quick", *argv]) == 2
+    assert "--rounds" in capsys.readouterr().err
+
+
+def _run(p50: float, p99: float, cpu: float) -> dict:
+    return {
+        "latency_ms": {"p50": p50, "p99": p99, "max": 2 * p99},
+        "processes": {"service": {"cpu_pct": cpu}},
+    }
+
+
+def test_round_ratios_pair_runs_within_their_round():
+    rounds = [
+        {
+            "end_to_end": _run(1.0, 2.0, 30.0),
+            "transport_floor": _run(0.5, 1.0, 20.0),
+            "end_to_end_rerun": _run(1.0, 3.0, 31.0),
+        },
+        {
+            "end_to_end": _run(1.0, 4.0, 30.0),
+            "transport_floor": _run(0.5, 4.0, 25.0),
+            "end_to_end_rerun": _run(1.0, 4.0, 31.0),
+        },
+        {
+            "end_to_end": _run(1.0, 1.5, 27.0),
+            "transport_floor": _run(0.5, 1.0, 30.0),
+            "end_to_end_rerun": _run(1.0, 1.5, 31.0),
+        },
+    ]
+    r = round_ratios(rounds)
+    # by hand: p99 2/1, 4/4, 1.5/1 -> median 1.5 (the ratio of the medians would be 2/1)
+    assert r["p99_over_relay"]["each"] == [2.0, 1.0, 1.5]
+    assert r["p99_over_relay"]["median"] == 1.5
+    assert r["service_cpu_over_relay"]["each"] == [1.5, 1.2, 0.9]
+    assert r["service_cpu_over_relay"]["median"] == pytest.approx(1.2)
+    assert r["rrd_p99_over_plain"]["each"] == [1.5, 1.0, 1.0]
+    assert (r["rrd_p99_over_plain"]["min"], r["rrd_p99_over_plain"]["max"]) == (1.0, 1.5)
+    # a bench without the --rrd run has no such ratio, rather than a made-up one
+    plain = [{k: v for k, v in x.items() if k != "end_to_end_rerun"} for x in rounds]
+    assert "rrd_p99_over_plain" not in round_ratios(plain)
+
+
+def test_each_round_starts_with_another_kind(monkeypatch, demo_config):
+    from keo_service.bench import benchmarks
+
+    calls = []
+
+    def fake(config, seconds, relay_only=False, rrd=False):
+        calls.append("relay" if relay_only else "rrd" if rrd else "service")
+        return _run(1.0, 2.0, 30.0)
+
+    monkeypatch.setattr(benchmarks, "end_to_end", fake)
+    done = end_to_end_rounds(demo_config, 1.0, rounds=3, with_rerun=True)
+    assert calls == [
+        *("service", "relay", "rrd"),
+        *("relay", "rrd", "service"),
+        *("rrd", "service", "relay"),
+    ]
+    assert [set(r) for r in done] == [
+        {"order", "end_to_end", "transport_floor", "end_to_end_rerun"}
+    ] * 3
+
+
+def test_bench_table_prints_each_rounds_ratio_and_their_median():
+    rounds = [
+        {"end_to_end": _e2e(1.0, 2.0), "transport_floor": _e2e(0.5, 1.0)},
+        {"end_to_end": _e2e(1.0, 4.0), "transport_floor": _e2e(0.5, 4.0)},
+    ]
+    for r in rounds:
+        for e in r.values():
+            e["processes"] = {"service": {"cpu_pct": 30.0, "peak_rss_mb": 1.0, "rss_growth_mb": 0}}
+    report = {
+        **_table_report(),
+        **rounds[0],
+        "end_to_end_rounds": rounds,
+        "round_ratios": round_ratios(rounds),
+    }
+    table = bench_table(report)
+    assert "p99 x1.50 (median; each round: 2.00, 1.00)" in table
+    assert "CPU x1.00 (median; each round: 1.00, 1.00)" in table
+    assert "end to end (round 1 of 2)" in table
+    assert "| p99 in each round (ms) | service 2.00, 4.00; relay 1.00, 4.00 |" in table
+    assert "--rrd over the plain run" not in table  # no --rrd run in these rounds

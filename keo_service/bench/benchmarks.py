@@ -541,6 +541,70 @@ def _percentiles(ms: np.ndarray) -> dict[str, float | None]:
     }
 
 
+# the end-to-end kinds a round runs, each against the one just before or after it
+E2E_KINDS: dict[str, dict[str, bool]] = {
+    "end_to_end": {},
+    "transport_floor": {"relay_only": True},
+    "end_to_end_rerun": {"rrd": True},
+}
+
+
+def end_to_end_rounds(
+    config: Config, seconds: float, rounds: int, with_rerun: bool
+) -> list[dict[str, Any]]:
+    """`rounds` runs of each end-to-end kind, the order rotated every round so that no kind
+    always runs first (a machine's load drifts over minutes; one run's p99 moves 1-5 ms)."""
+    kinds = [k for k in E2E_KINDS if with_rerun or k != "end_to_end_rerun"]
+    out = []
+    for i in range(rounds):
+        order = kinds[i % len(kinds) :] + kinds[: i % len(kinds)]
+        done: dict[str, Any] = {"order": order}
+        for kind in order:
+            done[kind] = end_to_end(loopback_config(config), seconds, **E2E_KINDS[kind])
+        out.append(done)
+    return out
+
+
+def _spread_of(values: list[float]) -> dict[str, Any]:
+    return {
+        "median": float(np.median(values)),
+        "min": min(values),
+        "max": max(values),
+        "each": values,
+    }
+
+
+def round_ratios(rounds: list[dict[str, Any]]) -> dict[str, Any]:
+    """The service against its references, each ratio within one round (runs minutes apart,
+    not a median run against another run's median)."""
+
+    def ratio(over: str, under: str, value: Any) -> dict[str, Any] | None:
+        pairs = [(value(r[over]), value(r[under])) for r in rounds if over in r and under in r]
+        values = [a / b for a, b in pairs if a is not None and b]
+        return _spread_of(values) if values else None
+
+    def p99(e: dict[str, Any]) -> float | None:
+        value: float | None = e["latency_ms"]["p99"]
+        return value
+
+    def p50(e: dict[str, Any]) -> float | None:
+        value: float | None = e["latency_ms"]["p50"]
+        return value
+
+    def cpu(e: dict[str, Any]) -> float:
+        value: float = e["processes"]["service"]["cpu_pct"]
+        return value
+
+    found = {
+        "service_cpu_over_relay": ratio("end_to_end", "transport_floor", cpu),
+        "p50_over_relay": ratio("end_to_end", "transport_floor", p50),
+        "p99_over_relay": ratio("end_to_end", "transport_floor", p99),
+        "rrd_p50_over_plain": ratio("end_to_end_rerun", "end_to_end", p50),
+        "rrd_p99_over_plain": ratio("end_to_end_rerun", "end_to_end", p99),
+    }
+    return {name: spread for name, spread in found.items() if spread is not None}
+
+
 def capacity(config: Config, rates: list[float], seconds: float) -> dict[str, Any]:
     steps = []
     best = 0.0
@@ -627,18 +691,22 @@ def soak(
     return res
 
 
-def run_bench(config: Config, quick: bool) -> dict[str, Any]:
+def run_bench(config: Config, quick: bool, rounds: int | None = None) -> dict[str, Any]:
+    """Everything once, the end-to-end runs `rounds` times (default: 1 quick, else 3)."""
     config = loopback_config(config)
     hp_seconds = 5.0 if quick else 30.0
     e2e_seconds = 5.0 if quick else 30.0
+    rounds = rounds if rounds is not None else (1 if quick else 3)
     out: dict[str, Any] = {"machine": machine(), "quick": quick}
     out["hot_path"], out["naive_floor"] = hot_path_and_floor(config, hp_seconds)
     out["hot_path_rerun"] = hot_path(config, hp_seconds, with_rerun=True)
     out["recording"] = recording(config, 60.0 if quick else 600.0)
-    out["end_to_end"] = end_to_end(loopback_config(config), e2e_seconds)
-    out["transport_floor"] = end_to_end(loopback_config(config), e2e_seconds, relay_only=True)
-    if not quick:
-        out["end_to_end_rerun"] = end_to_end(loopback_config(config), e2e_seconds, rrd=True)
+    done = end_to_end_rounds(config, e2e_seconds, rounds, with_rerun=not quick)
+    for kind in E2E_KINDS:  # the first round's runs in full, as before rounds
+        if kind in done[0]:
+            out[kind] = done[0][kind]
+    out["end_to_end_rounds"] = done
+    out["round_ratios"] = round_ratios(done)
     rates = [1000.0, 2000.0] if quick else [1000.0, 2000.0, 4000.0, 8000.0]
     out["capacity"] = capacity(loopback_config(config), rates, 3.0 if quick else 8.0)
     out["accuracy"] = accuracy(config)
@@ -694,6 +762,48 @@ def _command_over_floor(rec: dict[str, Any]) -> str:
     )
 
 
+def _ratio(spread: dict[str, Any] | None) -> str:
+    if spread is None:
+        return "not measured"
+    each = ", ".join(f"{v:.2f}" for v in spread["each"])
+    if len(spread["each"]) == 1:
+        return f"x{each}"
+    return f"x{spread['median']:.2f} (median; each round: {each})"
+
+
+def _round_rows(r: dict[str, Any]) -> list[str]:
+    rounds, ratios = r["end_to_end_rounds"], r["round_ratios"]
+    n = len(rounds)
+    label = (
+        "same run"
+        if n == 1
+        else f"{n} rounds of the runs above, each ratio within its round, the order rotated"
+    )
+    lines = [
+        f"| keo over the transport floor, {label} | "
+        f"CPU {_ratio(ratios.get('service_cpu_over_relay'))}; "
+        f"p50 {_ratio(ratios.get('p50_over_relay'))}; p99 {_ratio(ratios.get('p99_over_relay'))} |"
+    ]
+    if n > 1:
+        names = {"end_to_end": "service", "transport_floor": "relay", "end_to_end_rerun": "--rrd"}
+        each = "; ".join(
+            f"{name} "
+            + ", ".join(f"{x[kind]['latency_ms']['p99'] or float('nan'):.2f}" for x in rounds)
+            for kind, name in names.items()
+            if kind in rounds[0]
+        )
+        lines.append(f"| p99 in each round (ms) | {each} |")
+    if "rrd_p99_over_plain" in ratios:
+        drops = [x["end_to_end_rerun"].get("rerun_dropped", 0) for x in rounds]
+        lines.append(
+            f"| --rrd over the plain run, {'same bench' if n == 1 else f'{n} rounds'} | "
+            f"p50 {_ratio(ratios.get('rrd_p50_over_plain'))}; "
+            f"p99 {_ratio(ratios['rrd_p99_over_plain'])}; Rerun queue drops "
+            f"{sum(drops)} |"
+        )
+    return lines
+
+
 def bench_table(r: dict[str, Any]) -> str:
     m = r["machine"]
     lines = [
@@ -743,10 +853,12 @@ def bench_table(r: dict[str, Any]) -> str:
         ("transport_floor", "transport floor (pass-through relay in the service's place)"),
         ("end_to_end_rerun", "end to end, --rrd"),
     )
-    for key, label in rows:
+    first_of = len(r.get("end_to_end_rounds", []))
+    for key, kind in rows:
         if key not in r:
             continue
         e = r[key]
+        label = kind + (f" (round 1 of {first_of})" if first_of > 1 else "")
         lines.append(
             f"| {label}: tracker {e['tracker_hz']:.0f} Hz, robot {e['encoder_hz']:.0f} Hz, "
             f"{e['seconds']:.0f} s | latency {ms(e['latency_ms'])}; "
@@ -764,14 +876,16 @@ def bench_table(r: dict[str, Any]) -> str:
                 f"{p['peak_rss_mb']:.0f} MB, RSS growth after warm-up "
                 f"{p['rss_growth_mb']:+.1f} MB |"
             )
-    if "transport_floor" in r:
+    if "round_ratios" in r:
+        lines += _round_rows(r)
+    elif "transport_floor" in r:  # runs before rounds: the one pair
         keo, floor = r["end_to_end"]["latency_ms"], r["transport_floor"]["latency_ms"]
         if keo["p99"] and floor["p99"]:
             lines.append(
                 f"| keo over the transport floor, same run | p50 x{keo['p50'] / floor['p50']:.2f}, "
                 f"p99 x{keo['p99'] / floor['p99']:.2f} |"
             )
-    if "end_to_end_rerun" in r:
+    if "end_to_end_rerun" in r and "round_ratios" not in r:
         plain, rrd = r["end_to_end"]["latency_ms"], r["end_to_end_rerun"]["latency_ms"]
         if plain["p99"] and rrd["p99"]:
             lines.append(

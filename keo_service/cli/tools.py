@@ -17,6 +17,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.soak is not None:
         from keo_service.bench.benchmarks import soak
 
+        if args.rounds is not None:
+            raise ConfigError("command line", "--rounds", "a soak is one run; drop --rounds")
+
         result = soak(common.load(args.config), args.soak, rrd=args.rrd)
         if not args.json:
             keep = ("summary", "latency_ms", "lost", "recording")
@@ -25,7 +28,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
         return common.EXIT_OK
     if args.rrd:
         raise ConfigError("command line", "--rrd", "goes with --soak SECONDS")
-    report = run_bench(common.load(args.config), quick=args.quick)
+    if args.rounds is not None and args.rounds < 1:
+        raise ConfigError("command line", "--rounds", f"at least 1, got {args.rounds}")
+    report = run_bench(common.load(args.config), quick=args.quick, rounds=args.rounds)
     if args.json:
         common.print_json(report)
     else:
@@ -61,6 +66,13 @@ def register(add: common.AddCommand) -> None:
     p = add("bench", cmd_bench, "the benchmarks (numbers, no verdicts)", config=False)
     p.add_argument("--config", default=str(demo_config_path()))
     p.add_argument("--quick", action="store_true", help="under a minute; the CI smoke test")
+    p.add_argument(
+        "--rounds",
+        type=int,
+        metavar="N",
+        help="end-to-end runs (service, relay, --rrd) N times in rotated order, each ratio "
+        "taken within its round and the median printed (default 3; 1 with --quick)",
+    )
     p.add_argument(
         "--soak",
         type=float,
