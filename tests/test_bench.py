@@ -4,20 +4,25 @@ sample is answered and that the stage split adds up."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import tempfile
+import time
 
 import numpy as np
 import pytest
 
 from keo_service.bench.benchmarks import (
+    TICK,
     _timed_command,
     _watch_peak,
     bench_table,
     end_to_end,
     end_to_end_rounds,
     hot_path,
+    machine_share,
+    machine_ticks,
     round_ratios,
     soak,
 )
@@ -41,6 +46,8 @@ def test_end_to_end_chain_answers_every_tracker_sample(
     assert 0.0 < to_subscriber["p50"] < total["p50"]
     assert total["p50"] <= total["p99"] <= total["max"]
     assert res["processes"]["service"]["cpu_pct"] > 0.0
+    # the whole machine works at least as hard as the service alone (a share of both cores)
+    assert res["machine"]["busy_pct"] * os.cpu_count() >= res["processes"]["service"]["cpu_pct"]
 
 
 def _e2e(p50: float, p99: float) -> dict:
@@ -242,9 +249,10 @@ def test_bench_table_prints_each_rounds_ratio_and_their_median():
         {"end_to_end": _e2e(1.0, 2.0), "transport_floor": _e2e(0.5, 1.0)},
         {"end_to_end": _e2e(1.0, 4.0), "transport_floor": _e2e(0.5, 4.0)},
     ]
-    for r in rounds:
+    for i, r in enumerate(rounds):
         for e in r.values():
             e["processes"] = {"service": {"cpu_pct": 30.0, "peak_rss_mb": 1.0, "rss_growth_mb": 0}}
+            e["machine"] = {"busy_pct": 60.0, "steal_pct": 0.5 + i}
     report = {
         **_table_report(),
         **rounds[0],
@@ -257,3 +265,22 @@ def test_bench_table_prints_each_rounds_ratio_and_their_median():
     assert "end to end (round 1 of 2)" in table
     assert "| p99 in each round (ms) | service 2.00, 4.00; relay 1.00, 4.00 |" in table
     assert "--rrd over the plain run" not in table  # no --rrd run in these rounds
+    assert "(% of all cores) | service 0.5, 1.5; relay 0.5, 1.5 |" in table
+    assert "the machine 60 % busy, 0.5 % stolen" in table
+
+
+def test_machine_share_by_hand():
+    before = {"busy": 100, "steal": 10, "all": 1000}
+    after = {"busy": 400, "steal": 30, "all": 2000}
+    assert machine_share(before, after) == {"busy_pct": 30.0, "steal_pct": 2.0}
+
+
+def test_the_machines_busy_time_holds_this_process_own():
+    before, own_before = machine_ticks(), os.times()
+    end = time.process_time() + 0.3
+    while time.process_time() < end:
+        pass
+    after, own_after = machine_ticks(), os.times()
+    own = (own_after.user + own_after.system - own_before.user - own_before.system) * TICK
+    assert after["busy"] - before["busy"] >= own - 2  # (ticks are counted per core)
+    assert after["all"] - before["all"] >= after["busy"] - before["busy"]

@@ -309,6 +309,24 @@ def _stat_fields(pid: int | str) -> list[str]:
     return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
 
 
+def machine_ticks() -> dict[str, int]:
+    """The machine's CPU time so far by kind, all cores, in clock ticks (/proc/stat's first
+    line: user nice system idle iowait irq softirq steal ...)."""
+    with open("/proc/stat", encoding="ascii") as f:
+        values = [int(v) for v in f.readline().split()[1:9]]
+    return {"busy": sum(values[:3]) + sum(values[5:7]), "steal": values[7], "all": sum(values)}
+
+
+def machine_share(before: dict[str, int], after: dict[str, int]) -> dict[str, float]:
+    """Busy and stolen time between two `machine_ticks`, in % of all cores' time (stolen: the
+    hypervisor ran something else while these cores had work)."""
+    span = max(1, after["all"] - before["all"])
+    return {
+        "busy_pct": 100.0 * (after["busy"] - before["busy"]) / span,
+        "steal_pct": 100.0 * (after["steal"] - before["steal"]) / span,
+    }
+
+
 def _proc_cpu_s(pid: int) -> float:
     fields = _stat_fields(pid)
     return (int(fields[11]) + int(fields[12])) / TICK
@@ -457,6 +475,7 @@ def _end_to_end(
         if rerun_process:  # the service's only child, started by then
             pids["rerun-process"] = rerun_process[0]
         warm_cpu = {n: _proc_cpu_s(p) for n, p in pids.items()}
+        warm_machine = machine_ticks()
         time.sleep(max(0.0, seconds / 3))
         warm_mem = {n: _proc_mem_kb(p) for n, p in pids.items()}
         trace = []
@@ -471,6 +490,7 @@ def _end_to_end(
             )
         time.sleep(max(0.0, t0 + seconds - time.time()))
         end_cpu = {n: _proc_cpu_s(p) for n, p in pids.items()}
+        end_machine = machine_ticks()
         end_mem = {n: _proc_mem_kb(p) for n, p in pids.items()}
         time.sleep(1.5)  # the last samples: encoder coverage, or the quiet-time flush
         items = collector.close()
@@ -514,6 +534,7 @@ def _end_to_end(
         "latency_to_service_publish_ms": _percentiles(to_publish),
         "latency_publish_to_subscriber_ms": _percentiles(to_subscriber),
         "processes": procs_out,
+        "machine": machine_share(warm_machine, end_machine),
         "trace": trace,
         "rerun_dropped": counters.get("rerun_dropped", 0),
         "service_counters": counters,
@@ -793,6 +814,15 @@ def _round_rows(r: dict[str, Any]) -> list[str]:
             if kind in rounds[0]
         )
         lines.append(f"| p99 in each round (ms) | {each} |")
+        if all("machine" in x[kind] for x in rounds for kind in names if kind in x):
+            stolen = "; ".join(
+                f"{name} " + ", ".join(f"{x[kind]['machine']['steal_pct']:.1f}" for x in rounds)
+                for kind, name in names.items()
+                if kind in rounds[0]
+            )
+            lines.append(
+                f"| CPU time the hypervisor took in each run (% of all cores) | {stolen} |"
+            )
     if "rrd_p99_over_plain" in ratios:
         drops = [x["end_to_end_rerun"].get("rerun_dropped", 0) for x in rounds]
         lines.append(
@@ -862,7 +892,13 @@ def bench_table(r: dict[str, Any]) -> str:
         lines.append(
             f"| {label}: tracker {e['tracker_hz']:.0f} Hz, robot {e['encoder_hz']:.0f} Hz, "
             f"{e['seconds']:.0f} s | latency {ms(e['latency_ms'])}; "
-            f"{e['estimates_received']} estimates for {e['tracker_samples_sent']} samples |"
+            f"{e['estimates_received']} estimates for {e['tracker_samples_sent']} samples"
+            + (
+                f"; the machine {e['machine']['busy_pct']:.0f} % busy, "
+                f"{e['machine']['steal_pct']:.1f} % stolen |"
+                if "machine" in e
+                else " |"
+            )
         )
         if "latency_to_service_publish_ms" in e:
             lines.append(
