@@ -26,11 +26,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import median_abs_deviation
 
-from keo_service.core.batch import log3_many, quaternion_matrices, tool_frames
+from keo_service.core.batch import CHUNK, log3_many, quaternion_matrices, tool_frames
 from keo_service.core.chain import Chain
 from keo_service.core.kinematics import Cell
 
 VELOCITY_STEP_S = 0.005  # central differences for the tool's velocity
+STATE_ROWS = 4 * CHUNK  # samples whose tool states are computed at once
 MIN_SPEED = 0.005  # m/s: slower than this is "at rest"
 MAX_SE_S = 0.002  # refuse when the delay's standard error is larger than this
 
@@ -64,17 +65,26 @@ def _interp_joints(enc_t: np.ndarray, enc_q: np.ndarray, t: np.ndarray) -> np.nd
 def _tool_states(
     cell: Cell, enc_t: np.ndarray, enc_q: np.ndarray, t: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Tool pose, linear and angular velocity (base frame) at encoder times t, all samples
-    at once (central differences over VELOCITY_STEP_S)."""
+    """Tool pose, linear and angular velocity (base frame) at encoder times t (central
+    differences over VELOCITY_STEP_S), STATE_ROWS samples at a time: the three passes of
+    kinematics and their temporaries for a whole recording would cost more in fresh pages
+    than in arithmetic (every row is computed on its own, so the chunks change nothing)."""
     chain = Chain(cell.robot)
     h = VELOCITY_STEP_S
-    q0 = _interp_joints(enc_t, enc_q, t)
-    R, p = tool_frames(cell, chain, q0)
-    R_m, p_m = tool_frames(cell, chain, _interp_joints(enc_t, enc_q, t - h))
-    R_p, p_p = tool_frames(cell, chain, _interp_joints(enc_t, enc_q, t + h))
-    v = ((p_p - p_m) / (2 * h)).T
-    w = log3_many(np.einsum("ian,kan->ikn", R_p, R_m)) / (2 * h)  # log3(R_p R_m^T)
-    return q0, np.ascontiguousarray(p.T), np.moveaxis(R, 2, 0), v, w
+    n = t.size
+    q0 = np.empty((n, enc_q.shape[1]))
+    R, p = np.empty((3, 3, n)), np.empty((n, 3))
+    v, w = np.empty((n, 3)), np.empty((n, 3))
+    for lo in range(0, n, STATE_ROWS):
+        rows = slice(lo, lo + STATE_ROWS)
+        q0[rows] = _interp_joints(enc_t, enc_q, t[rows])
+        R[:, :, rows], p_rows = tool_frames(cell, chain, q0[rows])
+        p[rows] = p_rows.T
+        R_m, p_m = tool_frames(cell, chain, _interp_joints(enc_t, enc_q, t[rows] - h))
+        R_p, p_p = tool_frames(cell, chain, _interp_joints(enc_t, enc_q, t[rows] + h))
+        v[rows] = ((p_p - p_m) / (2 * h)).T
+        w[rows] = log3_many(np.einsum("ian,kan->ikn", R_p, R_m)) / (2 * h)  # log3(R_p R_m^T)
+    return q0, p, np.moveaxis(R, 2, 0), v, w
 
 
 def _measured_base_errors(
@@ -118,6 +128,83 @@ def _refuse_stop_and_measure(enc_t: np.ndarray, trk_t: np.ndarray) -> None:
         )
 
 
+@dataclass
+class _Round:
+    """One Gauss-Newton round's linear fit over the stacked, partialled-out channels."""
+
+    beta: np.ndarray  # delay correction (and drift correction)
+    cov: np.ndarray
+    resid: np.ndarray  # (nch * N,) channel after channel, in noise units
+    scale: np.ndarray  # (nch,) each channel's noise
+    moving: np.ndarray  # (N,) the tool faster than MIN_SPEED
+    X_p: np.ndarray  # (nch * N, 1 or 2) the velocity columns, features partialled out
+    y_p: np.ndarray  # (nch * N,) the errors, features partialled out
+    nch: int
+    inflate: float  # variance inflation for the residual's autocorrelation
+
+
+def _linearised_round(
+    cell: Cell,
+    encoder: tuple[np.ndarray, np.ndarray],
+    tracker: tuple[np.ndarray, np.ndarray, np.ndarray | None],
+    enc_times: np.ndarray,
+    t_ref: float,
+    with_drift: bool,
+    features: str,
+) -> _Round:
+    """The error's linear model around the current delay guess, fitted (encoder: times and
+    joints; tracker: times, positions and rotations in the base frame)."""
+    enc_t, enc_q = encoder
+    trk_t, p_bs, R_bs = tracker
+    q, p_bt, R_bt, v, w = _tool_states(cell, enc_t, enc_q, enc_times)
+    err = _measured_base_errors(p_bt, R_bt, p_bs, R_bs)
+    del R_bt
+    speed = np.linalg.norm(v, axis=1)
+    moving = speed > MIN_SPEED
+    if moving.mean() < 0.05 or np.sqrt(np.mean(speed**2)) < 2 * MIN_SPEED:
+        raise DelayNotIdentifiableError(
+            f"the tool hardly moves (RMS speed {np.sqrt(np.mean(speed**2)) * 1e3:.1f} mm/s, "
+            f"moving {100 * moving.mean():.0f} % of the time): a delay only shows while it "
+            "moves; record motion with changes of speed or direction"
+        )
+    vel = np.hstack([v, w]) if R_bs is not None else v
+    n, nch = err.shape
+    # weight each channel group by its noise (median absolute first difference)
+    scale = np.empty(nch)
+    for c in range(nch):
+        d1 = np.diff(err[:, c])
+        scale[c] = max(median_abs_deviation(d1, scale="normal") / math.sqrt(2), 1e-9)
+    groups = [slice(0, 3)] + ([slice(3, 6)] if nch == 6 else [])
+    for g in groups:
+        scale[g] = np.median(scale[g])
+    # partial out the configuration features (Frisch-Waugh-Lovell): each channel has its
+    # own coefficients on the same features, so the projection is one per channel onto
+    # span(F) (a block-diagonal design would hold nch^2 copies of F); the channels are
+    # stacked in place, channel after channel
+    Qf, _ = np.linalg.qr(_features(q, p_bt, features), mode="reduced")
+    y_p = np.empty(nch * n)
+    X_p = np.empty((nch * n, 2 if with_drift else 1))
+    for c in range(nch):
+        cols = [vel[:, c] / scale[c]]
+        if with_drift:
+            cols.append(vel[:, c] * (trk_t - t_ref) / scale[c])
+        rows = slice(c * n, (c + 1) * n)
+        for out, a in ((y_p, err[:, c] / scale[c]), (X_p, np.column_stack(cols))):
+            out[rows] = a - Qf @ (Qf.T @ a)
+    del Qf, q, p_bt, v, w, vel, err
+    beta, *_ = np.linalg.lstsq(X_p, y_p, rcond=None)
+    resid = y_p - X_p @ beta
+    inflate = float(np.mean([_effective_factor(resid[c * n : (c + 1) * n]) for c in range(nch)]))
+    # heteroscedasticity-robust (timing noise grows with speed), inflated for correlation
+    try:
+        bread = np.linalg.inv(X_p.T @ X_p)
+        meat = (X_p * (resid**2)[:, None]).T @ X_p
+        cov = bread @ meat @ bread * inflate
+    except np.linalg.LinAlgError:
+        cov = np.full((X_p.shape[1], X_p.shape[1]), np.inf)
+    return _Round(beta, cov, resid, scale, moving, X_p, y_p, nch, inflate)
+
+
 def fit_delay(
     cell: Cell,
     enc_t: np.ndarray,
@@ -149,70 +236,39 @@ def fit_delay(
         )
     T_bk = cell.T_bk
     p_bs = trk_p @ T_bk.rotation.T + T_bk.translation
-    R_bs = None
-    if trk_quat is not None:
-        R_k = quaternion_matrices(trk_quat)  # (3, 3, N), normalised
-        R_bs = np.einsum("ij,jkn->nik", T_bk.rotation, R_k)
+    # the tracker's rotations in the base frame (N, 3, 3)
+    R_bs = (
+        None
+        if trk_quat is None
+        else np.einsum("ij,jkn->nik", T_bk.rotation, quaternion_matrices(trk_quat))
+    )
     t_ref = float(np.mean(trk_t))
     delay = initial
     drift = 0.0
     iterations = 0
+    last: _Round | None = None
     for _ in range(max_iterations):
         iterations += 1
-        enc_times = trk_t - (delay + drift * (trk_t - t_ref))
-        q, p_bt, R_bt, v, w = _tool_states(cell, enc_t, enc_q, enc_times)
-        err = _measured_base_errors(p_bt, R_bt, p_bs, R_bs)
-        speed = np.linalg.norm(v, axis=1)
-        moving = speed > MIN_SPEED
-        if moving.mean() < 0.05 or np.sqrt(np.mean(speed**2)) < 2 * MIN_SPEED:
-            raise DelayNotIdentifiableError(
-                f"the tool hardly moves (RMS speed {np.sqrt(np.mean(speed**2)) * 1e3:.1f} mm/s, "
-                f"moving {100 * moving.mean():.0f} % of the time): a delay only shows while it "
-                "moves; record motion with changes of speed or direction"
-            )
-        vel = np.hstack([v, w]) if R_bs is not None else v
-        nch = err.shape[1]
-        # weight each channel group by its noise (median absolute first difference)
-        scale = np.empty(nch)
-        for c in range(nch):
-            d1 = np.diff(err[:, c])
-            scale[c] = max(median_abs_deviation(d1, scale="normal") / math.sqrt(2), 1e-9)
-        groups = [slice(0, 3)] + ([slice(3, 6)] if nch == 6 else [])
-        for g in groups:
-            scale[g] = np.median(scale[g])
-        # partial out the configuration features (Frisch-Waugh-Lovell): each channel has its
-        # own coefficients on the same features, so the projection is one per channel onto
-        # span(F) (a block-diagonal design would hold nch^2 copies of F)
-        Qf, _ = np.linalg.qr(_features(q, p_bt, features), mode="reduced")
-        rows_y: list[np.ndarray] = []
-        rows_x: list[np.ndarray] = []
-        for c in range(nch):
-            cols = [vel[:, c] / scale[c]]
-            if with_drift:
-                cols.append(vel[:, c] * (trk_t - t_ref) / scale[c])
-            for rows, a in ((rows_y, err[:, c] / scale[c]), (rows_x, np.column_stack(cols))):
-                rows.append(a - Qf @ (Qf.T @ a))
-        y_p = np.concatenate(rows_y)
-        X_p = np.vstack(rows_x)
-        beta, *_ = np.linalg.lstsq(X_p, y_p, rcond=None)
-        resid = y_p - X_p @ beta
-        inflate = np.mean(
-            [_effective_factor(resid[c * trk_t.size : (c + 1) * trk_t.size]) for c in range(nch)]
+        last = None  # the previous round's arrays go before this round's are made
+        last = _linearised_round(
+            cell,
+            (enc_t, enc_q),
+            (trk_t, p_bs, R_bs),
+            trk_t - (delay + drift * (trk_t - t_ref)),
+            t_ref,
+            with_drift,
+            features,
         )
-        # heteroscedasticity-robust (timing noise grows with speed), inflated for correlation
-        try:
-            bread = np.linalg.inv(X_p.T @ X_p)
-            meat = (X_p * (resid**2)[:, None]).T @ X_p
-            cov = bread @ meat @ bread * inflate
-        except np.linalg.LinAlgError:
-            cov = np.full((X_p.shape[1], X_p.shape[1]), np.inf)
         # e(t; d) = e_true + v (d - d_true): the fitted coefficient is how far off we are
-        step = float(beta[0])
+        step = float(last.beta[0])
         delay -= step
         if with_drift:
-            drift -= float(beta[1])
+            drift -= float(last.beta[1])
         if abs(step) < 1e-7:
             break
+    assert last is not None  # max_iterations >= 1
+    beta, cov, resid, scale, moving = last.beta, last.cov, last.resid, last.scale, last.moving
+    nch, X_p, y_p, inflate = last.nch, last.X_p, last.y_p, last.inflate
     se = float(math.sqrt(cov[0, 0])) if np.isfinite(cov[0, 0]) else math.inf
     drift_se = float(math.sqrt(cov[1, 1])) if with_drift and np.isfinite(cov[1, 1]) else math.inf
     res = resid.reshape(nch, -1).T * scale  # back to metres / radians
