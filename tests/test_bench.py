@@ -87,6 +87,7 @@ def _table_report() -> dict:
                 "runs_wall_s": [1.5, 1.4, 1.6],
                 "warmup_wall_s": 1.9,
             },
+            "calibrate_delay": {"wall_s": 6.5, "cpu_s": 7.9, "peak_rss_mb": 820.0},
         },
         "capacity": {"highest_rate_without_drops_hz": 4000.0, "steps": []},
         "accuracy": {
@@ -112,6 +113,8 @@ def test_bench_table_states_the_ratio_over_the_floor():
     assert "Rerun worker" in table
     assert "x2.00 the cost" in table
     assert "transport floor" in table
+    assert "keo calibrate-delay, same files" in table
+    assert "6.50 s wall, 7.90 s CPU, peak RSS 820 MB" in table
 
 
 def test_a_commands_peak_memory_is_its_own_not_the_benchs(tmp_path):

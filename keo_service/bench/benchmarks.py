@@ -255,7 +255,8 @@ def recording(
 ) -> dict[str, Any]:
     """`keo estimate` over `seconds` of a 1 kHz tracker and a 250 Hz robot (CSV in, CSV out,
     process start included) against the naive per-sample floor over the same tracker samples
-    and, when asked, the same command on the per-sample streaming path.
+    and, when asked, the same command on the per-sample streaming path; then `keo
+    calibrate-delay` over the same files once.
 
     The command runs once to warm up (reported, not counted: on a VM the first command after
     the bench has written and freed a few hundred MB runs on memory the host has taken back,
@@ -298,6 +299,10 @@ def recording(
         }
         if streaming_too:
             out["streaming"] = _timed_command([*args, "--streaming"], folder / "streaming.log")
+        # the delay fit over the same files: three rounds of kinematics over every sample
+        fit = ["calibrate-delay", "--config", str(cfg), "--encoder", str(folder / "encoder.csv")]
+        fit += ["--tracker", str(folder / "tracker.csv")]
+        out["calibrate_delay"] = _timed_command(fit, folder / "delay.log")
     return out
 
 
@@ -873,6 +878,13 @@ def bench_table(r: dict[str, Any]) -> str:
                 f"| keo estimate --streaming (per-sample path), same files | {st['wall_s']:.2f} s "
                 f"wall, {st['cpu_s']:.2f} s CPU, peak RSS {st['peak_rss_mb']:.0f} MB; batch is "
                 f"x{st['wall_s'] / b['wall_s']:.1f} faster |"
+            )
+        if "calibrate_delay" in rec:
+            cd = rec["calibrate_delay"]
+            lines.append(
+                f"| keo calibrate-delay, same files (delay and drift, Gauss-Newton to 0.1 us) | "
+                f"{cd['wall_s']:.2f} s wall, {cd['cpu_s']:.2f} s CPU, "
+                f"peak RSS {cd['peak_rss_mb']:.0f} MB |"
             )
 
     def ms(d: dict[str, float | None]) -> str:
