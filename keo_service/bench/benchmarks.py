@@ -567,7 +567,7 @@ def _percentiles(ms: np.ndarray) -> dict[str, float | None]:
     }
 
 
-# the end-to-end kinds a round runs, each against the one just before or after it
+# the end-to-end kinds a round runs, and how `end_to_end` runs each
 E2E_KINDS: dict[str, dict[str, bool]] = {
     "end_to_end": {},
     "transport_floor": {"relay_only": True},
