@@ -50,8 +50,10 @@ def test_end_to_end_chain_answers_every_tracker_sample(
     assert res["machine"]["busy_pct"] * os.cpu_count() >= res["processes"]["service"]["cpu_pct"]
 
 
-def _e2e(p50: float, p99: float) -> dict:
+def _e2e(p50: float, p99: float, cpu: float | None = None) -> dict:
+    """An end-to-end run's report, as much of it as the table reads (`cpu`: the service's)."""
     lat = {"p50": p50, "p99": p99, "max": 2 * p99}
+    service = {"cpu_pct": cpu, "peak_rss_mb": 100.0, "rss_growth_mb": 0.0}
     return {
         "tracker_hz": 1000.0,
         "encoder_hz": 250.0,
@@ -61,7 +63,7 @@ def _e2e(p50: float, p99: float) -> dict:
         "latency_ms": lat,
         "latency_to_service_publish_ms": lat,
         "latency_publish_to_subscriber_ms": lat,
-        "processes": {},
+        "processes": {} if cpu is None else {"service": service},
     }
 
 
@@ -188,29 +190,22 @@ def test_bench_refuses_rounds_it_cannot_run(argv, capsys):
     assert "--rounds" in capsys.readouterr().err
 
 
-def _run(p50: float, p99: float, cpu: float) -> dict:
-    return {
-        "latency_ms": {"p50": p50, "p99": p99, "max": 2 * p99},
-        "processes": {"service": {"cpu_pct": cpu}},
-    }
-
-
 def test_round_ratios_pair_runs_within_their_round():
     rounds = [
         {
-            "end_to_end": _run(1.0, 2.0, 30.0),
-            "transport_floor": _run(0.5, 1.0, 20.0),
-            "end_to_end_rerun": _run(1.0, 3.0, 31.0),
+            "end_to_end": _e2e(1.0, 2.0, 30.0),
+            "transport_floor": _e2e(0.5, 1.0, 20.0),
+            "end_to_end_rerun": _e2e(1.0, 3.0, 31.0),
         },
         {
-            "end_to_end": _run(1.0, 4.0, 30.0),
-            "transport_floor": _run(0.5, 4.0, 25.0),
-            "end_to_end_rerun": _run(1.0, 4.0, 31.0),
+            "end_to_end": _e2e(1.0, 4.0, 30.0),
+            "transport_floor": _e2e(0.5, 4.0, 25.0),
+            "end_to_end_rerun": _e2e(1.0, 4.0, 31.0),
         },
         {
-            "end_to_end": _run(1.0, 1.5, 27.0),
-            "transport_floor": _run(0.5, 1.0, 30.0),
-            "end_to_end_rerun": _run(1.0, 1.5, 31.0),
+            "end_to_end": _e2e(1.0, 1.5, 27.0),
+            "transport_floor": _e2e(0.5, 1.0, 30.0),
+            "end_to_end_rerun": _e2e(1.0, 1.5, 31.0),
         },
     ]
     r = round_ratios(rounds)
@@ -233,7 +228,7 @@ def test_each_round_starts_with_another_kind(monkeypatch, demo_config):
 
     def fake(config, seconds, relay_only=False, rrd=False):
         calls.append("relay" if relay_only else "rrd" if rrd else "service")
-        return _run(1.0, 2.0, 30.0)
+        return _e2e(1.0, 2.0, 30.0)
 
     monkeypatch.setattr(benchmarks, "end_to_end", fake)
     done = end_to_end_rounds(demo_config, 1.0, rounds=3, with_rerun=True)
@@ -249,13 +244,13 @@ def test_each_round_starts_with_another_kind(monkeypatch, demo_config):
 
 def test_bench_table_prints_each_rounds_ratio_and_their_median():
     rounds = [
-        {"end_to_end": _e2e(1.0, 2.0), "transport_floor": _e2e(0.5, 1.0)},
-        {"end_to_end": _e2e(1.0, 4.0), "transport_floor": _e2e(0.5, 4.0)},
+        {"end_to_end": _e2e(1.0, 2.0, 30.0), "transport_floor": _e2e(0.5, 1.0, 30.0)},
+        {"end_to_end": _e2e(1.0, 4.0, 30.0), "transport_floor": _e2e(0.5, 4.0, 30.0)},
     ]
     for i, r in enumerate(rounds):
         for e in r.values():
-            e["processes"] = {"service": {"cpu_pct": 30.0, "peak_rss_mb": 1.0, "rss_growth_mb": 0}}
             e["machine"] = {"busy_pct": 60.0, "steal_pct": 0.5 + i}
+    rounds[1]["end_to_end"]["machine"]["steal_pct"] = 0.0  # none stolen is a number too
     report = {
         **_table_report(),
         **rounds[0],
@@ -268,7 +263,7 @@ def test_bench_table_prints_each_rounds_ratio_and_their_median():
     assert "end to end (round 1 of 2)" in table
     assert "| p99 in each round (ms) | service 2.00, 4.00; relay 1.00, 4.00 |" in table
     assert "--rrd over the plain run" not in table  # no --rrd run in these rounds
-    assert "(% of all cores) | service 0.5, 1.5; relay 0.5, 1.5 |" in table
+    assert "(% of all cores) | service 0.5, 0.0; relay 0.5, 1.5 |" in table
     assert "the machine 60 % busy, 0.5 % stolen" in table
 
 

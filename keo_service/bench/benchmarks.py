@@ -600,33 +600,30 @@ def _spread_of(values: list[float]) -> dict[str, Any]:
     }
 
 
+def _at(run: dict[str, Any], path: tuple[str, ...]) -> Any:
+    for key in path:
+        run = run[key]
+    return run
+
+
 def round_ratios(rounds: list[dict[str, Any]]) -> dict[str, Any]:
     """The service against its references, each ratio within one round (runs minutes apart,
     not a median run against another run's median)."""
 
-    def ratio(over: str, under: str, value: Any) -> dict[str, Any] | None:
-        pairs = [(value(r[over]), value(r[under])) for r in rounds if over in r and under in r]
+    def ratio(over: str, under: str, *path: str) -> dict[str, Any] | None:
+        pairs = [
+            (_at(r[over], path), _at(r[under], path)) for r in rounds if over in r and under in r
+        ]
         values = [a / b for a, b in pairs if a is not None and b]
         return _spread_of(values) if values else None
 
-    def p99(e: dict[str, Any]) -> float | None:
-        value: float | None = e["latency_ms"]["p99"]
-        return value
-
-    def p50(e: dict[str, Any]) -> float | None:
-        value: float | None = e["latency_ms"]["p50"]
-        return value
-
-    def cpu(e: dict[str, Any]) -> float:
-        value: float = e["processes"]["service"]["cpu_pct"]
-        return value
-
+    cpu = ("processes", "service", "cpu_pct")
     found = {
-        "service_cpu_over_relay": ratio("end_to_end", "transport_floor", cpu),
-        "p50_over_relay": ratio("end_to_end", "transport_floor", p50),
-        "p99_over_relay": ratio("end_to_end", "transport_floor", p99),
-        "rrd_p50_over_plain": ratio("end_to_end_rerun", "end_to_end", p50),
-        "rrd_p99_over_plain": ratio("end_to_end_rerun", "end_to_end", p99),
+        "service_cpu_over_relay": ratio("end_to_end", "transport_floor", *cpu),
+        "p50_over_relay": ratio("end_to_end", "transport_floor", "latency_ms", "p50"),
+        "p99_over_relay": ratio("end_to_end", "transport_floor", "latency_ms", "p99"),
+        "rrd_p50_over_plain": ratio("end_to_end_rerun", "end_to_end", "latency_ms", "p50"),
+        "rrd_p99_over_plain": ratio("end_to_end_rerun", "end_to_end", "latency_ms", "p99"),
     }
     return {name: spread for name, spread in found.items() if spread is not None}
 
@@ -812,21 +809,21 @@ def _round_rows(r: dict[str, Any]) -> list[str]:
     ]
     if n > 1:
         names = {"end_to_end": "service", "transport_floor": "relay", "end_to_end_rerun": "--rrd"}
-        each = "; ".join(
-            f"{name} "
-            + ", ".join(f"{x[kind]['latency_ms']['p99'] or float('nan'):.2f}" for x in rounds)
-            for kind, name in names.items()
-            if kind in rounds[0]
-        )
-        lines.append(f"| p99 in each round (ms) | {each} |")
-        if all("machine" in x[kind] for x in rounds for kind in names if kind in x):
-            stolen = "; ".join(
-                f"{name} " + ", ".join(f"{x[kind]['machine']['steal_pct']:.1f}" for x in rounds)
-                for kind, name in names.items()
-                if kind in rounds[0]
+
+        def each_run(path: tuple[str, ...], digits: int) -> str:
+            """A value of every run, kind by kind (a p99 of no samples is None: nan)."""
+            values = {k: [_at(x[k], path) for x in rounds] for k in names if k in rounds[0]}
+            return "; ".join(
+                f"{names[k]} "
+                + ", ".join(f"{float('nan') if v is None else v:.{digits}f}" for v in vs)
+                for k, vs in values.items()
             )
+
+        lines.append(f"| p99 in each round (ms) | {each_run(('latency_ms', 'p99'), 2)} |")
+        if all("machine" in x[kind] for x in rounds for kind in names if kind in x):
             lines.append(
-                f"| CPU time the hypervisor took in each run (% of all cores) | {stolen} |"
+                "| CPU time the hypervisor took in each run (% of all cores) | "
+                f"{each_run(('machine', 'steal_pct'), 1)} |"
             )
     if "rrd_p99_over_plain" in ratios:
         drops = [x["end_to_end_rerun"].get("rerun_dropped", 0) for x in rounds]
