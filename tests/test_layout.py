@@ -21,6 +21,7 @@ CORE_MODULES = [
     "keo_service.core.estimator",
     "keo_service.core.kinematics",
     "keo_service.core.observer",
+    "keo_service.core.rotations",
     "keo_service.core.timing",
 ]
 FORBIDDEN_IN_CORE = ["asyncio", "zenoh", "msgspec", "rerun", "matplotlib"]

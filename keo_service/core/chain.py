@@ -58,17 +58,13 @@ class Chain:
         # Rodrigues: R(a) = I + sin(a) K + (1 - cos(a)) K^2 about each joint's unit axis
         self._K = [_skew(a) for a in self.axes]
         self._K2 = [K @ K for K in self._K]
-        # for `flange_frames`: each joint as a constant then a rotation about z; the constant
-        # absorbs the previous joint's axis frame (S_j R_z(q) S_j^T with S_j^T carried on)
-        self._steps: list[np.ndarray] = []
-        carried = np.eye(4)
-        for j in range(self.nq):
+        # for `flange_frames`: each joint as a constant then a rotation about z
+        self._axis_frames = []
+        for axis in self.axes:
             S = np.eye(4)
-            S[:3, :3] = _frame_with_z(self.axes[j])
-            self._steps.append(carried @ self.placements[j] @ S)
-            carried = np.eye(4)
-            carried[:3, :3] = S[:3, :3].T
-        self._carried = carried
+            S[:3, :3] = _frame_with_z(axis)
+            self._axis_frames.append(S)
+        self._steps, self._carried = self._z_steps(self.placements)
         flange = model.frames[robot.flange_frame_id]
         if flange.parentJoint != model.njoints - 1:
             raise ValueError("the flange must hang on the last joint of a serial chain")
@@ -81,6 +77,27 @@ class Chain:
         )
         self._model = model
         self._data = data
+
+    def _z_steps(self, placements: list[np.ndarray]) -> tuple[list[np.ndarray], np.ndarray]:
+        """Each joint's constant before its rotation about z, and the constant left after the
+        last joint: a step absorbs the previous joint's axis frame (S_j R_z(q) S_j^T, with
+        S_j^T carried on to the next placement)."""
+        steps = []
+        carried = np.eye(4)
+        for M, S in zip(placements, self._axis_frames, strict=True):
+            steps.append(carried @ M @ S)
+            carried = np.eye(4)
+            carried[:3, :3] = S[:3, :3].T
+        return steps, carried
+
+    def corrected_placements(self, corr: Corrections | None) -> list[np.ndarray]:
+        """Each joint's placement with the geometry correction: M_j exp6(delta_j)."""
+        if corr is None or not np.any(corr.placement):
+            return self.placements
+        return [
+            M @ pin.exp6(pin.Motion(d[:3], d[3:])).homogeneous if np.any(d) else M
+            for M, d in zip(self.placements, corr.placement, strict=True)
+        ]
 
     def gravity_torques(self, q: np.ndarray) -> np.ndarray:
         """(N, nq) joint torques from gravity with the URDF's (estimated) inertias."""
@@ -110,13 +127,7 @@ class Chain:
         if corr is not None:
             q = self.effective_joints(q, corr, tau, direction)
         T = np.broadcast_to(self.base_inv, (n, 4, 4)).copy()
-        for j in range(self.nq):
-            M = self.placements[j]
-            if corr is not None and np.any(corr.placement[j]):
-                M = (
-                    M
-                    @ pin.exp6(pin.Motion(corr.placement[j][:3], corr.placement[j][3:])).homogeneous
-                )
+        for j, M in enumerate(self.corrected_placements(corr)):
             T = _times_constant(T, M)
             # the joint's rotation: A R(q) = A + sin(q) (A K) + 2 sin^2(q/2) (A K^2)
             A = T[:, :3, :3]
@@ -131,15 +142,26 @@ class Chain:
         return flange
 
     def flange_frames(
-        self, q: np.ndarray, head: np.ndarray | None = None, tail: np.ndarray | None = None
+        self,
+        q: np.ndarray,
+        head: np.ndarray | None = None,
+        tail: np.ndarray | None = None,
+        corr: Corrections | None = None,
+        tau: np.ndarray | None = None,
+        direction: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """head @ (base -> flange) @ tail for joints q (N, nq), with constant 4x4 `head` (e.g.
         tracker <- base) and `tail` (e.g. the tool), as
         rotations (3, 3, N) and positions (3, N): component-major, so that every step is a
         3x3 matrix product over contiguous rows or a mix of two columns by cos and sin. The
-        fast form of `flange_poses` for a model whose geometry is already in its placements."""
+        fast form of `flange_poses` (the same corrections)."""
         q = np.atleast_2d(np.asarray(q, dtype=float))
         n = q.shape[0]
+        steps, carried = self._steps, self._carried
+        if corr is not None:
+            q = self.effective_joints(q, corr, tau, direction)
+            if np.any(corr.placement):
+                steps, carried = self._z_steps(self.corrected_placements(corr))
         start = self.base_inv if head is None else head @ self.base_inv
         R = np.empty((3, 3, n))
         R[...] = start[:3, :3, None]
@@ -152,11 +174,11 @@ class Chain:
                 R[i] = C[:3, :3].T @ R[i]
 
         for j in range(self.nq):
-            apply(self._steps[j])
+            apply(steps[j])
             c, s = np.cos(q[:, j]), np.sin(q[:, j])
             x, y = R[:, 0, :].copy(), R[:, 1, :]
             R[:, 0, :] = x * c + y * s
             R[:, 1, :] = y * c - x * s
-        last = self._carried @ self.flange
+        last = carried @ self.flange
         apply(last if tail is None else last @ tail)
         return R, p

@@ -23,6 +23,7 @@ from scipy.stats import median_abs_deviation
 from keo_service.core.chain import Chain
 from keo_service.core.corrections import Corrections
 from keo_service.core.kinematics import RobotModel
+from keo_service.core.rotations import log3_many
 from keo_service.fit.diagnostics import describe_null_space, repeatability
 
 ROT_WEIGHT = 0.5  # m per rad: 20 um of position ~ 40 urad of orientation
@@ -208,11 +209,15 @@ class Model:
         return T_bk, T_ns, corr, drifts
 
     def residuals(self, x: np.ndarray, data: Data, tau: np.ndarray) -> np.ndarray:
+        """Per pose, predicted minus measured sensor position in the base frame (m) and, for a
+        6-DoF probe, ROT_WEIGHT x log3(R_meas^T R_pred); (N * 3) or (N * 6), pose-major."""
         T_bk, T_ns, corr, drifts = self.unpack(x)
-        T_bn = self.chain.flange_poses(data.q, corr, tau, data.direction)
-        T_bs = T_bn @ T_ns
+        # the sensor frame for every pose, component-major: (3, 3, N) and (3, N)
+        R_bs, p_bs = self.chain.flange_frames(
+            data.q, tail=T_ns, corr=corr, tau=tau, direction=data.direction
+        )
         p_meas = data.p_ks @ T_bk[:3, :3].T + T_bk[:3, 3]
-        p_pred = T_bs[:, :3, 3]
+        p_pred = p_bs.T
         if "temperature" in drifts:
             p_pred = p_pred + np.outer(
                 data.extra["temperature_c"] - self.temperature_ref, drifts["temperature"]
@@ -222,9 +227,22 @@ class Model:
         pos: np.ndarray = p_pred - p_meas
         if self.position_only or data.R_ks is None:
             return pos.ravel()
-        R_meas = np.einsum("ij,njk->nik", T_bk[:3, :3], data.R_ks)
-        rot = Rotation.from_matrix(np.einsum("nji,njk->nik", R_meas, T_bs[:, :3, :3])).as_rotvec()
-        return np.hstack([pos, ROT_WEIGHT * rot]).ravel()
+        # R_meas^T R_bs = R_ks^T (R_bk^T R_bs), one 3x3 product over rows at a time
+        R_kb = T_bk[:3, :3].T
+        R_ks_pred = np.stack([R_kb @ R_bs[:, k, :] for k in range(3)], axis=1)
+        R_ks = data.R_ks
+        R_err = np.empty_like(R_bs)
+        for i in range(3):
+            for k in range(3):
+                R_err[i, k] = (
+                    R_ks[:, 0, i] * R_ks_pred[0, k]
+                    + R_ks[:, 1, i] * R_ks_pred[1, k]
+                    + R_ks[:, 2, i] * R_ks_pred[2, k]
+                )
+        out = np.empty((data.n, 6))
+        out[:, :3] = pos
+        out[:, 3:] = ROT_WEIGHT * log3_many(R_err)
+        return out.ravel()
 
 
 def stats(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> Stats:

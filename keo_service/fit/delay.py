@@ -26,9 +26,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import median_abs_deviation
 
-from keo_service.core.batch import CHUNK, log3_many, quaternion_matrices, tool_frames
+from keo_service.core.batch import CHUNK, tool_frames
 from keo_service.core.chain import Chain
 from keo_service.core.kinematics import Cell
+from keo_service.core.rotations import log3_many, quaternion_matrices
 
 VELOCITY_STEP_S = 0.005  # central differences for the tool's velocity
 STATE_ROWS = 4 * CHUNK  # samples whose tool states are computed at once
