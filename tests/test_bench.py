@@ -20,6 +20,7 @@ from keo_service.bench.benchmarks import (
     bench_table,
     end_to_end,
     end_to_end_rounds,
+    head_files,
     hot_path,
     machine_share,
     machine_ticks,
@@ -27,6 +28,9 @@ from keo_service.bench.benchmarks import (
     soak,
 )
 from keo_service.bench.demo import loopback_config
+from keo_service.io.cell import cell_from_config
+from keo_service.io.interchange import read_encoder, read_tracker
+from keo_service.sim.simulate import make_scenario, simulate, write_run
 
 
 @pytest.mark.parametrize("relay_only", [False, True], ids=["service", "transport-floor"])
@@ -90,6 +94,13 @@ def _table_report() -> dict:
                 "warmup_wall_s": 1.9,
             },
             "calibrate_delay": {"wall_s": 6.5, "cpu_s": 7.9, "peak_rss_mb": 820.0},
+            "analyze": {
+                "wall_s": 41.7,
+                "cpu_s": 70.2,
+                "peak_rss_mb": 310.0,
+                "seconds": 10.0,
+                "poses": 9986,
+            },
         },
         "capacity": {"highest_rate_without_drops_hz": 4000.0, "steps": []},
         "accuracy": {
@@ -117,6 +128,8 @@ def test_bench_table_states_the_ratio_over_the_floor():
     assert "transport floor" in table
     assert "keo calibrate-delay, same files" in table
     assert "6.50 s wall, 7.90 s CPU, peak RSS 820 MB" in table
+    assert "keo analyze, the first 10 s of the same files (9,986 poses" in table
+    assert "41.7 s wall, 70.2 s CPU, peak RSS 310 MB" in table
 
 
 def test_a_commands_peak_memory_is_its_own_not_the_benchs(tmp_path):
@@ -282,3 +295,18 @@ def test_the_machines_busy_time_holds_this_process_own():
     own = (own_after.user + own_after.system - own_before.user - own_before.system) * TICK
     assert after["busy"] - before["busy"] >= own - 2  # (ticks are counted per core)
     assert after["all"] - before["all"] >= after["busy"] - before["busy"]
+
+
+def test_the_analyze_benchs_files_are_the_recordings_first_seconds(demo_config, tmp_path):
+    scenario = make_scenario("path", {"duration_s": "3.0", "tracker_rate_hz": "200"})
+    run = simulate(cell_from_config(demo_config), scenario, seed=4)
+    write_run(run, tmp_path)
+    head, poses = head_files(run, tmp_path, 1.25)
+    tracker, encoder = read_tracker(head / "tracker.csv"), read_encoder(head / "encoder.csv")
+    kept = run.tracker.t < 1.25
+    assert poses == kept.sum() == tracker.t.size
+    assert 200 < poses < 300  # about a quarter of 3 s at 200 Hz: the cut is in time
+    np.testing.assert_array_equal(tracker.t, run.tracker.t[kept])
+    np.testing.assert_array_equal(tracker.p, run.tracker.p[kept])
+    np.testing.assert_array_equal(encoder.t, run.encoder.t[run.encoder.t < 1.25])
+    np.testing.assert_array_equal(encoder.q, run.encoder.q[run.encoder.t < 1.25])

@@ -252,6 +252,7 @@ def recording(
     seconds: float,
     streaming_too: bool = True,
     repeats: int = 3,
+    analyze_seconds: float | None = None,
 ) -> dict[str, Any]:
     """`keo estimate` over `seconds` of a 1 kHz tracker and a 250 Hz robot (CSV in, CSV out,
     process start included) against the naive per-sample floor over the same tracker samples
@@ -264,7 +265,10 @@ def recording(
     the whole recording in this process: a neighbour that slows the machine for a while slows
     both sides of a pair. The figure is the median of the per-pair ratios (command wall time
     over floor CPU time); the run with the median wall time and every run's wall time are
-    beside it."""
+    beside it.
+
+    `analyze_seconds`: `keo analyze` over the recording's first seconds too (every candidate
+    effect fitted and judged: minutes, not seconds, so not over the whole recording)."""
     run = _khz_run(config, seconds)
     cell = cell_from_config(config)
     out: dict[str, Any] = {
@@ -303,7 +307,33 @@ def recording(
         fit = ["calibrate-delay", "--config", str(cfg), "--encoder", str(folder / "encoder.csv")]
         fit += ["--tracker", str(folder / "tracker.csv")]
         out["calibrate_delay"] = _timed_command(fit, folder / "delay.log")
+        if analyze_seconds is not None:
+            out["analyze"] = _analyze_head(run, folder, cfg, analyze_seconds)
     return out
+
+
+def _analyze_head(run: SimulatedRun, folder: Path, cfg: Path, seconds: float) -> dict[str, Any]:
+    """`keo analyze` over the rows of the recording's files stamped before `seconds`."""
+    head, poses = head_files(run, folder, seconds)
+    args = ["analyze", "--config", str(cfg), "--encoder", str(head / "encoder.csv")]
+    args += ["--tracker", str(head / "tracker.csv"), "--out", str(head / "analysis")]
+    timing = _timed_command(args, folder / "analyze.log")
+    return {**timing, "seconds": seconds, "poses": poses}
+
+
+def head_files(run: SimulatedRun, folder: Path, seconds: float) -> tuple[Path, int]:
+    """`folder/head/`: `run`'s files in `folder` cut to their rows stamped before `seconds`
+    (the simulator writes rows in time order); and the tracker rows kept."""
+    head = folder / "head"
+    head.mkdir(exist_ok=True)
+    rows = {
+        "encoder.csv": int(np.searchsorted(run.encoder.t, seconds)),
+        "tracker.csv": int(np.searchsorted(run.tracker.t, seconds)),
+    }
+    for name, count in rows.items():
+        with (folder / name).open() as src, (head / name).open("w") as dst:
+            dst.writelines(itertools.islice(src, count + 1))  # the header, then the rows
+    return head, rows["tracker.csv"]
 
 
 # ---- 2./3. end to end --------------------------------------------------------------------------
@@ -723,7 +753,9 @@ def run_bench(config: Config, quick: bool, rounds: int | None = None) -> dict[st
     out: dict[str, Any] = {"machine": machine(), "quick": quick}
     out["hot_path"], out["naive_floor"] = hot_path_and_floor(config, hp_seconds)
     out["hot_path_rerun"] = hot_path(config, hp_seconds, with_rerun=True)
-    out["recording"] = recording(config, 60.0 if quick else 600.0)
+    out["recording"] = recording(
+        config, 60.0 if quick else 600.0, analyze_seconds=None if quick else 10.0
+    )
     done = end_to_end_rounds(config, e2e_seconds, rounds, with_rerun=not quick)
     for kind in E2E_KINDS:  # the first round's runs in full, as before rounds
         if kind in done[0]:
@@ -882,6 +914,14 @@ def bench_table(r: dict[str, Any]) -> str:
                 f"| keo calibrate-delay, same files (delay and drift, Gauss-Newton to 0.1 us) | "
                 f"{cd['wall_s']:.2f} s wall, {cd['cpu_s']:.2f} s CPU, "
                 f"peak RSS {cd['peak_rss_mb']:.0f} MB |"
+            )
+        if "analyze" in rec:
+            an = rec["analyze"]
+            lines.append(
+                f"| keo analyze, the first {an['seconds']:.0f} s of the same files "
+                f"({an['poses']:,} poses; registration, then every candidate effect fitted and "
+                f"judged on held-out poses) | {an['wall_s']:.1f} s wall, {an['cpu_s']:.1f} s CPU, "
+                f"peak RSS {an['peak_rss_mb']:.0f} MB |"
             )
 
     def ms(d: dict[str, float | None]) -> str:
