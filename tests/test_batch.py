@@ -319,3 +319,25 @@ def test_more_rejects_than_messages_kept_give_the_same_newest_messages(demo_cell
     assert len(batch.messages) == 32
     assert any(m.startswith("encoder") for m in batch.messages)
     assert any(m.startswith("tracker") for m in batch.messages)
+
+
+def test_keo_estimate_reports_the_encoder_files_error_first(demo_config, demo_cell, tmp_path):
+    """The tracker file is read on a worker thread while the encoder file is read: which
+    error the user sees must not depend on which read finishes first."""
+    from keo_service.core.errors import DataFormatError
+    from keo_service.io.estimate_files import estimate_files
+
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "2"}), seed=4)
+    good_encoder, good_tracker = tmp_path / "encoder.csv", tmp_path / "tracker.csv"
+    write_encoder(good_encoder, run.encoder)
+    write_tracker(good_tracker, run.tracker)
+    bad_encoder, bad_tracker = tmp_path / "bad_encoder.csv", tmp_path / "bad_tracker.csv"
+    bad_encoder.write_text("time,a,b\n1,2,3\n")
+    bad_tracker.write_text("when,where\n1,2\n")
+    with pytest.raises(DataFormatError, match=r"bad_encoder\.csv"):
+        estimate_files(demo_config, bad_encoder, bad_tracker)
+    with pytest.raises(DataFormatError, match=r"bad_tracker\.csv"):
+        estimate_files(demo_config, good_encoder, bad_tracker)
+    result = estimate_files(demo_config, good_encoder, good_tracker)
+    assert result.path == "batch"
+    assert result.table.t.size == run.tracker.t.size

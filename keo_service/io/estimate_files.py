@@ -6,6 +6,7 @@ waiting at once than the live queue holds) runs sample by sample through `Estima
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,21 +30,25 @@ def estimate_files(
     settings: EstimatorSettings | None = None,
     streaming: bool = False,
 ) -> OfflineResult:
-    cell = cell_from_config(config)
-    names = cell.robot.joint_names
-    # a ROS 2 MCAP recording may stand for either file (or both)
-    if _maybe_mcap(encoder_path):
-        from keo_service.io.mcap_files import read_mcap
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="keo-read") as pool:
+        # a tracker CSV is read while the cell is built and the encoder file read (polars
+        # parses without the GIL); an error in the encoder file still comes first
+        tracker_csv = None if _maybe_mcap(tracker_path) else pool.submit(read_tracker, tracker_path)
+        cell = cell_from_config(config)
+        names = cell.robot.joint_names
+        # a ROS 2 MCAP recording may stand for either file (or both)
+        if _maybe_mcap(encoder_path):
+            from keo_service.io.mcap_files import read_mcap
 
-        encoder = read_mcap(encoder_path, names)[0]
-    else:
-        encoder = read_encoder(encoder_path, nq=cell.robot.nq)
-    if _maybe_mcap(tracker_path):
-        from keo_service.io.mcap_files import read_mcap
+            encoder = read_mcap(encoder_path, names)[0]
+        else:
+            encoder = read_encoder(encoder_path, nq=cell.robot.nq)
+        if tracker_csv is None:
+            from keo_service.io.mcap_files import read_mcap
 
-        tracker = read_mcap(tracker_path, names)[1]
-    else:
-        tracker = read_tracker(tracker_path)
+            tracker = read_mcap(tracker_path, names)[1]
+        else:
+            tracker = tracker_csv.result()
     settings = settings or estimator_settings(config)
     streams = (encoder.t, encoder.q, tracker.t, tracker.p, tracker.quat)
     why = "asked for"
