@@ -155,3 +155,45 @@ def test_analysis_residuals_equal_a_pose_by_pose_reference():
         assert np.max(np.abs(got[k, :3] - (T_bs[k].translation - T_meas.translation))) < 1e-12
         rot = Rotation.from_matrix(T_meas.rotation.T @ T_bs[k].rotation).as_rotvec()
         assert np.max(np.abs(got[k, 3:] - ROT_WEIGHT * rot)) < 1e-12
+
+
+def test_residuals_reuse_the_chain_only_while_corrections_and_data_stay(monkeypatch):
+    """Moving a registration parameter (what a finite-difference Jacobian does first) reuses
+    the chain; a changed correction or other data recomputes it; the values are always those
+    of a model without any history."""
+    robot = _robot("ur10.urdf")
+    q, rng = _poses(robot, 200, seed=8)
+    chain = Chain(robot)
+    tau = chain.gravity_torques(q)
+    R_ks = Rotation.from_rotvec(rng.normal(0, 0.3, (q.shape[0], 3))).as_matrix()
+    data = Data(q, rng.normal(0, 1, (q.shape[0], 3)), R_ks, np.arange(q.shape[0], dtype=float))
+    other = data.subset(np.arange(0, q.shape[0], 2))
+    tau_other = tau[::2]
+    x = np.concatenate([rng.normal(0, 0.1, 12), rng.normal(0, 1e-3, robot.nq)])
+    calls = []
+    evaluate = chain.flange_frames
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(chain, "flange_frames", counted)
+    model = Model(chain, False, ["joint_offsets"], x)
+
+    def fresh(x_now, d, t):
+        return Model(chain, False, ["joint_offsets"], x_now).residuals(x_now, d, t)
+
+    steps = []
+    for k in range(12):  # the registration, one parameter at a time
+        xk = x.copy()
+        xk[k] += 1e-6
+        steps.append((xk, data, tau))
+    moved = x.copy()
+    moved[12] += 1e-4  # a joint offset: the chain changes
+    steps += [(moved, data, tau), (moved, other, tau_other), (x, data, tau)]
+    for xk, d, t in [(x, data, tau), *steps]:
+        got = model.residuals(xk, d, t)
+        np.testing.assert_array_equal(got, fresh(xk, d, t))
+    # 1 for x, 0 for the 12 registration steps, 1 each for the offset, other data, back
+    # (and 1 for each fresh model)
+    assert len(calls) == 4 + 1 + len(steps)

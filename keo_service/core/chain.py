@@ -38,6 +38,13 @@ def _times_constant(T: np.ndarray, M: np.ndarray) -> np.ndarray:
     return out
 
 
+def times_constant_frames(R: np.ndarray, p: np.ndarray, C: np.ndarray) -> None:
+    """In place: the frames (R (3, 3, N), p (3, N)) followed by the constant 4x4 C."""
+    for i in range(3):
+        p[i] += C[:3, 3] @ R[i]
+        R[i] = C[:3, :3].T @ R[i]
+
+
 class Chain:
     """Vectorized forward kinematics of a RobotModel's base -> flange chain."""
 
@@ -169,9 +176,7 @@ class Chain:
         p[...] = start[:3, 3:]
 
         def apply(C: np.ndarray) -> None:
-            for i in range(3):
-                p[i] += C[:3, 3] @ R[i]
-                R[i] = C[:3, :3].T @ R[i]
+            times_constant_frames(R, p, C)
 
         for j in range(self.nq):
             apply(steps[j])

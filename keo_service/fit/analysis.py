@@ -20,7 +20,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 from scipy.stats import median_abs_deviation
 
-from keo_service.core.chain import Chain
+from keo_service.core.chain import Chain, times_constant_frames
 from keo_service.core.corrections import Corrections
 from keo_service.core.kinematics import RobotModel
 from keo_service.core.rotations import log3_many
@@ -159,6 +159,8 @@ class Model:
     temperature_ref: float = 0.0
     time_ref: float = 0.0
     knots: tuple[np.ndarray, ...] = ()  # joint_maps: each joint's knots (rad), empty: none
+    # the newest chain evaluation: (data, tau, corrections' key, R_bn, p_bn)
+    _frames: tuple[Any, ...] | None = field(default=None, repr=False, compare=False)
 
     @property
     def n_reg(self) -> int:
@@ -213,9 +215,8 @@ class Model:
         6-DoF probe, ROT_WEIGHT x log3(R_meas^T R_pred); (N * 3) or (N * 6), pose-major."""
         T_bk, T_ns, corr, drifts = self.unpack(x)
         # the sensor frame for every pose, component-major: (3, 3, N) and (3, N)
-        R_bs, p_bs = self.chain.flange_frames(
-            data.q, tail=T_ns, corr=corr, tau=tau, direction=data.direction
-        )
+        R_bs, p_bs = self.flange_frames(corr, data, tau)
+        times_constant_frames(R_bs, p_bs, T_ns)
         p_meas = data.p_ks @ T_bk[:3, :3].T + T_bk[:3, 3]
         p_pred = p_bs.T
         if "temperature" in drifts:
@@ -243,6 +244,30 @@ class Model:
         out[:, :3] = pos
         out[:, 3:] = ROT_WEIGHT * log3_many(R_err)
         return out.ravel()
+
+    def flange_frames(
+        self, corr: Corrections, data: Data, tau: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Base -> flange of every pose (copies), the chain reused when the corrections and
+        the data are the same as the last call's: a finite-difference Jacobian moves the
+        registration parameters one at a time, and those leave the chain as it was. The data
+        must not change in place (nothing here does: subsets are new objects)."""
+        key = _corrections_key(corr)
+        cached = self._frames
+        if cached is None or cached[0] is not data or cached[1] is not tau or cached[2] != key:
+            R, p = self.chain.flange_frames(data.q, corr=corr, tau=tau, direction=data.direction)
+            cached = self._frames = (data, tau, key, R, p)
+        return cached[3].copy(), cached[4].copy()
+
+
+def _corrections_key(corr: Corrections) -> bytes:
+    parts = [
+        getattr(corr, name).tobytes()
+        for name in ("joint_offsets", "compliance", "backlash", "cyclic", "placement")
+    ]
+    for knots, values in corr.maps:
+        parts += [knots.tobytes(), b"|", values.tobytes(), b"|"]
+    return b"/".join(parts)
 
 
 def stats(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> Stats:
