@@ -50,7 +50,7 @@ from keo_service.core.estimator import (
     tracker_stamp_problem,
 )
 from keo_service.core.kinematics import Cell, channels_for
-from keo_service.core.rotations import log3_many, quaternion_matrices
+from keo_service.core.rotations import log3_many, quaternion_matrices, transposed_times
 
 __all__ = ["BatchResult", "BatchUnsupportedError", "estimate_batch", "measured_errors"]
 
@@ -174,11 +174,7 @@ def measured_errors(
     if quat_ks is None:
         return out
     R_ks = quaternion_matrices(np.asarray(quat_ks, dtype=float))
-    R_ts = np.empty_like(R_ks)
-    for i in range(3):
-        for k in range(3):
-            R_ts[i, k] = R_kt[0, i] * R_ks[0, k] + R_kt[1, i] * R_ks[1, k] + R_kt[2, i] * R_ks[2, k]
-    out[:, 3:] = log3_many(R_ts)
+    out[:, 3:] = log3_many(transposed_times(R_kt, R_ks))
     return out
 
 

@@ -175,15 +175,12 @@ class Chain:
         p = np.empty((3, n))
         p[...] = start[:3, 3:]
 
-        def apply(C: np.ndarray) -> None:
-            times_constant_frames(R, p, C)
-
         for j in range(self.nq):
-            apply(steps[j])
+            times_constant_frames(R, p, steps[j])
             c, s = np.cos(q[:, j]), np.sin(q[:, j])
             x, y = R[:, 0, :].copy(), R[:, 1, :]
             R[:, 0, :] = x * c + y * s
             R[:, 1, :] = y * c - x * s
         last = carried @ self.flange
-        apply(last if tail is None else last @ tail)
+        times_constant_frames(R, p, last if tail is None else last @ tail)
         return R, p

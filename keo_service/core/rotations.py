@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["log3_many", "quaternion_matrices"]
+__all__ = ["log3_many", "quaternion_matrices", "transposed_times"]
 
 
 def quaternion_matrices(wxyz: np.ndarray) -> np.ndarray:
@@ -44,4 +44,14 @@ def log3_many(R: np.ndarray) -> np.ndarray:
         from scipy.spatial.transform import Rotation  # rare: kept off the import path
 
         out[far] = Rotation.from_matrix(np.moveaxis(R[:, :, far], 2, 0)).as_rotvec()
+    return out
+
+
+def transposed_times(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A_n^T B_n for every sample of two (3, 3, N) stacks (views of other layouts are fine),
+    as nine sums of three products over contiguous rows: the relative rotation of B from A."""
+    out = np.empty(B.shape)
+    for i in range(3):
+        for k in range(3):
+            out[i, k] = A[0, i] * B[0, k] + A[1, i] * B[1, k] + A[2, i] * B[2, k]
     return out

@@ -23,7 +23,7 @@ from scipy.stats import median_abs_deviation
 from keo_service.core.chain import Chain, times_constant_frames
 from keo_service.core.corrections import Corrections
 from keo_service.core.kinematics import RobotModel
-from keo_service.core.rotations import log3_many
+from keo_service.core.rotations import log3_many, transposed_times
 from keo_service.fit.diagnostics import describe_null_space, repeatability
 
 ROT_WEIGHT = 0.5  # m per rad: 20 um of position ~ 40 urad of orientation
@@ -231,15 +231,7 @@ class Model:
         # R_meas^T R_bs = R_ks^T (R_bk^T R_bs), one 3x3 product over rows at a time
         R_kb = T_bk[:3, :3].T
         R_ks_pred = np.stack([R_kb @ R_bs[:, k, :] for k in range(3)], axis=1)
-        R_ks = data.R_ks
-        R_err = np.empty_like(R_bs)
-        for i in range(3):
-            for k in range(3):
-                R_err[i, k] = (
-                    R_ks[:, 0, i] * R_ks_pred[0, k]
-                    + R_ks[:, 1, i] * R_ks_pred[1, k]
-                    + R_ks[:, 2, i] * R_ks_pred[2, k]
-                )
+        R_err = transposed_times(data.R_ks.transpose(1, 2, 0), R_ks_pred)
         out = np.empty((data.n, 6))
         out[:, :3] = pos
         out[:, 3:] = ROT_WEIGHT * log3_many(R_err)
