@@ -59,8 +59,9 @@ __all__ = [
 
 if TYPE_CHECKING:
     from keo_service.core.errors import ConfigError, DataFormatError, KeoError
-    from keo_service.core.estimator import Estimate, Estimator, EstimatorSettings
+    from keo_service.core.estimator import Estimate, Estimator
     from keo_service.core.kinematics import Cell
+    from keo_service.core.settings import EstimatorSettings
     from keo_service.io.cell import cell_from_config, estimator_settings
     from keo_service.io.config import Config, load_config
     from keo_service.live.client import Client, ClientError, SyncClient

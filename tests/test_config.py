@@ -85,7 +85,7 @@ def test_cli_bad_usage_exits_2():
 
 
 def test_an_empty_config_gives_the_estimators_defaults():
-    from keo_service.core.estimator import EstimatorSettings
+    from keo_service.core.settings import EstimatorSettings
     from keo_service.io.cell import estimator_settings
     from keo_service.io.config import parse_config
 

@@ -18,7 +18,8 @@ from adapters.simple_message import (
     encode_joint_feedback,
     encode_robot_status,
 )
-from keo_service.core.estimator import Estimator, EstimatorSettings
+from keo_service.core.estimator import Estimator
+from keo_service.core.settings import EstimatorSettings
 from keo_service.core.timing import DelayModel
 
 floats32 = st.floats(-3.0, 3.0, width=32)

@@ -22,6 +22,7 @@ CORE_MODULES = [
     "keo_service.core.kinematics",
     "keo_service.core.observer",
     "keo_service.core.rotations",
+    "keo_service.core.settings",
     "keo_service.core.timing",
 ]
 FORBIDDEN_IN_CORE = ["asyncio", "zenoh", "msgspec", "rerun", "matplotlib"]
@@ -50,6 +51,21 @@ def test_importing_the_package_stays_light_until_a_public_name_is_used():
         [sys.executable, "-c", code], capture_output=True, text=True, check=True
     ).stdout.split()
     assert out == ["False", "True"]
+
+
+def test_reading_a_config_loads_no_kinematics_library():
+    # keo estimate starts parsing the tracker file while Pinocchio loads: the config must be
+    # readable before that
+    code = (
+        "import sys\n"
+        "from keo_service.cli import common\n"
+        f"common.load({str(CONFIGS / 'demo.toml')!r})\n"
+        "print('pinocchio' in sys.modules)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert out == ["False"]
 
 
 def test_public_surface_resolves_every_name():

@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from keo_service.core.estimator import Estimate, Estimator, EstimatorSettings, run_offline
+from keo_service.core.estimator import Estimate, Estimator, run_offline
 from keo_service.core.kinematics import POSE_CHANNELS
 from keo_service.core.observer import KinematicErrorObserver
+from keo_service.core.settings import EstimatorSettings
 from keo_service.core.timing import Coverage, DelayModel, EncoderBuffer
 from keo_service.sim.simulate import make_scenario, simulate
 

@@ -8,8 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from keo_service.core.estimator import Estimator, EstimatorSettings, run_offline
+from keo_service.core.estimator import Estimator, run_offline
 from keo_service.core.observer import noise_gain
+from keo_service.core.settings import EstimatorSettings
 from keo_service.fit.evaluate import as_series, truth_at
 from keo_service.io.cell import estimator_settings
 from keo_service.io.interchange import read_encoder, read_estimates, read_tracker, read_truth

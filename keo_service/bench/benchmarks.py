@@ -26,7 +26,8 @@ import pinocchio as pin
 from keo_service.bench.demo import loopback_config
 from keo_service.bench.procs import process_group
 from keo_service.core.errors import KeoError
-from keo_service.core.estimator import Estimator, EstimatorSettings
+from keo_service.core.estimator import Estimator
+from keo_service.core.settings import EstimatorSettings
 from keo_service.core.timing import DelayModel
 from keo_service.fit.evaluate import estimate_error_rms, estimate_run
 from keo_service.io.cell import cell_from_config, estimator_settings

@@ -14,7 +14,7 @@ import math
 import statistics
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -31,6 +31,7 @@ from keo_service.core.kinematics import (
 )
 from keo_service.core.observer import KinematicErrorObserver, finite_numbers
 from keo_service.core.rejects import RejectLog
+from keo_service.core.settings import EstimatorSettings, encoder_capacity
 from keo_service.core.timing import Coverage, DelayModel, EncoderBuffer
 
 UNIT_QUATERNION_TOLERANCE = 1e-4
@@ -39,19 +40,6 @@ DELAY_SLEW = 0.001  # a new delay is approached at this many s per s of stream t
 MAX_PENDING = 2048
 MAX_MESSAGES = 32
 OUTSIDE_CALIBRATED_RANGE = "outside_calibrated_range"
-
-
-@dataclass(frozen=True)
-class EstimatorSettings:
-    gains: tuple[float, ...] = (1.0,) * 6
-    max_dt_s: float = 0.25
-    delay: DelayModel = field(default_factory=DelayModel)
-    alignment: str = "interpolate"
-    sample_rate_hz: float = 40.0
-    buffer_s: float = 2.0
-    max_gap_s: float = 0.2
-    stale_after_s: float = 0.5
-    start: str = "zero"  # observer's initial state: "zero" (the reference) or "first"
 
 
 class Estimate:
@@ -134,12 +122,6 @@ class _TrackerSample:
     # single reflector; None: a gap reported by the tracker
     sensor: list[float] | None
     tag: object = None
-
-
-def encoder_capacity(settings: EstimatorSettings) -> int:
-    """Encoder samples the buffer holds: buffer_s of a stream of up to 2 kHz (64 at least).
-    The batch path reproduces the buffer's verdicts from this same number."""
-    return max(64, math.ceil(settings.buffer_s * 2000.0))
 
 
 class Estimator:

@@ -8,8 +8,9 @@ from typing import Any
 
 import numpy as np
 
-from keo_service.core.estimator import Estimate, Estimator, EstimatorSettings, run_offline
+from keo_service.core.estimator import Estimate, Estimator, run_offline
 from keo_service.core.kinematics import Cell
+from keo_service.core.settings import EstimatorSettings
 
 
 @dataclass(frozen=True)

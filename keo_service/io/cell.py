@@ -8,8 +8,8 @@ import pinocchio as pin
 
 from keo_service.core.corrections import Corrections
 from keo_service.core.errors import ConfigError
-from keo_service.core.estimator import EstimatorSettings
 from keo_service.core.kinematics import Cell, RobotModel, load_robot, se3_from_xyz_rpy
+from keo_service.core.settings import EstimatorSettings
 from keo_service.core.timing import DelayModel
 from keo_service.io.config import Config, ModelConfig, TimingConfig
 

@@ -15,7 +15,7 @@ import msgspec
 import tomli_w
 
 from keo_service.core.errors import ConfigError
-from keo_service.core.estimator import EstimatorSettings
+from keo_service.core.settings import EstimatorSettings
 
 # the estimator's defaults are the config's defaults: one place for each value
 _DEFAULTS = EstimatorSettings()

@@ -9,12 +9,14 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from keo_service.core.batch import BatchResult, BatchUnsupportedError, estimate_batch
-from keo_service.core.estimator import Estimator, EstimatorSettings, run_offline
-from keo_service.io.cell import cell_from_config, estimator_settings
-from keo_service.io.config import Config
 from keo_service.io.interchange import read_encoder, read_tracker, write_estimate_table
+
+if TYPE_CHECKING:
+    from keo_service.core.batch import BatchResult
+    from keo_service.core.settings import EstimatorSettings
+    from keo_service.io.config import Config
 
 
 @dataclass
@@ -34,6 +36,11 @@ def estimate_files(
         # a tracker CSV is read while the cell is built and the encoder file read (polars
         # parses without the GIL); an error in the encoder file still comes first
         tracker_csv = None if _maybe_mcap(tracker_path) else pool.submit(read_tracker, tracker_path)
+        # the kinematics libraries load while it parses (Pinocchio alone takes ~0.1 s)
+        from keo_service.core.batch import BatchResult, BatchUnsupportedError, estimate_batch
+        from keo_service.core.estimator import Estimator, run_offline
+        from keo_service.io.cell import cell_from_config, estimator_settings
+
         cell = cell_from_config(config)
         names = cell.robot.joint_names
         # a ROS 2 MCAP recording may stand for either file (or both)

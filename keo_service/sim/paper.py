@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from keo_service.core.estimator import EstimatorSettings
 from keo_service.core.observer import discrete_settling_time, settling_time
+from keo_service.core.settings import EstimatorSettings
 from keo_service.fit.evaluate import estimate_error_rms, estimate_run, truth_at, window_mask
 from keo_service.io.cell import cell_from_config, estimator_settings
 from keo_service.io.config import Config
