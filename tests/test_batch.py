@@ -13,6 +13,7 @@ import pytest
 from keo_service.core.batch import (
     BatchResult,
     BatchUnsupportedError,
+    _counts_up_to,
     _first_beyond,
     estimate_batch,
     first_order_recursion,
@@ -262,6 +263,59 @@ def test_stale_boundary_uses_the_estimators_subtraction(limit):
         want.append(b)
     got = _first_beyond(t, limit)
     assert got.tolist() == want
+
+
+def test_counting_positions_answers_as_a_binary_search():
+    # positions in the merged order, repeated (resolution times) or distinct (arrivals), with
+    # "never" (int64 max) and beyond-the-end values; queried at every x in [-1, events)
+    rng = np.random.default_rng(3)
+    events = 500
+    never = np.iinfo(np.int64).max
+    repeated = np.sort(rng.integers(0, events + 40, 400))
+    repeated[-25:] = never
+    distinct = np.sort(rng.choice(events, 180, replace=False))
+    x = np.arange(-1, events)
+    for positions in (repeated, distinct, np.empty(0, dtype=np.int64)):
+        want = np.searchsorted(positions, x, side="right")
+        assert _counts_up_to(positions, events)[x + 1].tolist() == want.tolist()
+
+
+def test_the_batch_path_refuses_exactly_when_the_pending_queue_would_overflow(
+    demo_cell, demo_config, monkeypatch
+):
+    """A 2 s encoder hole at 1 kHz leaves ~2000 tracker samples waiting. Around the queue size
+    at which the streaming estimator first drops one, the batch path must hand over (raise)
+    exactly when it drops and equal it otherwise."""
+    from keo_service.core import batch as batch_module
+    from keo_service.core import estimator as estimator_module
+
+    scenario = {"duration_s": "5", "tracker_rate_hz": "1000", "encoder_rate_hz": "250"}
+    run = simulate(demo_cell, make_scenario("path", scenario), seed=5)
+    keep = (run.encoder.t < 1.0) | (run.encoder.t > 3.0)
+    args = (run.encoder.t[keep], run.encoder.q[keep], *streams(run)[2:])
+    settings = dataclasses.replace(
+        estimator_settings(demo_config), stale_after_s=10.0, max_gap_s=10.0, buffer_s=10.0
+    )
+
+    def drops(limit: int) -> bool:
+        monkeypatch.setattr(estimator_module, "MAX_PENDING", limit)
+        streaming = Estimator(demo_cell, settings)
+        run_offline(streaming, *args)
+        return streaming.counters.get("pending_overflow", 0) > 0
+
+    low, high = 1000, 4000  # drops at low, not at high: the smallest size that does not drop
+    assert drops(low)
+    assert not drops(high)
+    while high - low > 1:
+        middle = (low + high) // 2
+        low, high = (middle, high) if drops(middle) else (low, middle)
+    for limit in (high - 1, high, high + 1):
+        monkeypatch.setattr(batch_module, "MAX_PENDING", limit)
+        if drops(limit):
+            with pytest.raises(BatchUnsupportedError, match="wait at once"):
+                estimate_batch(demo_cell, settings, *args)
+        else:
+            compare(demo_cell, settings, *args)
 
 
 def test_latest_alignment_is_left_to_the_streaming_estimator(demo_cell, demo_config):

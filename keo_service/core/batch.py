@@ -42,8 +42,6 @@ from keo_service.core.estimator import (
     OUTSIDE_CALIBRATED_RANGE,
     UNIT_QUATERNION_TOLERANCE,
     Estimate,
-    EstimatorSettings,
-    encoder_capacity,
     encoder_non_finite,
     encoder_stamp_problem,
     not_unit_quaternion,
@@ -51,6 +49,7 @@ from keo_service.core.estimator import (
 )
 from keo_service.core.kinematics import Cell, channels_for
 from keo_service.core.rotations import log3_many, quaternion_matrices, transposed_times
+from keo_service.core.settings import EstimatorSettings, encoder_capacity
 
 __all__ = ["BatchResult", "BatchUnsupportedError", "estimate_batch", "measured_errors"]
 
@@ -329,7 +328,8 @@ def _step_caps(settings: EstimatorSettings, intervals: np.ndarray, seen: np.ndar
         values[k] = _sorted_median(np.sort(intervals[: counts[k]])[None, :])[0]
     values = np.minimum(settings.max_dt_s, 3.0 * values)
     last = np.maximum.accumulate(np.where(recompute, np.arange(seen.size), -1))
-    caps[valid] = values[np.searchsorted(where, last[valid])]
+    rank = np.cumsum(recompute) - 1  # a recomputing update's index in `where`
+    caps[valid] = values[rank[last[valid]]]
     return caps
 
 
@@ -490,14 +490,25 @@ def _resolution(
     stale_at = np.where(stale_index < n, streams.arrival[np.minimum(stale_index, n - 1)], never)
     ready = np.minimum(np.maximum(streams.arrival, covered_at), stale_at)
     resolved = np.maximum.accumulate(ready)
-    waiting = np.arange(n) - np.minimum(
-        np.arange(n), np.searchsorted(resolved, streams.arrival, "left")
-    )
+    # positions in the merged order are small integers: counting them gives searchsorted's
+    # answers without its binary searches (a third of the batch path's own time on 600k rows)
+    events = int(max(streams.arrival[-1], streams.E_pos[-1] if streams.E.size else 0)) + 1
+    resolved_before = _counts_up_to(resolved, events)[streams.arrival]  # resolved < arrival
+    waiting = np.arange(n) - np.minimum(np.arange(n), resolved_before)
     if waiting.max() >= MAX_PENDING:
         raise BatchUnsupportedError(f"more than {MAX_PENDING} tracker samples wait at once")
-    have = np.searchsorted(streams.E_pos, resolved, side="right")  # encoder samples buffered then
-    seen = np.searchsorted(streams.arrival, resolved, side="right") - 1  # tracker intervals by then
+    at = np.minimum(resolved, events - 1) + 1  # "never": after every event
+    have = _counts_up_to(streams.E_pos, events)[at]  # encoder samples buffered then
+    seen = _counts_up_to(streams.arrival, events)[at] - 1  # tracker intervals by then
     return have, seen
+
+
+def _counts_up_to(positions: np.ndarray, events: int) -> np.ndarray:
+    """c[x + 1]: how many of `positions` (integers >= 0; from `events` on, "never") are <= x,
+    for x in [-1, events): np.searchsorted(sorted positions, x, "right") by counting."""
+    counts = np.zeros(events + 1, dtype=np.int64)
+    counts[1:] = np.bincount(np.minimum(positions, events), minlength=events + 1)[:events]
+    return np.cumsum(counts, out=counts)
 
 
 def _held_reasons(
