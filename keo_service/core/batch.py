@@ -590,8 +590,10 @@ def estimate_batch(
     channel_count = len(channels)
     # each row written once, in its chunk: fresh pages cost
     joints = np.empty((n, nq)) if keep_joints else None
-    measured = np.empty((n, channel_count))
-    estimate = np.empty((n, channel_count))
+    # column-major: an estimate file's columns are contiguous, so the writer's columns are
+    # views of these (no copies of the whole recording)
+    measured = np.empty((n, channel_count), order="F")
+    estimate = np.empty((n, channel_count), order="F")
     corr = cell.corrections
     chain = Chain(cell.robot)
     direction: np.ndarray | None = None  # backlash: the joints' directions, known below

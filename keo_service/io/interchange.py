@@ -238,10 +238,10 @@ def write_estimate_table(
     columns = [pl.Series("t", np.asarray(t, dtype=float))]
     for prefix, values in (("meas", measured), ("est", estimate)):
         for name, column in zip(error_columns(prefix, channels), np.asarray(values).T, strict=True):
-            series = pl.Series(name, np.asarray(column, dtype=float))
-            # NaN (a held row's measured error) is written empty; a column without any as is
-            columns.append(series.fill_nan(None) if series.is_nan().any() else series)
-    columns.append(pl.Series("flags", np.asarray(flags, dtype=object), dtype=pl.String))
+            # NaN (a held row's measured error) is written empty
+            columns.append(pl.Series(name, np.asarray(column, dtype=float), nan_to_null=True))
+    flag_texts = flags.tolist() if isinstance(flags, np.ndarray) else list(flags)
+    columns.append(pl.Series("flags", flag_texts, dtype=pl.String))
     frame = pl.DataFrame(columns).with_columns(pl.col("flags").replace("", None))
     frame.write_csv(path)
 
