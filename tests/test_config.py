@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
+import gc
+
 import pytest
 
+from keo_service.cli import common
 from keo_service.core.errors import ConfigError
 from keo_service.io.config import load_config
 from tests.conftest import CONFIGS, DEMO, keo, write_config
@@ -91,3 +95,23 @@ def test_an_empty_config_gives_the_estimators_defaults():
 
     config = parse_config({"robot": {"urdf": str(CONFIGS / "robots" / "ur10.urdf")}}, source="t")
     assert estimator_settings(config) == EstimatorSettings()
+
+
+def test_a_batch_command_runs_with_the_collector_paused_and_gets_it_back():
+    seen = []
+
+    def command(args: argparse.Namespace) -> int:
+        seen.append(gc.isenabled())
+        return 3
+
+    def failing(args: argparse.Namespace) -> int:
+        seen.append(gc.isenabled())
+        raise ConfigError("keo.toml", "model.urdf", "missing")
+
+    assert gc.isenabled()
+    assert common.collector_paused(command)(argparse.Namespace()) == 3
+    assert gc.isenabled()
+    with pytest.raises(ConfigError):
+        common.collector_paused(failing)(argparse.Namespace())
+    assert gc.isenabled()
+    assert seen == [False, False]

@@ -9,13 +9,14 @@ Exit codes: 0 success, 2 bad usage or bad config (the message names the key or a
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 from collections.abc import Callable, Sequence
 
 from keo_service.cli import common, live, offline, tools
 from keo_service.core.errors import ConfigError, DataFormatError, KeoError
 
-__all__ = ["build_parser", "main"]
+__all__ = ["build_parser", "console", "main"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -50,3 +51,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return common.EXIT_FAILURE
     except KeyboardInterrupt:
         return common.EXIT_OK
+
+
+def console() -> int:
+    """The `keo` executable: `main`, then an exit without the interpreter's final garbage
+    collections over every loaded module's objects (30-90 ms once polars is loaded; the
+    process's memory goes back to the system whole either way)."""
+    code = main()
+    gc.freeze()
+    return code

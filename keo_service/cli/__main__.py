@@ -2,6 +2,6 @@
 
 import sys
 
-from keo_service.cli import main
+from keo_service.cli import console
 
-sys.exit(main())
+sys.exit(console())

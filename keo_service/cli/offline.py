@@ -103,6 +103,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return common.EXIT_OK
 
 
+@common.collector_paused
 def cmd_estimate(args: argparse.Namespace) -> int:
     from keo_service.io.estimate_files import estimate_files, write_estimates
 
@@ -148,6 +149,7 @@ def cmd_paper(args: argparse.Namespace) -> int:
     return common.EXIT_OK
 
 
+@common.collector_paused
 def cmd_calibrate_delay(args: argparse.Namespace) -> int:
     from keo_service.fit.delay import DelayNotIdentifiableError, fit_delay, reference_method
     from keo_service.io.cell import cell_from_config
