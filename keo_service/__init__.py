@@ -18,7 +18,7 @@ _EXPORTS = {
     "SyncClient": "keo_service.live.client",
     "ClientError": "keo_service.live.client",
     "Estimator": "keo_service.core.estimator",
-    "EstimatorSettings": "keo_service.core.estimator",
+    "EstimatorSettings": "keo_service.core.settings",
     "Estimate": "keo_service.core.estimator",
     "Cell": "keo_service.core.kinematics",
     "KeoError": "keo_service.core.errors",

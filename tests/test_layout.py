@@ -58,8 +58,10 @@ def test_reading_a_config_loads_no_kinematics_library():
     # readable before that
     code = (
         "import sys\n"
+        "import keo_service\n"
         "from keo_service.cli import common\n"
         f"common.load({str(CONFIGS / 'demo.toml')!r})\n"
+        "keo_service.EstimatorSettings()\n"  # the public name, too
         "print('pinocchio' in sys.modules)\n"
     )
     out = subprocess.run(

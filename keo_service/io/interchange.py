@@ -240,7 +240,7 @@ def write_estimate_table(
         for name, column in zip(error_columns(prefix, channels), np.asarray(values).T, strict=True):
             # NaN (a held row's measured error) is written empty
             columns.append(pl.Series(name, np.asarray(column, dtype=float), nan_to_null=True))
-    flag_texts = flags.tolist() if isinstance(flags, np.ndarray) else list(flags)
+    flag_texts = flags.tolist() if isinstance(flags, np.ndarray) else flags
     columns.append(pl.Series("flags", flag_texts, dtype=pl.String))
     frame = pl.DataFrame(columns).with_columns(pl.col("flags").replace("", None))
     frame.write_csv(path)
