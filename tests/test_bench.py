@@ -292,7 +292,8 @@ def test_the_machines_busy_time_holds_this_process_own():
     while time.process_time() < end:
         pass
     after, own_after = machine_ticks(), os.times()
-    own = (own_after.user + own_after.system - own_before.user - own_before.system) * TICK
+    # whole ticks: os.times() is in seconds, and 0.3 * 100 is 30.000000000000206 in floats
+    own = round((own_after.user + own_after.system - own_before.user - own_before.system) * TICK)
     assert after["busy"] - before["busy"] >= own - 2  # (ticks are counted per core)
     assert after["all"] - before["all"] >= after["busy"] - before["busy"]
 
