@@ -32,7 +32,25 @@ class _Section(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
 
 
 # the controller's port when `robot.port` is not given (ros2 has none: it comes over the bus)
-DEFAULT_ROBOT_PORTS = {"motoros": 50241, "rtde": 30004, "ros2": 0}
+DEFAULT_ROBOT_PORTS = {
+    "motoros": 50241,
+    "rtde": 30004,
+    "ros2": 0,
+    "kuka_rsi": 49152,
+    "abb_egm": 6510,
+}
+# the clock domain a protocol's stamps are on when `clock` is not given: ROS 2 stamps are ROS
+# time (the cell's common clock), RTDE/RSI/EGM stamps come from the controller's own clock,
+# MotoROS gives none (stamped on receipt); keo's tracker line protocol carries device time
+DEFAULT_ROBOT_CLOCKS = {
+    "motoros": "receipt",
+    "rtde": "device",
+    "ros2": "shared",
+    "kuka_rsi": "device",
+    "abb_egm": "device",
+}
+DEFAULT_TRACKER_CLOCKS = {"line": "device", "ros2": "shared"}
+ClockDomain = Literal["shared", "device", "receipt"]
 RosTopic = Annotated[
     str, msgspec.Meta(pattern=r"^/[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
 ]
@@ -44,7 +62,16 @@ class RobotConfig(_Section):
     flange_frame: str = "tool0"
     # "motoros": ROS-Industrial simple message (MotoROS); "rtde": Universal Robots RTDE;
     # "ros2": sensor_msgs/msg/JointState over rmw_zenoh (any ROS 2 driver)
-    protocol: Literal["motoros", "rtde", "ros2"] = "motoros"
+    # "kuka_rsi": KUKA RobotSensorInterface (keo is the UDP server); "abb_egm": ABB EGM
+    protocol: Literal["motoros", "rtde", "ros2", "kuka_rsi", "abb_egm"] = "motoros"
+    # what the stamps are: "shared" (already on the cell's common clock), "device" (the
+    # controller's own clock, mapped onto the host's), "receipt" (none: stamped on arrival);
+    # not given: the protocol's default (DEFAULT_ROBOT_CLOCKS)
+    clock: ClockDomain | None = None
+    # where live corrections go: "none", "rtde_registers" (six RTDE input double registers
+    # from correction_register on), "kuka_rsi" (RKorr in the RSI reply), "abb_egm"
+    correction: Literal["none", "rtde_registers", "kuka_rsi", "abb_egm"] = "none"
+    correction_register: Annotated[int, msgspec.Meta(ge=0, le=42)] = 24
     host: str = "127.0.0.1"
     # 0: the protocol's default, 50241 for motoros, 30004 for rtde (ros2 uses none)
     port: Annotated[int, msgspec.Meta(ge=0, le=65535)] = 0
@@ -57,6 +84,8 @@ class RobotConfig(_Section):
     def __post_init__(self) -> None:
         if self.port == 0:
             self.port = DEFAULT_ROBOT_PORTS.get(self.protocol, 0)
+        if self.clock is None:
+            self.clock = DEFAULT_ROBOT_CLOCKS[self.protocol]  # type: ignore[assignment]
 
     @property
     def endpoint_port(self) -> int:
@@ -78,6 +107,16 @@ class TrackerConfig(_Section):
     # PointStamped for a single reflector) over rmw_zenoh, metres
     protocol: Literal["line", "ros2"] = "line"
     pose_topic: RosTopic = "/lasertracker/pose"
+    # the stamps' clock domain (see RobotConfig.clock); not given: DEFAULT_TRACKER_CLOCKS
+    clock: ClockDomain | None = None
+    # standard uncertainty per coordinate: a constant part and one proportional to the
+    # distance from the tracker (a datasheet's "15 um + 6 um/m")
+    uncertainty_um: Annotated[float, msgspec.Meta(ge=0.0, le=1e5)] = 15.0
+    uncertainty_um_per_m: Annotated[float, msgspec.Meta(ge=0.0, le=1e4)] = 6.0
+
+    def __post_init__(self) -> None:
+        if self.clock is None:
+            self.clock = DEFAULT_TRACKER_CLOCKS[self.protocol]  # type: ignore[assignment]
 
 
 class Ros2Config(_Section):
@@ -112,6 +151,17 @@ class TimingConfig(_Section):
     max_gap_s: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = _DEFAULTS.max_gap_s
     # A tracker sample waits at most this long (stream time) for encoder data to cover it.
     stale_after_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = _DEFAULTS.stale_after_s
+    # a "shared"-clock stamp older than this at receipt (or ahead of it) is counted and flagged
+    max_stamp_age_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 0.5
+
+
+class CompensationConfig(_Section):
+    """Limits on live corrections (keo/<cell>/correction): larger or faster ones are clamped
+    and counted."""
+
+    max_mm: Annotated[float, msgspec.Meta(gt=0.0, le=1e3)] = 5.0
+    max_mrad: Annotated[float, msgspec.Meta(gt=0.0, le=1e3)] = 5.0
+    max_rate_mm_s: Annotated[float, msgspec.Meta(gt=0.0, le=1e4)] = 50.0
 
 
 class BusConfig(_Section):
@@ -125,6 +175,12 @@ class BusConfig(_Section):
     tls_certificate: str = ""
     tls_private_key: str = ""
     tls_mtls: bool = False
+    # per-key rights on the bus (needs tls_mtls): each session and `keo router` enforce them
+    access_control: bool = False
+    # mTLS certificate common name -> role
+    roles: dict[str, Literal["encoder", "tracker", "service", "client", "operator"]] = (
+        msgspec.field(default_factory=dict)
+    )
 
 
 class ModelConfig(_Section):
@@ -158,6 +214,7 @@ class Config(_Section):
     bus: BusConfig = msgspec.field(default_factory=BusConfig)
     model: ModelConfig = msgspec.field(default_factory=ModelConfig)
     ros2: Ros2Config = msgspec.field(default_factory=Ros2Config)
+    compensation: CompensationConfig = msgspec.field(default_factory=CompensationConfig)
     # Where the file came from; not a TOML key.
     source: str = ""
 

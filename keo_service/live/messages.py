@@ -83,7 +83,30 @@ class ServiceStatus(_Message, frozen=True, tag=_tag("status")):
     delay_tracking: str | None = None  # what online delay tracking last did (when enabled)
 
 
-Message = JointSample | RobotStatus | TrackerSample | EstimateMessage | ServiceStatus
+class CorrectionMessage(_Message, frozen=True, tag=_tag("correction")):
+    """keo/<cell>/correction: the transform to apply to the commanded tool pose now so that
+    the tool lands where commanded (translation m, rotation vector rad, in the tool frame),
+    the sum of a feedback part (the live estimate) and a feedforward part (the identified
+    model at the current joints). Zero and `valid = False` with the reason when it must not
+    be applied (held step, stale input, outside the calibrated range)."""
+
+    stamp: float
+    host_ns: int
+    seq: int
+    translation: list[float]
+    rotation: list[float]
+    feedback_translation: list[float]
+    feedback_rotation: list[float]
+    feedforward_translation: list[float]
+    feedforward_rotation: list[float]
+    valid: bool
+    reason: str = ""
+    clamped: bool = False
+
+
+Message = (
+    JointSample | RobotStatus | TrackerSample | EstimateMessage | ServiceStatus | CorrectionMessage
+)
 
 ENCODER = msgspec.msgpack.Encoder()
 DECODER = msgspec.msgpack.Decoder(Message)
