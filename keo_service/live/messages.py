@@ -9,6 +9,8 @@ replay reproduces the exact numbers.
 
 from __future__ import annotations
 
+from typing import Any
+
 import msgspec
 
 SCHEMA_VERSION = 1
@@ -29,6 +31,12 @@ class JointSample(_Message, frozen=True, tag=_tag("joint")):
     q: list[float]
     dq: list[float] | None = None
     device_t: float | None = None
+    # the clock domain `t` is on ("shared", "device", "receipt"), a counter the adapter bumps
+    # whenever its time base starts anew (reconnect, device clock step) and per-sample notes
+    # on the stamp (e.g. "stamp_ahead", "stamp_old", "clock_relearning")
+    clock: str = ""
+    clock_epoch: int = 0
+    flags: list[str] = msgspec.field(default_factory=list)
 
 
 class RobotStatus(_Message, frozen=True, tag=_tag("robot_status")):
@@ -52,6 +60,9 @@ class TrackerSample(_Message, frozen=True, tag=_tag("tracker")):
     p: list[float] | None = None
     q: list[float] | None = None
     device_t: float | None = None
+    clock: str = ""  # as in JointSample
+    clock_epoch: int = 0
+    flags: list[str] = msgspec.field(default_factory=list)
 
 
 class EstimateMessage(_Message, frozen=True, tag=_tag("estimate")):
@@ -65,6 +76,10 @@ class EstimateMessage(_Message, frozen=True, tag=_tag("estimate")):
     seq: int
     # device time of the tracker sample behind this estimate, when the tracker gives one
     tracker_device_t: float | None = None
+    # standard error of the delay in use (s), when it is known (calibrated or tracked)
+    delay_se_s: float | None = None
+    # tool speed at this estimate (m/s), from the joint velocities
+    tool_speed_m_s: float | None = None
 
 
 class ServiceStatus(_Message, frozen=True, tag=_tag("status")):
@@ -81,6 +96,11 @@ class ServiceStatus(_Message, frozen=True, tag=_tag("status")):
     last_estimate: EstimateMessage | None
     messages: list[str]
     delay_tracking: str | None = None  # what online delay tracking last did (when enabled)
+    delay_se_s: float | None = None  # standard error of the delay in use (s), when known
+    # each stream's clock domain as the samples declare it ("encoder": "device", ...)
+    clock_domains: dict[str, str] = msgspec.field(default_factory=dict)
+    # each adapter's own status (state, rates, counters, newest rejects), as gathered
+    adapters: dict[str, dict[str, Any]] = msgspec.field(default_factory=dict)
 
 
 class CorrectionMessage(_Message, frozen=True, tag=_tag("correction")):
