@@ -34,6 +34,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from keo_service.core.chain import Chain
+from keo_service.core.errors import KeoError
 from keo_service.core.estimator import (
     DIRECTION_DEADBAND,
     MAX_MESSAGES,
@@ -64,7 +65,7 @@ MEDIAN_WINDOWS = 1024  # step-cap windows sorted at once
 HELD_REASONS = ("", "encoder_stale", "encoder_too_old", "encoder_gap")
 
 
-class BatchUnsupportedError(Exception):
+class BatchUnsupportedError(KeoError):
     """This input needs the streaming estimator (the message says why)."""
 
 
