@@ -14,7 +14,6 @@ from keo_service.core.batch import (
     BatchResult,
     BatchUnsupportedError,
     _counts_up_to,
-    _first_beyond,
     estimate_batch,
     first_order_recursion,
     measured_errors,
@@ -23,6 +22,7 @@ from keo_service.core.chain import Chain
 from keo_service.core.corrections import Corrections
 from keo_service.core.estimator import Estimator, run_offline
 from keo_service.core.kinematics import Cell, measured_error
+from keo_service.core.rules import first_beyond
 from keo_service.core.timing import DelayModel
 from keo_service.io.cell import estimator_settings
 from keo_service.io.interchange import (
@@ -261,7 +261,7 @@ def test_stale_boundary_uses_the_estimators_subtraction(limit):
         while b < t.size and not t[b] - t[a] > limit:
             b += 1
         want.append(b)
-    got = _first_beyond(t, limit)
+    got = first_beyond(t, limit)
     assert got.tolist() == want
 
 
