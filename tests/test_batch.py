@@ -386,7 +386,7 @@ def test_keo_estimate_reports_the_encoder_files_error_first(demo_config, demo_ce
     """The tracker file is read on a worker thread while the encoder file is read: which
     error the user sees must not depend on which read finishes first."""
     from keo_service.core.errors import DataFormatError
-    from keo_service.io.estimate_files import estimate_files
+    from keo_service.offline.estimate import estimate_files
 
     run = simulate(demo_cell, make_scenario("path", {"duration_s": "2"}), seed=4)
     good_encoder, good_tracker = tmp_path / "encoder.csv", tmp_path / "tracker.csv"
