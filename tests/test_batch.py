@@ -359,7 +359,7 @@ def test_keo_estimate_writes_what_the_streaming_estimator_gives(demo_cell, demo_
     assert np.max(np.abs(table.measured[ok] - want_meas[ok])) < TOL
     assert np.max(np.abs(table.estimate - np.array([r.estimate for r in reference]))) < TOL
     assert table.flags == ["|".join(r.flags) for r in reference]
-    # as DESIGN.md writes them: a held row's measured values and a row without flags empty
+    # as docs/design.md writes them: a held row's measured values and a row without flags empty
     rows = (tmp_path / "e.csv").read_text().splitlines()[1:]
     assert "nan" not in "".join(rows).lower()
     for line, r in zip(rows, reference, strict=True):

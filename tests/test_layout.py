@@ -1,4 +1,4 @@
-"""The package's layout contracts that a user or an outside check relies on (DESIGN.md 8)."""
+"""The package's layout contracts that a user or an outside check relies on (docs/design.md §8)."""
 
 from __future__ import annotations
 
@@ -111,3 +111,20 @@ def test_every_exception_class_derives_from_keo_error():
                     found.append(cls)
     assert len(found) >= 10  # the ten of this writing, and any added since
     assert [c.__qualname__ for c in found if not issubclass(c, KeoError)] == []
+
+
+def test_docstrings_cite_the_design_page_in_the_repository():
+    """The contracts live in docs/design.md: every section cited exists there, and nothing
+    cites a file outside the repository."""
+    import re
+
+    root = CONFIGS.parent
+    sections = set(re.findall(r"^## (\d)\. ", (root / "docs" / "design.md").read_text(), re.M))
+    cited = set()
+    for folder in ("keo_service", "adapters", "tests", "examples"):
+        for path in (root / folder).rglob("*.py"):
+            text = path.read_text()
+            assert "DESIGN" + ".md" not in text, path
+            cited |= set(re.findall(r"docs/design\.md §(\d)", text))
+    assert cited
+    assert cited <= sections, cited - sections
