@@ -7,7 +7,8 @@ comes as a pair, side by side below: a scalar form and an array form that must g
 same verdicts (tests/test_rules.py checks each pair against the other; tests/test_batch.py
 checks the two paths end to end). Changing a rule means changing both forms here. No I/O.
 
-The vocabulary (counters, flags, messages) is part of the contract in docs/design.md §3.
+The words they use (counters, flags, messages) are what a service's status and estimates
+carry to users; the time model behind the waiting and holding is docs/design.md §3.
 """
 
 from __future__ import annotations
