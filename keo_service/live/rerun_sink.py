@@ -61,6 +61,7 @@ COLORS = {"measured": [150, 150, 150], "estimate": [230, 80, 30], "residual": [4
 ROLL_AFTER_S = 600.0  # a new recording file every 10 minutes (wall time)
 WINDOW_S = 30.0  # the plots show the newest this many seconds
 SPEED_PERIOD_S = 0.01  # the tool speed is taken over steps of at least this (<= 100 Hz)
+SCENE_PERIOD_S = 0.1  # the cell is drawn at most this often (stream time: 10 Hz)
 STATUS_SEND_S = 1.0  # status rows are sent in columns this often
 MAX_LOG_MESSAGES_PER_STATUS = 3  # reject messages copied to the text log per status row
 BAND_SE = 2.0  # the delay band: +- this many standard errors
@@ -153,7 +154,7 @@ def blueprint(
             rrb.Horizontal(cell, status, column_shares=[2, 3]),
             rrb.Grid(*errors, grid_columns=3 if len(errors) > 3 else len(errors), name="error"),
             bottom,
-            row_shares=[5, 5, 2],
+            row_shares=[4, 6, 2],
         ),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
@@ -325,7 +326,8 @@ class RerunSink:
         self._speed_p: list[np.ndarray] = []
         self._speed_last: tuple[float, np.ndarray] | None = None
         self._channels: tuple[str, ...] = ()
-        self._latest: Estimate | None = None
+        self._scene: list[Estimate] = []  # estimates to draw the cell at (SCENE_PERIOD_S)
+        self._scene_t = -np.inf
         self._flags: tuple[str, ...] = ()
         self._flag_run = 0
         self._events: list[tuple[float, str, str]] = []  # (t, level, text)
@@ -333,8 +335,8 @@ class RerunSink:
         self._status_events = StatusEvents()
         self._status_rows: dict[str, tuple[list[float], list[list[float]]]] = {}
         self._status_sent = time.monotonic()
-        self._last_t: float | None = None  # stream time of the newest estimate sent
-        self._last_host_s = 0.0  # the host time (s) at which it was sent
+        self._last_t: float | None = None  # stream time of the newest estimate
+        self._last_host_s = 0.0  # the host time (s) at which it came
         self.rows_logged = 0
         self._open()
 
@@ -438,14 +440,18 @@ class RerunSink:
                 self._rec.send_blueprint(self.blueprint(estimate.channels))
                 self._blueprint_channels = tuple(estimate.channels)
         n = len(estimate.channels)
+        self._last_t = estimate.t
+        self._last_host_s = time.time()
         self._t.append(estimate.t)
         self._meas.append(
             estimate.measured if estimate.measured is not None else np.full(n, np.nan)
         )
         self._est.append(estimate.estimate)
         if not estimate.held:
-            self._latest = estimate
             self._speed_sample(estimate)
+            if estimate.joints is not None and estimate.t - self._scene_t >= SCENE_PERIOD_S:
+                self._scene.append(estimate)
+                self._scene_t = estimate.t
         if len(self._t) >= MAX_BATCH:
             self.flush()
 
@@ -476,13 +482,15 @@ class RerunSink:
     # ---- data out --------------------------------------------------------------------------
 
     def flush(self, status: Mapping[str, object] | None = None) -> None:
+        """Send what was collected: errors, the cell, tool speed and events now, status rows
+        once every STATUS_SEND_S. `status`: a snapshot to add first (see `add_status`)."""
+        if status is not None:
+            self.add_status(status)
         if self._t:
             self._roll_if_due()
             self._send_errors()
         self._send_speed()
         self._send_events()
-        if status is not None:
-            self._add_status(status)
         if time.monotonic() - self._status_sent >= STATUS_SEND_S:
             self._send_status()
 
@@ -509,11 +517,10 @@ class RerunSink:
             self._rec.send_columns(entity, indexes=times, columns=rr.Scalars.columns(scalars=both))
         self.rows_logged += len(self._t)
         self._rows_in_file += len(self._t)
-        last_t = self._t[-1]
         self._t, self._meas, self._est = [], [], []
-        self._last_t = last_t
-        self._last_host_s = time.time()
-        self._log_scene(last_t)
+        for estimate in self._scene:
+            self._log_scene(estimate)
+        self._scene = []
 
     def _send_speed(self) -> None:
         if len(self._speed_t) < 2:
@@ -554,7 +561,9 @@ class RerunSink:
         times.append(t)
         rows.append(values)
 
-    def _add_status(self, status: Mapping[str, object]) -> None:
+    def add_status(self, status: Mapping[str, object]) -> None:
+        """A status snapshot: its rows wait for the next send (STATUS_SEND_S), its events
+        go out with the next flush."""
         t = self._status_time(status)
         for level, text in self._status_events.update(status):
             self._events.append((t, level, text))
@@ -582,7 +591,6 @@ class RerunSink:
                 for group, root in (("rejects", REJECTS), ("held", HELD)):
                     for reason, value in per_s[group].items():
                         self._row(f"{root}/{reason}", t, [value])
-        self._send_events()
 
     def _send_status(self) -> None:
         self._status_sent = time.monotonic()
@@ -595,12 +603,11 @@ class RerunSink:
                 )
         self._status_rows = {}
 
-    def _log_scene(self, t: float) -> None:
-        latest = self._latest
-        if latest is None or latest.joints is None or latest.measured is None:
+    def _log_scene(self, latest: Estimate) -> None:
+        if latest.joints is None or latest.measured is None:
             return
         rec = self._rec
-        rec.set_time(TIMELINE, timestamp=t)
+        rec.set_time(TIMELINE, timestamp=latest.t)
         T_bt = tool_pose(self.cell, self._data, latest.joints)
         caps = robot_capsules(self.cell, self._data, latest.joints, T_bt)
         keep = [i for i, k in enumerate(caps.kinds) if not self._meshes or k == "tool"]
