@@ -44,9 +44,9 @@ def wait_port(port: int, timeout: float) -> None:
     raise SystemExit(f"nothing listens on port {port} after {timeout:g} s")
 
 
-def stop(proc: subprocess.Popen[bytes]) -> None:
+def stop(proc: subprocess.Popen[bytes], sig: int = signal.SIGTERM) -> None:
     if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(sig)
         try:
             proc.wait(10)
         except subprocess.TimeoutExpired:
@@ -71,6 +71,7 @@ def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix="keo-shot-"))
     env = dict(os.environ, DISPLAY=display)
     procs: list[subprocess.Popen[bytes]] = []
+    demo = None
     try:
         procs.append(
             subprocess.Popen(
@@ -120,8 +121,8 @@ def main() -> int:
         )
         print(f"{args.out}: {args.out.stat().st_size / 1e3:.0f} kB ({url}; logs in {tmp})")
     finally:
-        for proc in reversed(procs):
-            stop(proc)
+        for proc in reversed(procs):  # the demo as by Ctrl-C: it stops its cell and viewer
+            stop(proc, signal.SIGINT if proc is demo else signal.SIGTERM)
     return 0
 
 

@@ -86,7 +86,9 @@ def run_demo(args: argparse.Namespace) -> int:
     ]
     status = None
     viewer = _open_viewer(args)
-    with process_group(work) as procs:
+    with contextlib.ExitStack() as cleanup, process_group(work) as procs:
+        if viewer is not None:
+            cleanup.callback(viewer.close)  # after the cell, also on Ctrl-C
         rrd = ["--rrd", str(args.rrd.resolve())] if args.rrd is not None else []
         if viewer is not None:
             rrd += ["--viewer", viewer.grpc_url]
@@ -105,8 +107,6 @@ def run_demo(args: argparse.Namespace) -> int:
         except ClientError:
             estimates = []
         codes = procs.close()
-    if viewer is not None:
-        viewer.close()
     summary = _summary(config, args, scenario, estimates, status, codes, t0, work)
     if args.rrd is not None:
         summary["rrd"] = str(args.rrd)

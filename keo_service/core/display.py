@@ -216,3 +216,13 @@ def arrow_factor(robot: RobotModel, share: float = 0.1) -> float:
         if step * decade >= want * 0.999:
             return float(step * decade)
     return float(10.0 * decade)
+
+
+def away_from(vector: np.ndarray, distance: float) -> np.ndarray:
+    """The point `distance` from the origin opposite to `vector` (straight up for a zero
+    vector): where a label goes so that it does not sit on an arrow drawn along `vector`."""
+    v = np.asarray(vector, dtype=float)
+    n = float(np.linalg.norm(v))
+    if n == 0.0:
+        return np.array([0.0, 0.0, distance])
+    return -v * (distance / n)

@@ -204,14 +204,28 @@ class OpenedViewer:
     def close(self) -> None:
         """Stop a web viewer's server (a native viewer's window stays: the person closes it)."""
         proc = self.process
-        if proc is None or self.kind != "web" or proc.poll() is not None:
+        if proc is None or self.kind != "web":
             return
-        proc.terminate()
-        try:
-            proc.wait(5.0)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        # the whole group: `python -m rerun_cli` runs Rerun's binary as its own child
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGTERM)
+        deadline = time.monotonic() + 5.0
+        while _group_alive(proc.pid) and time.monotonic() < deadline:
+            proc.poll()  # reaps the wrapper once it exits
+            time.sleep(0.05)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def has_display() -> bool:
@@ -260,14 +274,15 @@ def open_viewer(
         cli,
         stdin=subprocess.DEVNULL,
         stdout=subprocess.DEVNULL,
-        start_new_session=kind == "native",  # a window outlives keo; the web server does not
-    )
+        start_new_session=True,  # a group of its own: a window outlives keo, and close()
+    )  # stops a web server's group (the wrapper and Rerun's binary)
     deadline = time.monotonic() + VIEWER_START_S
     while not _accepts(host, grpc_port):
         if proc.poll() is not None:
             raise KeoError(f"the Rerun viewer exited with code {proc.returncode} at start")
         if time.monotonic() > deadline:
-            proc.kill()
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
             raise KeoError(f"the Rerun viewer did not listen on {grpc} within {VIEWER_START_S:g} s")
         time.sleep(0.1)

@@ -44,6 +44,7 @@ import rerun.blueprint as rrb
 from keo_service.core.display import (
     Mesh,
     arrow_factor,
+    away_from,
     error_arrow,
     framing_camera,
     link_radius,
@@ -119,9 +120,10 @@ def blueprint(
     window_s: float = WINDOW_S,
     camera: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> rrb.Blueprint:
-    """The layout, for a 1600 x 1000 screen and up: the cell and the status on top, the
-    error plots in two rows of three below (one time window for all, the newest `window_s`
-    seconds), the tool speed and the text log under them; side panels collapsed.
+    """The layout, for a 1600 x 1000 screen and up: the cell, four status plots and the
+    text log on top, the error plots in two rows of three below (tall enough for their y
+    labels; one time window for all, the newest `window_s` seconds), the tool speed under
+    them across the width; side panels collapsed.
     `camera`: (eye, target) in the world frame."""
     errors = [
         _plot(f"/{error_entity(c)}", f"{c} [{UNITS[c[0]]}]", window_s, legend=False)
@@ -144,17 +146,23 @@ def blueprint(
         grid_columns=2,
         name="status",
     )
-    bottom = rrb.Horizontal(
-        _plot(f"/{SPEED}", "tool speed [mm/s]", window_s, legend=False),
-        rrb.TextLogView(origin=f"/{LOG}", name="events"),
-        column_shares=[2, 1],
+    events = rrb.TextLogView(
+        origin=f"/{LOG}",
+        name="events",
+        columns=rrb.TextLogColumns(  # the entity path is always keo/log: room for the text
+            text_log_columns=[
+                rrb.components.TextLogColumn("EntityPath", visible=False),
+                rrb.components.TextLogColumn("LogLevel"),
+                rrb.components.TextLogColumn("Body"),
+            ]
+        ),
     )
     return rrb.Blueprint(
         rrb.Vertical(
-            rrb.Horizontal(cell, status, column_shares=[2, 3]),
+            rrb.Horizontal(cell, status, events, column_shares=[5, 5, 3]),
             rrb.Grid(*errors, grid_columns=3 if len(errors) > 3 else len(errors), name="error"),
-            bottom,
-            row_shares=[4, 6, 2],
+            _plot(f"/{SPEED}", "tool speed [mm/s]", window_s, legend=False),
+            row_shares=[3.6, 6.4, 1.6],
         ),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
@@ -173,9 +181,9 @@ def _group(name: str) -> str | None:
 
 class StatusRates:
     """Rates per second from the service's running counters: differences between status
-    snapshots over their host times. A reason once seen keeps its series (zero when its
-    counter stands still); `total` is always there, so a quiet plot shows a zero line. A
-    counter that went back (a restarted service) starts again from its new value."""
+    snapshots over their host times. A reason gets its series once its counter is above zero
+    and keeps it (zero while the counter stands still); `total` is always there, so a quiet plot
+    shows a zero line. A counter that went back (a restarted service) counts as no step."""
 
     def __init__(self) -> None:
         self._prev: dict[str, int] = {}
@@ -190,9 +198,9 @@ class StatusRates:
         prev, prev_s = self._prev, self._prev_s
         self._prev = dict(counters)
         self._prev_s = now_s
-        for name in counters:
+        for name, value in counters.items():
             group = _group(name)
-            if group is not None:
+            if group is not None and value > 0:
                 self.seen[group].add(name)
         if prev_s is None or now_s <= prev_s:
             return None
@@ -633,16 +641,18 @@ class RerunSink:
                 ),
             )
         r = link_radius(self.cell.robot)
+        factor = self._arrow_factor
+        origin, vector, size = error_arrow(T_bt, np.asarray(latest.measured), factor)
+        # the tool's label on the far side from the arrow, clear of the arrow's own label
+        label_at = T_bt.rotation.T @ away_from(vector, 3 * r)
         rec.log(
             "world/tool",
             rr.Transform3D(
                 translation=T_bt.translation, quaternion=pin.Quaternion(T_bt.rotation).coeffs()
             ),
             rr.TransformAxes3D(2 * r),
-            rr.Points3D([[0.0, 0.0, 0.0]], radii=[0.3 * r], labels=["tool"]),
+            rr.Points3D([label_at], radii=[0.1 * r], labels=["tool"]),
         )
-        factor = self._arrow_factor
-        origin, vector, size = error_arrow(T_bt, np.asarray(latest.measured), factor)
         rec.log(
             "world/error",
             rr.Arrows3D(
