@@ -183,28 +183,58 @@ def test_the_delay_band_is_drawn_when_its_standard_error_is_known(demo_cell, tmp
     assert band.column("Scalars:scalars").to_pylist() == [pytest.approx([25.0, 31.0])]
 
 
-def test_the_text_log_receives_health_changes_and_runs_of_flags(demo_cell, tmp_path):
-    rrd = tmp_path / "h.rrd"
-    sink = RerunSink(demo_cell, rrd=rrd)
-    sink.add(_pose_estimate(10.0))
-    sink.flush(_status(1.0, {}, health="ok"))
-    held = Estimate(10.01, None, [0.0] * 6, ("tracker_gap",), None, POSE_CHANNELS)
-    for i in range(5):
-        sink.add(Estimate(10.01 + i * 0.001, None, [0.0] * 6, held.flags, None, POSE_CHANNELS))
-    sink.add(_pose_estimate(10.02))
-    sink.flush(_status(2.0, {}, health="stale"))
-    sink.flush(_status(3.0, {"encoder_reconnects": 1}, health="ok"))
-    sink.close()
+def _log_entries(rrd: Path) -> list[tuple[str, str]]:
     log = _table(rrd, "/keo/log")
     assert log is not None
     texts = log.column("TextLog:text").to_pylist()
     levels = log.column("TextLog:level").to_pylist()
-    entries = [(lv[0], tx[0]) for lv, tx in zip(levels, texts, strict=True)]
+    return [(lv[0], tx[0]) for lv, tx in zip(levels, texts, strict=True)]
+
+
+def test_the_text_log_receives_health_changes_and_runs_of_flags(demo_cell, tmp_path):
+    rrd = tmp_path / "h.rrd"
+    sink = RerunSink(demo_cell, rrd=rrd)
+    sink.add(_pose_estimate(10.0))
+    now = time.time()  # status snapshots carry the host time; estimates their stream time
+    sink.flush(_status(now + 1.5, {}, health="ok"))
+    held = Estimate(10.01, None, [0.0] * 6, ("tracker_gap",), None, POSE_CHANNELS)
+    for i in range(5):
+        sink.add(Estimate(10.01 + i * 0.001, None, [0.0] * 6, held.flags, None, POSE_CHANNELS))
+    sink.add(_pose_estimate(10.02))
+    sink.flush(_status(now + 3.0, {}, health="stale"))
+    sink.flush(_status(now + 4.5, {"encoder_reconnects": 1}, health="ok"))
+    sink.close()
+    entries = _log_entries(rrd)
     assert ("WARN", "health ok -> stale") in entries
     assert ("INFO", "health stale -> ok") in entries
     assert ("WARN", "flag: tracker_gap") in entries
     assert ("INFO", "tracker_gap ended after 5 steps") in entries
     assert ("WARN", "encoder_reconnects +1 (now 1)") in entries
+
+
+def test_a_flapping_health_is_summed_up_not_listed_change_by_change(demo_cell, tmp_path):
+    rrd = tmp_path / "f.rrd"
+    sink = RerunSink(demo_cell, rrd=rrd)
+    sink.add(_pose_estimate(10.0))
+    now = time.time()
+    for k in range(30):  # 3 s of snapshots at 10 Hz, the health flipping at each
+        sink.add_status(_status(now + 0.1 * k, {}, health="stale" if k % 2 else "ok"))
+    sink.add_status(_status(now + 4.0, {}, health="ok"))  # then it settles
+    sink.close()
+    health = [text for _level, text in _log_entries(rrd) if text.startswith("health")]
+    assert 3 <= len(health) <= 6  # about one a second, not 30
+    assert health[-1].startswith("health stale -> ok")  # the one it settled on
+    assert "changes since the last entry" in " ".join(health)
+    # the flags of held steps that come and go: a run a second at most
+    sink = RerunSink(demo_cell, rrd=tmp_path / "g.rrd")
+    for k in range(200):  # 2 s of stream time, a held step every fifth
+        flags = ("encoder_stale",) if k % 5 == 0 else ()
+        measured = None if flags else [1e-4] * 6
+        sink.add(Estimate(10.0 + 0.01 * k, measured, [1e-4] * 6, flags, None, POSE_CHANNELS))
+    sink.close()
+    starts = [t for _lv, t in _log_entries(tmp_path / "g.rrd") if t.startswith("flag:")]
+    assert len(starts) == 2  # 40 runs in 2 s
+    assert "shorter runs since the last entry not listed" in starts[1]
 
 
 # ---- the scene ------------------------------------------------------------------------------

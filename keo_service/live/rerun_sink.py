@@ -66,6 +66,7 @@ SCENE_PERIOD_S = 0.1  # the cell is drawn at most this often (stream time: 10 Hz
 STATUS_SEND_S = 1.0  # status rows are sent in columns this often
 MAX_LOG_MESSAGES_PER_STATUS = 3  # reject messages copied to the text log per status row
 BAND_SE = 2.0  # the delay band: +- this many standard errors
+EVENT_GAP_S = 1.0  # a flapping health or flag: at most one text log entry this often
 
 UNITS = {"p": "mm", "r": "mrad"}
 # counters that count work done, not trouble: shown as stream rates, not as rejects
@@ -235,9 +236,25 @@ class StatusEvents:
 
     def __init__(self) -> None:
         self._prev: dict[str, Any] | None = None
+        self._health: Any = None  # as last written to the log
+        self._health_at = -np.inf
+        self._flips = 0  # health changes since then, not written
 
-    def update(self, status: Mapping[str, Any]) -> list[tuple[str, str]]:
-        """(level, text) pairs, oldest first."""
+    def _health_event(self, health: Any, previous: Any, t: float) -> list[tuple[str, str]]:
+        """A health that flaps is written at most every EVENT_GAP_S, with how often it
+        changed meanwhile; the health it settles on is always written."""
+        if health != previous:
+            self._flips += 1
+        if health == self._health or t - self._health_at < EVENT_GAP_S:
+            return []
+        text = f"health {self._health} -> {health}"
+        if self._flips > 1:
+            text += f" ({self._flips} changes since the last entry)"
+        self._health, self._health_at, self._flips = health, t, 0
+        return [("INFO" if health == "ok" else "WARN", text)]
+
+    def update(self, status: Mapping[str, Any], t: float = 0.0) -> list[tuple[str, str]]:
+        """(level, text) pairs, oldest first; `t`: the snapshot's time (s)."""
         prev = self._prev
         counters = dict(status.get("counters") or {})
         adapters = status.get("adapters") or {}
@@ -257,11 +274,10 @@ class StatusEvents:
         self._prev = now
         out: list[tuple[str, str]] = []
         if prev is None:
+            self._health, self._health_at = now["health"], t
             out.append(("INFO", f"health {now['health']}"))
             return out
-        if now["health"] != prev["health"]:
-            level = "INFO" if now["health"] == "ok" else "WARN"
-            out.append((level, f"health {prev['health']} -> {now['health']}"))
+        out += self._health_event(now["health"], prev["health"], t)
         for name, state in now["adapters"].items():
             before = prev["adapters"].get(name, {})
             for key, value in state.items():
@@ -338,6 +354,9 @@ class RerunSink:
         self._scene_t = -np.inf
         self._flags: tuple[str, ...] = ()
         self._flag_run = 0
+        self._flag_listed = False  # the current run's start is in the text log
+        self._flag_last: dict[tuple[str, ...], float] = {}  # when each run was last listed
+        self._flag_skipped: dict[tuple[str, ...], int] = {}
         self._events: list[tuple[float, str, str]] = []  # (t, level, text)
         self._rates = StatusRates()
         self._status_events = StatusEvents()
@@ -464,15 +483,28 @@ class RerunSink:
             self.flush()
 
     def _flag_change(self, estimate: Estimate) -> None:
-        """A run of flagged steps begins or ends: one text log entry each, not one per step."""
+        """A run of flagged steps begins or ends: one text log entry each, not one per step;
+        a run that begins within EVENT_GAP_S of the last one listed is counted instead, and
+        the next one listed says how many were left out."""
         old, new = self._flags, estimate.flags
-        if old:
+        if old and self._flag_listed:
             self._events.append(
                 (estimate.t, "INFO", f"{', '.join(old)} ended after {self._flag_run} steps")
             )
+        self._flag_listed = False
         if new:
-            level = "INFO" if new == ("outside_calibrated_range",) else "WARN"
-            self._events.append((estimate.t, level, f"flag: {', '.join(new)}"))
+            last = self._flag_last.get(new)
+            if last is None or estimate.t - last >= EVENT_GAP_S:
+                level = "INFO" if new == ("outside_calibrated_range",) else "WARN"
+                text = f"flag: {', '.join(new)}"
+                skipped = self._flag_skipped.pop(new, 0)
+                if skipped:
+                    text += f" ({skipped} shorter runs since the last entry not listed)"
+                self._events.append((estimate.t, level, text))
+                self._flag_last[new] = estimate.t
+                self._flag_listed = True
+            else:
+                self._flag_skipped[new] = self._flag_skipped.get(new, 0) + 1
         self._flags = new
         self._flag_run = 0 if not new else 1
 
@@ -573,7 +605,7 @@ class RerunSink:
         """A status snapshot: its rows wait for the next send (STATUS_SEND_S), its events
         go out with the next flush."""
         t = self._status_time(status)
-        for level, text in self._status_events.update(status):
+        for level, text in self._status_events.update(status, t):
             self._events.append((t, level, text))
         delay = status.get("delay_s")
         if isinstance(delay, float | int):
