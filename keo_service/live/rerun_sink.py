@@ -126,10 +126,7 @@ def blueprint(
     labels; one time window for all, the newest `window_s` seconds), the tool speed under
     them across the width; side panels collapsed.
     `camera`: (eye, target) in the world frame."""
-    errors = [
-        _plot(f"/{error_entity(c)}", f"{c} [{UNITS[c[0]]}]", window_s, legend=False)
-        for c in channels
-    ]
+    errors = [_plot(f"/{error_entity(c)}", f"{c} [{UNITS[c[0]]}]", window_s) for c in channels]
     eye = None
     if camera is not None:
         eye = rrb.EyeControls3D(
@@ -544,7 +541,7 @@ class RerunSink:
                 self._rec.log(
                     entity,
                     rr.SeriesLines(
-                        names=["measured", "estimate", "residual (measured - estimate)"],
+                        names=["measured", "estimate", "residual"],
                         colors=[COLORS["measured"], COLORS["estimate"], COLORS["residual"]],
                         widths=[1.0, 2.0, 1.0],
                         visible_series=[True, True, False],
