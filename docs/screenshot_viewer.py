@@ -1,7 +1,7 @@
 """Look at the live view as a person would: run `keo demo` with Rerun's web viewer, open the
 page in Chromium on a virtual screen and photograph the screen into docs/viewer.png.
 
-    python docs/screenshot_viewer.py [--out docs/viewer.png] [--size 1600x1000] [--after 22]
+    python docs/screenshot_viewer.py [--out docs/viewer.png] [--size 1600x1000] [--after 45]
 
 Needs Xvfb, Chromium and ImageMagick (Debian: apt-get install chromium imagemagick xvfb).
 Not part of the test suite. WebGL runs on the CPU (SwiftShader through ANGLE): Chromium's
@@ -58,7 +58,13 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "viewer.png")
     parser.add_argument("--size", default="1600x1000")
-    parser.add_argument("--after", type=float, default=24.0, help="seconds of demo before")
+    parser.add_argument(
+        "--after",
+        type=float,
+        default=45.0,
+        help="seconds of demo before the shot (past the plots' 30 s, the start-up swing has "
+        "scrolled out; on a busy machine the picture also lags behind)",
+    )
     parser.add_argument("--robot", default="mh180")
     parser.add_argument("--colors", type=int, default=128, help="palette of the PNG")
     args = parser.parse_args()

@@ -406,8 +406,8 @@ class RerunSink:
     # ---- the static scene ----------------------------------------------------------------
 
     def _framing(self) -> tuple[np.ndarray, np.ndarray]:
-        """Camera (eye, target) that frames the robot at its zero pose (or mid-range where
-        zero is outside its limits), its reach around the base and the tracker."""
+        """Camera (eye, target) that frames the robot at its zero pose (clipped into its
+        joint limits), its base and the tracker."""
         robot = self.cell.robot
         q = np.clip(np.zeros(robot.nq), robot.lower, robot.upper)
         T_bt = tool_pose(self.cell, self._data, q)
