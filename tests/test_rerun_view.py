@@ -212,6 +212,29 @@ def test_the_text_log_receives_health_changes_and_runs_of_flags(demo_cell, tmp_p
     assert ("WARN", "encoder_reconnects +1 (now 1)") in entries
 
 
+def test_adapter_reconnections_and_clock_resets_reach_the_text_log(demo_cell, tmp_path):
+    """As an adapter reports itself in the service's status: its counters (a lost
+    connection counted as `disconnects`) and its clock (domain, epoch: a fresh start)."""
+    rrd = tmp_path / "a.rrd"
+    sink = RerunSink(demo_cell, rrd=rrd)
+    sink.add(_pose_estimate(10.0))
+    now = time.time()
+
+    def adapter(disconnects: int, epoch: int) -> dict[str, object]:
+        counters = {"disconnects": disconnects, "frames": 1000 * epoch}
+        return {"encoder": {"counters": counters, "clock": {"domain": "device", "epoch": epoch}}}
+
+    sink.add_status(_status(now + 1.0, {}) | {"adapters": adapter(0, 0)})
+    sink.add_status(_status(now + 2.0, {}) | {"adapters": adapter(1, 1)})
+    sink.close()
+    entries = _log_entries(rrd)
+    assert ("WARN", "encoder.disconnects +1 (now 1)") in entries
+    assert ("WARN", "encoder: clock epoch 0 -> 1") in entries
+    assert not any("frames" in text for _lv, text in entries)  # throughput is no event
+    rates = _table(rrd, "/keo/status/rejects_per_s/encoder.disconnects")
+    assert rates is not None  # and the loss is drawn as a rate
+
+
 def test_a_flapping_health_is_summed_up_not_listed_change_by_change(demo_cell, tmp_path):
     rrd = tmp_path / "f.rrd"
     sink = RerunSink(demo_cell, rrd=rrd)

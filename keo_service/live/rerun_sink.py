@@ -214,7 +214,7 @@ class StatusRates:
 
 
 def adapter_counters(adapters: Mapping[str, Any]) -> dict[str, int]:
-    """The adapters' own trouble counters, named '<adapter>:<counter>' (throughput left out)."""
+    """The adapters' own trouble counters, named '<adapter>.<counter>' (throughput left out)."""
     out: dict[str, int] = {}
     for name, doc in adapters.items():
         counters = doc.get("counters") if isinstance(doc, Mapping) else None
@@ -222,7 +222,7 @@ def adapter_counters(adapters: Mapping[str, Any]) -> dict[str, int]:
             continue
         for key, value in counters.items():
             if isinstance(value, int) and not any(w in key for w in THROUGHPUT_WORDS):
-                out[f"{name}:{key}"] = value
+                out[f"{name}.{key}"] = value
     return out
 
 
@@ -306,8 +306,10 @@ def _adapter_state(doc: Mapping[str, Any]) -> dict[str, Any]:
         if key in doc:
             out[key] = doc[key]
     clock = doc.get("clock")
-    if isinstance(clock, Mapping) and "epoch" in clock:
-        out["clock epoch"] = clock["epoch"]
+    if isinstance(clock, Mapping):
+        for key in ("domain", "epoch"):  # the epoch counts the clock's fresh starts
+            if key in clock:
+                out[f"clock {key}"] = clock[key]
     return out
 
 
