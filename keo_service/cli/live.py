@@ -37,8 +37,56 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     config = common.load(args.config)
     _setup_logging(args.verbose, args.log_format)
-    asyncio.run(run_service(config, rrd=args.rrd, viewer=args.viewer))
+    viewer, opened = args.viewer, None
+    if viewer in VIEWER_KINDS:  # a bare --viewer (auto), native or web: open one
+        from keo_service.live.rerun_process import open_viewer
+
+        opened = open_viewer(viewer, args.viewer_port, args.web_port, args.viewer_bind)
+        viewer = opened.grpc_url
+        print(f"keo run: Rerun {opened.kind} viewer at {opened.url}", file=sys.stderr, flush=True)
+    try:
+        asyncio.run(
+            run_service(config, rrd=args.rrd, viewer=viewer, viewer_window_s=args.viewer_window)
+        )
+    finally:
+        if opened is not None:
+            opened.close()
     return 0
+
+
+VIEWER_KINDS = ("auto", "native", "web")  # as keo_service.live.rerun_process.VIEWER_KINDS
+
+
+def add_viewer_options(p: argparse.ArgumentParser, url: bool) -> None:
+    """`--viewer` and its ports, for keo run (`url`: it also takes a viewer's URL) and demo."""
+    p.add_argument(
+        "--viewer",
+        nargs="?",
+        const="auto",
+        metavar="URL|native|web" if url else "native|web",
+        help=(
+            "stream to a running Rerun viewer at URL, e.g. rerun+http://127.0.0.1:9876/proxy; "
+            if url
+            else ""
+        )
+        + "bare: open one (a native window when there is a display, else the web viewer "
+        "served on localhost, its URL printed); native or web: that one",
+    )
+    p.add_argument(
+        "--viewer-port", type=int, default=9876, help="the opened viewer's gRPC port (9876)"
+    )
+    p.add_argument("--web-port", type=int, default=9090, help="the web viewer's page port (9090)")
+    p.add_argument(
+        "--viewer-bind",
+        default="127.0.0.1",
+        help="address the opened viewer listens on (127.0.0.1; 0.0.0.0 for other machines)",
+    )
+    p.add_argument(
+        "--viewer-window",
+        type=float,
+        metavar="SECONDS",
+        help="the plots show the newest SECONDS of data (30)",
+    )
 
 
 def cmd_adapter(args: argparse.Namespace) -> int:
@@ -255,11 +303,7 @@ def cmd_router(args: argparse.Namespace) -> int:
 def register(add: common.AddCommand) -> None:
     p = add("run", cmd_run, "the service (daemon)")
     p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
-    p.add_argument(
-        "--viewer",
-        metavar="URL",
-        help="stream to a running Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy",
-    )
+    add_viewer_options(p, url=True)
     p.add_argument(
         "--log-format",
         choices=["auto", "text", "json"],
