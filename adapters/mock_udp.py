@@ -6,7 +6,8 @@ millisecond clock (RSI's IPOC, EGM's header.tm: `clock_offset_ms` plus the scena
 the send instant jittered by up to `jitter_ms`. An answer counts as late when it arrives more
 than one cycle after its datagram went out, or never; after `max_late` late answers in a row
 the controller stops the robot as the real one does (RSI's late-packet limit, EGM's comm
-timeout) and sends no more.
+timeout) and sends no more. `drop_probability` loses datagrams on the way (the counter goes
+on, as the controller's does).
 
 With `corrector` given, the controller applies the latest correction it received (the tool
 frame transform [x y z (m), rotation vector (rad)]) as RSI's absolute TCP correction or EGM's
@@ -64,8 +65,10 @@ class MockUdpController:
         corrector: Corrector | None = None,
         seed: int = 0,
         loop_play: bool = False,
+        drop_probability: float = 0.0,
     ) -> None:
         self.track = track
+        self.drop_probability = drop_probability  # datagrams lost on the way to keo
         self.host, self.port, self.t0 = host, port, t0
         self.cycle_ms = cycle_ms
         self.jitter_s = jitter_ms * 1e-3
@@ -156,6 +159,10 @@ class MockUdpController:
                 q = self.corrector(q, self.correction)
             counter = self.clock_offset_ms + round(k * self.cycle_ms)
             self._history.append((t_scn, self.correction.copy()))
+            if self.drop_probability and self.rng.uniform() < self.drop_probability:
+                self.counters["dropped"] += 1
+                k += 1
+                continue
             self._pending[counter] = time.perf_counter_ns()
             self._transport.sendto(self.datagram(counter, k, q))
             self.counters["sent"] += 1

@@ -23,7 +23,7 @@ import logging
 import math
 import threading
 import time
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import zenoh
@@ -131,12 +131,18 @@ class _Datagrams(asyncio.DatagramProtocol):
         self.transport: asyncio.DatagramTransport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.DatagramTransport)
-        self.transport = transport
+        self.transport = cast(asyncio.DatagramTransport, transport)
 
     def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
-        assert self.transport is not None
-        self.owner.on_datagram(data, addr, self.transport)
+        if self.transport is None:
+            return
+        try:
+            self.owner.on_datagram(data, addr, self.transport)
+        except Exception as exc:  # a bug, not bad input (the codecs count that): stop loudly
+            log.exception("encoder: internal failure on a datagram")
+            self.transport.close()
+            self.transport = None
+            self.owner._fail(exc)
 
     def error_received(self, exc: Exception) -> None:
         self.owner.counters["socket_errors"] += 1
@@ -151,6 +157,7 @@ class UdpEncoderAdapter(EncoderAdapter):
     def _declare(self, session: zenoh.Session) -> None:
         self._declare_publishers(session)
         self.clock = ClockMapper()
+        self.clock_domain = str(self.config.robot.clock or "device")
         self.clock_epoch = 0
         self._steps_seen = 0
         self._peer: tuple[str | Any, int] | None = None
@@ -238,7 +245,7 @@ class UdpEncoderAdapter(EncoderAdapter):
         self._track_cycle(device_ms)
         device_t = device_ms * 1e-3
         receipt = host_ns * 1e-9
-        domain = self.config.robot.clock
+        domain = self.clock_domain
         if domain == "receipt":
             return receipt, device_t
         if domain == "shared":
@@ -263,7 +270,7 @@ class UdpEncoderAdapter(EncoderAdapter):
                     seq=self._seq,
                     q=q[: self.nq],
                     device_t=device_t,
-                    clock=str(self.config.robot.clock),
+                    clock=self.clock_domain,
                     clock_epoch=self.clock_epoch,
                 )
             )
