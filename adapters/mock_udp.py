@@ -83,6 +83,7 @@ class MockUdpController:
         self._history: collections.deque[tuple[float, np.ndarray]] = collections.deque(maxlen=4096)
         self.stopped = asyncio.Event()
         self.stop_reason = ""
+        self.cycles = (-1, -1)  # the first and last cycle sent
         self._pending: dict[int, int] = {}  # counter -> send time (perf_counter_ns)
         self._answered: set[int] = set()
         self._consecutive_late = 0
@@ -127,6 +128,18 @@ class MockUdpController:
         """The programmed joints at `scenario_t` (before any correction)."""
         return np.array([np.interp(scenario_t, self.track.t, c) for c in self.track.q.T])
 
+    def summary(self) -> dict[str, object]:
+        """What the controller saw, for logs and tests: answers, late ones, round trips."""
+        return {
+            "protocol": self.protocol,
+            "counters": dict(self.counters),
+            "cycles": self.cycles[1] - self.cycles[0] + 1 if self.cycles[0] >= 0 else 0,
+            "rtt_p50_ms": self.rtt_percentile(50) * 1e3,
+            "rtt_p99_ms": self.rtt_percentile(99) * 1e3,
+            "rtt_max_ms": max(self.rtt_s, default=math.nan) * 1e3,
+            "stopped": self.stop_reason,
+        }
+
     def rtt_percentile(self, p: float) -> float:
         return float(np.percentile(np.array(self.rtt_s), p)) if self.rtt_s else math.nan
 
@@ -166,6 +179,7 @@ class MockUdpController:
             self._pending[counter] = time.perf_counter_ns()
             self._transport.sendto(self.datagram(counter, k, q))
             self.counters["sent"] += 1
+            self.cycles = (self.cycles[0] if self.cycles[0] >= 0 else k, k)
             k += 1
 
     def _judge_previous(self) -> None:

@@ -151,6 +151,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
         await server.start()
         await stop.wait()
         await server.close()
+        if hasattr(server, "summary"):  # the UDP controllers: what they saw, as one JSON line
+            sys.stdout.write(json.dumps(server.summary()) + "\n")
 
     asyncio.run(main())
     return 0
