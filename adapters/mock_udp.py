@@ -80,6 +80,7 @@ class MockUdpController:
         self.counters: collections.Counter[str] = collections.Counter()
         self.rtt_s: collections.deque[float] = collections.deque(maxlen=200_000)
         self.correction = np.zeros(6)
+        self.received: collections.deque[np.ndarray] = collections.deque(maxlen=100_000)
         self._history: collections.deque[tuple[float, np.ndarray]] = collections.deque(maxlen=4096)
         self.stopped = asyncio.Event()
         self.stop_reason = ""
@@ -221,6 +222,7 @@ class MockUdpController:
             self._consecutive_late = 0
         if correction is not None and self.corrector is not None:
             self.correction = correction
+            self.received.append(correction)
 
     # -- per protocol ----------------------------------------------------------------------
 

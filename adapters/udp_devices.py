@@ -37,17 +37,18 @@ from keo_service.live.messages import CorrectionMessage, JointSample, decode, en
 log = logging.getLogger("keo.adapter")
 
 DEFAULT_CYCLE_S = 0.004
-CORRECTION_MAX_AGE_S = 0.5  # a correction older than this is not applied (ramps to zero)
+CORRECTION_MAX_AGE_S = 0.1  # one older than this (since receipt) is not applied: ramps to zero
 REPLY_WINDOW = 1000
 
 
 class CorrectionOutput:
     """The latest `keo/<cell>/correction`, clamped by `[compensation]`, as the reply carries it.
 
-    The magnitude is clamped to max_mm / max_mrad; the change per reply to max_rate_mm_s
-    (position, mm/s) and the same number in mrad/s (rotation), so that neither a new
-    correction nor a fall to zero (invalid or stale) steps the robot's path. Zenoh delivers
-    on its own thread: the latest message is swapped in under a lock, read in the callback."""
+    The magnitude is clamped to max_mm / max_mrad; the change per answer to max_rate_mm_s
+    (position, mm/s) and the same number in mrad/s (rotation) times the controller's cycle,
+    so that neither a new correction nor a fall to zero (invalid or stale) steps the path.
+    Zenoh delivers on its own thread: the latest message is swapped in under a lock, read in
+    the datagram callback."""
 
     def __init__(self, limits: Any) -> None:
         self.max_m = limits.max_mm * 1e-3
@@ -57,7 +58,6 @@ class CorrectionOutput:
         self._lock = threading.Lock()
         self._latest: tuple[CorrectionMessage, float] | None = None
         self._sent = np.zeros(6)
-        self._last_t: float | None = None
         self.reason = "no correction received"
 
     def on_payload(self, payload: bytes) -> None:
@@ -101,15 +101,15 @@ class CorrectionOutput:
                 self.counters["correction_clamped"] += 1
         return values
 
-    def next(self, now: float) -> np.ndarray:
-        """The correction to send now: [x y z (m), rotation vector (rad)] in the tool frame."""
+    def next(self, now: float, cycle_s: float = DEFAULT_CYCLE_S) -> np.ndarray:
+        """The correction to send now: [x y z (m), rotation vector (rad)] in the tool frame.
+        It changes by at most the rate limit times the controller's cycle per answer: the
+        robot applies one answer per cycle, whatever time passed on this side."""
         target = self._target(now)
-        dt = DEFAULT_CYCLE_S if self._last_t is None else min(max(now - self._last_t, 0.0), 0.1)
-        self._last_t = now
         step = target - self._sent
+        limit = self.rate * cycle_s
         for part in (slice(0, 3), slice(3, 6)):
             norm = float(np.linalg.norm(step[part]))
-            limit = self.rate * max(dt, 1e-4)
             if norm > limit:
                 step[part] *= limit / norm
                 self.counters["correction_rate_limited"] += 1
@@ -208,7 +208,9 @@ class UdpEncoderAdapter(EncoderAdapter):
                 log.info("encoder: controller now at %s:%d (was %s:%d)", *addr, *self._peer)
                 self.new_session()
             self._peer = addr
-        correction = self.correction.next(time.monotonic()) if self.correction is not None else None
+        correction = None
+        if self.correction is not None:
+            correction = self.correction.next(time.monotonic(), self.cycle_s)
         transport.sendto(self.reply(frame, correction), addr)
         took_us = (time.perf_counter_ns() - start) * 1e-3
         self.reply_us.append(took_us)

@@ -14,19 +14,24 @@ from types import SimpleNamespace
 
 import msgspec
 import numpy as np
+import pinocchio as pin
 import pytest
 from scipy.spatial.transform import Rotation
 
 from adapters import abb_egm, kuka_rsi
-from adapters.devices import encoder_adapter_for
+from adapters.devices import TrackerAdapter, encoder_adapter_for
 from adapters.egm import egm_pb2
-from adapters.mock_udp import MockEgmController, MockRsiController
+from adapters.mock_udp import LiveTracker, MockEgmController, MockRsiController
 from adapters.udp_devices import CorrectionOutput, rkorr_of
 from keo_service.bench.demo import loopback_config
 from keo_service.bench.procs import process_group
+from keo_service.core.kinematics import pose_error, quat_wxyz, tool_pose
 from keo_service.io.config import CompensationConfig, config_to_toml
 from keo_service.live.bus import open_session, session_for_client
+from keo_service.live.client import Client
 from keo_service.live.messages import CorrectionMessage, JointSample, decode, encode, topic
+from keo_service.live.service import KeoService
+from keo_service.sim.controller import tool_corrector
 from keo_service.sim.simulate import make_scenario, simulate
 from tests import egm_peer
 from tests.test_live import GAIN, check_converged, collect
@@ -368,7 +373,7 @@ async def test_the_controller_stops_the_robot_after_n_late_answers():
         finally:
             await mock.close()
     # judged at each next send: a send delayed by the machine may judge two at once
-    assert 10 <= mock.counters["late"] == mock.counters["sent"] <= 12
+    assert 10 <= mock.counters["late"] <= mock.counters["sent"] <= mock.counters["late"] + 1
     assert mock.counters["answered"] == 0
     assert "10 late answers" in mock.stop_reason
 
@@ -414,9 +419,13 @@ async def test_the_live_correction_reaches_the_controller_clamped_and_zero_when_
     assert small == pytest.approx([0.001, -0.002, 0.0005, 0.002, -0.001, 0.0015], abs=2e-8)
     assert large == pytest.approx([0.005, 0, 0, 0, 0, -0.005], abs=2e-8)  # [compensation] 5/5
     assert invalid == pytest.approx([0.0] * 6, abs=1e-12)
-    steps = np.diff(np.array(received)[:, :3], axis=0)
-    # 50 mm/s at 4 ms: 0.2 mm a cycle at most (a cycle late under load: twice that)
-    assert np.linalg.norm(steps, axis=1).max() < 0.00045
+    assert received  # the corrector ran
+    steps = np.linalg.norm(np.diff(np.array(mock.received)[:, :3], axis=0), axis=1)
+    # 50 mm/s at 4 ms: 0.2 mm per answer; the controller sees more only across answers it
+    # judged late and dropped (a loaded machine)
+    dropped = mock.counters["stray_replies"] + mock.counters["unanswered"]
+    assert steps.max() <= 0.0002 * (1 + dropped) + 1e-9
+    assert np.sum(steps > 0.0002 + 1e-9) <= dropped
     counters = status["correction"]["counters"]
     assert counters["correction_clamped"] > 0
     assert counters["correction_invalid"] > 0
@@ -441,7 +450,7 @@ def test_joints_over_rsi_and_egm_to_an_estimate_with_every_reply_in_the_cycle(
     truth = run.truth.mean(axis=0)
     cfg = tmp_path / "udp.toml"
     cfg.write_text(config_to_toml(config))
-    t0 = time.time() + 5.0
+    t0 = time.time() + 8.0  # five processes start on two cores (~4 s unloaded)
     play = ["--scenario", "paper-step", "--seed", "2", "--t0", repr(t0)]
     play += ["--duration", repr(duration)]
     with process_group(tmp_path) as procs:
@@ -472,3 +481,130 @@ def test_joints_over_rsi_and_egm_to_an_estimate_with_every_reply_in_the_cycle(
     assert adapter["counters"]["replies"] >= counters["answered"]
     assert adapter["protocol"] == protocol
     assert adapter["decoder"].get("rejected", 0) == 0
+
+
+# ---- the correction loop --------------------------------------------------------------------
+
+
+def _inverse(error: np.ndarray) -> tuple[list[float], list[float]]:
+    """C = T_ts^-1 for the error [p; rotation vector]: what keo's compensation sends as its
+    feedback part (here computed by the test, standing in for the service's publisher)."""
+    R = Rotation.from_rotvec(error[3:6])
+    inverse = R.inv()
+    return (-inverse.apply(error[:3])).tolist(), inverse.as_rotvec().tolist()
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("protocol", ["kuka_rsi", "abb_egm"])
+async def test_the_correction_loop_takes_a_constant_2_mm_2_mrad_error_below_0_05(
+    demo_config, demo_cell, protocol
+):
+    """The robot's tool is off by a constant 2 mm / 2 mrad (tool frame). keo's service
+    estimates it from the joints (over RSI / EGM) and a tracker that sees the true tool; the
+    inverse of each estimate goes out as keo/<cell>/correction (published here by the test:
+    the service's own publisher is the compensation work, merged separately); the adapter
+    sends it in the protocol's terms; the controller mock moves the joints so that its nominal
+    tool is the programmed pose times the correction, and the tracker sees the true tool move.
+    The remaining error of the true tool against the programmed pose ends below 0.05 mm and
+    0.05 mrad."""
+    error = np.array([1.2e-3, -1.0e-3, 1.2e-3, 1.0e-3, 1.5e-3, -0.6e-3])
+    error[:3] *= 2e-3 / np.linalg.norm(error[:3])
+    error[3:] *= 2e-3 / np.linalg.norm(error[3:])
+    E = pin.SE3(pin.exp3(error[3:]), error[:3])
+    config = udp_config(demo_config, protocol, correction=protocol)
+    observer = msgspec.structs.replace(config.observer, gain=[GAIN] * 6)
+    timing = msgspec.structs.replace(config.timing, delay_s=0.0)
+    config = msgspec.structs.replace(config, observer=observer, timing=timing)
+    cell = demo_cell
+    data = cell.robot.create_data()
+    seconds = 7.0
+    t = np.linspace(0.0, seconds + 1.0, 801)
+    home = np.array([0.0, 0.3, 0.1, 0.0, -0.6, 0.0])
+    track = SimpleNamespace(
+        t=t, q=np.column_stack([home[k] + 0.01 * np.sin(0.5 * t + k) for k in range(6)])
+    )
+    T_kb = cell.T_bk.inverse()
+    mock = MOCKS[protocol](track, "127.0.0.1", config.robot.port, corrector=tool_corrector(cell))
+
+    def true_tool(scenario_t: float) -> pin.SE3:
+        programmed = tool_pose(cell, data, mock.joints_at(scenario_t))
+        c = mock.correction_at(scenario_t)
+        return programmed * pin.SE3(pin.exp3(c[3:]), c[:3]) * E
+
+    def seen(scenario_t: float) -> tuple[list[float], list[float]]:
+        T_ks = T_kb * true_tool(scenario_t)
+        return T_ks.translation.tolist(), quat_wxyz(T_ks.rotation).tolist()
+
+    published = 0
+
+    async def compensate(pub) -> None:
+        nonlocal published
+        async with Client.from_config(config, connect_timeout_s=20) as keo:
+            async for est in keo.estimates():
+                if est.measured is None:
+                    continue
+                translation, rotation = _inverse(np.array(est.estimate))
+                pub.put(
+                    encode(
+                        CorrectionMessage(
+                            stamp=est.stamp,
+                            host_ns=time.time_ns(),
+                            seq=est.seq,
+                            translation=translation,
+                            rotation=rotation,
+                            feedback_translation=translation,
+                            feedback_rotation=rotation,
+                            feedforward_translation=[0.0] * 3,
+                            feedforward_rotation=[0.0] * 3,
+                            valid=True,
+                        )
+                    )
+                )
+                published += 1
+
+    async with KeoService(config):
+        publisher = session_for_client(config, retry_for=20)
+        pub = publisher.declare_publisher(topic(config.cell, "correction"))
+        t0 = time.time() + 1.0
+        mock.t0 = t0
+        tracker = LiveTracker(seen, "127.0.0.1", config.tracker.port, t0=t0, rate_hz=100.0)
+        await tracker.start()
+        try:
+            async with (
+                encoder_adapter_for(config)(config, 6) as adapter,
+                TrackerAdapter(config, 6),
+            ):
+                await mock.start()
+                loop_task = asyncio.create_task(compensate(pub))
+                await asyncio.sleep(t0 + seconds - time.time())
+                status = adapter.status()
+                loop_task.cancel()
+                await asyncio.gather(loop_task, return_exceptions=True)
+                end = (time.time() - t0) - 0.05
+                await mock.close()
+        finally:
+            await tracker.close()
+            pub.undeclare()
+            publisher.close()
+    programmed = tool_pose(cell, data, mock.joints_at(end))
+    remaining = pose_error(programmed, true_tool(end))
+    first = pose_error(tool_pose(cell, data, mock.joints_at(0.0)), true_tool(0.0))
+    print(
+        json.dumps(
+            {
+                "protocol": protocol,
+                "published": published,
+                "before_mm": np.linalg.norm(first[:3]) * 1e3,
+                "remaining_mm": np.linalg.norm(remaining[:3]) * 1e3,
+                "remaining_mrad": np.linalg.norm(remaining[3:]) * 1e3,
+                "correction": status["correction"],
+                "controller": mock.summary(),
+            }
+        )
+    )
+    assert published > 20  # ~100 a second; fewer when the machine is loaded
+    assert np.linalg.norm(first[:3]) == pytest.approx(2e-3, rel=1e-6)  # before: uncorrected
+    assert np.linalg.norm(first[3:]) == pytest.approx(2e-3, rel=1e-6)
+    assert np.linalg.norm(remaining[:3]) < 0.05e-3
+    assert np.linalg.norm(remaining[3:]) < 0.05e-3
+    assert not mock.stopped.is_set()
