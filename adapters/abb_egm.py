@@ -12,7 +12,9 @@ them to keo's units and checks them. Pure codec: bytes in, typed frames out, no 
   correction is the identity pose.
 
 Sequence numbers are checked: a repeated or older seqno is refused, a jump forward counts the
-datagrams lost in between (`lost`) and the gap (`seq_gap`).
+datagrams lost in between (`lost`) and the gap (`seq_gap`); three refused in a row mean the
+controller counts anew (a restart, a new EGM session): the third is accepted and `restarts`
+counted.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from keo_service.core.rejects import RejectLog
 
 MAX_DATAGRAM = 8192  # an EgmRobot with every field is ~400 bytes
 SEQ_MOD = 2**32
+RESTART_AFTER = 3  # this many refused seqnos in a row: the controller counts anew
 _HALF = 2**31
 
 
@@ -102,10 +105,12 @@ class EgmCodec:
         self.counters = self._rejects.counters
         self.messages = self._rejects.messages
         self._last_seq: int | None = None
+        self._behind = 0
 
     def reset(self) -> None:
         """A new controller session: the sequence check starts over."""
         self._last_seq = None
+        self._behind = 0
 
     def _check_seq(self, seqno: int) -> bool:
         if self._last_seq is None:
@@ -115,7 +120,14 @@ class EgmCodec:
         if step == 0 or step >= _HALF:
             reason = "duplicate" if step == 0 else "out_of_order"
             self._rejects.reject(reason, f"seqno {seqno} after {self._last_seq}")
+            self._behind += 1
+            if self._behind >= RESTART_AFTER:
+                # the controller started counting anew (restart, a new EGM session)
+                self._rejects.note("restarts", f"seqno restarted at {seqno}")
+                self._last_seq, self._behind = seqno, 0
+                return True
             return False
+        self._behind = 0
         if step > 1:
             self.counters["seq_gap"] += 1
             self.counters["lost"] += step - 1

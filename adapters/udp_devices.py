@@ -30,9 +30,16 @@ import zenoh
 from scipy.spatial.transform import Rotation
 
 from adapters import abb_egm, kuka_rsi
-from adapters.devices import EncoderAdapter
+from adapters.devices import ROBOT_STATUS_PERIOD_S, EncoderAdapter
 from keo_service.core.clock import ClockMapper
-from keo_service.live.messages import CorrectionMessage, JointSample, decode, encode, topic
+from keo_service.live.messages import (
+    CorrectionMessage,
+    JointSample,
+    RobotStatus,
+    decode,
+    encode,
+    topic,
+)
 
 log = logging.getLogger("keo.adapter")
 
@@ -200,10 +207,13 @@ class UdpEncoderAdapter(EncoderAdapter):
     ) -> None:
         start = time.perf_counter_ns()
         host_ns = time.time_ns()
+        new_peer = addr != self._peer
+        if new_peer:
+            self.expect_new_peer()
         frame = self.decode(data)
         if frame is None:
             return
-        if addr != self._peer:
+        if new_peer:
             if self._peer is not None:
                 log.info("encoder: controller now at %s:%d (was %s:%d)", *addr, *self._peer)
                 self.new_session()
@@ -219,6 +229,9 @@ class UdpEncoderAdapter(EncoderAdapter):
         if took_us * 1e-6 > self.cycle_s:
             self.counters["late_replies"] += 1
         self.publish(frame, host_ns)
+
+    def expect_new_peer(self) -> None:
+        """A datagram from an address not seen last: the codec judges it on its own."""
 
     def new_session(self) -> None:
         """The controller restarted or another one took over: a new time base."""
@@ -327,6 +340,11 @@ class KukaRsiAdapter(UdpEncoderAdapter):
     protocol = "kuka_rsi"
 
     def _declare(self, session: zenoh.Session) -> None:
+        if self.nq != 6:
+            raise ValueError(
+                f"robot.urdf has {self.nq} joints; RSI's AIPos reports A1..A6 (external axes "
+                "E1..E6 go to the status)"
+            )
         super()._declare(session)
         self.codec = kuka_rsi.RsiCodec()
         self.external_axes: list[float] | None = None
@@ -371,15 +389,23 @@ class AbbEgmAdapter(UdpEncoderAdapter):
         self._last_tm: int | None = None
         self.external_axes: list[float] | None = None
         self.robot_state: dict[str, bool | None] = {}
+        self._status_at = -math.inf
+
+    def expect_new_peer(self) -> None:
+        self.codec.reset()  # another socket: its sequence numbers are its own
 
     def new_session(self) -> None:
         super().new_session()
-        self.codec.reset()
         self._tm_wraps = 0
         self._last_tm = None
 
     def decode(self, data: bytes) -> abb_egm.EgmRobotFrame | None:
-        return self.codec.parse_robot(data)
+        restarts = self.codec.counters["restarts"]
+        frame = self.codec.parse_robot(data)
+        if self.codec.counters["restarts"] != restarts:
+            log.info("encoder: the EGM controller counts anew: a new time base")
+            self.new_session()
+        return frame
 
     def reply(self, frame: abb_egm.EgmRobotFrame, correction: np.ndarray | None) -> bytes:
         self._sent_seq += 1
@@ -397,13 +423,30 @@ class AbbEgmAdapter(UdpEncoderAdapter):
         self._last_tm = frame.tm_ms
         if frame.external is not None:
             self.external_axes = list(frame.external)
-        self.robot_state = {
+        state = {
             "motors_on": frame.motors_on,
             "egm_running": frame.egm_running,
             "rapid_running": frame.rapid_running,
         }
         device_ms = float(frame.tm_ms + self._tm_wraps * 2**32)
         self.put_joints(list(frame.joints_rad), device_ms, host_ns)
+        now = host_ns * 1e-9
+        if state != self.robot_state or now - self._status_at >= ROBOT_STATUS_PERIOD_S:
+            self.robot_state, self._status_at = state, now
+            self._status_pub.put(
+                encode(
+                    RobotStatus(
+                        host_ns=host_ns,
+                        drives_powered=int(bool(frame.motors_on)),
+                        e_stopped=0,  # EGM does not tell
+                        error_code=0,
+                        in_error=0,
+                        in_motion=0,
+                        mode=0,
+                        motion_possible=int(bool(frame.motors_on and frame.egm_running)),
+                    )
+                )
+            )
 
     def status(self) -> dict[str, Any]:
         return {

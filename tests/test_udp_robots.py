@@ -16,6 +16,8 @@ import msgspec
 import numpy as np
 import pinocchio as pin
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from adapters import abb_egm, kuka_rsi
@@ -169,6 +171,13 @@ def test_egm_robot_from_the_peer_decodes_to_radians_and_counts_gaps():
     assert codec.counters["duplicate"] == 1
     assert codec.parse_robot(egm_peer.robot_datagram(9, 123464, joints)) is None
     assert codec.counters["out_of_order"] == 1
+    assert codec.parse_robot(egm_peer.robot_datagram(11, 123472, joints)) is not None
+    # a controller that counts anew: refused twice, then taken as a restart
+    assert codec.parse_robot(egm_peer.robot_datagram(1, 50, joints)) is None
+    assert codec.parse_robot(egm_peer.robot_datagram(2, 54, joints)) is None
+    assert codec.parse_robot(egm_peer.robot_datagram(3, 58, joints)) is not None
+    assert codec.counters["restarts"] == 1
+    assert codec.parse_robot(egm_peer.robot_datagram(4, 62, joints)) is not None
     # the uint32 sequence number wraps
     codec.reset()
     assert codec.parse_robot(egm_peer.robot_datagram(2**32 - 1, 1, joints)) is not None
@@ -608,3 +617,76 @@ async def test_the_correction_loop_takes_a_constant_2_mm_2_mrad_error_below_0_05
     assert np.linalg.norm(remaining[:3]) < 0.05e-3
     assert np.linalg.norm(remaining[3:]) < 0.05e-3
     assert not mock.stopped.is_set()
+
+
+# ---- fuzzing: nothing escapes, every reject counted ----------------------------------------------
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=2000))
+def test_random_bytes_never_raise_in_either_codec(data):
+    rsi, egm = kuka_rsi.RsiCodec(), abb_egm.EgmCodec()
+    frame = rsi.parse_rob(data)
+    assert frame is not None or rsi.counters["rejected"] == 1
+    robot = egm.parse_robot(data)
+    assert robot is not None or egm.counters["rejected"] == 1
+    if robot is not None:
+        assert all(math.isfinite(v) for v in robot.joints_rad)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.floats(allow_nan=True, allow_infinity=True), min_size=6, max_size=6),
+    st.integers(0, 2**64 - 1),
+)
+def test_any_rob_values_are_read_back_or_refused_as_non_finite(axes, ipoc):
+    rsi = kuka_rsi.RsiCodec()
+    frame = rsi.parse_rob(kuka_rsi.format_rob(ipoc, axes))
+    if all(math.isfinite(v) for v in axes):
+        assert frame is not None
+        assert frame.axes_deg == tuple(axes)  # repr round-trips every double
+        assert frame.ipoc == ipoc
+    else:
+        assert frame is None
+        assert rsi.counters["non_finite"] == 1
+
+
+@pytest.mark.parametrize("protocol", ["kuka_rsi", "abb_egm"])
+async def test_a_restarted_controller_starts_a_new_clock_epoch(demo_config, protocol):
+    """A controller that restarts (new socket, its counter from a new value, EGM's seqno from
+    0 again) is followed: its samples carry the next clock epoch, none is refused for good."""
+    config = udp_config(demo_config, protocol)
+    service_side = open_session("peer", listen=config.bus.listen)
+    samples: list[JointSample] = []
+    sub = service_side.declare_subscriber(
+        topic(config.cell, "encoder"), lambda s: samples.append(decode(s.payload.to_bytes()))
+    )
+    try:
+        async with encoder_adapter_for(config)(config, 6) as adapter:
+            await asyncio.sleep(0.3)
+            for offset_ms in (9_000_000, 1_000):  # the second: counting from near zero
+                mock = MOCKS[protocol](
+                    slow_track(0.6),
+                    "127.0.0.1",
+                    config.robot.port,
+                    t0=time.time() + 0.1,
+                    clock_offset_ms=offset_ms,
+                    max_late=1_000_000,
+                )
+                await mock.start()
+                await asyncio.sleep(0.9)
+                await mock.close()
+            status = adapter.status()
+    finally:
+        sub.undeclare()
+        service_side.close()
+    epochs = [s.clock_epoch for s in samples]
+    first = [s for s in samples if s.device_t > 1000.0]
+    second = [s for s in samples if s.device_t < 1000.0]
+    assert len(first) > 100
+    assert len(second) > 100
+    assert {s.clock_epoch for s in first} == {0}
+    assert {s.clock_epoch for s in second} == {1}
+    assert epochs == sorted(epochs)
+    assert status["counters"]["sessions"] == 1
+    assert status["decoder"].get("rejected", 0) == 0

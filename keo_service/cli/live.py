@@ -55,9 +55,9 @@ def cmd_adapter(args: argparse.Namespace) -> int:
     _setup_logging(args.verbose)
     robot = robot_from_config(config)
     nq = robot.nq
-    if args.device == "encoder" and config.robot.protocol == "rtde" and nq != 6:
+    if args.device == "encoder" and config.robot.protocol in ("rtde", "kuka_rsi") and nq != 6:
         raise ConfigError(
-            config.source, "robot.urdf", f"{nq} joints; a UR controller (rtde) reports 6"
+            config.source, "robot.urdf", f"{nq} joints; {config.robot.protocol} reports 6"
         )
 
     def make() -> Any:
