@@ -109,6 +109,11 @@ class MockUdpController:
             self.t0,
         )
 
+    async def played(self, timeout: float) -> None:
+        """Until the scenario is played to its end (or the robot stopped)."""
+        if self._task is not None:
+            await asyncio.wait({self._task}, timeout=timeout)
+
     async def close(self) -> None:
         if self._task is not None:
             self._task.cancel()

@@ -322,7 +322,8 @@ async def test_adapter_answers_every_cycle_and_stamps_from_the_controller_clock(
         async with encoder_adapter_for(config)(config, 6) as adapter:
             await asyncio.sleep(0.3)  # the server is up before the controller starts
             await mock.start()
-            await asyncio.sleep(t0 + seconds + 0.3 - time.time())
+            await mock.played(timeout=t0 + seconds + 10.0 - time.time())
+            await asyncio.sleep(0.2)  # the last answers and samples
             status = adapter.status()
             await mock.close()
     finally:
@@ -366,9 +367,21 @@ async def test_adapter_answers_every_cycle_and_stamps_from_the_controller_clock(
     lag = np.array([s.t for s in samples]) - (t0 + scenario_t)
     late_part = lag[scenario_t > 1.0]
     jitter = np.percentile(np.abs(late_part - np.median(late_part)), 99)
-    print(json.dumps({"stamp_lag_median_ms": np.median(late_part) * 1e3, "p99_ms": jitter * 1e3}))
+    receipt = (np.array([s.host_ns for s in samples]) * 1e-9 - (t0 + scenario_t))[scenario_t > 1.0]
+    receipt_jitter = np.percentile(np.abs(receipt - np.median(receipt)), 99)
+    print(
+        json.dumps(
+            {
+                "stamp_lag_median_ms": np.median(late_part) * 1e3,
+                "p99_ms": jitter * 1e3,
+                "receipt_p99_ms": receipt_jitter * 1e3,
+            }
+        )
+    )
     assert 0.0 <= np.median(late_part) < 0.005
-    assert jitter < 0.003
+    # below 0.15 ms on a quiet machine; under a heavy load the receipt times scatter by tens
+    # of ms and the mapping keeps a third of that at most
+    assert jitter < max(0.003, receipt_jitter / 3)
 
 
 async def test_the_controller_stops_the_robot_after_n_late_answers():
