@@ -6,8 +6,9 @@ millisecond clock (RSI's IPOC, EGM's header.tm: `clock_offset_ms` plus the scena
 the send instant jittered by up to `jitter_ms`. An answer counts as late when it arrives more
 than one cycle after its datagram went out, or never; after `max_late` late answers in a row
 the controller stops the robot as the real one does (RSI's late-packet limit, EGM's comm
-timeout) and sends no more. `drop_probability` loses datagrams on the way (the counter goes
-on, as the controller's does).
+timeout) and sends no more. Judging starts with the sensor's first answer: before it, the
+controller waits for the sensor (unanswered datagrams are only counted).
+`drop_probability` loses datagrams on the way (the counter goes on, as the controller's does).
 
 With `corrector` given, the controller applies the latest correction it received (the tool
 frame transform [x y z (m), rotation vector (rad)]) as RSI's absolute TCP correction or EGM's
@@ -189,12 +190,17 @@ class MockUdpController:
             k += 1
 
     def _judge_previous(self) -> None:
-        """Every datagram older than one cycle without its answer is late (counted once)."""
+        """Every datagram older than one cycle without its answer is late (counted once);
+        before the sensor's first answer they are only counted (the controller waits for the
+        sensor to come up, as a program that starts RSI/EGM once the sensor runs)."""
         now = time.perf_counter_ns()
         limit = self.cycle_ms * 1e6
         for counter, sent in list(self._pending.items()):
             if now - sent > limit:
                 del self._pending[counter]
+                if not self.counters["answered"]:
+                    self.counters["unanswered_before_first"] += 1
+                    continue
                 self.counters["late"] += 1
                 self.counters["unanswered"] += 1
                 self._late()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import re
 import socket
 import time
 import xml.etree.ElementTree as ET
@@ -28,7 +29,7 @@ from adapters.udp_devices import CorrectionOutput, rkorr_of
 from keo_service.bench.demo import loopback_config
 from keo_service.bench.procs import process_group
 from keo_service.core.kinematics import pose_error, quat_wxyz, tool_pose
-from keo_service.io.config import CompensationConfig, config_to_toml
+from keo_service.io.config import CompensationConfig, config_to_toml, load_config
 from keo_service.live.bus import open_session, session_for_client
 from keo_service.live.client import Client
 from keo_service.live.messages import CorrectionMessage, JointSample, decode, encode, topic
@@ -36,6 +37,7 @@ from keo_service.live.service import KeoService
 from keo_service.sim.controller import tool_corrector
 from keo_service.sim.simulate import make_scenario, simulate
 from tests import egm_peer
+from tests.conftest import write_config
 from tests.test_live import GAIN, check_converged, collect
 
 FIXTURES = Path(__file__).parent / "fixtures" / "kuka_rsi"
@@ -385,19 +387,41 @@ async def test_adapter_answers_every_cycle_and_stamps_from_the_controller_clock(
 
 
 async def test_the_controller_stops_the_robot_after_n_late_answers():
-    """Nobody answers: after max_late cycles without an answer the mock stops, as RSI does."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
-        silent.bind(("127.0.0.1", 0))
-        mock = MockRsiController(slow_track(5.0), "127.0.0.1", silent.getsockname()[1], max_late=10)
-        await mock.start()
-        try:
-            await asyncio.wait_for(mock.stopped.wait(), timeout=3.0)
-        finally:
-            await mock.close()
+    """A sensor that answers five datagrams, then falls silent: after max_late cycles without
+    an answer the mock stops the robot, as RSI does."""
+
+    class FiveAnswers(asyncio.DatagramProtocol):
+        def __init__(self) -> None:
+            self.seen = 0
+            self.codec = kuka_rsi.RsiCodec()
+
+        def connection_made(self, transport):
+            self.transport = transport
+
+        def datagram_received(self, data, addr):
+            self.seen += 1
+            frame = self.codec.parse_rob(data)
+            if frame is not None and self.seen <= 5:
+                self.transport.sendto(kuka_rsi.format_sen(frame.ipoc), addr)
+
+    loop = asyncio.get_running_loop()
+    transport, sensor = await loop.create_datagram_endpoint(
+        FiveAnswers, local_addr=("127.0.0.1", 0)
+    )
+    mock = MockRsiController(
+        slow_track(5.0), "127.0.0.1", transport.get_extra_info("sockname")[1], max_late=10
+    )
+    await mock.start()
+    try:
+        await asyncio.wait_for(mock.stopped.wait(), timeout=5.0)
+    finally:
+        await mock.close()
+        transport.close()
+    assert mock.counters["answered"] == 5
     # judged at each next send: a send delayed by the machine may judge two at once
-    assert 10 <= mock.counters["late"] <= mock.counters["sent"] <= mock.counters["late"] + 1
-    assert mock.counters["answered"] == 0
+    assert 10 <= mock.counters["late"] <= mock.counters["sent"] - 5 <= mock.counters["late"] + 1
     assert "10 late answers" in mock.stop_reason
+    assert sensor.seen == mock.counters["sent"]
 
 
 @pytest.mark.parametrize("protocol", ["kuka_rsi", "abb_egm"])
@@ -546,7 +570,13 @@ async def test_the_correction_loop_takes_a_constant_2_mm_2_mrad_error_below_0_05
         t=t, q=np.column_stack([home[k] + 0.01 * np.sin(0.5 * t + k) for k in range(6)])
     )
     T_kb = cell.T_bk.inverse()
-    mock = MOCKS[protocol](track, "127.0.0.1", config.robot.port, corrector=tool_corrector(cell))
+    mock = MOCKS[protocol](
+        track,
+        "127.0.0.1",
+        config.robot.port,
+        corrector=tool_corrector(cell),
+        max_late=1_000_000,  # the deadline is judged with the adapter in its own process
+    )
 
     def true_tool(scenario_t: float) -> pin.SE3:
         programmed = tool_pose(cell, data, mock.joints_at(scenario_t))
@@ -699,7 +729,32 @@ async def test_a_restarted_controller_starts_a_new_clock_epoch(demo_config, prot
     assert len(first) > 100
     assert len(second) > 100
     assert {s.clock_epoch for s in first} == {0}
-    assert {s.clock_epoch for s in second} == {1}
+    # (a machine stalled at the new start can make the clock mapping relearn once more)
+    assert min(s.clock_epoch for s in second) == 1
     assert epochs == sorted(epochs)
     assert status["counters"]["sessions"] == 1
     assert status["decoder"].get("rejected", 0) == 0
+
+
+def test_the_documented_configs_load(tmp_path):
+    """docs/robots.md's config examples are valid keo configs with the documented meaning."""
+    text = (Path(__file__).parent.parent / "docs" / "robots.md").read_text()
+    blocks = re.findall(r"```toml\n(.*?)```", text, re.S)
+    assert len(blocks) == 2
+    loaded = []
+    for i, block in enumerate(blocks):
+        body = re.sub(r'urdf = ".*?"', 'urdf = "@ROBOTS@/mh180.urdf"', block)
+        loaded.append(load_config(write_config(tmp_path, body, f"doc{i}.toml")))
+    rsi, egm = (c.robot for c in loaded)
+    assert (rsi.protocol, rsi.port, rsi.clock, rsi.correction) == (
+        "kuka_rsi",
+        49152,
+        "device",
+        "kuka_rsi",
+    )
+    assert (egm.protocol, egm.port, egm.clock, egm.correction) == (
+        "abb_egm",
+        6510,
+        "device",
+        "abb_egm",
+    )
