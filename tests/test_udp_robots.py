@@ -294,7 +294,7 @@ MOCKS = {"kuka_rsi": MockRsiController, "abb_egm": MockEgmController}
 async def test_adapter_answers_every_cycle_and_stamps_from_the_controller_clock(
     demo_config, protocol
 ):
-    """3 s at 250 Hz with 0.5 ms send jitter and 2 % of the datagrams lost on the way: every
+    """3 s at 250 Hz with 3 ms send jitter and 2 % of the datagrams lost on the way: every
     datagram answered, the lost ones counted as missed cycles, joints in rad, the stamps the
     controller's milliseconds mapped onto the host clock. Mock, adapter and subscriber share
     this process: the reply deadline is judged in the end-to-end test, where the adapter has
@@ -308,7 +308,7 @@ async def test_adapter_answers_every_cycle_and_stamps_from_the_controller_clock(
         "127.0.0.1",
         config.robot.port,
         t0=t0,
-        jitter_ms=0.5,
+        jitter_ms=3.0,
         clock_offset_ms=offset_ms,
         external=[1250.0, 0.0, 0.0, 0.0, 0.0, 0.0],
         drop_probability=0.02,
@@ -381,9 +381,11 @@ async def test_adapter_answers_every_cycle_and_stamps_from_the_controller_clock(
         )
     )
     assert 0.0 <= np.median(late_part) < 0.005
-    # below 0.15 ms on a quiet machine; under a heavy load the receipt times scatter by tens
-    # of ms and the mapping keeps a third of that at most
-    assert jitter < max(0.003, receipt_jitter / 3)
+    # the sends scatter by up to 3 ms after the controller's instants: the receipt times carry
+    # that, the mapped stamps much less (0.1-0.3 ms on a quiet machine; a machine stalled
+    # for most of a second spoils both, the mapped ones less)
+    assert receipt_jitter > 0.001
+    assert jitter < 0.5 * receipt_jitter
 
 
 async def test_the_controller_stops_the_robot_after_n_late_answers():
