@@ -90,6 +90,32 @@ def _pair(text: str | None, option: str) -> tuple[float, float] | None:
     return a, b
 
 
+def _udp_controller(args: argparse.Namespace, config: Any, protocol: str, run: Any) -> Any:
+    """The RSI or EGM controller side, sending to keo's server (the config's robot host and
+    port); with `robot.correction` naming the protocol it applies the corrections it gets."""
+    from adapters.mock_udp import MockEgmController, MockRsiController
+    from keo_service.io.cell import cell_from_config
+    from keo_service.sim.controller import tool_corrector
+
+    cls = MockRsiController if protocol == "kuka_rsi" else MockEgmController
+    port = args.port or (config.robot.endpoint_port if config.robot.protocol == protocol else 0)
+    corrector = (
+        tool_corrector(cell_from_config(config)) if config.robot.correction == protocol else None
+    )
+    return cls(
+        run.encoder,
+        args.host or config.robot.host,
+        port or (49152 if protocol == "kuka_rsi" else 6510),
+        args.t0,
+        cycle_ms=args.cycle_ms,
+        jitter_ms=args.jitter_ms,
+        max_late=args.max_late,
+        corrector=corrector,
+        seed=args.seed,
+        loop_play=args.loop,
+    )
+
+
 def cmd_mock(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -156,32 +182,6 @@ def cmd_mock(args: argparse.Namespace) -> int:
 
     asyncio.run(main())
     return 0
-
-
-def _udp_controller(args: argparse.Namespace, config: Any, protocol: str, run: Any) -> Any:
-    """The RSI or EGM controller side, sending to keo's server (the config's robot host and
-    port); with `robot.correction` naming the protocol it applies the corrections it gets."""
-    from adapters.mock_udp import MockEgmController, MockRsiController
-    from keo_service.io.cell import cell_from_config
-    from keo_service.sim.controller import tool_corrector
-
-    cls = MockRsiController if protocol == "kuka_rsi" else MockEgmController
-    port = args.port or (config.robot.endpoint_port if config.robot.protocol == protocol else 0)
-    corrector = (
-        tool_corrector(cell_from_config(config)) if config.robot.correction == protocol else None
-    )
-    return cls(
-        run.encoder,
-        args.host or config.robot.host,
-        port or (49152 if protocol == "kuka_rsi" else 6510),
-        args.t0,
-        cycle_ms=args.cycle_ms,
-        jitter_ms=args.jitter_ms,
-        max_late=args.max_late,
-        corrector=corrector,
-        seed=args.seed,
-        loop_play=args.loop,
-    )
 
 
 def cmd_echo(args: argparse.Namespace) -> int:
