@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 from adapters import abb_egm, kuka_rsi
 from adapters.line_protocol import format_hello, format_pose
 from adapters.mock_devices import JointTrack
+from adapters.realtime import request_realtime
 
 log = logging.getLogger("keo.mock")
 
@@ -67,7 +68,9 @@ class MockUdpController:
         seed: int = 0,
         loop_play: bool = False,
         drop_probability: float = 0.0,
+        realtime: bool = False,
     ) -> None:
+        self.realtime = realtime  # ask for real-time scheduling, as a controller has
         self.track = track
         self.drop_probability = drop_probability  # datagrams lost on the way to keo
         self.host, self.port, self.t0 = host, port, t0
@@ -86,6 +89,7 @@ class MockUdpController:
         self.stopped = asyncio.Event()
         self.stop_reason = ""
         self.cycles = (-1, -1)  # the first and last cycle sent
+        self.late_at: list[int] = []  # scenario ms of the first 50 late answers
         self._pending: dict[int, int] = {}  # counter -> send time (perf_counter_ns)
         self._answered: set[int] = set()
         self._consecutive_late = 0
@@ -145,6 +149,7 @@ class MockUdpController:
             "rtt_p99_ms": self.rtt_percentile(99) * 1e3,
             "rtt_max_ms": max(self.rtt_s, default=math.nan) * 1e3,
             "stopped": self.stop_reason,
+            "late_at_ms": self.late_at,
         }
 
     def rtt_percentile(self, p: float) -> float:
@@ -155,6 +160,8 @@ class MockUdpController:
     async def _run(self) -> None:
         assert self.t0 is not None
         assert self._transport is not None
+        if self.realtime:
+            log.info("mock %s controller: %s", self.protocol, request_realtime())
         cycle_s = self.cycle_ms * 1e-3
         t_end = float(self.track.t[-1])
         start = self.t0
@@ -203,9 +210,11 @@ class MockUdpController:
                     continue
                 self.counters["late"] += 1
                 self.counters["unanswered"] += 1
-                self._late()
+                self._late(counter)
 
-    def _late(self) -> None:
+    def _late(self, counter: int) -> None:
+        if len(self.late_at) < 50:
+            self.late_at.append(counter - self.clock_offset_ms)  # scenario ms
         self._consecutive_late += 1
         if self._consecutive_late >= self.max_late and not self.stopped.is_set():
             self.stop_reason = f"{self._consecutive_late} late answers in a row"
@@ -228,7 +237,7 @@ class MockUdpController:
         self.counters["answered"] += 1
         if rtt > self.cycle_ms * 1e-3:
             self.counters["late"] += 1
-            self._late()
+            self._late(counter)
         else:
             self._consecutive_late = 0
         if correction is not None and self.corrector is not None:

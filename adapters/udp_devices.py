@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from adapters import abb_egm, kuka_rsi
 from adapters.devices import ROBOT_STATUS_PERIOD_S, EncoderAdapter
+from adapters.realtime import request_realtime
 from keo_service.core.clock import ClockMapper
 from keo_service.live.messages import (
     CorrectionMessage,
@@ -157,9 +158,12 @@ class _Datagrams(asyncio.DatagramProtocol):
 
 
 class UdpEncoderAdapter(EncoderAdapter):
-    """The shared part: socket, stamps, reply timing, corrections, status."""
+    """The shared part: socket, stamps, reply timing, corrections, status. With `realtime`
+    set (keo adapter encoder sets it) the event loop's thread asks for real-time scheduling."""
 
     protocol = ""
+    realtime = False
+    scheduling = "normal"
 
     def _declare(self, session: zenoh.Session) -> None:
         self._declare_publishers(session)
@@ -188,6 +192,9 @@ class UdpEncoderAdapter(EncoderAdapter):
 
     async def _run(self) -> None:
         robot = self.config.robot
+        if self.realtime:
+            self.scheduling = request_realtime()
+            log.info("encoder: answering thread: %s", self.scheduling)
         loop = asyncio.get_running_loop()
         transport, _ = await loop.create_datagram_endpoint(
             lambda: _Datagrams(self), local_addr=(robot.host, robot.endpoint_port)
@@ -308,6 +315,7 @@ class UdpEncoderAdapter(EncoderAdapter):
                 "max": self.reply_max_us,
             },
             "cycle_ms": self.cycle_s * 1e3,
+            "scheduling": self.scheduling,
             "clock": dataclasses.asdict(self.clock.state()),
             "clock_epoch": self.clock_epoch,
             "correction": None if self.correction is None else self.correction.state(),

@@ -65,7 +65,9 @@ def cmd_adapter(args: argparse.Namespace) -> int:
             return tracker_adapter_for(config)(config, nq)
         if config.robot.protocol == "ros2":
             return Ros2JointStateAdapter(config, list(robot.joint_names))
-        return encoder_adapter_for(config)(config, nq)
+        adapter: Any = encoder_adapter_for(config)(config, nq)
+        adapter.realtime = True  # the UDP servers (RSI, EGM) answer within the cycle
+        return adapter
 
     async def main() -> None:
         async with make() as adapter:
@@ -113,6 +115,7 @@ def _udp_controller(args: argparse.Namespace, config: Any, protocol: str, run: A
         corrector=corrector,
         seed=args.seed,
         loop_play=args.loop,
+        realtime=True,
     )
 
 
