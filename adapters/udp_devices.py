@@ -302,6 +302,12 @@ class UdpEncoderAdapter(EncoderAdapter):
     def rejects_short(self, n: int) -> None:
         self.counters["too_few_joints"] += 1
         self.counters["rejected"] += 1
+        if self.counters["too_few_joints"] == 1:  # the same every cycle: said once
+            log.warning(
+                "encoder: the controller sends %d joints, robot.urdf has %d: samples dropped",
+                n,
+                self.nq,
+            )
 
     def status(self) -> dict[str, Any]:
         replies = np.array(self.reply_us) if self.reply_us else np.zeros(1)
