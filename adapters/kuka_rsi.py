@@ -27,6 +27,7 @@ import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
+from keo_service.core.errors import KeoError
 from keo_service.core.rejects import RejectLog
 
 MAX_DATAGRAM = 8192  # a full RSI document with every standard element is ~1.5 kB
@@ -102,7 +103,7 @@ def format_rob(
     return ET.tostring(root, encoding="unicode").encode("ascii")
 
 
-class _RefusedError(ValueError):
+class _RefusedError(KeoError, ValueError):
     def __init__(self, reason: str, message: str) -> None:
         super().__init__(message)
         self.reason = reason
