@@ -1,0 +1,127 @@
+"""Live corrections on the wire: `keo/<cell>/correction` (CorrectionMessage) for each estimate
+and, with ROS 2 on, `/keo/<cell>/correction` (geometry_msgs/msg/PoseStamped). The math is
+`keo_service.core.compensation`; this module only builds it from the config and moves it.
+
+For controller interfaces that send a correction with each reply (UR RTDE registers, KUKA
+RSI, ABB EGM): `correction_to_send(latest, config.compensation)` gives the translation (m) and
+rotation vector (rad) to send now, in the tool frame, for the right of the commanded tool
+pose (T_cmd = T_goal * C); zero when none was received, it is not valid or it is older than
+`max_age_s`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from keo_service.core.compensation import CompensationLimits, CorrectionFilter
+from keo_service.core.compensation import correction_to_send as _to_send
+from keo_service.core.estimator import OUTSIDE_CALIBRATED_RANGE, Estimate
+from keo_service.core.kinematics import error_as_pose
+from keo_service.io.compensation_files import tool_model
+from keo_service.io.config import CompensationConfig, Config
+from keo_service.live.messages import CorrectionMessage, encode, topic
+
+__all__ = ["CorrectionPublisher", "correction_to_send", "limits_of"]
+
+log = logging.getLogger("keo.compensation")
+MAX_AGE_S = 0.1  # a correction older than this is not applied by the controller interfaces
+
+
+def limits_of(compensation: CompensationConfig, max_age_s: float = MAX_AGE_S) -> CompensationLimits:
+    return CompensationLimits.from_config_values(
+        compensation.max_mm, compensation.max_mrad, compensation.max_rate_mm_s, max_age_s
+    )
+
+
+def correction_to_send(
+    latest: CorrectionMessage | None,
+    compensation: CompensationConfig,
+    now_ns: int | None = None,
+    max_age_s: float = MAX_AGE_S,
+) -> tuple[list[float], list[float]]:
+    """(translation m, rotation vector rad) to send to the controller now; see the module."""
+    return _to_send(
+        latest, limits_of(compensation, max_age_s), time.time_ns() if now_ns is None else now_ns
+    )
+
+
+def correction_topic(cell: str) -> str:
+    """The ROS 2 topic of a cell's correction."""
+    return f"/keo/{cell}/correction"
+
+
+class CorrectionPublisher:
+    """Turns each estimate into a CorrectionMessage and puts it on the bus (and ROS 2)."""
+
+    def __init__(self, config: Config, session: zenoh.Session, ros2_node: Any = None) -> None:
+        model = tool_model(config)
+        self.cell = config.cell
+        self.filter = CorrectionFilter(
+            limits_of(config.compensation), model if model.corrections is not None else None
+        )
+        self._pub = session.declare_publisher(topic(config.cell, "correction"), express=True)
+        self._ros2 = None
+        self._types: Any = None
+        if ros2_node is not None:
+            from keo_service.live.ros2 import POSE_STAMPED
+
+            self._types = ros2_node.store.types
+            self._ros2 = ros2_node.publisher(correction_topic(config.cell), POSE_STAMPED)
+        self.seq = 0
+        self.failures = 0
+        self.latest: CorrectionMessage | None = None
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {**self.filter.counters, "corrections_publish_failed": self.failures}
+
+    def message(self, estimate: Estimate) -> CorrectionMessage:
+        reason = ""
+        if estimate.held:
+            reason = estimate.flags[0] if estimate.flags else "held"
+        elif OUTSIDE_CALIBRATED_RANGE in estimate.flags:
+            reason = OUTSIDE_CALIBRATED_RANGE
+        c = self.filter.step(estimate.t, estimate.estimate_values(), estimate.joints, reason)
+        self.seq += 1
+        return CorrectionMessage(
+            stamp=estimate.t,
+            host_ns=time.time_ns(),
+            seq=self.seq,
+            translation=c.translation.tolist(),
+            rotation=c.rotation.tolist(),
+            feedback_translation=c.feedback[0].tolist(),
+            feedback_rotation=c.feedback[1].tolist(),
+            feedforward_translation=c.feedforward[0].tolist(),
+            feedforward_rotation=c.feedforward[1].tolist(),
+            valid=c.valid,
+            reason=c.reason,
+            clamped=c.clamped,
+        )
+
+    def publish(self, estimate: Estimate) -> CorrectionMessage:
+        msg = self.message(estimate)
+        self.latest = msg
+        try:
+            self._pub.put(encode(msg))
+        except zenoh.ZError as exc:  # counted; the next one may pass
+            self.failures += 1
+            if self.failures == 1 or self.failures % 1000 == 0:
+                log.warning("publishing a correction failed (%d so far): %s", self.failures, exc)
+        if self._ros2 is not None:
+            from keo_service.io.ros2_messages import pose_stamped, tool_frame
+
+            p, q = error_as_pose(np.array([*msg.translation, *msg.rotation]))
+            assert q is not None
+            self._ros2.publish(
+                pose_stamped(self._types, msg.stamp, tool_frame(self.cell), p.tolist(), q.tolist()),
+                source_ns=msg.host_ns,
+            )
+        return msg
+
+    def close(self) -> None:
+        self._pub.undeclare()
