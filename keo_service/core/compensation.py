@@ -267,29 +267,43 @@ def nominal_inverse(
     model: ToolModel, R_goal: np.ndarray, p_goal: np.ndarray, seeds: np.ndarray | None
 ) -> Solution:
     """Joints at which the nominal robot puts its tool on each goal: from the given seeds,
-    else from each of `seed_candidates` in turn for the rows not yet solved."""
+    else from each of `seed_candidates` in turn for the rows without a good answer yet. A
+    good answer converged within the joint limits and, when the model has joint maps, within
+    their calibrated range (another branch of the inverse may be); a solution beyond the
+    joint limits is no solution."""
     if seeds is not None:
         return solve(model, R_goal, p_goal, seeds, identified=False)
     robot = model.robot
+
+    def rank(sol: Solution) -> np.ndarray:
+        within = np.all((sol.q >= robot.lower) & (sol.q <= robot.upper), axis=1)
+        solved = sol.converged & within
+        out: np.ndarray = 2 * solved + (solved & ~model.outside_calibrated_range(sol.q))
+        return out
+
     n = p_goal.shape[0]
     best: Solution | None = None
+    best_rank = np.zeros(n, dtype=int)
     for seed in seed_candidates(model.robot):
-        todo = np.arange(n) if best is None else np.flatnonzero(~best.converged)
+        todo = np.arange(n) if best is None else np.flatnonzero(best_rank < 3)
         if todo.size == 0:
             break
         sol = solve(
             model, R_goal[todo], p_goal[todo], np.tile(seed, (todo.size, 1)), identified=False
         )
-        # a solution beyond the joint limits is no solution: the next seed tries again
-        sol.converged &= np.all((sol.q >= robot.lower) & (sol.q <= robot.upper), axis=1)
+        r = rank(sol)
         if best is None:
-            best = sol
+            best, best_rank = sol, r
             continue
-        better = sol.converged | (sol.residual_m < best.residual_m[todo])
+        better = (r > best_rank[todo]) | (
+            (r == best_rank[todo]) & (r == 0) & (sol.residual_m < best.residual_m[todo])
+        )
         rows = todo[better]
+        best_rank[rows] = r[better]
         for name in ("q", "converged", "residual_m", "residual_rad", "iterations"):
             getattr(best, name)[rows] = getattr(sol, name)[better]
     assert best is not None
+    best.converged &= best_rank >= 2
     return best
 
 
@@ -312,6 +326,7 @@ def compensate(
     seeds: np.ndarray | None,
     direction: np.ndarray | None = None,
     seeds_are_nominal: bool = False,
+    max_iterations: int = 60,
 ) -> Compensated:
     """For every goal pose: the nominal inverse (from `seeds` when given; `seeds_are_nominal`
     when the seeds already are that inverse, as for a joint program), then the joints at which
@@ -323,7 +338,7 @@ def compensate(
     else:
         nom = nominal_inverse(model, R_goal, p_goal, seeds)
         start, nominal_ok = nom.q, nom.residual_m < UNREACHABLE_M
-    sol = solve(model, R_goal, p_goal, start, identified=True, direction=direction)
+    sol = solve(model, R_goal, p_goal, start, True, direction, max_iterations)
     R_cmd, p_cmd = model.poses(sol.q, identified=False)
     corr_rad = np.linalg.norm(pose_residual(R_cmd, p_cmd, R_goal, p_goal)[:, 3:], axis=1)
     ratio = singular_ratio(model, sol.q, True, direction)
