@@ -18,13 +18,8 @@ import numpy as np
 import polars as pl
 from scipy.spatial.transform import Rotation
 
-from keo_service.core.compensation import (
-    FLAGS,
-    Compensated,
-    CompensationLimits,
-    ToolModel,
-    compensate,
-)
+from keo_service.core.compensation import FLAGS, Compensated, ToolModel, compensate
+from keo_service.core.correction import CompensationLimits
 from keo_service.core.corrections import approach_directions
 from keo_service.core.errors import ConfigError, DataFormatError
 from keo_service.core.kinematics import se3_from_xyz_rpy

@@ -18,11 +18,10 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from keo_service.core.compensation import CompensationLimits, CorrectionFilter
-from keo_service.core.compensation import correction_to_send as _to_send
+from keo_service.core.correction import CompensationLimits, CorrectionFilter
+from keo_service.core.correction import correction_to_send as _to_send
 from keo_service.core.estimator import OUTSIDE_CALIBRATED_RANGE, Estimate
 from keo_service.core.kinematics import error_as_pose
-from keo_service.io.compensation_files import tool_model
 from keo_service.io.config import CompensationConfig, Config
 from keo_service.live.messages import CorrectionMessage, encode, topic
 
@@ -59,6 +58,8 @@ class CorrectionPublisher:
     """Turns each estimate into a CorrectionMessage and puts it on the bus (and ROS 2)."""
 
     def __init__(self, config: Config, session: zenoh.Session, ros2_node: Any = None) -> None:
+        from keo_service.io.compensation_files import tool_model  # Pinocchio, for the model
+
         model = tool_model(config)
         self.cell = config.cell
         self.filter = CorrectionFilter(
@@ -80,13 +81,17 @@ class CorrectionPublisher:
     def counters(self) -> dict[str, int]:
         return {**self.filter.counters, "corrections_publish_failed": self.failures}
 
-    def message(self, estimate: Estimate) -> CorrectionMessage:
+    def message(self, estimate: Estimate, joints: Any = None) -> CorrectionMessage:
+        """`joints`: the newest joints (the feedforward's "now"; the estimate's own joints
+        are a tracker delay and a transport older), else the estimate's."""
         reason = ""
         if estimate.held:
             reason = estimate.flags[0] if estimate.flags else "held"
         elif OUTSIDE_CALIBRATED_RANGE in estimate.flags:
             reason = OUTSIDE_CALIBRATED_RANGE
-        c = self.filter.step(estimate.t, estimate.estimate_values(), estimate.joints, reason)
+        if joints is None:
+            joints = estimate.joints
+        c = self.filter.step(estimate.t, estimate.estimate_values(), joints, reason)
         self.seq += 1
         return CorrectionMessage(
             stamp=estimate.t,
@@ -103,8 +108,14 @@ class CorrectionPublisher:
             clamped=c.clamped,
         )
 
-    def publish(self, estimate: Estimate) -> CorrectionMessage:
-        msg = self.message(estimate)
+    def publish(self, estimate: Estimate, estimator: Any = None) -> CorrectionMessage:
+        """Publish the correction for `estimate`; `estimator`: the service's, whose newest
+        encoder sample gives the joints for the feedforward."""
+        joints = None
+        if estimator is not None and self.filter.model is not None:
+            newest = estimator.encoder.latest_at_or_before(estimator.encoder.newest_t)
+            joints = None if newest is None else newest[1]
+        msg = self.message(estimate, joints)
         self.latest = msg
         try:
             self._pub.put(encode(msg))

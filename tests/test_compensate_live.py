@@ -1,0 +1,331 @@
+"""Live corrections: the correction's frames and limits, the RTDE input recipe against its
+documented bytes and against ur_rtde (an independent client), and the closed loop with the
+mock UR: a controller that adds the correction in its input registers to its path, the real
+arm the simulator knows, the tracker that sees that arm, and keo in between.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import socket
+import struct
+import subprocess
+import sys
+import time
+from types import SimpleNamespace
+
+import msgspec
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from adapters import rtde
+from adapters.devices import RtdeEncoderAdapter, TrackerAdapter
+from adapters.mock_devices import MockRtdeController, MockTracker
+from keo_service.bench.demo import loopback_config
+from keo_service.core.correction import (
+    CompensationLimits,
+    CorrectionFilter,
+    correction_to_send,
+)
+from keo_service.io.cell import cell_from_config
+from keo_service.io.config import ModelConfig, load_config
+from keo_service.live.bus import open_session
+from keo_service.live.messages import CorrectionMessage, decode, topic
+from keo_service.live.service import KeoService
+from keo_service.sim.closed_loop import ClosedLoopCell
+from keo_service.sim.simulate import angle_ripple, make_scenario, simulate
+from tests.conftest import CONFIGS
+
+# ---- the correction itself -------------------------------------------------------------------
+
+
+def test_the_correction_undoes_the_error_transform_on_the_right_of_the_command():
+    """T_goal * C * T_ts = T_goal: a controller commanded T_goal * C lands on T_goal (the real
+    tool is the nominal one times T_ts)."""
+    rng = np.random.default_rng(4)
+    filt = CorrectionFilter(CompensationLimits(max_m=1.0, max_rad=1.0, max_rate_m_s=1e6))
+    filt.step(0.0, [0.0] * 6, None)  # the first correction starts from zero (rate limit)
+    for k in range(5):
+        p, r = rng.normal(0, 2e-3, 3), rng.normal(0, 2e-3, 3)
+        T_ts = pin.SE3(pin.exp3(r), p)
+        c = filt.step(1.0 + k, [*p, *r], None)
+        C = pin.SE3(pin.exp3(c.rotation), c.translation)
+        goal = pin.SE3(pin.exp3(rng.normal(0, 1, 3)), rng.normal(0, 1, 3))
+        landed = goal * C * T_ts
+        assert np.linalg.norm(landed.translation - goal.translation) < 1e-12
+        assert np.linalg.norm(pin.log3(goal.rotation.T @ landed.rotation)) < 1e-12
+        assert c.valid
+        assert np.allclose(c.feedforward[0], 0.0)
+
+
+def test_size_and_rate_are_clamped_and_counted_and_invalid_is_zero():
+    limits = CompensationLimits.from_config_values(5.0, 5.0, 50.0)
+    filt = CorrectionFilter(limits)
+    big = [0.02, 0.0, 0.0, 0.0, 0.0, 0.0]  # 20 mm error
+    out = [filt.step(0.01 * k, big, None) for k in range(200)]
+    sizes = [float(np.linalg.norm(c.translation)) for c in out]
+    # ramps up at 50 mm/s from zero (nothing applied before), then holds at the 5 mm limit
+    assert sizes[0] == 0.0
+    assert sizes[1] == pytest.approx(0.5e-3, rel=1e-9)  # 50 mm/s for 10 ms
+    assert sizes[4] == pytest.approx(2.0e-3, rel=1e-9)
+    assert max(sizes) == pytest.approx(5e-3, rel=1e-12)
+    assert out[-1].clamped
+    assert np.allclose(out[-1].translation, [-5e-3, 0, 0])
+    assert filt.counters["corrections_clamped_size"] == 200
+    assert filt.counters["corrections_clamped_rate"] >= 9
+    held = filt.step(2.01, big, None, invalid_reason="tracker_gap")
+    assert not held.valid
+    assert held.reason == "tracker_gap"
+    assert np.all(held.translation == 0.0)
+    assert filt.counters["corrections_invalid"] == 1
+    # after an invalid step it ramps again from zero
+    again = filt.step(2.02, big, None)
+    assert np.linalg.norm(again.translation) == pytest.approx(0.5e-3, rel=1e-9)
+    nan = filt.step(2.03, [math.nan] * 6, None)
+    assert not nan.valid
+    assert nan.reason == "non_finite_estimate"
+
+
+def test_correction_to_send_is_zero_when_none_stale_or_invalid():
+    limits = CompensationLimits.from_config_values(1.0, 1.0, 50.0, max_age_s=0.1)
+    now = 10_000_000_000
+
+    def msg(age_s: float, valid: bool = True, p=(2e-3, 0.0, 0.0)) -> CorrectionMessage:
+        return CorrectionMessage(
+            stamp=1.0,
+            host_ns=now - int(age_s * 1e9),
+            seq=1,
+            translation=list(p),
+            rotation=[0.0, 0.0, 1e-3],
+            feedback_translation=list(p),
+            feedback_rotation=[0.0, 0.0, 1e-3],
+            feedforward_translation=[0.0] * 3,
+            feedforward_rotation=[0.0] * 3,
+            valid=valid,
+        )
+
+    zero = ([0.0] * 3, [0.0] * 3)
+    assert correction_to_send(None, limits, now) == zero
+    assert correction_to_send(msg(0.2), limits, now) == zero
+    assert correction_to_send(msg(0.01, valid=False), limits, now) == zero
+    p, r = correction_to_send(msg(0.01), limits, now)
+    assert p == pytest.approx([1e-3, 0.0, 0.0])  # clamped to max_mm = 1
+    assert r == pytest.approx([0.0, 0.0, 1e-3])
+
+
+# ---- the RTDE input recipe ------------------------------------------------------------------
+
+
+def test_input_recipe_bytes_as_documented():
+    """UR's RTDE guide: CONTROL_PACKAGE_SETUP_INPUTS ('I', 73) carries the variable names,
+    comma-separated; the controller answers the recipe id and the types; a DATA_PACKAGE
+    ('U', 85) to the controller is the recipe id and the values, big endian."""
+    names = rtde.input_double_registers(24)
+    assert names == [f"input_double_register_{k}" for k in range(24, 30)]
+    text = ",".join(names).encode()
+    assert rtde.setup_inputs(names) == struct.pack(">HB", 3 + len(text), 73) + text
+    reply = rtde.RtdeDecoder().feed(rtde.inputs_reply(2, ["DOUBLE"] * 6))[0]
+    recipe = rtde.parse_inputs_reply(reply, names)
+    values = [1e-3, -2e-3, 3e-3, 1e-4, -2e-4, 3e-4]
+    data = rtde.data_package(recipe, dict(zip(names, values, strict=True)))
+    assert data == struct.pack(">HBB6d", 3 + 1 + 48, 85, 2, *values)
+    taken = rtde.RtdeDecoder().feed(rtde.inputs_reply(3, ["DOUBLE", "IN_USE"]))[0]
+    with pytest.raises(rtde.RtdeError, match="already writes input_double_register_25"):
+        rtde.parse_inputs_reply(taken, names[:2])
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def test_ur_rtde_register_writes_decode_right_in_the_mock_controller(tmp_path):
+    """ur_rtde's RTDEIOInterface (C++, Universal Robots' community client) sets up its input
+    recipes and writes two double registers; the mock controller logs what it decoded."""
+    rtde_io = pytest.importorskip("rtde_io", reason="ur-rtde is in the test extra")
+    if not _port_free(rtde.DEFAULT_PORT):
+        pytest.skip("port 30004 is taken on this machine; ur_rtde cannot use another port")
+    log_path = tmp_path / "mock.log"
+    with log_path.open("w") as log:
+        mock = subprocess.Popen(
+            [
+                *(sys.executable, "-m", "keo_service.cli", "mock", "robot"),
+                *("--config", str(CONFIGS / "ur10_demo.toml"), "--scenario", "paper-step"),
+                *("--duration", "30", "-v"),
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
+        try:
+            deadline = time.monotonic() + 30
+            while _port_free(rtde.DEFAULT_PORT) and time.monotonic() < deadline:
+                time.sleep(0.1)
+            time.sleep(0.5)
+            io = rtde_io.RTDEIOInterface("127.0.0.1")
+            assert io.setInputDoubleRegister(18, 1.25)
+            assert io.setInputDoubleRegister(22, -3.5e-4)
+            time.sleep(0.5)
+            io.disconnect()
+        finally:
+            mock.terminate()
+            mock.wait(timeout=10)
+    text = log_path.read_text()
+    assert '"input_double_register_18": 1.25' in text, text[-2000:]
+    assert '"input_double_register_22": -0.00035' in text, text[-2000:]
+    assert "unknown_input_recipe" not in text
+
+
+# ---- the closed loop --------------------------------------------------------------------------
+
+PATH = {  # 0.1 m/s strokes of 0.25 m down and down again, 0.5 s dwells (about 7 s)
+    "stroke_m": "0.25",
+    "dwell_s": "0.5",
+    "speed_m_s": "0.1",
+    "geometric_errors": "false",
+}
+TOOL_ERROR = (1.2e-3, -1.0e-3, 1.2e-3, 1.2e-3, 1.0e-3, -1.2e-3)  # 1.97 mm / 1.97 mrad
+
+
+def closed_loop_config(model: ModelConfig | None = None):
+    base = load_config(CONFIGS / "ur10_demo.toml")
+    config = loopback_config(base)
+    robot = msgspec.structs.replace(config.robot, correction="rtde_registers", frequency_hz=125.0)
+    config = msgspec.structs.replace(config, robot=robot)
+    if model is not None:
+        config = msgspec.structs.replace(config, model=model)
+    return config
+
+
+async def run_closed_loop(config, closed: ClosedLoopCell, run, seconds: float, beam_break=None):
+    """Everything on one asyncio loop over real TCP and Zenoh; the corrections on the bus are
+    gathered too (wall time of arrival, message)."""
+    t0 = time.time() + 1.5
+    robot = MockRtdeController(
+        run.encoder,
+        "127.0.0.1",
+        config.robot.port,
+        t0=t0,
+        max_hz=125.0,
+        follow=closed.joints,
+        correction_register=config.robot.correction_register,
+    )
+    tracker = MockTracker(
+        run.tracker,
+        "127.0.0.1",
+        config.tracker.port,
+        t0=t0,
+        beam_break=beam_break,
+        pose_at=closed.sensor,
+    )
+    corrections: list[tuple[float, CorrectionMessage]] = []
+    listener = open_session("peer", connect=list(config.bus.listen))
+    sub = listener.declare_subscriber(
+        topic(config.cell, "correction"),
+        lambda s: corrections.append((time.time(), decode(s.payload.to_bytes()))),
+    )
+    await robot.start()
+    await tracker.start()
+    try:
+        async with (
+            KeoService(config) as service,
+            RtdeEncoderAdapter(config, 6) as encoder,
+            TrackerAdapter(config, 6),
+        ):
+            await asyncio.sleep(t0 + seconds - time.time())
+            status = service.status()
+            adapter = encoder.status()
+    finally:
+        sub.undeclare()
+        listener.close()
+        await robot.close()
+        await tracker.close()
+    return SimpleNamespace(
+        t0=t0, robot=robot, corrections=corrections, status=status, adapter=adapter
+    )
+
+
+async def test_a_constant_tool_error_is_compensated_and_stops_when_the_beam_breaks():
+    config = closed_loop_config()
+    cell = cell_from_config(config)
+    scenario = make_scenario("paper-vertical", {**PATH, "duration_s": "10"})
+    closed = ClosedLoopCell(cell, scenario, seed=5, tool_error=TOOL_ERROR)
+    run = simulate(cell, scenario, seed=5)
+    brk = 8.0
+    out = await run_closed_loop(config, closed, run, seconds=9.0, beam_break=(brk, 0.6))
+    log = closed.log
+    t = np.array(log.t)
+    pos, rot = np.array(log.pos) * 1e3, np.array(log.rot) * 1e3
+    assert np.array(log.pos_uncompensated).max() * 1e3 == pytest.approx(1.97, abs=0.01)
+    closed_at = closed.loop_closed_at
+    assert closed_at is not None
+    assert closed_at < 1.0
+    late = (t >= closed_at + 5.0) & (t < brk)
+    moving = late & (t > 4.0) & (t < 6.8)  # the second stroke, at 0.1 m/s
+    print(
+        f"loop closed at {closed_at:.3f} s; from 5 s later: max {pos[late].max():.4f} mm, "
+        f"{rot[late].max():.4f} mrad (uncompensated 1.97 / 1.97)"
+    )
+    assert moving.sum() > 50
+    assert pos[late].max() < 0.05
+    assert rot[late].max() < 0.05
+    # the beam breaks at scenario time brk: the registers fall to zero within 0.1 s
+    broke = out.t0 + brk
+    zeroed = [w for w, values in out.robot.input_log if w >= broke and not any(values)]
+    assert zeroed, list(out.robot.input_log)[-5:]
+    print(f"registers zero {1e3 * (zeroed[0] - broke):.1f} ms after the beam broke")
+    assert zeroed[0] - broke < 0.1
+    invalid = [m for w, m in out.corrections if w >= broke and not m.valid]
+    assert invalid
+    assert invalid[0].reason == "tracker_gap"
+    assert out.status.counters["corrections_invalid"] >= 1
+    assert out.adapter["counters"]["corrections_written_nonzero"] > 100
+
+
+def _ripple_model(closed: ClosedLoopCell, scenario, offsets) -> ModelConfig:
+    """The true effects as a [model] section: the joint offsets and, for the rippling joints,
+    the ripple sampled every 10 mrad over the path's range (a joint map)."""
+    lo, hi = closed.q_grid.min(axis=0) - 0.05, closed.q_grid.max(axis=0) + 0.05
+    knots, values = [], []
+    rippled = {int(k) - 1 for k in scenario.ripple_joints.split(",")}
+    for j in range(6):
+        if j in rippled:
+            k = np.arange(lo[j], hi[j], 0.01)
+            q = np.zeros((k.size, 6))
+            q[:, j] = k
+            knots.append(k.tolist())
+            values.append([float(angle_ripple(scenario, row)[j]) for row in q])
+        else:
+            knots.append([])
+            values.append([])
+    return ModelConfig(
+        effects=["joint_offsets", "joint_maps"],
+        joint_offsets=list(offsets),
+        map_knots=knots,
+        map_values=values,
+    )
+
+
+async def test_a_pose_dependent_error_with_a_model_falls_tenfold():
+    offsets = (4e-4, -5e-4, 6e-4, -4e-4, 5e-4, -3e-4)
+    scenario = make_scenario(
+        "paper-vertical", {**PATH, "ripple_rad": "0.0005", "ripple_joints": "2,3"}
+    )
+    cell = cell_from_config(closed_loop_config())
+    closed = ClosedLoopCell(cell, scenario, seed=6, joint_offsets=offsets)
+    config = closed_loop_config(_ripple_model(closed, scenario, offsets))
+    run = simulate(cell, scenario, seed=6)
+    out = await run_closed_loop(config, closed, run, seconds=7.5)
+    s = closed.summary(settle_s=2.0)
+    print(s)
+    assert s["uncompensated_pos_rms_mm"] > 0.5
+    assert s["compensated_pos_rms_mm"] * 10 < s["uncompensated_pos_rms_mm"]
+    assert s["compensated_rot_rms_mrad"] * 10 < s["uncompensated_rot_rms_mrad"]
+    ff = [m for _w, m in out.corrections if m.valid]
+    assert ff
+    assert max(np.linalg.norm(m.feedforward_translation) for m in ff) > 5e-4
