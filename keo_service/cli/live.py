@@ -227,7 +227,12 @@ def _mock_compensated_cell(args: argparse.Namespace, config: Any, overrides: dic
 
     asyncio.run(main())
     if args.summary is not None:
-        doc = {"summary": closed.summary(), "series": closed.series()}
+        doc = {
+            "summary": closed.summary(),
+            "series": closed.series(),
+            # each change of the correction registers: wall time, the six values
+            "register_writes": [[w, list(v)] for w, v in robot.input_log],
+        }
         args.summary.write_text(json.dumps(doc), encoding="utf-8")
     return 0
 

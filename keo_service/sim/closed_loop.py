@@ -52,14 +52,14 @@ class ClosedLoopCell:
         joint_offsets: tuple[float, ...] | None = None,
     ) -> None:
         """`tool_error`: a constant error of the real tool (x, y, z m, rotation vector rad,
-        in the tool frame) on top of the scenario's; `joint_offsets` (rad): the real arm's
-        joint zero offsets instead of the scenario's."""
+        in the tool frame, T = [exp(r), p]) on top of the scenario's; `joint_offsets` (rad):
+        the real arm's joint zero offsets instead of the scenario's."""
         self.cell, self.scenario = cell, scenario
         rng = np.random.default_rng(seed)
         self.true = make_true_robot(cell, rng, scenario.geometric_errors)
         if tool_error is not None:
             e = np.asarray(tool_error, dtype=float)
-            self.true.T_ns = self.true.T_ns * pin.exp6(pin.Motion(e[:3], e[3:]))
+            self.true.T_ns = self.true.T_ns * pin.SE3(pin.exp3(e[3:]), e[:3])
         if joint_offsets is not None:
             self.true.joint_offsets = np.asarray(joint_offsets, dtype=float)
         trajectory, self.duration = motion_for(scenario, cell, rng)
@@ -93,7 +93,7 @@ class ClosedLoopCell:
         if applied:
             assert correction is not None
             c = np.asarray(correction, dtype=float)
-            C = pin.exp6(pin.Motion(c[:3], c[3:]))
+            C = pin.SE3(pin.exp3(c[3:]), c[:3])  # a UR pose: translation, rotation vector
             flange = pin.SE3(R[0], p[0]) * C * self._T_tn
             q = solve_ik(self.cell.robot, self._ik_data, flange, q_path, tol=1e-12)
             if self.loop_closed_at is None:
