@@ -352,3 +352,65 @@ def test_a_pose_dependent_error_with_a_model_falls_tenfold(tmp_path):
     ff = [m for _w, m in out.corrections if m.valid]
     assert ff
     assert max(np.linalg.norm(m.feedforward_translation) for m in ff) > 5e-4
+
+
+# ---- on the wire: keo/<cell>/correction and the ROS 2 PoseStamped ---------------------------
+
+
+def test_the_correction_goes_out_on_the_bus_and_as_a_ros2_pose(demo_config):
+    """A correction for one estimate: the msgspec message on keo/<cell>/correction and the
+    same transform as geometry_msgs/msg/PoseStamped on /keo/<cell>/correction, read with an
+    independent peer (rosbags + zenoh, tests/ros2_peer.py)."""
+    from keo_service.core.estimator import Estimate
+    from keo_service.live.compensation import CorrectionPublisher
+    from keo_service.live.ros2 import Ros2Node
+    from tests import ros2_peer
+
+    config = msgspec.structs.replace(
+        loopback_config(demo_config),
+        ros2=msgspec.structs.replace(demo_config.ros2, enabled=True),
+    )
+    endpoint = config.bus.listen[0]
+    session = open_session("peer", listen=[endpoint])
+    peer = open_session("peer", connect=[endpoint])
+    got_bus: list[CorrectionMessage] = []
+    got_ros: list[bytes] = []
+    sub_bus = peer.declare_subscriber(
+        topic(config.cell, "correction"), lambda s: got_bus.append(decode(s.payload.to_bytes()))
+    )
+    sub_ros = peer.declare_subscriber(
+        ros2_peer.key(f"/keo/{config.cell}/correction", "geometry_msgs/msg/PoseStamped"),
+        lambda s: got_ros.append(s.payload.to_bytes()),
+    )
+    node = Ros2Node(session, "keo_test", 0, "jazzy")
+    publisher = CorrectionPublisher(config, session, node)
+    est = [1e-3, -2e-3, 0.5e-3, 2e-4, -1e-4, 3e-4]
+    channels = ("px", "py", "pz", "rx", "ry", "rz")
+    try:
+        time.sleep(0.5)
+        for k in range(3):  # the first ramps up from zero (rate limit); the third is whole
+            t = 100.0 + k
+            publisher.publish(Estimate(t, est, est, (), t, channels))
+        deadline = time.monotonic() + 5
+        while (len(got_bus) < 3 or len(got_ros) < 3) and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        publisher.close()
+        node.close()
+        sub_bus.undeclare()
+        sub_ros.undeclare()
+        peer.close()
+        session.close()
+    last = got_bus[-1]
+    assert last.valid
+    T_ts = pin.SE3(pin.exp3(np.array(est[3:])), np.array(est[:3]))
+    C = T_ts.inverse()
+    assert last.translation == pytest.approx(C.translation.tolist(), abs=1e-15)
+    assert last.rotation == pytest.approx(pin.log3(C.rotation).tolist(), abs=1e-15)
+    ros = ros2_peer.STORE.deserialize_cdr(got_ros[-1], "geometry_msgs/msg/PoseStamped")
+    p, o = ros.pose.position, ros.pose.orientation
+    assert [p.x, p.y, p.z] == pytest.approx(last.translation, abs=1e-15)
+    rotvec = pin.log3(pin.Quaternion(o.w, o.x, o.y, o.z).toRotationMatrix())
+    assert rotvec.tolist() == pytest.approx(last.rotation, abs=1e-12)
+    assert ros.header.frame_id == f"{config.cell}_tool"
+    assert ros.header.stamp.sec == 102

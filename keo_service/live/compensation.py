@@ -54,17 +54,26 @@ def correction_topic(cell: str) -> str:
     return f"/keo/{cell}/correction"
 
 
+def _feedforward(config: Config) -> Any:
+    """The identified model's tool poses when the config holds a [model], else None (then
+    nothing more is built or imported)."""
+    from keo_service.io.cell import corrections_from_config, robot_from_config
+
+    robot = robot_from_config(config)
+    corrections = corrections_from_config(config.model, robot.nq, config.source)
+    if corrections is None or corrections.is_zero:
+        return None
+    from keo_service.io.compensation_files import tool_model
+
+    return tool_model(config)
+
+
 class CorrectionPublisher:
     """Turns each estimate into a CorrectionMessage and puts it on the bus (and ROS 2)."""
 
     def __init__(self, config: Config, session: zenoh.Session, ros2_node: Any = None) -> None:
-        from keo_service.io.compensation_files import tool_model  # Pinocchio, for the model
-
-        model = tool_model(config)
         self.cell = config.cell
-        self.filter = CorrectionFilter(
-            limits_of(config.compensation), model if model.corrections is not None else None
-        )
+        self.filter = CorrectionFilter(limits_of(config.compensation), _feedforward(config))
         self._pub = session.declare_publisher(topic(config.cell, "correction"), express=True)
         self._ros2 = None
         self._types: Any = None
