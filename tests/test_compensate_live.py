@@ -321,7 +321,7 @@ def _ripple_model(closed: ClosedLoopCell, scenario, offsets) -> ModelConfig:
 
 @pytest.mark.e2e
 def test_a_pose_dependent_error_with_a_model_falls_tenfold(tmp_path):
-    offsets = (4e-4, -5e-4, 6e-4, -4e-4, 5e-4, -3e-4)
+    offsets = (8e-4, -1e-3, 1.2e-3, -8e-4, 1e-3, -6e-4)  # rad: about 1 mm at the tool
     sets = {**PATH, "ripple_rad": "0.0005", "ripple_joints": "2,3"}
     scenario = make_scenario("paper-vertical", sets)
     cell = cell_from_config(closed_loop_config())
@@ -391,6 +391,7 @@ def test_the_correction_goes_out_on_the_bus_and_as_a_ros2_pose(demo_config):
         for k in range(3):  # the first ramps up from zero (rate limit); the third is whole
             t = 100.0 + k
             publisher.publish(Estimate(t, est, est, (), t, channels))
+            time.sleep(0.2)  # 50 mm/s: 10 mm may change in 0.2 s
         deadline = time.monotonic() + 5
         while (len(got_bus) < 3 or len(got_ros) < 3) and time.monotonic() < deadline:
             time.sleep(0.05)

@@ -69,7 +69,12 @@ def _feedforward(config: Config) -> Any:
 
 
 class CorrectionPublisher:
-    """Turns each estimate into a CorrectionMessage and puts it on the bus (and ROS 2)."""
+    """Turns each estimate into a CorrectionMessage and puts it on the bus (and ROS 2).
+
+    With a model, `on_joints` also publishes at every encoder sample: the feedforward at
+    those (the current) joints with the newest estimate's feedback and validity, so the
+    model's part follows the arm at the encoder rate instead of a tracker delay late. The
+    limits' rate is per second of the host's monotonic clock (how fast the robot is moved)."""
 
     def __init__(self, config: Config, session: zenoh.Session, ros2_node: Any = None) -> None:
         self.cell = config.cell
@@ -85,6 +90,8 @@ class CorrectionPublisher:
         self.seq = 0
         self.failures = 0
         self.latest: CorrectionMessage | None = None
+        # the newest estimate: (monotonic time, its values, why not valid ("" if valid))
+        self._estimate: tuple[float, list[float], str] | None = None
 
     @property
     def counters(self) -> dict[str, int]:
@@ -98,12 +105,17 @@ class CorrectionPublisher:
             reason = estimate.flags[0] if estimate.flags else "held"
         elif OUTSIDE_CALIBRATED_RANGE in estimate.flags:
             reason = OUTSIDE_CALIBRATED_RANGE
-        if joints is None:
-            joints = estimate.joints
-        c = self.filter.step(estimate.t, estimate.estimate_values(), joints, reason)
+        values = estimate.estimate_values()
+        self._estimate = (time.monotonic(), values, reason)
+        return self._make(estimate.t, values, estimate.joints if joints is None else joints, reason)
+
+    def _make(
+        self, stamp: float, values: list[float], joints: Any, reason: str
+    ) -> CorrectionMessage:
+        c = self.filter.step(time.monotonic(), values, joints, reason)
         self.seq += 1
         return CorrectionMessage(
-            stamp=estimate.t,
+            stamp=stamp,
             host_ns=time.time_ns(),
             seq=self.seq,
             translation=c.translation.tolist(),
@@ -125,6 +137,21 @@ class CorrectionPublisher:
             newest = estimator.encoder.latest_at_or_before(estimator.encoder.newest_t)
             joints = None if newest is None else newest[1]
         msg = self.message(estimate, joints)
+        self._put(msg)
+        return msg
+
+    def on_joints(self, t: float, q: Any) -> None:
+        """An encoder sample (stream time t, joints q): with a model and an estimate newer
+        than MAX_AGE_S, the correction with the feedforward at q (else nothing: the
+        controller interfaces zero a correction that is not renewed)."""
+        if self.filter.model is None or self._estimate is None:
+            return
+        at, values, reason = self._estimate
+        if time.monotonic() - at > MAX_AGE_S:
+            return
+        self._put(self._make(t, values, np.asarray(q, dtype=float), reason))
+
+    def _put(self, msg: CorrectionMessage) -> None:
         self.latest = msg
         try:
             self._pub.put(encode(msg))
@@ -141,7 +168,6 @@ class CorrectionPublisher:
                 pose_stamped(self._types, msg.stamp, tool_frame(self.cell), p.tolist(), q.tolist()),
                 source_ns=msg.host_ns,
             )
-        return msg
 
     def close(self) -> None:
         self._pub.undeclare()

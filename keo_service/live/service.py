@@ -219,6 +219,8 @@ class KeoService:
             if isinstance(msg, JointSample):
                 self._rates["encoder"].tick(now)
                 out = self.estimator.on_encoder(msg.t, msg.q)
+                if self._corrections is not None:  # with a model: feedforward at these joints
+                    self._corrections.on_joints(msg.t, msg.q)
                 if self._delay_tracker is not None:
                     self._delay_tracker.add_encoder(msg.t, msg.q)
             elif isinstance(msg, TrackerSample):
