@@ -189,7 +189,7 @@ class CorrectionFilter:
                     zero, zero, (zero, zero), (zero, zero), False, "outside_calibrated_range"
                 )
             ff = invert(*self.model.predicted_error(np.asarray(joints), direction))
-        p, r = compose(fb, ff)
+        p, r = compose(fb, ff) if self.model is not None else fb
         p, size_p = _clamp_norm(p, self.limits.max_m)
         r, size_r = _clamp_norm(r, self.limits.max_rad)
         clamped = size_p or size_r
