@@ -416,45 +416,49 @@ class MockRtdeController:
             q = np.zeros((times.size, len(self.track.q[0])))
             qd = np.zeros_like(q)
         i, n = 0, times.size
-        cost = [0.0]
+        made = -1  # follow: samples made so far, each ahead of its planned time
 
         def make(k: int) -> None:
-            """follow: sample k made now, at the instant it is stamped with (an asyncio
-            wake-up comes up to a millisecond late; a controller's cycle does not)."""
             assert self.follow is not None
-            assert self.t0 is not None
-            began = time.time()
-            # the joints for when they go out: now plus what making them takes
-            times[k] = began - self.t0 + cost[0]
             q[k] = self.follow(float(times[k]), self.correction())
-            cost[0] = 0.8 * cost[0] + 0.2 * (time.time() - began)
             if k > 0:
-                qd[k] = (q[k] - q[k - 1]) / max(times[k] - times[k - 1], 1e-6)
+                qd[k] = (q[k] - q[k - 1]) / (times[k] - times[k - 1])
 
         while i < n:
+            if self.follow is not None and made < i:
+                make(i)
+                made = i
             now = time.time() - self.t0
             if send[i] > now:
                 await asyncio.sleep(send[i] - now)
                 continue
             chunk = []
             while i < n and send[i] <= now:  # everything due: one write, as a burst arrives
+                at, joints, speed = float(times[i]), q[i], qd[i]
                 if self.follow is not None:
-                    make(i)
-                stamp = self.device_time(float(times[i]))
+                    if made < i:
+                        make(i)
+                        made = i
+                    # stamped when it goes out (an asyncio wake-up comes up to a millisecond
+                    # late; a controller's cycle does not): the joints carried there along the
+                    # last step's velocity
+                    at = time.time() - self.t0
+                    joints = q[i] + qd[i] * (at - times[i])
+                stamp = self.device_time(at)
                 values: dict[str, object] = {
                     name: _ZERO[kind] for name, kind in zip(recipe.names, recipe.types, strict=True)
                 }
                 values.update(
                     timestamp=stamp,
-                    actual_q=tuple(q[i].tolist()),
-                    actual_qd=tuple(qd[i].tolist()),
-                    target_q=tuple(q[i].tolist()),
+                    actual_q=tuple(joints.tolist()),
+                    actual_qd=tuple(speed.tolist()),
+                    target_q=tuple(joints.tolist()),
                     robot_mode=7,
                     safety_mode=1,
                     runtime_state=2,
                 )
                 chunk.append(rtde.data_package(recipe, {k: values[k] for k in recipe.names}))
-                self.sent.append((float(times[i]), stamp))
+                self.sent.append((at, stamp))
                 i += 1
             writer.write(b"".join(chunk))
             await writer.drain()
