@@ -14,7 +14,9 @@ tool pose seen from the nominal tool frame). Then C = T_ts^-1 F(q)^-1: a feedbac
 C_fb = T_ts^-1 (the live estimate) followed by a feedforward part C_ff = F(q)^-1 (the model).
 Applying the correction moves the joints, and the estimate is measured against the nominal
 model at the joints the robot actually has, so the estimate itself is unaffected by the
-correction: the loop does not integrate, the correction follows the observer.
+correction: the loop does not integrate, the correction follows the observer. The live
+correction (limits, validity) is `keo_service.core.correction`; this module holds the model's
+tool poses (`ToolModel`, also the live feedforward) and the offline solve.
 
 Offline (`keo compensate`): the joints at which the identified model puts the tool on a
 target, by damped Gauss-Newton on the model's forward kinematics (the same `Chain` with the
