@@ -416,12 +416,15 @@ class MockRtdeController:
             q = np.zeros((times.size, len(self.track.q[0])))
             qd = np.zeros_like(q)
         i, n = 0, times.size
-        made = -1  # follow: samples made so far, each ahead of its planned time
+        if self.follow is not None:  # a client that connects late gets the cycles from now on
+            i = int(np.searchsorted(send, time.time() - self.t0))
+        first = i
+        made = i - 1  # follow: samples made so far, each ahead of its planned time
 
         def make(k: int) -> None:
             assert self.follow is not None
             q[k] = self.follow(float(times[k]), self.correction())
-            if k > 0:
+            if k > first:
                 qd[k] = (q[k] - q[k - 1]) / (times[k] - times[k - 1])
 
         while i < n:
