@@ -415,3 +415,39 @@ def test_the_correction_goes_out_on_the_bus_and_as_a_ros2_pose(demo_config):
     assert rotvec.tolist() == pytest.approx(last.rotation, abs=1e-12)
     assert ros.header.frame_id == f"{config.cell}_tool"
     assert ros.header.stamp.sec == 102
+
+
+def test_feedforward_is_the_models_inverse_and_invalid_outside_its_range(demo_cell):
+    """With a model, the feedforward undoes the model's own error at the joints (the model's
+    tool pose times C_ff is the nominal one, checked with Pinocchio), and joints beyond a
+    joint map's knots make the correction not valid."""
+    from keo_service.core.compensation import ToolModel
+    from keo_service.core.corrections import Corrections
+    from keo_service.core.kinematics import flange_pose
+
+    empty = (np.array([]), np.array([]))
+    corr = Corrections(
+        6,
+        joint_offsets=np.array([1e-3, -2e-3, 5e-4, 1e-3, -1e-3, 2e-3]),
+        maps=(empty, (np.array([0.0, 0.5, 1.0]), np.array([0.0, 8e-4, 0.0])), *[empty] * 4),
+    )
+    model = ToolModel(demo_cell.robot, corr, demo_cell.T_nt.homogeneous)
+    filt = CorrectionFilter(CompensationLimits(max_m=1.0, max_rad=1.0, max_rate_m_s=1e6), model)
+    q = np.array([0.1, 0.4, 0.1, 0.2, -1.0, 0.3])
+    filt.step(0.0, [0.0] * 6, q)
+    c = filt.step(1.0, [0.0] * 6, q)
+    assert c.valid
+    assert np.linalg.norm(c.translation) > 1e-3  # millimetres of model error undone
+    data = demo_cell.robot.create_data()
+    q_model = q + corr.joint_offsets + corr.map_error(q)
+    T_model = flange_pose(demo_cell.robot, data, q_model) * demo_cell.T_nt
+    T_nominal = flange_pose(demo_cell.robot, data, q) * demo_cell.T_nt
+    landed = T_model * pin.SE3(pin.exp3(c.rotation), c.translation)
+    assert np.linalg.norm(landed.translation - T_nominal.translation) < 1e-12
+    assert np.linalg.norm(pin.log3(T_nominal.rotation.T @ landed.rotation)) < 1e-12
+    outside = q.copy()
+    outside[1] = 1.2  # beyond joint 2's map (0 .. 1 rad)
+    c = filt.step(2.0, [0.0] * 6, outside)
+    assert not c.valid
+    assert c.reason == "outside_calibrated_range"
+    assert np.all(c.translation == 0.0)
