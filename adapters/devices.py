@@ -17,6 +17,7 @@ import time
 from collections import Counter
 from typing import Any
 
+import msgspec
 import zenoh
 
 from adapters import rtde
@@ -27,7 +28,16 @@ from adapters.simple_message import JointFeedback, RobotStatusFrame, SimpleMessa
 from keo_service.core.clock import ClockMapper, ReceiptStamps
 from keo_service.core.rejects import RejectLog
 from keo_service.live.bus import AsyncSubscription, session_for_client_async
-from keo_service.live.messages import JointSample, RobotStatus, TrackerSample, encode, topic
+from keo_service.live.compensation import correction_to_send
+from keo_service.live.messages import (
+    CorrectionMessage,
+    JointSample,
+    RobotStatus,
+    TrackerSample,
+    decode,
+    encode,
+    topic,
+)
 from keo_service.live.ros2 import (
     JOINT_STATE,
     POINT_STAMPED,
@@ -264,6 +274,46 @@ class RtdeEncoderAdapter(EncoderAdapter):
         self._pending: collections.deque[Package] = collections.deque(maxlen=64)
         self._last_status: tuple[int, int] | None = None
         self._last_status_at = 0.0
+        self._declare_corrections(session)
+
+    # ---- corrections to the controller: six input double registers (robot.correction) ----
+
+    def _declare_corrections(self, session: zenoh.Session) -> None:
+        """With robot.correction = "rtde_registers": keo/<cell>/correction in, written to the
+        controller as input double registers correction_register .. +5 (x, y, z m, then the
+        rotation vector rad, tool frame: a URScript program applies pose_trans(target, p)),
+        zero when none is fresh or valid (live.compensation.correction_to_send)."""
+        self._latest_correction: CorrectionMessage | None = None
+        self._correction_sub: zenoh.Subscriber[None] | None = None
+        if self.config.robot.correction != "rtde_registers":
+            return
+        self._correction_sub = session.declare_subscriber(
+            topic(self.config.cell, "correction"), self._on_correction
+        )
+
+    def _on_correction(self, sample: zenoh.Sample) -> None:  # zenoh thread
+        try:
+            msg = decode(sample.payload.to_bytes())
+        except msgspec.DecodeError:
+            self.counters["correction_undecodable"] += 1
+            return
+        if isinstance(msg, CorrectionMessage):
+            self._latest_correction = msg  # one reference, swapped whole
+            self.counters["corrections_received"] += 1
+
+    def _correction_package(self, recipe: rtde.Recipe) -> bytes:
+        p, r = correction_to_send(self._latest_correction, self.config.compensation)
+        values = [*p, *r]
+        self.counters["corrections_written"] += 1
+        if any(values):
+            self.counters["corrections_written_nonzero"] += 1
+        return rtde.data_package(recipe, dict(zip(recipe.names, values, strict=True)))
+
+    async def __aexit__(self, *exc: object) -> None:
+        if getattr(self, "_correction_sub", None) is not None:
+            assert self._correction_sub is not None
+            self._correction_sub.undeclare()
+        await super().__aexit__(*exc)
 
     def status(self) -> dict[str, Any]:
         return {
@@ -297,6 +347,13 @@ class RtdeEncoderAdapter(EncoderAdapter):
         recipe = rtde.parse_outputs_reply(
             await self._expect(reader, rtde.CONTROL_PACKAGE_SETUP_OUTPUTS), names
         )
+        inputs = None
+        if self._correction_sub is not None:
+            registers = rtde.input_double_registers(self.config.robot.correction_register)
+            writer.write(rtde.setup_inputs(registers))
+            inputs = rtde.parse_inputs_reply(
+                await self._expect(reader, rtde.CONTROL_PACKAGE_SETUP_INPUTS), registers
+            )
         writer.write(rtde.start())
         if not rtde.parse_accepted(await self._expect(reader, rtde.CONTROL_PACKAGE_START)):
             raise rtde.RtdeError("the controller refused to start streaming")
@@ -315,6 +372,8 @@ class RtdeEncoderAdapter(EncoderAdapter):
             host_ns = time.time_ns()
             for pkg in self._feed(data):
                 self._on_package(pkg, recipe, host_ns)
+            if inputs is not None:  # with every controller cycle seen: the correction now
+                writer.write(self._correction_package(inputs))
 
     def _feed(self, data: bytes) -> list[Package]:
         return self.rtde_decoder.feed(data)

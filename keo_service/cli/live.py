@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import signal
 import sys
 from collections.abc import Callable
@@ -181,6 +182,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
         overrides["duration_s"] = repr(args.duration)
     if getattr(args, "position_only", False):
         overrides["position_only"] = "true"
+    if getattr(args, "follow_corrections", False):
+        return _mock_compensated_cell(args, config, overrides)
     run = simulate(
         cell_from_config(config), make_scenario(args.scenario, overrides), seed=args.seed
     )
@@ -232,6 +235,86 @@ def cmd_mock(args: argparse.Namespace) -> int:
             sys.stdout.write(json.dumps(server.summary()) + "\n")
 
     asyncio.run(main())
+    return 0
+
+
+def _numbers(text: str | None, option: str, n: int) -> tuple[float, ...] | None:
+    if text is None:
+        return None
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != n or not all(math.isfinite(v) for v in values):
+        raise ConfigError(
+            option, option.lstrip("-"), f"'{text}' is not {n} comma-separated numbers"
+        )
+    return values
+
+
+def _mock_compensated_cell(args: argparse.Namespace, config: Any, overrides: dict[str, str]) -> int:
+    """`keo mock robot --follow-corrections`: a UR controller (RTDE) that follows the
+    scenario's tool path plus the correction in its input registers, and the tracker that
+    sees the arm it moves, in one process (they share the arm)."""
+    import asyncio
+    import json
+
+    from adapters.mock_devices import MockRtdeController, MockTracker
+    from keo_service.io.cell import cell_from_config
+    from keo_service.sim.closed_loop import ClosedLoopCell
+    from keo_service.sim.simulate import make_scenario, simulate
+
+    if (args.protocol or config.robot.protocol) != "rtde":
+        raise ConfigError("--follow-corrections", "protocol", "needs the rtde robot protocol")
+    cell = cell_from_config(config)
+    scenario = make_scenario(args.scenario, overrides)
+    closed = ClosedLoopCell(
+        cell,
+        scenario,
+        args.seed,
+        tool_error=_numbers(args.tool_error, "--tool-error", 6),
+        joint_offsets=_numbers(args.joint_offsets, "--joint-offsets", cell.robot.nq),
+    )
+    run = simulate(cell, scenario, seed=args.seed)  # the tracker's sample times
+    robot = MockRtdeController(
+        run.encoder,
+        args.host or config.robot.host,
+        args.port or config.robot.endpoint_port,
+        args.t0,
+        max_hz=args.max_hz,
+        clock_offset_s=args.clock_offset,
+        seed=args.seed,
+        follow=closed.joints,
+        correction_register=config.robot.correction_register,
+    )
+    tracker = MockTracker(
+        run.tracker,
+        args.host or config.tracker.host,
+        config.tracker.port,
+        args.t0,
+        beam_break=_pair(args.beam_break, "--beam-break"),
+        pose_at=closed.sensor,
+    )
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        _install_stop(stop.set)
+        await robot.start()
+        tracker.t0 = robot.t0
+        await tracker.start()
+        await stop.wait()
+        await robot.close()
+        await tracker.close()
+
+    asyncio.run(main())
+    if args.summary is not None:
+        doc = {
+            "summary": closed.summary(),
+            "series": closed.series(),
+            # each change of the correction registers: wall time, the six values
+            "register_writes": [[w, list(v)] for w, v in robot.input_log],
+        }
+        args.summary.write_text(json.dumps(doc), encoding="utf-8")
     return 0
 
 
@@ -396,6 +479,15 @@ def register(add: common.AddCommand) -> None:
         action="store_true",
         help="tracker: send the wall clock as device time (latency benchmarks)",
     )
+    p.add_argument(
+        "--follow-corrections",
+        action="store_true",
+        help="robot (rtde): follow the path plus the correction in the input registers "
+        "(robot.correction_register on); serves the tracker that sees this arm too",
+    )
+    p.add_argument("--tool-error", metavar="X,Y,Z,RX,RY,RZ", help="with corrections: m, rad")
+    p.add_argument("--joint-offsets", metavar="Q1,...", help="with corrections: the arm's (rad)")
+    p.add_argument("--summary", type=Path, help="with corrections: the true errors as JSON")
     p.add_argument("-v", "--verbose", action="store_true")
 
     p = add("echo", cmd_echo, "print what arrives on a key expression", config=False)

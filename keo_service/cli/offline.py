@@ -1,5 +1,5 @@
 """Offline commands: gain, simulate, estimate, calibrate-delay, delay-study, import, paper,
-analyze."""
+analyze, compensate."""
 
 from __future__ import annotations
 
@@ -212,6 +212,24 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     return common.EXIT_OK
 
 
+@common.collector_paused
+def cmd_compensate(args: argparse.Namespace) -> int:
+    from keo_service.io.compensation_files import run_compensate
+
+    summary = run_compensate(common.load(args.config), args.targets, args.out)
+    if args.json:
+        common.print_json(summary)
+    else:
+        flags = ", ".join(f"{k} {v}" for k, v in summary["flags"].items() if v) or "no flags"
+        print(
+            f"wrote {summary['out']}: {summary['targets']} targets ({summary['form']}); "
+            f"correction {summary['correction_mm']['rms']:.4f} mm RMS, "
+            f"{summary['correction_mm']['max']:.4f} mm max, "
+            f"{summary['correction_mrad']['rms']:.4f} mrad RMS; {flags}"
+        )
+    return common.EXIT_OK
+
+
 def register(add: common.AddCommand) -> None:
     p = add(
         "gain",
@@ -296,4 +314,13 @@ def register(add: common.AddCommand) -> None:
         action="store_true",
         help="keep the effects in the config; re-identify tracker and tool only",
     )
+    p.add_argument("--json", action="store_true")
+    p = add(
+        "compensate",
+        cmd_compensate,
+        "the joints (and the nominal-model pose to command) that put the tool on each target "
+        "under the identified model (--config: the model.toml of keo analyze)",
+    )
+    p.add_argument("--targets", type=Path, required=True, help="targets CSV")
+    p.add_argument("--out", type=Path, required=True, help="compensated targets CSV")
     p.add_argument("--json", action="store_true")

@@ -64,6 +64,12 @@ def register(add: common.AddCommand) -> None:
     p.add_argument("--json", action="store_true")
     p.add_argument("--seed", type=int, default=1)
     add_viewer_options(p, url=False)
+    p.add_argument(
+        "--compensate",
+        action="store_true",
+        help="close the loop: a UR10 (RTDE) follows a path plus keo's live correction; prints "
+        "the true tool error along the path without and with it",
+    )
 
     p = add("bench", cmd_bench, "the benchmarks (numbers, no verdicts)", config=False)
     p.add_argument("--config", default=str(demo_config_path()))

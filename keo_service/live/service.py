@@ -54,6 +54,7 @@ def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 if TYPE_CHECKING:
     from keo_service.fit.delay import OnlineDelayTracker
+    from keo_service.live.compensation import CorrectionPublisher
     from keo_service.live.rerun_process import RerunWorker
     from keo_service.live.ros2_bridge import EstimateBridge
 
@@ -112,6 +113,7 @@ class KeoService:
             )
         self._noise = NoiseMeter()
         self._ros2: EstimateBridge | None = None
+        self._corrections: CorrectionPublisher | None = None
         self._own_session = session is None
         self._session = session
         self._stop = asyncio.Event()
@@ -143,6 +145,11 @@ class KeoService:
             from keo_service.live.ros2_bridge import EstimateBridge
 
             self._ros2 = EstimateBridge(s, self.config)
+        from keo_service.live.compensation import CorrectionPublisher
+
+        self._corrections = CorrectionPublisher(
+            self.config, s, None if self._ros2 is None else self._ros2.node
+        )
         self._sub = AsyncSubscription(s, [topic(self.cell, "encoder"), topic(self.cell, "tracker")])
         self._refresh_status()
         self._start(self._consume(), "keo.service.consume")
@@ -165,6 +172,8 @@ class KeoService:
         self._status_q.undeclare()
         self._latest_q.undeclare()
         self._estimate_pub.undeclare()
+        if self._corrections is not None:
+            self._corrections.close()
         if self._ros2 is not None:
             self._ros2.close()
         if self._viz is not None:
@@ -213,6 +222,8 @@ class KeoService:
             if isinstance(msg, JointSample):
                 self._rates["encoder"].tick(now)
                 out = self.estimator.on_encoder(msg.t, msg.q)
+                if self._corrections is not None:  # with a model: feedforward at these joints
+                    self._corrections.on_joints(msg.t, msg.q)
                 if self._delay_tracker is not None:
                     self._delay_tracker.add_encoder(msg.t, msg.q)
             elif isinstance(msg, TrackerSample):
@@ -242,6 +253,8 @@ class KeoService:
                 )
         self._latest_bytes = payload
         self.published += 1
+        if self._corrections is not None:
+            self._corrections.publish(estimate, self.estimator)
         if self._ros2 is not None and estimate.measured is not None:
             self._noise.add(estimate.measured)
             gains = self.config.observer.gain
@@ -290,6 +303,8 @@ class KeoService:
         counters["publish_failed"] = self.publish_failures
         if self._viz is not None:
             counters["rerun_dropped"] = self._viz.dropped
+        if self._corrections is not None:
+            counters.update(self._corrections.counters)
         last = self.estimator.last
         delay = self.estimator.delay
         return ServiceStatus(
