@@ -4,11 +4,14 @@ and keep going, and problems a user can see (issue 38)."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
+import json
 import time
 import tomllib
 from pathlib import Path
 
+import msgspec
 import pytest
 
 from keo_service.bench.procs import free_port, process_group
@@ -204,8 +207,22 @@ def test_mocks_started_by_hand_from_an_init_config_give_estimates(tmp_path, robo
         procs.start("adapter-encoder", ["adapter", "encoder", *c])
         procs.start("adapter-tracker", ["adapter", "tracker", *c])
         estimates = _estimates(cfg, 40, 40.0)
+        time.sleep(3.0)  # the adapters' rates are over their last 5 s
+        status = keo("status", "--config", str(cfg), timeout=60)
         logs = {name: procs.log(name) for name in ("service", "mock-robot", "mock-tracker")}
     assert len(estimates) >= 40, logs
+    # keo status shows each adapter's state, rate and counters
+    assert status.returncode == 0, status.stderr
+    adapters = json.loads(status.stdout)["adapters"]
+    assert set(adapters) == {"encoder", "tracker"}
+    for name, expected_hz in (
+        ("encoder", 39.5 if protocol == "motoros" else 500.0),
+        ("tracker", 99.6),
+    ):
+        assert adapters[name]["state"] == "receiving", adapters[name]
+        assert adapters[name]["rate_hz"] == pytest.approx(expected_hz, rel=0.3), adapters[name]
+        assert adapters[name]["counters"]["published"] > 0
+        assert adapters[name]["last_error"] == ""
     # the streams agree: the delay the service sees is the scenario's 28 ms, not seconds
     flags = [f for est in estimates for f in est.flags]  # type: ignore[attr-defined]
     assert "stale" not in flags
@@ -296,3 +313,184 @@ async def test_loop_plays_the_scenario_again_for_every_mock_protocol(protocol):
     else:
         assert stamps[-1] - t0 > 3.0  # still sending in the third pass
         assert len(stamps) > 2.5 * Track.t.size
+
+
+# ---- problems a user can see --------------------------------------------------------------------
+
+
+class _Device:
+    """A TCP server that sends `lines` to each client and then stays connected, silent."""
+
+    def __init__(self, payload: bytes) -> None:
+        self.payload = payload
+        self.port = 0
+        self._server: asyncio.Server | None = None
+
+    async def __aenter__(self) -> _Device:
+        self._server = await asyncio.start_server(self._client, "127.0.0.1", 0)
+        self.port = self._server.sockets[0].getsockname()[1]
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        assert self._server is not None
+        self._server.close()
+
+    async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(self.payload)
+        await writer.drain()
+        with contextlib.suppress(ConnectionError):
+            await reader.read()
+        writer.close()
+
+
+def _adapter_config(demo_config, **sections: dict[str, object]):
+    from keo_service.bench.demo import loopback_config
+
+    config = loopback_config(demo_config)
+    changes = {
+        name: msgspec.structs.replace(getattr(config, name), **values)
+        for name, values in sections.items()
+    }
+    return msgspec.structs.replace(config, **changes)
+
+
+async def _watch(adapter_cls, config, seconds: float, *args: object) -> dict[str, object]:
+    """Run one adapter on its own peer session for `seconds`; its status as queried."""
+    from keo_service.live.bus import open_session
+    from keo_service.live.client import query_adapters
+
+    session = open_session("peer", listen=["tcp/127.0.0.1:0"])
+    try:
+        async with adapter_cls(config, *args, session=session) as adapter:
+            await asyncio.sleep(seconds)
+            found = await asyncio.to_thread(query_adapters, session, config.cell, 2.0)
+            return found.get(adapter.name) or {}
+    finally:
+        session.close()
+
+
+async def test_tracker_rejects_are_warned_with_the_reason_and_silence_is_reported(
+    demo_config, caplog
+):
+    from adapters.devices import TrackerAdapter
+    from adapters.line_protocol import format_hello, format_pose
+
+    lines = format_hello("mm") + format_pose(1, 0.1, [1.0, 2.0, 3.0], [1.0, 0, 0, 0])
+    lines += b'{"type": "pose", "seq": 2, "t": 0.2, "p": [NaN, 2.0, 3.0], "q": [1, 0, 0, 0]}\n'
+    lines += b"this is not json\n"
+    caplog.set_level("INFO", logger="keo.adapter")
+    async with _Device(lines) as device:
+        config = _adapter_config(demo_config, tracker={"port": device.port, "silent_after_s": 0.6})
+        status = await _watch(TrackerAdapter, config, 1.5, 6)
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    rejected = [w for w in warnings if "rejected" in w]
+    assert len(rejected) == 1, warnings  # both rejects in one warning: rate-limited
+    assert "2 input(s) rejected" in rejected[0]
+    assert "p must be 3 finite numbers" in rejected[0]
+    assert "not JSON" in rejected[0]
+    assert any("went silent" in w and "tracker.silent_after_s" in w for w in warnings), warnings
+    assert status["state"] == "silent"
+    assert status["silent_events"] == 1
+    assert status["parser"]["rejected"] == 2
+    assert any("finite" in m for m in status["messages"])
+
+
+async def test_a_device_speaking_another_protocol_is_named_as_such(
+    demo_config, caplog, monkeypatch
+):
+    from adapters import devices
+    from adapters.simple_message import encode_joint_feedback
+
+    monkeypatch.setattr(devices, "HANDSHAKE_TIMEOUT_S", 0.5)
+    motoros = encode_joint_feedback([0.1] * 6) * 20
+    caplog.set_level("INFO", logger="keo.adapter")
+    # a line-protocol tracker adapter pointed at something else that writes lines
+    banner = b"SSH-2.0-OpenSSH_9.6\r\nInvalid SSH identification string.\r\nBye\r\n"
+    async with _Device(banner) as device:
+        config = _adapter_config(demo_config, tracker={"port": device.port})
+        status = await _watch(devices.TrackerAdapter, config, 1.0, 6)
+    assert status["state"] == "wrong_protocol", status
+    assert "does not speak line" in status["problem"]
+    assert "tracker.port" in status["problem"]
+    # an RTDE adapter pointed at a MotoROS controller
+    async with _Device(motoros) as device:
+        config = _adapter_config(demo_config, robot={"protocol": "rtde", "port": device.port})
+        status = await _watch(devices.RtdeEncoderAdapter, config, 1.2, 6)
+    assert "does not speak RTDE" in status["last_error"], status
+    assert "robot.host and robot.port" in status["last_error"]
+    assert "RTDE server" in status["last_error"]
+    # a MotoROS adapter connected to something that sends nothing (an RTDE server waits to
+    # be asked)
+    async with _Device(b"") as device:
+        config = _adapter_config(demo_config, robot={"port": device.port, "silent_after_s": 0.5})
+        status = await _watch(devices.EncoderAdapter, config, 1.0, 6)
+    assert status["state"] == "silent"
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("nothing arrived" in w and "MotoROS state server" in w for w in warnings)
+
+
+async def test_a_wrong_port_names_the_key_to_fix(demo_config, caplog):
+    from adapters.devices import EncoderAdapter
+
+    caplog.set_level("INFO", logger="keo.adapter")
+    config = _adapter_config(demo_config, robot={"port": free_port()})  # nothing listens
+    status = await _watch(EncoderAdapter, config, 0.8, 6)
+    assert status["state"] == "connecting"
+    assert "check robot.host and robot.port in the config" in status["last_error"]
+    assert "MotoROS state server" in status["last_error"]
+    assert any("robot.port" in r.getMessage() for r in caplog.records)
+
+
+def test_a_client_at_a_wrong_port_gets_one_readable_sentence():
+    from keo_service.live.client import ClientError
+
+    started = time.monotonic()
+    with (
+        pytest.raises(ClientError) as info,
+        SyncClient(f"tcp/127.0.0.1:{free_port()}", cell="x", connect_timeout_s=1.0),
+    ):
+        pass
+    assert time.monotonic() - started < 10.0
+    text = str(info.value)
+    assert ".rs" not in text
+    assert "/root" not in text
+    assert "cargo" not in text
+    assert "within 1 s" in text
+    assert "bus.connect" in text
+    assert "connect_timeout_s" in text
+    assert "\n" not in text
+
+
+def test_record_warns_and_counts_when_one_stream_stops(caplog):
+    from keo_service.live.messages import JointSample, TrackerSample, encode
+    from keo_service.live.recorder import STREAM_STOPPED_S, _StreamRecorder
+
+    class Counting(_StreamRecorder):
+        def _joints(self, msg: object) -> None:
+            pass
+
+        def _pose(self, msg: object) -> bool:
+            return True
+
+    rec = Counting(6)
+    joint = encode(JointSample(t=0.0, host_ns=0, seq=1, q=[0.0] * 6))
+    pose = encode(TrackerSample(t=0.0, host_ns=0, seq=1, p=[0.0] * 3, q=[1.0, 0, 0, 0]))
+    rec.on_payload(joint)
+    rec.on_payload(pose)
+    now = time.monotonic()
+    rec.check_streams(now)
+    assert rec.stats.stream_stops == 0
+    # the encoder's last sample was long ago, the tracker's just now
+    rec.last_seen["encoder"] = now - STREAM_STOPPED_S - 17.0
+    caplog.set_level("INFO", logger="keo.record")
+    rec.check_streams(now)
+    rec.check_streams(now + 0.1)  # once per stop
+    assert rec.stats.stream_stops == 1
+    assert "encoder stream stopped" in rec.stats.messages[0]
+    assert any("encoder stream stopped 19.0 s ago" in r.getMessage() for r in caplog.records)
+    rec.on_payload(joint)  # back, then gone again: a second stop
+    rec.check_streams(time.monotonic())
+    rec.last_seen["encoder"] = time.monotonic() - STREAM_STOPPED_S - 1.0
+    rec.on_payload(pose)
+    rec.check_streams(time.monotonic())
+    assert rec.stats.stream_stops == 2

@@ -243,13 +243,19 @@ def cmd_status(args: argparse.Namespace) -> int:
     from keo_service.live.client import ClientError, SyncClient
 
     config = common.load(args.config)
+    adapters: dict[str, Any] = {}
     try:
         with SyncClient.from_config(config, connect_timeout_s=args.timeout) as keo:
+            # the adapters answer for themselves: state, rate, counters, newest rejects
+            adapters = keo.adapters(timeout=min(2.0, args.timeout))
             status = keo.status(timeout=args.timeout)
     except ClientError as exc:
         print(f"keo status: {exc}", file=sys.stderr)
+        if adapters:
+            sys.stdout.write(json.dumps({"adapters": adapters}, indent=2, default=str) + "\n")
         return 1
     doc = msgspec.to_builtins(status)
+    doc["adapters"] = doc.get("adapters") or adapters
     sys.stdout.write(json.dumps(doc, indent=2, default=str) + "\n")
     return 0
 
