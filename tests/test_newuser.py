@@ -494,3 +494,19 @@ def test_record_warns_and_counts_when_one_stream_stops(caplog):
     rec.on_payload(pose)
     rec.check_streams(time.monotonic())
     assert rec.stats.stream_stops == 2
+
+
+def test_the_real_ur10_data_ships_in_the_clone_with_its_license():
+    data = REPO / "data" / "ur10_lasertracker"
+    assert "MIT" in (data / "LICENSE.md").read_text(encoding="utf-8")
+    for name in (
+        "Series_A/measurements_grid.csv",
+        "Series_B/measurements_joint_configurations.csv",
+    ):
+        header = (data / name).read_text(encoding="utf-8").splitlines()[0]
+        assert "shoulder_pan_joint" in header
+        assert "measurement_x" in header
+    # the tests read the copy in the clone, not one beside it
+    from tests.conftest import UR10_DATA
+
+    assert data == UR10_DATA
