@@ -510,3 +510,26 @@ def test_the_real_ur10_data_ships_in_the_clone_with_its_license():
     from tests.conftest import UR10_DATA
 
     assert data == UR10_DATA
+
+
+def test_the_topics_page_names_every_payload_field_and_the_line_page_every_reject_reason():
+    import typing
+
+    from adapters import line_protocol
+    from keo_service.live import messages
+
+    page = (REPO / "docs" / "topics-and-files.md").read_text(encoding="utf-8")
+    for kind in typing.get_args(messages.Message):
+        assert f"`{kind.__name__}`" in page
+        for field in msgspec.structs.fields(kind):
+            assert f"`{field.name}`" in page, (kind.__name__, field.name)
+    line_page = (REPO / "docs" / "line-protocol.md").read_text(encoding="utf-8")
+    source = Path(line_protocol.__file__).read_text(encoding="utf-8")
+    reasons = set(line_protocol._FIELD_REASON.values())
+    import re
+
+    reasons |= set(re.findall(r'_reject\(\s*"(\w+)"', source))
+    assert reasons >= {"malformed", "no_hello", "non_finite", "too_long"}
+    reasons |= {"duplicate", "out_of_order"}  # chosen at run time from the seq
+    for reason in reasons:
+        assert f"`{reason}`" in line_page, reason
