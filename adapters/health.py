@@ -114,7 +114,7 @@ class AdapterHealth:
         if not connected:
             self.state = "connecting" if self._connections == 0 else "disconnected"
             return
-        self._judge_protocol(published, rejected, messages)
+        self._judge_protocol(published, rejected, messages, now)
         self._judge_silence(now)
         if self.mismatch:
             self.state = "wrong_protocol"
@@ -137,11 +137,16 @@ class AdapterHealth:
         )
         self._warned_rejects, self._last_warn = rejected, now
 
-    def _judge_protocol(self, published: int, rejected: int, messages: list[str]) -> None:
+    def _judge_protocol(
+        self, published: int, rejected: int, messages: list[str], now: float
+    ) -> None:
+        """Rejects and nothing valid since the connection began: several, or any for as long
+        as silence takes (a codec that counts one reject per stretch of bad bytes)."""
         if self.mismatch or published > self._published_at_connect:
             return
         bad = rejected - self._rejects_at_connect
-        if bad >= MISMATCH_REJECTS:
+        since = now - self._connected_at if self._connected_at is not None else 0.0
+        if bad >= MISMATCH_REJECTS or (bad > 0 and since >= self.silent_after_s):
             self.mismatch = (
                 f"the device at {self.endpoint} does not speak {self.protocol}: {bad} inputs "
                 f"rejected and none valid since it connected (newest: "
@@ -158,7 +163,9 @@ class AdapterHealth:
         if quiet >= self.silent_after_s and not self._silent:
             self._silent = True
             self.silent_events += 1
-            if self._last_data_at is None:
+            if self.mismatch:
+                pass  # said already, and better
+            elif self._last_data_at is None:
                 self.log.warning(
                     "%s: connected to %s but nothing arrived in %.1f s (%s.silent_after_s): "
                     "is it %s? check %s.port",

@@ -77,6 +77,9 @@ class _MockServer:
         self.t0 = t0
         self.loop_play = loop_play
         self.period_s = period_s  # None: the last row's time + 0.1 s
+        # wall time after which nothing more is sent (None: no limit); with loop_play, a
+        # mock on the wall-clock grid plays one whole period from wherever it starts
+        self.play_until: float | None = None
         self.clients = 0
         self._server: asyncio.Server | None = None
 
@@ -116,6 +119,8 @@ class _MockServer:
             now = time.time()
             first = int(np.searchsorted(times, now - start))
             for i in range(first, times.size):
+                if self.play_until is not None and start + float(times[i]) > self.play_until:
+                    return
                 await _sleep_until(start + float(times[i]))
                 writer.write(frame(i))
                 await writer.drain()
@@ -250,6 +255,7 @@ class MockRtdeController:
         # controller's clock running on
         self.loop_play = loop_play
         self.period_s = period_s or float(track.t[-1]) + 0.1
+        self.play_until: float | None = None  # as _MockServer.play_until
         self.host, self.port, self.t0 = host, port, t0
         self.max_hz = max_hz
         self.clock_offset_s, self.clock_drift = clock_offset_s, clock_drift_ppm * 1e-6
@@ -342,7 +348,7 @@ class MockRtdeController:
             # the pass number keeps the controller's clock running on from pass to pass
             passes = round((start - self.t0) / self.period_s) if self.loop_play else 0
             await self._stream_pass(writer, recipe, hz, start, passes * self.period_s)
-            if not self.loop_play:
+            if not self.loop_play or (self.play_until is not None and start > self.play_until):
                 return
             start += self.period_s
 
@@ -360,6 +366,8 @@ class MockRtdeController:
         q = np.column_stack([np.interp(times, self.track.t, c) for c in self.track.q.T])
         qd = np.gradient(q, times, axis=0) if times.size > 1 else np.zeros_like(q)
         n = times.size
+        if self.play_until is not None:
+            n = int(np.searchsorted(send, self.play_until - start, side="right"))
         i = int(np.searchsorted(send, time.time() - start))  # a late client: from now on
         while i < n:
             now = time.time() - start

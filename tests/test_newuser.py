@@ -419,6 +419,14 @@ async def test_a_device_speaking_another_protocol_is_named_as_such(
     assert "does not speak RTDE" in status["last_error"], status
     assert "robot.host and robot.port" in status["last_error"]
     assert "RTDE server" in status["last_error"]
+    # a MotoROS adapter pointed at something else that talks (a web server's answer)
+    http = b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n" * 3
+    async with _Device(http) as device:
+        config = _adapter_config(demo_config, robot={"port": device.port, "silent_after_s": 0.5})
+        status = await _watch(devices.EncoderAdapter, config, 1.0, 6)
+    assert status["state"] == "wrong_protocol", status
+    assert "does not speak motoros" in status["problem"]
+    assert "impossible length" in status["problem"]
     # a MotoROS adapter connected to something that sends nothing (an RTDE server waits to
     # be asked)
     async with _Device(b"") as device:
@@ -533,3 +541,17 @@ def test_the_topics_page_names_every_payload_field_and_the_line_page_every_rejec
     reasons |= {"duplicate", "out_of_order"}  # chosen at run time from the seq
     for reason in reasons:
         assert f"`{reason}`" in line_page, reason
+
+
+def test_mocks_on_the_wall_clock_grid_agree_across_a_period_boundary():
+    """Two mocks started just before and just after a period boundary pick t0 a period
+    apart; playing phase-aligned, both send each row at the same wall time."""
+    from adapters.mock_devices import _first_pass, wall_clock_t0
+
+    period = 60.2
+    boundary = wall_clock_t0(period, 1.8e9)
+    before = wall_clock_t0(period, boundary - 0.7)
+    after = wall_clock_t0(period, boundary + 0.8)
+    assert after - before == pytest.approx(period)
+    for now in (boundary + 1.0, boundary + 30.0, boundary + 59.0):
+        assert _first_pass(before, period, now) == pytest.approx(_first_pass(after, period, now))

@@ -9,6 +9,7 @@ import logging
 import math
 import signal
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -111,8 +112,11 @@ def cmd_mock(args: argparse.Namespace) -> int:
     # both mocks simulate the same run: one period for both streams, and without --t0 the
     # same start on the wall-clock grid of that period
     period = mock_period(run.encoder.t, run.tracker.t)
-    if args.t0 is None:
-        args.t0 = wall_clock_t0(period)
+    until = None
+    if args.t0 is None:  # on the grid every mock plays the same phase: one whole period
+        args.t0 = wall_clock_t0(period)  # from now, or for ever with --loop
+        until = None if args.loop else time.time() + period
+        args.loop = True
     server: MockRobot | MockTracker | MockRtdeController
     protocol = args.protocol or config.robot.protocol
     section = "robot" if args.device == "robot" else "tracker"
@@ -159,6 +163,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
             clock_step=_pair(args.clock_step, "--clock-step"),
             period_s=period,
         )
+
+    server.play_until = until
 
     async def main() -> None:
         stop = asyncio.Event()
