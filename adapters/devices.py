@@ -60,11 +60,11 @@ class _Adapter:
             self._session = await session_for_client_async(self.config)
         self._declare(self._session)
         self.health = self._make_health()
+        self.device = Device(self.health.section, self.health.expected)
+        DEVICE.set(self.device)  # connection messages name the keys; newest problem in status
         self._status_q = self._session.declare_queryable(
             topic(self.config.cell, f"adapter/{self.name}/status"), self._on_status_query
         )
-        self.device = Device(self.health.section, self.health.expected)
-        DEVICE.set(self.device)  # connection messages name the keys; newest problem in status
         task = asyncio.create_task(self._run(), name=f"keo.adapter.{self.name}")
         self._task = supervise(task, self._stop.is_set, self._fail)
         watcher = asyncio.create_task(self._watch(), name=f"keo.adapter.{self.name}.watch")

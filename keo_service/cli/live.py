@@ -117,6 +117,13 @@ def cmd_mock(args: argparse.Namespace) -> int:
         args.t0 = wall_clock_t0(period)  # from now, or for ever with --loop
         until = None if args.loop else time.time() + period
         args.loop = True
+        logging.getLogger("keo.mock").info(
+            "%s: t0 on the wall-clock grid of the scenario's %.1f s period (any mock of this "
+            "scenario agrees); playing %s",
+            args.scenario,
+            period,
+            "for ever" if until is None else "one period (--loop: for ever)",
+        )
     server: MockRobot | MockTracker | MockRtdeController
     protocol = args.protocol or config.robot.protocol
     section = "robot" if args.device == "robot" else "tracker"
