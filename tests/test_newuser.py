@@ -555,3 +555,31 @@ def test_mocks_on_the_wall_clock_grid_agree_across_a_period_boundary():
     assert after - before == pytest.approx(period)
     for now in (boundary + 1.0, boundary + 30.0, boundary + 59.0):
         assert _first_pass(before, period, now) == pytest.approx(_first_pass(after, period, now))
+
+
+def test_reject_warnings_are_rate_limited_and_the_rate_is_measured(caplog):
+    """Pure bookkeeping with a made-up clock: one warning per 5 s whatever the reject rate,
+    each naming how many and the newest reasons; the rate over the last seconds."""
+    import logging
+
+    from adapters.health import WARN_EVERY_S, AdapterHealth
+
+    health = AdapterHealth("tracker", "tracker", "line", "h:1", 2.0, logging.getLogger("t.h"))
+    caplog.set_level("INFO", logger="t.h")
+    published = rejected = 0
+    for step in range(200):  # 20 s at 10 ticks a second: 100 samples/s, 5 rejects/s
+        now = step * 0.1
+        published += 10
+        if step % 2 == 0:
+            rejected += 1
+        status = {
+            "counters": {"connections": 1, "published": published},
+            "parser": {"rejected": rejected},
+            "messages": [f"seq {rejected}: bad"],
+        }
+        health.tick(status, now)
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert 20.0 / WARN_EVERY_S <= len(warnings) <= 20.0 / WARN_EVERY_S + 1
+    assert warnings[1].startswith(f"tracker: 25 input(s) rejected in the last {WARN_EVERY_S:g} s")
+    assert health.state == "receiving"
+    assert health.summary(20.0)["rate_hz"] == pytest.approx(100.0, rel=0.02)
