@@ -260,7 +260,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     try:
         with SyncClient.from_config(config, connect_timeout_s=args.timeout) as keo:
             # the adapters answer for themselves: state, rate, counters, newest rejects
-            adapters = keo.adapters(timeout=min(2.0, args.timeout))
+            adapters = keo.adapters(timeout=min(5.0, args.timeout))
             status = keo.status(timeout=args.timeout)
     except ClientError as exc:
         print(f"keo status: {exc}", file=sys.stderr)
