@@ -21,7 +21,8 @@ import msgspec
 import zenoh
 
 from adapters import rtde
-from adapters.connection import run_tcp_client
+from adapters.connection import DEVICE, Device, run_tcp_client
+from adapters.health import AdapterHealth
 from adapters.line_protocol import MAX_LINE, LineProtocolParser
 from adapters.rtde import Package, RtdeDecoder
 from adapters.simple_message import JointFeedback, RobotStatusFrame, SimpleMessageDecoder
@@ -48,6 +49,7 @@ from keo_service.live.ros2 import (
 from keo_service.live.supervise import supervise
 
 log = logging.getLogger("keo.adapter")
+WATCH_PERIOD_S = 0.25
 
 
 class _Adapter:
@@ -67,18 +69,44 @@ class _Adapter:
         if self._session is None:
             self._session = await session_for_client_async(self.config)
         self._declare(self._session)
+        self.health = self._make_health()
+        self.device = Device(self.health.section, self.health.expected)
+        DEVICE.set(self.device)  # connection messages name the keys; newest problem in status
         self._status_q = self._session.declare_queryable(
             topic(self.config.cell, f"adapter/{self.name}/status"), self._on_status_query
         )
         task = asyncio.create_task(self._run(), name=f"keo.adapter.{self.name}")
         self._task = supervise(task, self._stop.is_set, self._fail)
+        watcher = asyncio.create_task(self._watch(), name=f"keo.adapter.{self.name}.watch")
+        self._watcher = supervise(watcher, self._stop.is_set, self._fail)
         return self
+
+    def _make_health(self) -> AdapterHealth:
+        section = "robot" if self.name == "encoder" else "tracker"
+        device = getattr(self.config, section)
+        protocol = device.protocol
+        if protocol == "ros2":
+            endpoint = device.joint_states_topic if section == "robot" else device.pose_topic
+        else:
+            port = device.endpoint_port if section == "robot" else device.port
+            endpoint = f"{device.host}:{port}"
+        silent = float(getattr(device, "silent_after_s", 2.0))
+        return AdapterHealth(self.name, section, protocol, endpoint, silent, log)
+
+    async def _watch(self) -> None:
+        """State, rate, silence and rejects in the log and the status (adapters.health)."""
+        while not self._stop.is_set():
+            self.health.tick(self.status(), time.monotonic())
+            if self.health.state == "receiving":
+                self.device.last_error = ""  # the newest problem is over once data flows
+            await asyncio.sleep(WATCH_PERIOD_S)
 
     async def __aexit__(self, *exc: object) -> None:
         self._stop.set()
         if self._task is not None:
             await asyncio.wait({self._task}, timeout=2.0)
             self._task.cancel()
+            self._watcher.cancel()
         self._status_q.undeclare()
         if self._own_session and self._session is not None:
             self._session.close()
@@ -97,7 +125,10 @@ class _Adapter:
         return {"adapter": self.name, "counters": dict(self.counters)}
 
     def _on_status_query(self, query: zenoh.Query) -> None:
-        query.reply(query.key_expr, json.dumps(self.status()).encode())
+        doc = {**self.status(), **self.health.summary(time.monotonic())}
+        doc["last_error"] = self.device.last_error
+        key = topic(self.config.cell, f"adapter/{self.name}/status")  # not the query's wildcard
+        query.reply(key, json.dumps(doc).encode())
 
     def _declare(self, session: zenoh.Session) -> None:
         raise NotImplementedError
@@ -335,7 +366,14 @@ class RtdeEncoderAdapter(EncoderAdapter):
         self.rtde_decoder = RtdeDecoder()
         self._pending.clear()
         writer.write(rtde.request_protocol_version())
-        if not rtde.parse_accepted(await self._expect(reader, rtde.REQUEST_PROTOCOL_VERSION)):
+        try:
+            answer = await self._expect(reader, rtde.REQUEST_PROTOCOL_VERSION)
+        except (TimeoutError, rtde.RtdeError) as exc:  # the first answer: is this RTDE at all?
+            why = str(exc) or f"no answer within {HANDSHAKE_TIMEOUT_S:g} s"
+            raise rtde.RtdeError(
+                f"RTDE's protocol version request: {why}; the device does not speak RTDE"
+            ) from None
+        if not rtde.parse_accepted(answer):
             raise rtde.RtdeError("the controller refused RTDE protocol version 2")
         writer.write(rtde.get_controller_version())
         version = rtde.parse_controller_version(

@@ -2,8 +2,11 @@
 formats, so an adapter cannot tell them from a MotoROS controller or a tracker.
 
 A row stamped t (scenario seconds) is sent at wall time t0 + t; both mocks given the same t0
-reproduce the scenario's delay between the streams. A client that connects late gets the
-rows from now on, as from a real device.
+reproduce the scenario's delay between the streams. Without a t0 the mocks take the start of
+the current period on a wall-clock grid of the scenario's period (`wall_clock_t0`), so two
+mocks started by hand at any time agree. Looping plays the scenario again every `period_s`
+(the same for both streams). A client that connects late gets the rows from now on, as from
+a real device.
 """
 
 from __future__ import annotations
@@ -26,6 +29,18 @@ from adapters.simple_message import encode_joint_feedback, encode_robot_status
 
 log = logging.getLogger("keo.mock")
 STATUS_PERIOD_S = 0.5
+
+
+def wall_clock_t0(period_s: float, now: float | None = None) -> float:
+    """The start of the current period on a grid of `period_s` seconds since the epoch: every
+    mock playing the same scenario computes the same t0, whenever it was started."""
+    now = time.time() if now is None else now
+    return math.floor(now / period_s) * period_s
+
+
+def _first_pass(t0: float, period_s: float, now: float) -> float:
+    """The start of the pass playing at `now` (t0 when it has not begun)."""
+    return t0 + max(0, math.floor((now - t0) / period_s)) * period_s
 
 
 async def _sleep_until(wall: float) -> None:
@@ -51,10 +66,21 @@ class PoseTrack(Protocol):
 
 
 class _MockServer:
-    def __init__(self, host: str, port: int, t0: float | None, loop_play: bool) -> None:
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        t0: float | None,
+        loop_play: bool,
+        period_s: float | None = None,
+    ) -> None:
         self.host, self.port = host, port
         self.t0 = t0
         self.loop_play = loop_play
+        self.period_s = period_s  # None: the last row's time + 0.1 s
+        # wall time after which nothing more is sent (None: no limit); with loop_play, a
+        # mock on the wall-clock grid plays one whole period from wherever it starts
+        self.play_until: float | None = None
         self.clients = 0
         self._server: asyncio.Server | None = None
 
@@ -86,12 +112,16 @@ class _MockServer:
         self, writer: asyncio.StreamWriter, times: np.ndarray, frame: Callable[[int], bytes]
     ) -> None:
         assert self.t0 is not None
+        duration = self.period_s or (float(times[-1]) + 0.1 if times.size else 0.0)
         start = self.t0
-        duration = float(times[-1]) + 0.1 if times.size else 0.0
+        if self.loop_play and duration > 0:
+            start = _first_pass(self.t0, duration, time.time())
         while True:
             now = time.time()
             first = int(np.searchsorted(times, now - start))
             for i in range(first, times.size):
+                if self.play_until is not None and start + float(times[i]) > self.play_until:
+                    return
                 await _sleep_until(start + float(times[i]))
                 writer.write(frame(i))
                 await writer.drain()
@@ -114,8 +144,9 @@ class MockRobot(_MockServer):
         byte_order: str = "little",
         t0: float | None = None,
         loop_play: bool = False,
+        period_s: float | None = None,
     ) -> None:
-        super().__init__(host, port, t0, loop_play)
+        super().__init__(host, port, t0, loop_play, period_s)
         self.encoder = encoder
         self.byte_order = byte_order
 
@@ -148,8 +179,9 @@ class MockTracker(_MockServer):
         beam_break: tuple[float, float] | None = None,
         clock_step: tuple[float, float] | None = None,
         pose_at: Callable[[float], tuple[np.ndarray, np.ndarray] | None] | None = None,
+        period_s: float | None = None,
     ) -> None:
-        super().__init__(host, port, t0, loop_play)
+        super().__init__(host, port, t0, loop_play, period_s)
         self.tracker = tracker
         # measured live instead of played: the sensor pose (m, scalar-first quaternion) for a
         # row's time, e.g. of an arm that a compensated controller moves (None: no target)
@@ -273,6 +305,8 @@ class MockRtdeController:
         seed: int = 0,
         follow: Callable[[float, tuple[float, ...] | None], np.ndarray] | None = None,
         correction_register: int = 24,
+        loop_play: bool = False,
+        period_s: float | None = None,
     ) -> None:
         self.track = track
         self.follow = follow
@@ -281,6 +315,11 @@ class MockRtdeController:
         self.input_log: collections.deque[tuple[float, tuple[float, ...]]] = collections.deque(
             maxlen=INPUT_LOG
         )
+        # looping: the track again every period_s (default: its last time + 0.1 s), the
+        # controller's clock running on
+        self.loop_play = loop_play
+        self.period_s = period_s or float(track.t[-1]) + 0.1
+        self.play_until: float | None = None  # as _MockServer.play_until
         self.host, self.port, self.t0 = host, port, t0
         self.max_hz = max_hz
         self.clock_offset_s, self.clock_drift = clock_offset_s, clock_drift_ppm * 1e-6
@@ -288,7 +327,8 @@ class MockRtdeController:
         self.version = version
         self.rng = np.random.default_rng(seed)
         self.clients = 0
-        self.sent: list[tuple[float, float]] = []  # (scenario time, controller stamp), for tests
+        # (scenario time, controller stamp) of the newest packages, for tests
+        self.sent: collections.deque[tuple[float, float]] = collections.deque(maxlen=100_000)
         self._server: asyncio.Server | None = None
 
     async def start(self) -> None:
@@ -408,6 +448,27 @@ class MockRtdeController:
 
     async def _stream(self, writer: asyncio.StreamWriter, recipe: rtde.Recipe, hz: float) -> None:
         assert self.t0 is not None
+        start = self.t0
+        if self.loop_play:
+            start = _first_pass(self.t0, self.period_s, time.time())
+        while True:
+            # the pass number keeps the controller's clock running on from pass to pass
+            passes = round((start - self.t0) / self.period_s) if self.loop_play else 0
+            await self._stream_pass(writer, recipe, hz, start, passes * self.period_s)
+            if not self.loop_play or (self.play_until is not None and start > self.play_until):
+                return
+            start += self.period_s
+
+    async def _stream_pass(
+        self,
+        writer: asyncio.StreamWriter,
+        recipe: rtde.Recipe,
+        hz: float,
+        start: float,
+        offset_s: float,
+    ) -> None:
+        """One pass of the track from wall time `start`; the scenario time of each package
+        on the controller's clock is its time in the track + `offset_s`."""
         times, send = self._schedule(hz)
         if self.follow is None:
             q = np.column_stack([np.interp(times, self.track.t, c) for c in self.track.q.T])
@@ -415,9 +476,10 @@ class MockRtdeController:
         else:  # made live, sample by sample
             q = np.zeros((times.size, len(self.track.q[0])))
             qd = np.zeros_like(q)
-        i, n = 0, times.size
-        if self.follow is not None:  # a client that connects late gets the cycles from now on
-            i = int(np.searchsorted(send, time.time() - self.t0))
+        n = times.size
+        if self.play_until is not None:
+            n = int(np.searchsorted(send, self.play_until - start, side="right"))
+        i = int(np.searchsorted(send, time.time() - start))  # a late client: from now on
         first = i
         made = i - 1  # follow: samples made so far, each ahead of its planned time
 
@@ -431,7 +493,7 @@ class MockRtdeController:
             if self.follow is not None and made < i:
                 make(i)
                 made = i
-            now = time.time() - self.t0
+            now = time.time() - start
             if send[i] > now:
                 await asyncio.sleep(send[i] - now)
                 continue
@@ -445,9 +507,9 @@ class MockRtdeController:
                     # stamped when it goes out (an asyncio wake-up comes up to a millisecond
                     # late; a controller's cycle does not): the joints carried there along the
                     # last step's velocity
-                    at = time.time() - self.t0
+                    at = time.time() - start
                     joints = q[i] + qd[i] * (at - times[i])
-                stamp = self.device_time(at)
+                stamp = self.device_time(at + offset_s)
                 values: dict[str, object] = {
                     name: _ZERO[kind] for name, kind in zip(recipe.names, recipe.types, strict=True)
                 }

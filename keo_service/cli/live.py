@@ -9,6 +9,7 @@ import logging
 import math
 import signal
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -171,7 +172,7 @@ def _udp_controller(args: argparse.Namespace, config: Any, protocol: str, run: A
 def cmd_mock(args: argparse.Namespace) -> int:
     import asyncio
 
-    from adapters.mock_devices import MockRobot, MockRtdeController, MockTracker
+    from adapters.mock_devices import MockRobot, MockRtdeController, MockTracker, wall_clock_t0
     from keo_service.io.cell import cell_from_config
     from keo_service.sim.simulate import make_scenario, simulate
 
@@ -187,8 +188,30 @@ def cmd_mock(args: argparse.Namespace) -> int:
     run = simulate(
         cell_from_config(config), make_scenario(args.scenario, overrides), seed=args.seed
     )
+    # both mocks simulate the same run: one period for both streams, and without --t0 the
+    # same start on the wall-clock grid of that period
+    period = mock_period(run.encoder.t, run.tracker.t)
+    until = None
+    if args.t0 is None:  # on the grid every mock plays the same phase: one whole period
+        args.t0 = wall_clock_t0(period)  # from now, or for ever with --loop
+        until = None if args.loop else time.time() + period
+        args.loop = True
+        logging.getLogger("keo.mock").info(
+            "%s: t0 on the wall-clock grid of the scenario's %.1f s period (any mock of this "
+            "scenario agrees); playing %s",
+            args.scenario,
+            period,
+            "for ever" if until is None else "one period (--loop: for ever)",
+        )
     server: MockRobot | MockTracker | MockRtdeController
     protocol = args.protocol or config.robot.protocol
+    section = "robot" if args.device == "robot" else "tracker"
+    if (protocol if section == "robot" else config.tracker.protocol) == "ros2":
+        raise ConfigError(
+            config.source,
+            f"{section}.protocol",
+            "ros2: keo has no mock of a ROS 2 node; any node publishing the topic will do",
+        )
     if args.device == "robot" and protocol == "rtde":
         server = MockRtdeController(
             run.encoder,
@@ -201,6 +224,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
             late_ms=args.late_ms,
             burst_every_s=args.burst_every,
             seed=args.seed,
+            loop_play=args.loop,
+            period_s=period,
         )
     elif args.device == "robot" and protocol in ("kuka_rsi", "abb_egm"):
         server = _udp_controller(args, config, protocol, run)
@@ -212,6 +237,7 @@ def cmd_mock(args: argparse.Namespace) -> int:
             config.robot.byte_order,
             args.t0,
             args.loop,
+            period_s=period,
         )
     else:
         server = MockTracker(
@@ -223,7 +249,10 @@ def cmd_mock(args: argparse.Namespace) -> int:
             wall_clock=args.wall_clock_device_time,
             beam_break=_pair(args.beam_break, "--beam-break"),
             clock_step=_pair(args.clock_step, "--clock-step"),
+            period_s=period,
         )
+
+    server.play_until = until
 
     async def main() -> None:
         stop = asyncio.Event()
@@ -318,6 +347,13 @@ def _mock_compensated_cell(args: argparse.Namespace, config: Any, overrides: dic
     return 0
 
 
+def mock_period(*times: Any) -> float:
+    """The scenario's period for looping mocks: its last row (of either stream) plus a tenth
+    of a second, on a 0.1 s grid so that every mock of the same run computes the same."""
+    last = max(float(t[-1]) for t in times if len(t))
+    return math.ceil(last * 10.0 + 1.0) / 10.0
+
+
 def cmd_echo(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -383,13 +419,19 @@ def cmd_status(args: argparse.Namespace) -> int:
     from keo_service.live.client import ClientError, SyncClient
 
     config = common.load(args.config)
+    adapters: dict[str, Any] = {}
     try:
         with SyncClient.from_config(config, connect_timeout_s=args.timeout) as keo:
+            # the adapters answer for themselves: state, rate, counters, newest rejects
+            adapters = keo.adapters(timeout=min(5.0, args.timeout))
             status = keo.status(timeout=args.timeout)
     except ClientError as exc:
         print(f"keo status: {exc}", file=sys.stderr)
+        if adapters:
+            sys.stdout.write(json.dumps({"adapters": adapters}, indent=2, default=str) + "\n")
         return 1
     doc = msgspec.to_builtins(status)
+    doc["adapters"] = doc.get("adapters") or adapters
     sys.stdout.write(json.dumps(doc, indent=2, default=str) + "\n")
     return 0
 
@@ -436,9 +478,14 @@ def register(add: common.AddCommand) -> None:
     p = add("mock", cmd_mock, "a device simulator speaking the real wire format", config=False)
     p.add_argument("device", choices=["robot", "tracker"])
     p.add_argument("--config", required=True)
-    p.add_argument("--scenario", required=True)
+    p.add_argument("--scenario", default="path", help="default: path (every joint moving, 60 s)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--t0", type=float, help="wall time (epoch s) of scenario time 0")
+    p.add_argument(
+        "--t0",
+        type=float,
+        help="wall time (epoch s) of scenario time 0 (default: the start of the current "
+        "scenario period since the epoch, the same for every mock of the scenario)",
+    )
     p.add_argument("--duration", type=float, help="play only this many seconds of the scenario")
     p.add_argument("--loop", action="store_true", help="play the scenario again and again")
     p.add_argument("--host", help="bind address (default: the config's, loopback)")
