@@ -176,6 +176,7 @@ def cmd_calibrate_delay(args: argparse.Namespace) -> int:
         print(f"keo calibrate-delay: refused: {exc}", file=sys.stderr)
         return common.EXIT_FAILURE
     segments = reference_method(cell, enc.t, enc.q, trk.t, trk.p)
+    clocks = {"robot.clock": config.robot.clock, "tracker.clock": config.tracker.clock}
     doc = {
         "verdict": "ok" if fit.explained else "unexplained",
         "delay_s": fit.delay_s,
@@ -191,6 +192,9 @@ def cmd_calibrate_delay(args: argparse.Namespace) -> int:
         "window_delays_s": fit.window_delays_s,
         "notes": fit.notes,
         "reference_method": [s.__dict__ for s in segments],
+        # the clock domains the delay holds under: samples stamped under other domains
+        # make `keo run` warn
+        "clocks": clocks,
         "config": {
             "timing.delay_s": fit.delay_s,
             "timing.drift_ppm": fit.drift * 1e6,
@@ -218,6 +222,10 @@ def cmd_calibrate_delay(args: argparse.Namespace) -> int:
                 f"{s.start:.2f}-{s.end:.2f} s at {s.speed * 1e3:.0f} mm/s: "
                 f"{s.delay_s * 1e3:.2f} ms"
             )
+        print(
+            f"clock domains: robot.clock = {clocks['robot.clock']}, tracker.clock = "
+            f"{clocks['tracker.clock']} (the delay holds for stamps under these domains)"
+        )
         print("config:")
         print(f"  [timing] delay_s = {fit.delay_s:.6f}")
         if fit.drift_significant:

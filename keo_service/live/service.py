@@ -126,6 +126,8 @@ class KeoService:
         self.received = 0
         self._last_arrival = time.monotonic()
         self.decode_errors = 0
+        self._clock_domains: dict[str, str] = {}
+        self._clock_flags: collections.Counter[str] = collections.Counter()
 
     async def __aenter__(self) -> KeoService:
         if self._session is None:
@@ -208,11 +210,13 @@ class KeoService:
             self._last_arrival = now
             self._progress_at = now
             if isinstance(msg, JointSample):
+                self._on_clock("encoder", msg)
                 self._rates["encoder"].tick(now)
                 out = self.estimator.on_encoder(msg.t, msg.q)
                 if self._delay_tracker is not None:
                     self._delay_tracker.add_encoder(msg.t, msg.q)
             elif isinstance(msg, TrackerSample):
+                self._on_clock("tracker", msg)
                 self._rates["tracker"].tick(now)
                 out = self.estimator.on_tracker(
                     msg.t, msg.p, msg.q, ok=msg.status == "ok", tag=msg.device_t
@@ -224,6 +228,26 @@ class KeoService:
                 continue
             for estimate in out:
                 self._publish(estimate, now)
+
+    def _on_clock(self, stream: str, msg: JointSample | TrackerSample) -> None:
+        """Record the clock domain a stream's samples declare and count their stamp flags;
+        warn once per change when the domain is not the configured one (a delay calibrated
+        under the config's domains need not hold for these stamps)."""
+        for flag in msg.flags:
+            self._clock_flags[f"{stream}_{flag}"] += 1
+        if not msg.clock or self._clock_domains.get(stream) == msg.clock:
+            return
+        self._clock_domains[stream] = msg.clock
+        section = self.config.robot if stream == "encoder" else self.config.tracker
+        configured = section.clock
+        if msg.clock != configured:
+            text = (
+                f"the {stream} samples declare clock domain {msg.clock!r}, the config's "
+                f"{'robot' if stream == 'encoder' else 'tracker'}.clock is {configured!r}: "
+                "timing.delay_s was calibrated under the config's domains and may not hold"
+            )
+            log.warning(text)
+            self.estimator.messages.append(text)
 
     def _publish(self, estimate: Estimate, now: float) -> None:
         self._seq += 1
@@ -285,6 +309,7 @@ class KeoService:
         counters["decode_errors"] = self.decode_errors
         counters["queue_dropped"] = self._sub.dropped
         counters["publish_failed"] = self.publish_failures
+        counters.update(self._clock_flags)
         if self._viz is not None:
             counters["rerun_dropped"] = self._viz.dropped
         last = self.estimator.last
@@ -303,6 +328,7 @@ class KeoService:
             last_estimate=None if last is None else self.to_message(last),
             messages=list(self.estimator.messages)[-10:],
             delay_tracking=None if self._delay_tracker is None else self._delay_tracker.last_result,
+            clock_domains=dict(self._clock_domains),
         )
 
     def _resolve_if_quiet(self) -> None:
