@@ -1,0 +1,162 @@
+"""keo against a ROS 2 peer it did not write: pyzeros (PyPI) publishes a moving UR10's joint
+states and tracker poses, stamped from one clock (tests/pyzeros_peer.py). Real processes:
+`keo run`, `keo adapter encoder|tracker` (protocol ros2, clock domain "shared" by default),
+the peer; the estimate is read through keo's SyncClient.
+
+Before the clock domains each adapter mapped its stamps with its own lower envelope and the
+two streams ended 0.5-0.8 ms apart: at 0.2 m/s the estimate stayed tens of micrometres off.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import threading
+import time
+
+import msgspec
+import numpy as np
+import pytest
+
+from keo_service.bench.demo import loopback_config
+from keo_service.bench.procs import process_group
+from keo_service.io.cell import cell_from_config
+from keo_service.io.config import config_to_toml, load_config
+from keo_service.live.client import SyncClient
+from tests import pyzeros_peer
+from tests.conftest import CONFIGS, wait_for_status
+
+pytest.importorskip("pyzeros")
+
+POSITION_TOL_M = 10e-6
+ROTATION_TOL_RAD = 10e-6
+SETTLE_S = 1.0  # after data flows again: the observer (gain 20/s) settles in ~0.25 s
+WINDOW_S = 1.0  # judged over this much stream time
+RESTARTS = 3
+
+
+def _config(tmp_path):
+    base = load_config(CONFIGS / "ur10_demo.toml")
+    robot = msgspec.structs.replace(base.robot, protocol="ros2", clock=None)
+    tracker = msgspec.structs.replace(base.tracker, protocol="ros2", clock=None)
+    observer = msgspec.structs.replace(base.observer, gain=[20.0] * 6)
+    timing = msgspec.structs.replace(base.timing, delay_s=0.0)  # both stamps: one clock
+    config = loopback_config(
+        msgspec.structs.replace(
+            base, robot=robot, tracker=tracker, observer=observer, timing=timing
+        )
+    )
+    path = tmp_path / "c.toml"
+    path.write_text(config_to_toml(config))
+    return load_config(path), path  # read back: the protocol's default clock domain applies
+
+
+class _Estimates:
+    """Every estimate, in a thread, through keo's own client API."""
+
+    def __init__(self, config) -> None:
+        self.rows: list[tuple[float, list[float], list[str]]] = []
+        self._stop = False
+        self._config = config
+        self._client = SyncClient.from_config(config, connect_timeout_s=20.0)
+        self._client.__enter__()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        for est in self._client.estimates(timeout=0.5):
+            self.rows.append((est.stamp, list(est.estimate), list(est.flags)))
+        while not self._stop:  # quiet for a moment (an adapter restarting): listen again
+            for est in self._client.estimates(timeout=0.5):
+                self.rows.append((est.stamp, list(est.estimate), list(est.flags)))
+
+    def fresh_after(self, t: float, timeout: float = 20.0) -> float:
+        """The stamp of the first estimate on new data after wall time t (data flows)."""
+        end = time.time() + timeout
+        while time.time() < end:
+            for stamp, _e, flags in list(self.rows):
+                if stamp > t and "held" not in flags:
+                    return stamp
+            time.sleep(0.05)
+        with SyncClient.from_config(self._config, connect_timeout_s=5.0) as keo:
+            status = msgspec.to_builtins(keo.status())
+            session = keo._open_session()
+            adapters = [
+                r.ok.payload.to_bytes().decode()
+                for r in session.get(f"keo/{self._config.cell}/adapter/*/status", timeout=2.0)
+                if r.ok is not None
+            ]
+        raise AssertionError(
+            f"no estimate on data after {t}: {len(self.rows)} rows, {status}, {adapters}"
+        )
+
+    def error_over(self, start: float, length: float) -> tuple[float, float, int]:
+        """Largest position (m) and rotation (rad) distance from the injected error over
+        estimates stamped in [start, start + length]; waits until that window has passed."""
+        while time.time() < start + length + 0.5:
+            time.sleep(0.05)
+        window = [e for s, e, _f in list(self.rows) if start <= s <= start + length]
+        assert len(window) > 40 * length, (start, len(window))
+        err = np.array(window) - pyzeros_peer.TOOL_ERROR
+        return (
+            float(np.max(np.linalg.norm(err[:, :3], axis=1))),
+            float(np.max(np.linalg.norm(err[:, 3:], axis=1))),
+            len(window),
+        )
+
+    def close(self) -> None:
+        self._stop = True
+        self._thread.join(timeout=3.0)
+        self._client.__exit__(None, None, None)
+
+
+@pytest.mark.e2e
+def test_shared_clock_ros2_peer_moving_and_after_restarts(tmp_path):
+    config, cfg = _config(tmp_path)
+    assert (config.robot.clock, config.tracker.clock) == ("shared", "shared")
+    speed = pyzeros_peer.tool_speed(cell_from_config(config), 0.0)
+    assert speed >= 0.15, speed  # the tool moves at least 0.15 m/s (median)
+    cfg_args = ["--config", str(cfg)]
+    endpoint = config.bus.listen[0]
+    results: dict[str, list[float]] = {}
+    with process_group(tmp_path) as procs:
+        procs.start("service", ["run", *cfg_args])
+        wait_for_status(config)
+        procs.start("adapter-encoder", ["adapter", "encoder", *cfg_args])
+        procs.start("adapter-tracker", ["adapter", "tracker", *cfg_args])
+        estimates = _Estimates(config)
+        try:
+            t0 = time.time() + 2.5  # adapters up, declarations through
+            duration = 12.0 + 2 * RESTARTS * 5.0
+            procs.start(
+                "peer", [endpoint, str(cfg), repr(t0), repr(duration)], module="tests.pyzeros_peer"
+            )
+            first = estimates.fresh_after(t0, timeout=60.0)
+            results["moving"] = list(estimates.error_over(first + SETTLE_S, WINDOW_S))
+            for name in ("adapter-encoder", "adapter-tracker"):
+                for k in range(RESTARTS):
+                    procs.procs[name].send_signal(signal.SIGKILL)
+                    procs.procs[name].wait()
+                    killed = time.time()
+                    procs.start(name, ["adapter", name.split("-")[1], *cfg_args])
+                    fresh = estimates.fresh_after(killed + 0.1)
+                    results[f"{name} restart {k + 1}"] = list(
+                        estimates.error_over(fresh + SETTLE_S, WINDOW_S)
+                    )
+            with SyncClient.from_config(config, connect_timeout_s=10.0) as keo:
+                status = keo.status()
+        finally:
+            estimates.close()
+        procs.stop("peer")
+    print(
+        json.dumps(
+            {
+                "tool_speed_m_s": speed,
+                "error_um_urad_n": {k: [v[0] * 1e6, v[1] * 1e6, v[2]] for k, v in results.items()},
+            }
+        )
+    )
+    assert status.clock_domains == {"encoder": "shared", "tracker": "shared"}
+    for case, (pos, rot, _n) in results.items():
+        assert pos < POSITION_TOL_M, (case, pos)
+        assert rot < ROTATION_TOL_RAD, (case, rot)
