@@ -41,14 +41,48 @@ def _config(tmp_path):
     tracker = msgspec.structs.replace(base.tracker, protocol="ros2", clock=None)
     observer = msgspec.structs.replace(base.observer, gain=[20.0] * 6)
     timing = msgspec.structs.replace(base.timing, delay_s=0.0)  # both stamps: one clock
+    ros2 = msgspec.structs.replace(base.ros2, enabled=True)  # the estimate back as ROS 2
     config = loopback_config(
         msgspec.structs.replace(
-            base, robot=robot, tracker=tracker, observer=observer, timing=timing
+            base, robot=robot, tracker=tracker, observer=observer, timing=timing, ros2=ros2
         )
     )
     path = tmp_path / "c.toml"
     path.write_text(config_to_toml(config))
     return load_config(path), path  # read back: the protocol's default clock domain applies
+
+
+class _RosEstimates:
+    """keo's estimate as a ROS 2 subscriber sees it: raw Zenoh samples on the topic's key
+    (any type hash), the first few and the newest kept."""
+
+    def __init__(self, endpoint: str, cell: str) -> None:
+        import zenoh
+
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", f'["{endpoint}"]')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        self.session = zenoh.open(conf)
+        self.first: list[tuple[bytes, bytes, str]] = []
+        self.last: tuple[bytes, bytes, str] | None = None
+        key = f"0/keo/{cell}/kinematic_error/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/*"
+        self._sub = self.session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample) -> None:
+        att = b"" if sample.attachment is None else sample.attachment.to_bytes()
+        row = (sample.payload.to_bytes(), att, str(sample.encoding))
+        if len(self.first) < 5:
+            self.first.append(row)
+        self.last = row
+
+    def tokens(self) -> list[str]:
+        replies = self.session.liveliness().get("@ros2_lv/0/**", timeout=2.0)
+        return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+
+    def close(self) -> None:
+        self._sub.undeclare()
+        self.session.close()
 
 
 class _Estimates:
@@ -125,6 +159,7 @@ def test_shared_clock_ros2_peer_moving_and_after_restarts(tmp_path):
         procs.start("adapter-encoder", ["adapter", "encoder", *cfg_args])
         procs.start("adapter-tracker", ["adapter", "tracker", *cfg_args])
         estimates = _Estimates(config)
+        ros = _RosEstimates(endpoint, config.cell)
         try:
             t0 = time.time() + 2.5  # adapters up, declarations through
             duration = 12.0 + 2 * RESTARTS * 5.0
@@ -145,8 +180,10 @@ def test_shared_clock_ros2_peer_moving_and_after_restarts(tmp_path):
                     )
             with SyncClient.from_config(config, connect_timeout_s=10.0) as keo:
                 status = keo.status()
+            tokens = ros.tokens()
         finally:
             estimates.close()
+            ros.close()
         procs.stop("peer")
     print(
         json.dumps(
@@ -157,6 +194,41 @@ def test_shared_clock_ros2_peer_moving_and_after_restarts(tmp_path):
         )
     )
     assert status.clock_domains == {"encoder": "shared", "tracker": "shared"}
+    _check_ros_estimate(ros, tokens, config.cell)
     for case, (pos, rot, _n) in results.items():
         assert pos < POSITION_TOL_M, (case, pos)
         assert rot < ROTATION_TOL_RAD, (case, rot)
+
+
+def _check_ros_estimate(ros: _RosEstimates, tokens: list[str], cell: str) -> None:
+    """keo's PoseWithCovarianceStamped as pyzeros' own types read it: the estimate, a
+    covariance from the configured tracker noise from the very first message on (the input is
+    noise-free), rmw_zenoh's gid and encoding."""
+    from pyzeros.utils import rmw_zenoh_gid
+    from ros2_pyterfaces.cyclone.all_msgs import PoseWithCovarianceStamped
+    from scipy.spatial.transform import Rotation
+
+    assert ros.first
+    assert ros.last is not None
+    first = PoseWithCovarianceStamped.deserialize(ros.first[0][0])
+    variance = np.diag(np.asarray(first.pose.covariance, dtype=float).reshape(6, 6))
+    # 15 um + 6 um/m at 1-5 m from the tracker, times the observer's noise gain
+    # sqrt(a / (2 - a)), a = 1 - exp(-20/s T) for T 5-20 ms: 0.22-0.41
+    sigma = np.sqrt(variance)
+    assert np.all(sigma[:3] > 0.22 * 21e-6), sigma
+    assert np.all(sigma[:3] < 0.41 * 45e-6), sigma
+    assert variance[3:] == pytest.approx(variance[:3] / 0.1**2, rel=1e-6)  # over a 0.1 m probe
+    last = PoseWithCovarianceStamped.deserialize(ros.last[0]).pose.pose
+    p = np.array([last.position.x, last.position.y, last.position.z])
+    o = last.orientation
+    r = Rotation.from_quat([o.x, o.y, o.z, o.w]).as_rotvec()
+    assert np.linalg.norm(p - pyzeros_peer.TOOL_ERROR[:3]) < POSITION_TOL_M
+    assert np.linalg.norm(r - pyzeros_peer.TOOL_ERROR[3:]) < ROTATION_TOL_RAD
+    # rmw_zenoh's attachment: seq, source time, 16, the gid = XXH3-128 of the publisher's
+    # liveliness token; its payload encoding: none set (Zenoh's default)
+    (token,) = [t for t in tokens if "/MP/" in t and f"%keo%{cell}%kinematic_error/" in t]
+    _payload, att, encoding = ros.last
+    assert len(att) == 33
+    assert att[16] == 16
+    assert att[17:] == rmw_zenoh_gid(token)
+    assert encoding == "zenoh/bytes"

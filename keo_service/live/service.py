@@ -22,7 +22,7 @@ import zenoh
 
 from keo_service.core.errors import KeoError
 from keo_service.core.estimator import Estimate, Estimator
-from keo_service.core.observer import NoiseMeter
+from keo_service.core.observer import NoiseMeter, covariance_noise, tracker_noise_floor
 from keo_service.io.cell import cell_from_config, delay_model, estimator_settings
 from keo_service.io.config import Config
 from keo_service.live.bus import AsyncSubscription, session_for_service
@@ -128,6 +128,8 @@ class KeoService:
         self.decode_errors = 0
         self._clock_domains: dict[str, str] = {}
         self._clock_flags: collections.Counter[str] = collections.Counter()
+        self._last_tracker_p: list[float] | None = None  # for the covariance's noise floor
+        self._update_stamps: collections.deque[float] = collections.deque(maxlen=50)
 
     async def __aenter__(self) -> KeoService:
         if self._session is None:
@@ -221,6 +223,8 @@ class KeoService:
                 out = self.estimator.on_tracker(
                     msg.t, msg.p, msg.q, ok=msg.status == "ok", tag=msg.device_t
                 )
+                if msg.p is not None:
+                    self._last_tracker_p = msg.p
                 if self._delay_tracker is not None and msg.p is not None:
                     self._delay_tracker.add_tracker(msg.t, msg.p, msg.q)
             else:
@@ -266,7 +270,16 @@ class KeoService:
         if self._ros2 is not None and estimate.measured is not None:
             self._noise.add(estimate.measured)
             gains = self.config.observer.gain
-            self._ros2.publish(msg, self._noise.std(), gains, self._period())
+            tracker = self.config.tracker
+            floor = tracker_noise_floor(
+                tracker.uncertainty_um,
+                tracker.uncertainty_um_per_m,
+                self._last_tracker_p,
+                estimate.measured.size,
+            )
+            noise = covariance_noise(self._noise.std(), floor)
+            self._update_stamps.append(estimate.t)
+            self._ros2.publish(msg, noise, gains, self._period())
         self._rates["estimate"].tick(now)
         if self._viz is not None:
             self._viz.submit(estimate)
@@ -274,9 +287,13 @@ class KeoService:
             self._last_estimate_wall = now
 
     def _period(self) -> float:
-        """The tracker's sample period [s] as measured (its nominal 10 ms before a rate)."""
-        rate = self._rates["tracker"].rate(time.monotonic())
-        return 1.0 / rate if rate > 0 else 0.01
+        """The observer's mean step [s] over its last updates, in stream time (its nominal
+        10 ms before two). Not the arrival rate: arrivals bunch when samples wait for encoder
+        data, and a step that looks short would shrink the covariance."""
+        stamps = self._update_stamps
+        if len(stamps) < 2 or stamps[-1] <= stamps[0]:
+            return 0.01
+        return (stamps[-1] - stamps[0]) / (len(stamps) - 1)
 
     def to_message(self, estimate: Estimate) -> EstimateMessage:
         return EstimateMessage(
