@@ -232,3 +232,59 @@ async def test_line_tracker_under_each_domain(demo_config):
     )
     assert all(s.clock == "device" for s in device)
     assert all(abs(s.t - s.host_ns * 1e-9) < 0.1 for s in device)  # mapped onto the host clock
+
+
+# ---- the service: which domain each stream declares ------------------------------------------
+
+
+async def test_the_service_records_declared_domains_and_warns_on_a_mismatch(demo_config):
+    from keo_service.bench.demo import loopback_config
+    from keo_service.live.bus import session_for_client
+    from keo_service.live.messages import JointSample, encode
+    from keo_service.live.service import KeoService
+
+    config = loopback_config(demo_config)  # robot.clock "receipt" (motoros), tracker "device"
+    async with KeoService(config) as service:
+        client = session_for_client(config)
+        try:
+            await asyncio.sleep(0.3)
+            enc = JointSample(t=1.0, host_ns=1, seq=1, q=[0.0] * 6, clock="device", clock_epoch=5)
+            trk = TrackerSample(
+                t=1.0,
+                host_ns=1,
+                seq=1,
+                p=[1.0, 0.0, 0.0],
+                q=[1.0, 0, 0, 0],
+                clock="device",
+                flags=["stamp_old"],
+            )
+            client.put(topic(config.cell, "encoder"), encode(enc))
+            client.put(topic(config.cell, "tracker"), encode(trk))
+            deadline = time.time() + 5
+            while service.received < 2 and time.time() < deadline:
+                await asyncio.sleep(0.05)
+            status = service.status()
+        finally:
+            client.close()
+    assert status.clock_domains == {"encoder": "device", "tracker": "device"}
+    assert status.counters["tracker_stamp_old"] == 1
+    mismatch = [m for m in status.messages if "clock domain" in m]
+    assert len(mismatch) == 1  # the encoder's: "device" where the config says "receipt"
+    assert "robot.clock is 'receipt'" in mismatch[0]
+    assert "timing.delay_s" in mismatch[0]
+
+
+def test_calibrate_delay_writes_the_domains_it_ran_under(demo_cell, tmp_path):
+    import json
+
+    from keo_service.sim.simulate import make_scenario, simulate, write_run
+    from tests.conftest import DEMO
+
+    scenario = make_scenario("paper-vertical", {"duration_s": "10"})
+    write_run(simulate(demo_cell, scenario, seed=5), tmp_path)
+    files = ["--encoder", str(tmp_path / "encoder.csv"), "--tracker", str(tmp_path / "tracker.csv")]
+    res = keo("calibrate-delay", "--config", str(DEMO), *files, "--json")
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["clocks"] == {"robot.clock": "receipt", "tracker.clock": "device"}
+    text = keo("calibrate-delay", "--config", str(DEMO), *files)
+    assert "clock domains: robot.clock = receipt, tracker.clock = device" in text.stdout
