@@ -19,6 +19,10 @@ the line allows (more than `step_threshold_s`) or device time going backwards: a
 offset at once, a drift after two blocks). Late samples never count as a step: a stalled host
 delays them, and their mapped stamps are what removes the stall. (A host clock stepping
 forward looks like lateness: the line follows it once the old minima leave the window.)
+
+Which of these applies is the stream's clock domain ([robot] / [tracker] clock): `Stamper` is
+the one rule every adapter stamps through ("shared": the stamps as they are, checked;
+"device": ClockMapper; "receipt": ReceiptStamps). docs/timing.md tells the user's side.
 """
 
 from __future__ import annotations
