@@ -212,19 +212,17 @@ class KeoService:
             self._last_arrival = now
             self._progress_at = now
             if isinstance(msg, JointSample):
-                self._on_clock("encoder", msg)
+                self._note_sample("encoder", msg)
                 self._rates["encoder"].tick(now)
                 out = self.estimator.on_encoder(msg.t, msg.q)
                 if self._delay_tracker is not None:
                     self._delay_tracker.add_encoder(msg.t, msg.q)
             elif isinstance(msg, TrackerSample):
-                self._on_clock("tracker", msg)
+                self._note_sample("tracker", msg)
                 self._rates["tracker"].tick(now)
                 out = self.estimator.on_tracker(
                     msg.t, msg.p, msg.q, ok=msg.status == "ok", tag=msg.device_t
                 )
-                if msg.p is not None:
-                    self._last_tracker_p = msg.p
                 if self._delay_tracker is not None and msg.p is not None:
                     self._delay_tracker.add_tracker(msg.t, msg.p, msg.q)
             else:
@@ -233,12 +231,15 @@ class KeoService:
             for estimate in out:
                 self._publish(estimate, now)
 
-    def _on_clock(self, stream: str, msg: JointSample | TrackerSample) -> None:
+    def _note_sample(self, stream: str, msg: JointSample | TrackerSample) -> None:
         """Record the clock domain a stream's samples declare and count their stamp flags;
         warn once per change when the domain is not the configured one (a delay calibrated
-        under the config's domains need not hold for these stamps)."""
+        under the config's domains need not hold for these stamps). Keeps the tracker's
+        newest position too (the covariance's noise floor depends on its distance)."""
         for flag in msg.flags:
             self._clock_flags[f"{stream}_{flag}"] += 1
+        if isinstance(msg, TrackerSample) and msg.p is not None:
+            self._last_tracker_p = msg.p  # for the covariance's noise floor
         if not msg.clock or self._clock_domains.get(stream) == msg.clock:
             return
         self._clock_domains[stream] = msg.clock
@@ -341,11 +342,11 @@ class KeoService:
             drift=delay.drift,
             gains=list(self.estimator.settings.gains),
             alignment=self.estimator.settings.alignment,
+            clock_domains=dict(self._clock_domains),
             counters=counters,
             last_estimate=None if last is None else self.to_message(last),
             messages=list(self.estimator.messages)[-10:],
             delay_tracking=None if self._delay_tracker is None else self._delay_tracker.last_result,
-            clock_domains=dict(self._clock_domains),
         )
 
     def _resolve_if_quiet(self) -> None:
