@@ -19,10 +19,6 @@ the line allows (more than `step_threshold_s`) or device time going backwards: a
 offset at once, a drift after two blocks). Late samples never count as a step: a stalled host
 delays them, and their mapped stamps are what removes the stall. (A host clock stepping
 forward looks like lateness: the line follows it once the old minima leave the window.)
-
-Which of these applies is the stream's clock domain ([robot] / [tracker] clock): `Stamper` is
-the one rule every adapter stamps through ("shared": the stamps as they are, checked;
-"device": ClockMapper; "receipt": ReceiptStamps). docs/timing.md tells the user's side.
 """
 
 from __future__ import annotations
@@ -33,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DOMAINS", "ClockMapper", "ClockState", "ReceiptStamps", "Stamp", "Stamper"]
+__all__ = ["ClockMapper", "ClockState", "ReceiptStamps"]
 
 MIN_STEP_S = 1e-6
 
@@ -192,6 +188,10 @@ class ReceiptStamps:
 
 
 # ---- clock domains: which rule turns a device stamp into a sample's `t` ------------------------
+# (the stream's [robot] / [tracker] clock: `Stamper` is the one rule every adapter stamps
+# through; docs/timing.md tells the user's side)
+
+__all__ += ["DOMAINS", "Stamp", "Stamper"]
 
 DOMAINS = ("shared", "device", "receipt")
 # A "shared" stamp may lead its receipt by this much before it is flagged. On one host the
@@ -290,7 +290,7 @@ class Stamper:
                 f"the device clock stepped at device time {device_t:.6f}: the mapping starts anew",
             )
             flags = ("clock_step",)
-        if len(self.mapper._blocks) < 2:
+        if self.mapper.state().blocks < 2:  # no line yet: an offset from one block
             flags = (*flags, "clock_relearning")
         return Stamp(t, flags)
 
