@@ -27,6 +27,7 @@ import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+from keo_service.core.errors import KeoError
 from keo_service.core.rejects import RejectLog
 
 HEADER = struct.Struct(">HB")
@@ -80,7 +81,7 @@ OUTPUTS = {
 }
 
 
-class RtdeError(ValueError):
+class RtdeError(KeoError, ValueError):
     """A package that is not what the protocol says at this point."""
 
 

@@ -203,7 +203,7 @@ def _calibrate(enc: Path, trk: Path, config: Path = DEMO):
 
 
 def test_stop_and_measure_data_is_refused_in_words(demo_cell, tmp_path):
-    """One encoder row per tracker row (DESIGN.md 5): nothing moves, no delay to see."""
+    """One encoder row per tracker row (docs/design.md §5): nothing moves, no delay to see."""
     run = simulate(demo_cell, make_scenario("static-poses"), seed=1)
     write_run(run, tmp_path)
     res = _calibrate(tmp_path / "encoder.csv", tmp_path / "tracker.csv")

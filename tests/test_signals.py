@@ -42,6 +42,36 @@ def _wait(what: str, ready, timeout: float = 60.0) -> None:
     raise AssertionError(f"{what} did not get ready")
 
 
+def _stop(proc: subprocess.Popen[bytes], name: str) -> None:
+    proc.send_signal(signal.SIGINT if name.endswith("INT") else signal.SIGTERM)
+
+
+def _start_all(cfg: str, play: list[str]) -> tuple[dict[str, subprocess.Popen[bytes]], list[int]]:
+    """Two echoes and two mock robots and trackers (one per signal), and the mock ports."""
+    procs = {f"echo {sig}": _start(["echo", "keo/*/encoder", "--config", cfg]) for sig in SIGS}
+    ports = []
+    for sig in SIGS:
+        for device in ("robot", "tracker"):
+            ports.append(_free())
+            procs[f"mock {device} {sig}"] = _start(
+                ["mock", device, *play, "--port", str(ports[-1])]
+            )
+    return procs, ports
+
+
+def _signal_while_starting(play: list[str], early: dict[str, subprocess.Popen[bytes]]) -> None:
+    """Mocks signalled while they compute their scenario (Pinocchio loaded, the socket not yet
+    open): once `keo mock` died of SIGTERM there."""
+    for sig in SIGS:
+        early[f"early {sig}"] = _start(["mock", "robot", *play, "--port", str(_free())])
+    for name, proc in early.items():
+        _wait(f"{name} computing", lambda pid=proc.pid: _loaded(pid, "pinocchio"))
+        _stop(proc, name)
+
+
+SIGS = ("INT", "TERM")
+
+
 @pytest.mark.e2e
 def test_echo_and_mocks_exit_0_on_sigint_and_sigterm(demo_config, tmp_path):
     config = loopback_config(demo_config)
@@ -50,46 +80,29 @@ def test_echo_and_mocks_exit_0_on_sigint_and_sigterm(demo_config, tmp_path):
     play = ["--config", str(cfg), "--scenario", "paper-step", "--loop"]
     peer = open_session("peer", listen=config.bus.listen)  # the bus echo subscribes on
     procs: dict[str, subprocess.Popen[bytes]] = {}
+    early: dict[str, subprocess.Popen[bytes]] = {}
     try:
-        for sig in ("INT", "TERM"):
-            procs[f"echo {sig}"] = _start(["echo", "keo/*/encoder", "--config", str(cfg)])
-        robot_ports, tracker_ports = [], []
-        for sig in ("INT", "TERM"):
-            rp, tp = _free(), _free()
-            robot_ports.append(rp)
-            tracker_ports.append(tp)
-            procs[f"mock robot {sig}"] = _start(["mock", "robot", *play, "--port", str(rp)])
-            procs[f"mock tracker {sig}"] = _start(["mock", "tracker", *play, "--port", str(tp)])
-        # signals while a mock still starts: its scenario is being computed (Pinocchio is
-        # loaded, the socket not yet open): once `keo mock` died of SIGTERM there
-        early = {
-            f"early {sig}": _start(["mock", "robot", *play, "--port", str(_free())])
-            for sig in ("INT", "TERM")
-        }
-        for name, proc in early.items():
-            _wait(f"{name} computing", lambda pid=proc.pid: _loaded(pid, "pinocchio"))
-            proc.send_signal(signal.SIGINT if name.endswith("INT") else signal.SIGTERM)
-        procs.update(early)
+        procs, ports = _start_all(str(cfg), play)
+        _signal_while_starting(play, early)
         # running: echo prints what it receives, the mocks listen
         sample = encode(JointSample(t=1.0, host_ns=1, seq=1, q=[0.0] * 6))
 
         def echoed() -> bool:
             peer.put(topic(config.cell, "encoder"), sample)
-            return all(_has_line(procs[f"echo {s}"]) for s in ("INT", "TERM"))
+            return all(_has_line(procs[f"echo {s}"]) for s in SIGS)
 
         _wait("echo", echoed)
-        for port in robot_ports + tracker_ports:
+        for port in ports:
             _wait(f"mock on {port}", lambda p=port: _listening(p))
         for name, proc in procs.items():
-            if name.startswith("early"):
-                continue
-            proc.send_signal(signal.SIGINT if name.endswith("INT") else signal.SIGTERM)
+            _stop(proc, name)
+        procs.update(early)
         results = {}
         for name, proc in procs.items():
             _out, err = proc.communicate(timeout=20)
             results[name] = (proc.returncode, err.decode(errors="replace"))
     finally:
-        for proc in procs.values():
+        for proc in [*procs.values(), *early.values()]:
             if proc.poll() is None:
                 proc.kill()
         peer.close()

@@ -1,4 +1,4 @@
-"""The TOML config (DESIGN.md section 6), read with tomllib and validated with msgspec.
+"""The TOML config (docs/design.md §6), read with tomllib and validated with msgspec.
 
 Every key is optional except `robot.urdf`; unknown keys are errors. Errors name the key.
 Relative paths are resolved against the config file's folder.
@@ -120,7 +120,7 @@ class TrackerConfig(_Section):
 
 
 class Ros2Config(_Section):
-    """rmw_zenoh's wire format on keo's own Zenoh sessions (DESIGN.md section 6)."""
+    """rmw_zenoh's wire format on keo's own Zenoh sessions (docs/design.md §6)."""
 
     enabled: bool = False
     domain_id: Annotated[int, msgspec.Meta(ge=0, le=232)] = 0
