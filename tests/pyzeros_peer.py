@@ -58,6 +58,13 @@ def tool_speed(cell, t0: float) -> float:
     return float(np.median(np.linalg.norm(np.diff(p, axis=0), axis=1) / 0.005))
 
 
+def warm_up() -> None:
+    """Build pyzeros' codecs (its attachment is serialised by cydr, compiled on first use)."""
+    from pyzeros.builtin_msgs import Attachment
+
+    Attachment(source_gid=np.zeros(16, dtype=np.uint8)).serialize()
+
+
 async def play(endpoint: str, config_path: str, t0: float, duration: float) -> None:
     import pyzeros
     import zenoh

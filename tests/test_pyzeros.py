@@ -10,9 +10,13 @@ two streams ended 0.5-0.8 ms apart: at 0.2 m/s the estimate stayed tens of micro
 from __future__ import annotations
 
 import json
+import os
 import signal
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import msgspec
 import numpy as np
@@ -27,6 +31,21 @@ from tests import pyzeros_peer
 from tests.conftest import CONFIGS, wait_for_status
 
 pytest.importorskip("pyzeros")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _pyzeros_codecs():
+    """pyzeros serialises rmw_zenoh's attachment with cydr, which compiles its codecs with
+    Cython on first use (30 s of one core, measured; a minute on a loaded machine) into
+    $CYDR_CACHE_DIR (default: ./.cydr_cache). Compile them once, outside the timed run and
+    outside the checkout, and let the peer process find them there."""
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "keo-tests" / "cydr"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("CYDR_CACHE_DIR", str(cache))
+        warm = "from tests.pyzeros_peer import warm_up; warm_up()"
+        subprocess.run([sys.executable, "-c", warm], check=True, timeout=600)
+        yield
+
 
 POSITION_TOL_M = 10e-6
 ROTATION_TOL_RAD = 10e-6
