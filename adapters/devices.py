@@ -454,6 +454,10 @@ class RtdeEncoderAdapter(EncoderAdapter):
 def encoder_adapter_for(config: Any) -> type[EncoderAdapter]:
     """The encoder adapter of `robot.protocol` (ros2: `Ros2JointStateAdapter`, which needs
     the URDF's joint names)."""
+    if config.robot.protocol in ("kuka_rsi", "abb_egm"):  # UDP servers (adapters.udp_devices)
+        from adapters.udp_devices import UDP_ADAPTERS
+
+        return UDP_ADAPTERS[config.robot.protocol]
     return RtdeEncoderAdapter if config.robot.protocol == "rtde" else EncoderAdapter
 
 

@@ -23,6 +23,7 @@ from keo_service.io.cell import cell_from_config
 from keo_service.io.config import Config, config_to_toml, load_config
 from keo_service.live.client import Client, ClientError
 from keo_service.live.messages import EstimateMessage, ServiceStatus
+from keo_service.live.rerun_process import OpenedViewer, open_viewer
 from keo_service.resources import configs_dir
 from keo_service.sim.simulate import make_scenario, simulate
 
@@ -84,8 +85,15 @@ def run_demo(args: argparse.Namespace) -> int:
         repr(args.duration),
     ]
     status = None
-    with process_group(work) as procs:
+    viewer = _open_viewer(args)
+    with contextlib.ExitStack() as cleanup, process_group(work) as procs:
+        if viewer is not None:
+            cleanup.callback(viewer.close)  # after the cell, also on Ctrl-C
         rrd = ["--rrd", str(args.rrd.resolve())] if args.rrd is not None else []
+        if viewer is not None:
+            rrd += ["--viewer", viewer.grpc_url]
+        if getattr(args, "viewer_window", None) is not None:
+            rrd += ["--viewer-window", repr(args.viewer_window)]
         procs.start_cell(cfg_path, play, service=rrd, robot=robot_args)
         if not args.json:
             print(
@@ -107,6 +115,17 @@ def run_demo(args: argparse.Namespace) -> int:
     else:
         _print_summary(summary)
     return 0 if summary["estimates"] > 0 else 1
+
+
+def _open_viewer(args: argparse.Namespace) -> OpenedViewer | None:
+    """`--viewer`: Rerun's viewer, opened before the cell starts, its URL printed."""
+    kind = getattr(args, "viewer", None)
+    if kind is None:
+        return None
+    viewer = open_viewer(kind, args.viewer_port, args.web_port, args.viewer_bind)
+    where = "open" if viewer.kind == "web" else "native viewer on"
+    print(f"keo demo: Rerun {where} {viewer.url}", file=sys.stderr, flush=True)
+    return viewer
 
 
 def _summary(

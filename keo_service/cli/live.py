@@ -37,8 +37,56 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     config = common.load(args.config)
     _setup_logging(args.verbose, args.log_format)
-    asyncio.run(run_service(config, rrd=args.rrd, viewer=args.viewer))
+    viewer, opened = args.viewer, None
+    if viewer in VIEWER_KINDS:  # a bare --viewer (auto), native or web: open one
+        from keo_service.live.rerun_process import open_viewer
+
+        opened = open_viewer(viewer, args.viewer_port, args.web_port, args.viewer_bind)
+        viewer = opened.grpc_url
+        print(f"keo run: Rerun {opened.kind} viewer at {opened.url}", file=sys.stderr, flush=True)
+    try:
+        asyncio.run(
+            run_service(config, rrd=args.rrd, viewer=viewer, viewer_window_s=args.viewer_window)
+        )
+    finally:
+        if opened is not None:
+            opened.close()
     return 0
+
+
+VIEWER_KINDS = ("auto", "native", "web")  # as keo_service.live.rerun_process.VIEWER_KINDS
+
+
+def add_viewer_options(p: argparse.ArgumentParser, url: bool) -> None:
+    """`--viewer` and its ports, for keo run (`url`: it also takes a viewer's URL) and demo."""
+    p.add_argument(
+        "--viewer",
+        nargs="?",
+        const="auto",
+        metavar="URL|native|web" if url else "native|web",
+        help=(
+            "stream to a running Rerun viewer at URL, e.g. rerun+http://127.0.0.1:9876/proxy; "
+            if url
+            else ""
+        )
+        + "bare: open one (a native window when there is a display, else the web viewer "
+        "served on localhost, its URL printed); native or web: that one",
+    )
+    p.add_argument(
+        "--viewer-port", type=int, default=9876, help="the opened viewer's gRPC port (9876)"
+    )
+    p.add_argument("--web-port", type=int, default=9090, help="the web viewer's page port (9090)")
+    p.add_argument(
+        "--viewer-bind",
+        default="127.0.0.1",
+        help="address the opened viewer listens on (127.0.0.1; 0.0.0.0 for other machines)",
+    )
+    p.add_argument(
+        "--viewer-window",
+        type=float,
+        metavar="SECONDS",
+        help="the plots show the newest SECONDS of data (30)",
+    )
 
 
 def cmd_adapter(args: argparse.Namespace) -> int:
@@ -55,9 +103,9 @@ def cmd_adapter(args: argparse.Namespace) -> int:
     _setup_logging(args.verbose)
     robot = robot_from_config(config)
     nq = robot.nq
-    if args.device == "encoder" and config.robot.protocol == "rtde" and nq != 6:
+    if args.device == "encoder" and config.robot.protocol in ("rtde", "kuka_rsi") and nq != 6:
         raise ConfigError(
-            config.source, "robot.urdf", f"{nq} joints; a UR controller (rtde) reports 6"
+            config.source, "robot.urdf", f"{nq} joints; {config.robot.protocol} reports 6"
         )
 
     def make() -> Any:
@@ -65,7 +113,9 @@ def cmd_adapter(args: argparse.Namespace) -> int:
             return tracker_adapter_for(config)(config, nq)
         if config.robot.protocol == "ros2":
             return Ros2JointStateAdapter(config, list(robot.joint_names))
-        return encoder_adapter_for(config)(config, nq)
+        adapter: Any = encoder_adapter_for(config)(config, nq)
+        adapter.realtime = True  # the UDP servers (RSI, EGM) answer within the cycle
+        return adapter
 
     async def main() -> None:
         async with make() as adapter:
@@ -88,6 +138,33 @@ def _pair(text: str | None, option: str) -> tuple[float, float] | None:
             option, option.lstrip("-"), f"'{text}' is not A:B (two numbers)"
         ) from None
     return a, b
+
+
+def _udp_controller(args: argparse.Namespace, config: Any, protocol: str, run: Any) -> Any:
+    """The RSI or EGM controller side, sending to keo's server (the config's robot host and
+    port); with `robot.correction` naming the protocol it applies the corrections it gets."""
+    from adapters.mock_udp import MockEgmController, MockRsiController
+    from keo_service.io.cell import cell_from_config
+    from keo_service.sim.controller import tool_corrector
+
+    cls = MockRsiController if protocol == "kuka_rsi" else MockEgmController
+    port = args.port or (config.robot.endpoint_port if config.robot.protocol == protocol else 0)
+    corrector = (
+        tool_corrector(cell_from_config(config)) if config.robot.correction == protocol else None
+    )
+    return cls(
+        run.encoder,
+        args.host or config.robot.host,
+        port or (49152 if protocol == "kuka_rsi" else 6510),
+        args.t0,
+        cycle_ms=args.cycle_ms,
+        jitter_ms=args.jitter_ms,
+        max_late=args.max_late,
+        corrector=corrector,
+        seed=args.seed,
+        loop_play=args.loop,
+        realtime=True,
+    )
 
 
 def cmd_mock(args: argparse.Namespace) -> int:
@@ -122,6 +199,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
             burst_every_s=args.burst_every,
             seed=args.seed,
         )
+    elif args.device == "robot" and protocol in ("kuka_rsi", "abb_egm"):
+        server = _udp_controller(args, config, protocol, run)
     elif args.device == "robot":
         server = MockRobot(
             run.encoder,
@@ -149,6 +228,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
         await server.start()
         await stop.wait()
         await server.close()
+        if hasattr(server, "summary"):  # the UDP controllers: what they saw, as one JSON line
+            sys.stdout.write(json.dumps(server.summary()) + "\n")
 
     asyncio.run(main())
     return 0
@@ -255,11 +336,7 @@ def cmd_router(args: argparse.Namespace) -> int:
 def register(add: common.AddCommand) -> None:
     p = add("run", cmd_run, "the service (daemon)")
     p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
-    p.add_argument(
-        "--viewer",
-        metavar="URL",
-        help="stream to a running Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy",
-    )
+    add_viewer_options(p, url=True)
     p.add_argument(
         "--log-format",
         choices=["auto", "text", "json"],
@@ -297,7 +374,7 @@ def register(add: common.AddCommand) -> None:
     )
     p.add_argument(
         "--protocol",
-        choices=["motoros", "rtde"],
+        choices=["motoros", "rtde", "kuka_rsi", "abb_egm"],
         help="robot: the wire format (default: the config's robot.protocol)",
     )
     p.add_argument("--max-hz", type=float, default=500.0, help="rtde: 500 e-Series, 125 CB3")
@@ -308,6 +385,11 @@ def register(add: common.AddCommand) -> None:
     p.add_argument("--late-ms", type=float, default=0.0, help="rtde: longest delivery stall (ms)")
     p.add_argument(
         "--burst-every", type=float, default=0.0, help="rtde: mean seconds between stalls"
+    )
+    p.add_argument("--cycle-ms", type=float, default=4.0, help="kuka_rsi/abb_egm: cycle (ms)")
+    p.add_argument("--jitter-ms", type=float, default=0.0, help="kuka_rsi/abb_egm: send jitter")
+    p.add_argument(
+        "--max-late", type=int, default=100, help="kuka_rsi/abb_egm: late answers before a stop"
     )
     p.add_argument(
         "--wall-clock-device-time",

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from keo_service.cli import common
+from keo_service.cli.live import add_viewer_options
 from keo_service.core.errors import ConfigError
 from keo_service.resources import demo_config_path
 
@@ -62,6 +63,7 @@ def register(add: common.AddCommand) -> None:
     p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
     p.add_argument("--json", action="store_true")
     p.add_argument("--seed", type=int, default=1)
+    add_viewer_options(p, url=False)
 
     p = add("bench", cmd_bench, "the benchmarks (numbers, no verdicts)", config=False)
     p.add_argument("--config", default=str(demo_config_path()))

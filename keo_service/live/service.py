@@ -92,6 +92,7 @@ class KeoService:
         session: zenoh.Session | None = None,
         rrd: Path | None = None,
         viewer: str | None = None,
+        viewer_window_s: float | None = None,
     ) -> None:
         self.config = config
         self.cell = config.cell
@@ -106,7 +107,9 @@ class KeoService:
         if rrd is not None or viewer is not None:
             from keo_service.live.rerun_process import RerunWorker
 
-            self._viz = RerunWorker(cell, rrd=rrd, viewer=viewer)
+            self._viz = RerunWorker(
+                cell, rrd=rrd, viewer=viewer, urdf=config.robot.urdf, window_s=viewer_window_s
+            )
         self._noise = NoiseMeter()
         self._ros2: EstimateBridge | None = None
         self._own_session = session is None
@@ -423,7 +426,11 @@ class KeoService:
 
 
 async def run_service(
-    config: Config, rrd: Path | None = None, viewer: str | None = None, ready: Any = None
+    config: Config,
+    rrd: Path | None = None,
+    viewer: str | None = None,
+    ready: Any = None,
+    viewer_window_s: float | None = None,
 ) -> None:
     """Run until SIGINT/SIGTERM; SIGHUP reloads the config file. Talks to systemd when
     NOTIFY_SOCKET is set: READY, WATCHDOG pings while the loop runs, RELOADING, STOPPING."""
@@ -434,7 +441,9 @@ async def run_service(
     from keo_service.live import systemd
 
     loop = asyncio.get_running_loop()
-    async with KeoService(config, rrd=rrd, viewer=viewer) as service:
+    async with KeoService(
+        config, rrd=rrd, viewer=viewer, viewer_window_s=viewer_window_s
+    ) as service:
 
         def reload() -> None:
             systemd.notify("RELOADING=1")
