@@ -201,6 +201,8 @@ DOMAINS = ("shared", "device", "receipt")
 # (software), NTP/chrony on a LAN within ~0.1-1 ms: 1 ms flags only clocks that disagree by
 # more than a working synchronisation allows (a stamp from another clock, a sync that broke).
 SHARED_AHEAD_TOLERANCE_S = 1e-3
+# What a user whose stamps are not on the cell's clock after all should do.
+_NOT_SHARED = 'stamps not on the cell\'s clock: set this input\'s clock to "device" or "receipt"'
 # How many messages a Stamper keeps (the counters count every case).
 _KEEP_MESSAGES = 8
 
@@ -311,15 +313,15 @@ class Stamper:
         if age < -tol:
             self._note(
                 "stamp_ahead",
-                f"a shared-clock stamp {-age * 1e3:.3f} ms ahead of its "
-                f"receipt (more than {tol * 1e3:g} ms): are the clocks synchronised?",
+                f"a shared-clock stamp {-age * 1e3:.3f} ms ahead of its receipt (more than "
+                f"{tol * 1e3:g} ms): are the clocks synchronised? ({_NOT_SHARED})",
             )
             flags.append("stamp_ahead")
         elif age > self.max_age_s:
             self._note(
                 "stamp_old",
                 f"a shared-clock stamp {age:.3f} s old at receipt (more "
-                f"than timing.max_stamp_age_s = {self.max_age_s:g} s)",
+                f"than timing.max_stamp_age_s = {self.max_age_s:g} s; {_NOT_SHARED})",
             )
             flags.append("stamp_old")
         return Stamp(device_t, tuple(flags))
