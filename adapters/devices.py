@@ -118,9 +118,7 @@ class _Adapter:
         }
 
     def _on_status_query(self, query: zenoh.Query) -> None:
-        # answer with our own key, so that a wildcard query tells the adapters apart
-        key = topic(self.config.cell, f"adapter/{self.name}/status")
-        query.reply(key, json.dumps(self.status()).encode())
+        query.reply(query.key_expr, json.dumps(self.status()).encode())
 
     def _declare(self, session: zenoh.Session) -> None:
         raise NotImplementedError
