@@ -279,6 +279,16 @@ def parse_config(
         raise ConfigError(
             source, "bus.tls_mtls", "mutual TLS needs bus.tls_certificate and bus.tls_private_key"
         )
+    if bus.access_control and not bus.tls_mtls:
+        raise ConfigError(
+            source,
+            "bus.access_control",
+            "access control names identities by their certificates: it needs bus.tls_mtls = true",
+        )
+    if bus.access_control and not bus.roles:
+        raise ConfigError(
+            source, "bus.roles", "access control with no roles would deny every identity"
+        )
     bus = msgspec.structs.replace(bus, **tls_paths)
     return msgspec.structs.replace(config, robot=robot, bus=bus, source=source)
 
