@@ -445,17 +445,21 @@ class _Ros2Adapter(_Adapter):
         stopping = asyncio.ensure_future(self._stop.wait())
         try:
             async for key, payload in _until(sub, stopping):
-                typename = _type_of(key, keys)
-                try:
-                    message = self.node.deserialize(payload, typename)
-                except Exception as exc:
-                    self.rejects.reject("bad_cdr", f"{typename} on {key}: {exc}")
-                    continue
-                self._on_message(message, typename, time.time_ns())
+                self.on_payload(payload, _type_of(key, keys), key)
         finally:
             stopping.cancel()
             sub.close()
             self.node.close()
+
+    def on_payload(self, payload: bytes, typename: str, key: str = "") -> None:
+        """One sample's CDR bytes: decoded by rosbags and published; whatever rosbags cannot
+        decode is counted as `bad_cdr` (its errors are not one documented type)."""
+        try:
+            message = self.node.deserialize(payload, typename)
+        except Exception as exc:
+            self.rejects.reject("bad_cdr", f"{typename} on {key}: {exc}")
+            return
+        self._on_message(message, typename, time.time_ns())
 
     def _on_message(self, message: Any, typename: str, host_ns: int) -> None:
         raise NotImplementedError

@@ -300,6 +300,9 @@ def load_config(path: str | Path) -> Config:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(str(path), "(file)", f"cannot read config: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:  # found fuzzing: it escaped the CLI's exit code 2
+        line = path.read_bytes()[: exc.start].count(b"\n") + 1
+        raise ConfigError(str(path), "(file)", f"line {line} is not UTF-8 text") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
