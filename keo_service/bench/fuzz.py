@@ -601,7 +601,10 @@ def fuzz_one(target: Target, n: int, seed: int, work: Path, keep: int = 5) -> Fu
         before = runner.counters["rejected"]
         try:
             frames = runner(data, index)
-        except Exception as exc:  # anything but the documented reject path is a crash
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except BaseException as exc:  # anything but the documented reject path is a crash
+            # (BaseException: a Rust library's panic arrives as pyo3's PanicException)
             report.crashes += 1
             if len(report.crash_examples) < keep:
                 report.crash_examples.append(
