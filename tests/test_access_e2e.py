@@ -85,7 +85,10 @@ def write_identity(demo_config, tmp: Path, pki: Path, ca: str, name: str, **bus)
 def _status(session: zenoh.Session) -> ServiceStatus | None:
     for reply in session.get(topic("demo", "status"), timeout=2.0):
         if reply.ok is not None:
-            msg = decode(reply.ok.payload.to_bytes())
+            try:  # the service answers with nothing until it has a status
+                msg = decode(reply.ok.payload.to_bytes())
+            except msgspec.DecodeError:
+                continue
             if isinstance(msg, ServiceStatus):
                 return msg
     return None

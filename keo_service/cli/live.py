@@ -377,7 +377,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     stats = asyncio.run(main())
     print(json.dumps({"out": str(args.out), **stats}))
-    return 0
+    return 1 if stats.get("stopped") else 0  # e.g. the disk filled up
 
 
 def cmd_replay(args: argparse.Namespace) -> int:

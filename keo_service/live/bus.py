@@ -34,6 +34,9 @@ DEFAULT_QUEUE = 10_000
 DROP_WAIT_US = 50_000
 
 
+RECONNECT = {"period_init_ms": 200, "period_max_ms": 1000, "period_increase_factor": 2}
+
+
 def make_zenoh_config(
     mode: str = "peer",
     listen: Sequence[str] = (),
@@ -53,6 +56,10 @@ def make_zenoh_config(
     cfg.insert_json5(
         "transport/link/tx/queue/congestion_control/drop/wait_before_drop", json.dumps(DROP_WAIT_US)
     )
+    # a session that lost its router (or service) retries every 0.2 s, then at most every
+    # 1 s (Zenoh's defaults, 1 s doubling to 4 s, left a restarted router without its
+    # clients for up to 4 s)
+    cfg.insert_json5("connect/retry", json.dumps(RECONNECT))
     if tls is not None and tls.tls_root_ca:
         link = "transport/link/tls/"
         cfg.insert_json5(link + "root_ca_certificate", json.dumps(tls.tls_root_ca))
