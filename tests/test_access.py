@@ -149,10 +149,15 @@ def test_off_by_default(tmp_path):
         ('access_control = true\n[bus.roles]\n"a" = "client"\n', "bus.access_control"),
         (
             'access_control = true\ntls_mtls = true\ntls_certificate = "@CERT@"\n'
-            'tls_private_key = "@CERT@"\ntls_root_ca = "@CERT@"\n',
+            'tls_private_key = "@CERT@"\ntls_root_ca = "@CERT@"\nlisten = ["tls/localhost:1"]\n',
             "bus.roles",
         ),
         ('[bus.roles]\n"a" = "admin"\n', "bus.roles"),
+        (
+            'access_control = true\ntls_mtls = true\ntls_certificate = "@CERT@"\n'
+            'tls_private_key = "@CERT@"\ntls_root_ca = "@CERT@"\n[bus.roles]\n"a" = "client"\n',
+            "bus.listen",
+        ),
     ],
 )
 def test_config_errors_name_the_key(tmp_path, bus, key):

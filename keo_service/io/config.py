@@ -285,6 +285,14 @@ def parse_config(
             "bus.access_control",
             "access control names identities by their certificates: it needs bus.tls_mtls = true",
         )
+    plain = [e for e in bus.listen + bus.connect if not e.startswith("tls/")]
+    if bus.access_control and plain:
+        key = "bus.listen" if plain[0] in bus.listen else "bus.connect"
+        raise ConfigError(
+            source,
+            key,
+            f"{plain[0]}: with access control every endpoint is tls/ (no identity else)",
+        )
     if bus.access_control and not bus.roles:
         raise ConfigError(
             source, "bus.roles", "access control with no roles would deny every identity"
