@@ -505,6 +505,13 @@ class Ros2JointStateAdapter(_Ros2Adapter):
         )
 
     def _on_message(self, message: Any, typename: str, host_ns: int) -> None:
+        if len(message.position) != len(message.name):  # found fuzzing: an IndexError
+            self.rejects.reject(
+                "bad_lengths",
+                f"JointState with {len(message.name)} names and {len(message.position)} "
+                "positions (a position per name)",
+            )
+            return
         index = {name: i for i, name in enumerate(message.name)}
         missing = [n for n in self.joint_names if n not in index]
         if missing:

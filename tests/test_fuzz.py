@@ -303,3 +303,21 @@ def test_a_lone_quote_that_made_polars_panic_is_a_format_error(tmp_path):
     data = read_encoder(path, nq=6)  # the careful path reads it: the quote's line is empty
     assert data.t.tolist() == [1e-3]
     assert data.q.tolist() == [[-1.5, 2.0, 3.0, 0.0, 5.0, 6.0]]  # 1e-999 underflows to 0
+
+
+# found by `keo selftest --fuzz 100000` (3 inputs in 1e5): a JointState with 7 names and 6
+# positions raised IndexError in the adapter, which would have stopped it
+JOINT_STATE_7_NAMES_6_POSITIONS = bytes.fromhex(
+    "0001000001000000000000000100000000000000070000000a0000006a6f696e745f315f730000000a"
+    "0000006a6f696e745f365f740000000a0000006a6f696e745f355f620000000a0000006a6f696e745f"
+    "345f720000000a0000006a6f696e745f335f750000000a0000006a6f696e745f325f6c0000000a0000"
+    "006a6f696e745f315f73000000060000009a9999999999b93f9a9999999999c9bf333333333333d33f"
+    "9a9999999999d9bf000000000000e03f333333333333e3bf0000000000000000"
+)
+
+
+def test_a_joint_state_with_fewer_positions_than_names_is_refused(tmp_path):
+    seeds, runner = fuzz._ros2_joint_states(tmp_path)
+    assert runner(seeds[0], 0) == 1
+    assert runner(JOINT_STATE_7_NAMES_6_POSITIONS, 1) == 0
+    assert runner.counters["bad_lengths"] == 1
