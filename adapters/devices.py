@@ -593,17 +593,21 @@ class _Ros2Adapter(_Adapter):
         stopping = asyncio.ensure_future(self._stop.wait())
         try:
             async for key, payload in _until(sub, stopping):
-                typename = _type_of(key, keys)
-                try:
-                    message = self.node.deserialize(payload, typename)
-                except Exception as exc:
-                    self.rejects.reject("bad_cdr", f"{typename} on {key}: {exc}")
-                    continue
-                self._on_message(message, typename, time.time_ns())
+                self.on_payload(payload, _type_of(key, keys), key)
         finally:
             stopping.cancel()
             sub.close()
             self.node.close()
+
+    def on_payload(self, payload: bytes, typename: str, key: str = "") -> None:
+        """One sample's CDR bytes: decoded by rosbags and published; whatever rosbags cannot
+        decode is counted as `bad_cdr` (its errors are not one documented type)."""
+        try:
+            message = self.node.deserialize(payload, typename)
+        except Exception as exc:
+            self.rejects.reject("bad_cdr", f"{typename} on {key}: {exc}")
+            return
+        self._on_message(message, typename, time.time_ns())
 
     def _on_message(self, message: Any, typename: str, host_ns: int) -> None:
         raise NotImplementedError
@@ -649,6 +653,13 @@ class Ros2JointStateAdapter(_Ros2Adapter):
         )
 
     def _on_message(self, message: Any, typename: str, host_ns: int) -> None:
+        if len(message.position) != len(message.name):  # found fuzzing: an IndexError
+            self.rejects.reject(
+                "bad_lengths",
+                f"JointState with {len(message.name)} names and {len(message.position)} "
+                "positions (a position per name)",
+            )
+            return
         index = {name: i for i, name in enumerate(message.name)}
         missing = [n for n in self.joint_names if n not in index]
         if missing:

@@ -439,11 +439,16 @@ def cmd_status(args: argparse.Namespace) -> int:
 def cmd_router(args: argparse.Namespace) -> int:
     import asyncio
 
+    from keo_service.live.access import access_control_for
     from keo_service.live.bus import open_session
 
     _setup_logging()
-    tls = common.load(args.config).bus if args.config else None
-    session = open_session("router", listen=args.listen, connect=args.connect or (), tls=tls)
+    config = common.load(args.config) if args.config else None
+    tls = config.bus if config is not None else None
+    access = access_control_for(config) if config is not None else None
+    session = open_session(
+        "router", listen=args.listen, connect=args.connect or (), tls=tls, access=access
+    )
     logging.getLogger("keo.router").info("zenoh router listening on %s", args.listen)
     stop = asyncio.Event()
 
@@ -550,7 +555,9 @@ def register(add: common.AddCommand) -> None:
 
     p = add("router", cmd_router, "a Zenoh router for setups without zenohd", config=False)
     p.add_argument("--listen", action="append", required=True, metavar="ENDPOINT")
-    p.add_argument("--config", help="take TLS settings ([bus] tls_*) from this config")
+    p.add_argument(
+        "--config", help="take TLS settings ([bus] tls_*) and access control from this config"
+    )
     p.add_argument("--connect", action="append", metavar="ENDPOINT")
 
 
@@ -591,7 +598,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     stats = asyncio.run(main())
     print(json.dumps({"out": str(args.out), **stats}))
-    return 0
+    return 1 if stats.get("stopped") else 0  # e.g. the disk filled up
 
 
 def cmd_replay(args: argparse.Namespace) -> int:

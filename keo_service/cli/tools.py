@@ -84,6 +84,32 @@ def _register_init(add: common.AddCommand) -> None:
     p.add_argument("--force", action="store_true", help="overwrite FILE")
 
 
+def cmd_selftest(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from keo_service.bench.fuzz import fuzz, fuzz_table
+
+    if args.fuzz < 1:
+        raise ConfigError(
+            "command line", "--fuzz", f"at least 1 input per decoder, got {args.fuzz}"
+        )
+    reports = fuzz(args.fuzz, seed=args.seed, only=args.only)
+    if not reports:
+        raise ConfigError("command line", "--only", f"no decoder matches {args.only}")
+    if args.json:
+        common.print_json(
+            {
+                "n": args.fuzz,
+                "seed": args.seed,
+                "decoders": [dataclasses.asdict(r) for r in reports],
+            }
+        )
+    else:
+        sys.stdout.write(fuzz_table(reports, args.fuzz, args.seed))
+    crashes = sum(r.crashes for r in reports)
+    return common.EXIT_FAILURE if crashes else common.EXIT_OK
+
+
 def register(add: common.AddCommand) -> None:
     _register_init(add)
     p = add(
@@ -110,6 +136,26 @@ def register(add: common.AddCommand) -> None:
         help="close the loop: a UR10 (RTDE) follows a path plus keo's live correction; prints "
         "the true tool error along the path without and with it",
     )
+
+    p = add(
+        "selftest",
+        cmd_selftest,
+        "fuzz every decoder of outside bytes with a fixed budget; prints the counts",
+        config=False,
+    )
+    p.add_argument(
+        "--fuzz",
+        type=int,
+        required=True,
+        metavar="N",
+        help="generated inputs per decoder (mutated valid frames and random bytes); exit 1 on "
+        "any crash",
+    )
+    p.add_argument("--seed", type=int, default=1, help="the generator's seed (reproducible runs)")
+    p.add_argument(
+        "--only", action="append", metavar="NAME", help="decoders whose name contains NAME"
+    )
+    p.add_argument("--json", action="store_true")
 
     p = add("bench", cmd_bench, "the benchmarks (numbers, no verdicts)", config=False)
     p.add_argument("--config", default=str(demo_config_path()))

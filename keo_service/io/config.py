@@ -330,6 +330,24 @@ def parse_config(
         raise ConfigError(
             source, "bus.tls_mtls", "mutual TLS needs bus.tls_certificate and bus.tls_private_key"
         )
+    if bus.access_control and not bus.tls_mtls:
+        raise ConfigError(
+            source,
+            "bus.access_control",
+            "access control names identities by their certificates: it needs bus.tls_mtls = true",
+        )
+    plain = [e for e in bus.listen + bus.connect if not e.startswith("tls/")]
+    if bus.access_control and plain:
+        key = "bus.listen" if plain[0] in bus.listen else "bus.connect"
+        raise ConfigError(
+            source,
+            key,
+            f"{plain[0]}: with access control every endpoint is tls/ (no identity else)",
+        )
+    if bus.access_control and not bus.roles:
+        raise ConfigError(
+            source, "bus.roles", "access control with no roles would deny every identity"
+        )
     bus = msgspec.structs.replace(bus, **tls_paths)
     _check_clocks(config, source)
     return msgspec.structs.replace(config, robot=robot, bus=bus, source=source)
@@ -358,6 +376,9 @@ def load_config(path: str | Path) -> Config:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(str(path), "(file)", f"cannot read config: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:  # found fuzzing: it escaped the CLI's exit code 2
+        line = path.read_bytes()[: exc.start].count(b"\n") + 1
+        raise ConfigError(str(path), "(file)", f"line {line} is not UTF-8 text") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -53,6 +53,8 @@ def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
             first = f.readline()
     except OSError as exc:
         raise DataFormatError(str(path), 0, "-", f"cannot open: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise _not_utf8(path) from None
     if not first.strip():
         raise DataFormatError(str(path), 1, "-", "empty file, expected a header row")
     header = [h.strip() for h in next(csv.reader([first]), [])]
@@ -61,7 +63,10 @@ def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
     table = _read_fast(path, header)
     if table is not None:
         return header, table
-    body = path.read_text(encoding="utf-8").splitlines()[1:]
+    try:
+        body = path.read_text(encoding="utf-8").splitlines()[1:]
+    except UnicodeDecodeError:
+        raise _not_utf8(path) from None
     if not any(line.strip() for line in body):
         return header, np.empty((0, len(header)))
     try:
@@ -73,6 +78,19 @@ def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
     return header, data
 
 
+def _not_utf8(path: Path) -> DataFormatError:
+    """The line of the first byte that is not UTF-8 (found fuzzing: it escaped as a
+    UnicodeDecodeError)."""
+    data = path.read_bytes()
+    try:
+        data.decode("utf-8")
+        start = len(data)
+    except UnicodeDecodeError as exc:
+        start = exc.start
+    line = data[:start].count(b"\n") + 1
+    return DataFormatError(str(path), line, "-", f"byte {start} is not UTF-8 text")
+
+
 def _read_fast(path: Path, header: list[str]) -> np.ndarray | None:
     """All numbers of a well-formed file, or None for anything unusual (a bad cell, an empty
     cell, a ragged row, a blank line) which the careful path then reads or reports."""
@@ -80,6 +98,8 @@ def _read_fast(path: Path, header: list[str]) -> np.ndarray | None:
     try:
         frame = pl.read_csv(path, schema=schema, has_header=False, skip_rows=1, comment_prefix=None)
     except (pl.exceptions.PolarsError, OSError, ValueError):
+        return None
+    except pl.exceptions.PanicException:  # polars 2.1 panics on a lone '"' (found fuzzing)
         return None
     if frame.height == 0 or any(frame.null_count().row(0)):
         return None

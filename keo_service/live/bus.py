@@ -20,6 +20,7 @@ from typing import Any
 import zenoh
 
 from keo_service.core.errors import KeoError
+from keo_service.live.access import access_control_for
 from keo_service.live.backoff import Backoff
 
 log = logging.getLogger("keo.bus")
@@ -33,15 +34,20 @@ DEFAULT_QUEUE = 10_000
 DROP_WAIT_US = 50_000
 
 
+RECONNECT = {"period_init_ms": 200, "period_max_ms": 1000, "period_increase_factor": 2}
+
+
 def make_zenoh_config(
     mode: str = "peer",
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
     multicast: bool = False,
     tls: Any = None,
+    access: dict[str, Any] | None = None,
 ) -> zenoh.Config:
     """`tls`: an object with tls_root_ca, tls_certificate, tls_private_key, tls_mtls (the
-    [bus] config section), used for tls/ endpoints."""
+    [bus] config section), used for tls/ endpoints. `access`: Zenoh's access_control section
+    (`keo_service.live.access`), enforced by this node on its links."""
     cfg = zenoh.Config()
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
@@ -50,6 +56,10 @@ def make_zenoh_config(
     cfg.insert_json5(
         "transport/link/tx/queue/congestion_control/drop/wait_before_drop", json.dumps(DROP_WAIT_US)
     )
+    # a session that lost its router (or service) retries every 0.2 s, then at most every
+    # 1 s (Zenoh's defaults, 1 s doubling to 4 s, left a restarted router without its
+    # clients for up to 4 s)
+    cfg.insert_json5("connect/retry", json.dumps(RECONNECT))
     if tls is not None and tls.tls_root_ca:
         link = "transport/link/tls/"
         cfg.insert_json5(link + "root_ca_certificate", json.dumps(tls.tls_root_ca))
@@ -58,6 +68,8 @@ def make_zenoh_config(
                 cfg.insert_json5(f"{link}{side}_certificate", json.dumps(tls.tls_certificate))
                 cfg.insert_json5(f"{link}{side}_private_key", json.dumps(tls.tls_private_key))
         cfg.insert_json5(link + "enable_mtls", json.dumps(bool(tls.tls_mtls)))
+    if access is not None:
+        cfg.insert_json5("access_control", json.dumps(access))
     return cfg
 
 
@@ -67,8 +79,9 @@ def open_session(
     connect: Sequence[str] = (),
     multicast: bool = False,
     tls: Any = None,
+    access: dict[str, Any] | None = None,
 ) -> zenoh.Session:
-    return zenoh.open(make_zenoh_config(mode, listen, connect, multicast, tls))
+    return zenoh.open(make_zenoh_config(mode, listen, connect, multicast, tls, access))
 
 
 def _zenoh_reason(exc: Exception) -> str:
@@ -155,11 +168,13 @@ async def session_for_client_async(config: Any, retry_for: float | None = None) 
 
 def session_for_service(config: Any) -> zenoh.Session:
     """The service's session as [bus] says: a listening peer (the embedded default), or a
-    client of a router, which it waits for like any client."""
+    client of a router, which it waits for like any client. A listening service enforces
+    [bus] access control on its links (behind a router, the router does)."""
     bus = config.bus
     if bus.mode == "client":
         return session_for_client(config)  # before the loop runs: blocking is fine here
-    return open_session(bus.mode, bus.listen, bus.connect, bus.multicast_scouting, tls=bus)
+    access = access_control_for(config)
+    return open_session(bus.mode, bus.listen, bus.connect, bus.multicast_scouting, bus, access)
 
 
 class AsyncSubscription:

@@ -55,6 +55,10 @@ class RecordStats:
     rejected: int = 0
     messages: list[str] = field(default_factory=list)
     stream_stops: int = 0  # one stream stopped while the other went on (see messages)
+    # why recording stopped before it was asked to (the disk is full, the file went away);
+    # empty when it did not, and the samples that arrived after it
+    stopped: str = ""
+    not_recorded: int = 0
 
 
 class _StreamRecorder:
@@ -65,6 +69,7 @@ class _StreamRecorder:
         self.stats = RecordStats()
         self.last_seen: dict[str, float] = {}  # stream -> monotonic time of its newest sample
         self._stopped: set[str] = set()
+        self.where = "the output"  # for messages: where the recording goes
 
     def check_streams(self, now: float) -> None:
         """Warn (once per stop) when one stream has stopped while the other goes on: the rows
@@ -94,6 +99,37 @@ class _StreamRecorder:
             self.stats.messages.append(text)
 
     def on_payload(self, payload: bytes) -> None:
+        """One sample; a write that fails (ENOSPC, EIO...) stops the recording for good: it
+        is said once in the log and in `stats.stopped`, later samples are only counted."""
+        if self.stats.stopped:
+            self.stats.not_recorded += 1
+            return
+        try:
+            self._on_payload(payload)
+        except OSError as exc:
+            self._give_up(exc)
+
+    def flush(self) -> None:
+        if self.stats.stopped:
+            return
+        try:
+            self.maybe_flush()
+        except OSError as exc:
+            self._give_up(exc)
+
+    def _give_up(self, exc: OSError) -> None:
+        where = getattr(exc, "filename", None) or self.where
+        self.stats.stopped = f"cannot write the recording in {where}: {exc.strerror or exc}"
+        log.error(
+            "%s; recording stopped, the service and the bus are not affected", self.stats.stopped
+        )
+        with contextlib.suppress(OSError):
+            self.abandon()
+
+    def abandon(self) -> None:
+        """Close what is open without writing more (after a failed write)."""
+
+    def _on_payload(self, payload: bytes) -> None:
         try:
             msg = decode(payload)
         except msgspec.DecodeError as exc:
@@ -144,6 +180,7 @@ class Recorder(_StreamRecorder):
         super().__init__(nq)
         out_dir.mkdir(parents=True, exist_ok=True)
         self.out_dir = out_dir
+        self.where = str(out_dir)
         self._enc: TextIO = (out_dir / "encoder.csv").open("w", encoding="utf-8")
         self._enc.write(",".join(["t", *(f"q{i + 1}" for i in range(nq))]) + "\n")
         self._trk: TextIO | None = None
@@ -177,10 +214,22 @@ class Recorder(_StreamRecorder):
             self._last_flush = now
 
     def close(self) -> None:
-        self.maybe_flush(force=True)
+        if self.stats.stopped:
+            return
+        try:
+            self.maybe_flush(force=True)
+        except OSError as exc:
+            self._give_up(exc)
+            return
         self._enc.close()
         if self._trk is not None:
             self._trk.close()
+
+    def abandon(self) -> None:
+        for f in (self._enc, self._trk):
+            if f is not None:
+                with contextlib.suppress(OSError):
+                    f.close()  # buffered rows that cannot be written are lost with it
 
 
 class McapRecorder(_StreamRecorder):
@@ -203,6 +252,14 @@ class McapRecorder(_StreamRecorder):
         self.writer.estimate(msg.stamp, msg.estimate)
 
     def close(self) -> None:
+        if self.stats.stopped:
+            return
+        try:
+            self.writer.close()
+        except OSError as exc:
+            self._give_up(exc)
+
+    def abandon(self) -> None:
         self.writer.close()
 
 
@@ -226,12 +283,16 @@ async def record(
     async def consume() -> None:
         async for _key, payload in sub:
             recorder.on_payload(payload)
+            if recorder.stats.stopped:
+                stop.set()
 
     async def flusher() -> None:
         while True:
             await asyncio.sleep(FLUSH_PERIOD_S / 2)
-            recorder.maybe_flush()
+            recorder.flush()
             recorder.check_streams(time.monotonic())
+            if recorder.stats.stopped:
+                stop.set()
 
     failures: list[BaseException] = []
 

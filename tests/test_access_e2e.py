@@ -1,0 +1,232 @@
+"""Access control with real certificates and processes: `keo run` (and `keo router`) enforce
+the rights of DESIGN.md §6 by mTLS certificate common name. A client identity that puts
+encoder samples or corrections is refused while the legitimate encoder and tracker keep the
+service estimating; the client may still subscribe to estimates and query status; a
+certificate from another CA does not connect at all."""
+
+from __future__ import annotations
+
+import subprocess
+import time
+from pathlib import Path
+
+import msgspec
+import pytest
+import zenoh
+
+from keo_service.bench.procs import free_port, process_group
+from keo_service.core.errors import KeoError
+from keo_service.io.config import config_to_toml, load_config
+from keo_service.live.bus import BlockingSubscription, session_for_client
+from keo_service.live.messages import (
+    CorrectionMessage,
+    EstimateMessage,
+    JointSample,
+    ServiceStatus,
+    TrackerSample,
+    decode,
+    encode,
+    topic,
+)
+from keo_service.live.recorder import replay_plan
+from keo_service.sim.simulate import make_scenario, simulate
+
+pytestmark = pytest.mark.e2e
+
+ROLES = {
+    "svc.demo": "service",
+    "enc.demo": "encoder",
+    "trk.demo": "tracker",
+    "hmi.demo": "client",
+    "watch.demo": "operator",
+}
+ROGUE_SEQ = 1_000_000
+
+
+def make_pki(directory: Path, ca: str, names: list[str]) -> None:
+    """A CA and a certificate per name (CN = name), EC P-256, made with the openssl CLI."""
+
+    def run(*args: str) -> None:
+        subprocess.run(["openssl", *args], check=True, capture_output=True, cwd=directory)
+
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
+    run("req", "-x509", *ec, "-days", "2", "-subj", f"/CN={ca}", "-keyout", f"{ca}.key")
+    run(
+        "req", "-x509", "-key", f"{ca}.key", "-days", "2", "-subj", f"/CN={ca}", "-out", f"{ca}.pem"
+    )
+    ext = directory / "leaf.ext"
+    ext.write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=CA:FALSE\n")
+    for name in names:
+        run("req", *ec, "-subj", f"/CN={name}", "-keyout", f"{name}.key", "-out", f"{name}.csr")
+        run(
+            "x509", "-req", "-in", f"{name}.csr", "-CA", f"{ca}.pem", "-CAkey", f"{ca}.key",
+            "-CAcreateserial", "-days", "2", "-out", f"{name}.pem", "-extfile", "leaf.ext",
+        )  # fmt: skip
+
+
+def write_identity(demo_config, tmp: Path, pki: Path, ca: str, name: str, **bus) -> Path:
+    settings = {
+        "tls_root_ca": str(pki / f"{ca}.pem"),
+        "tls_certificate": str(pki / f"{name}.pem"),
+        "tls_private_key": str(pki / f"{name}.key"),
+        "tls_mtls": True,
+        "access_control": True,
+        "roles": ROLES,
+        **bus,
+    }
+    config = msgspec.structs.replace(
+        demo_config, bus=msgspec.structs.replace(demo_config.bus, **settings)
+    )
+    path = tmp / f"{name}.toml"
+    path.write_text(config_to_toml(config))
+    return path
+
+
+def _status(session: zenoh.Session) -> ServiceStatus | None:
+    for reply in session.get(topic("demo", "status"), timeout=2.0):
+        if reply.ok is not None:
+            try:  # the service answers with nothing until it has a status
+                msg = decode(reply.ok.payload.to_bytes())
+            except msgspec.DecodeError:
+                continue
+            if isinstance(msg, ServiceStatus):
+                return msg
+    return None
+
+
+@pytest.mark.parametrize("hub", ["service", "router"])
+def test_rights_by_certificate(demo_config, demo_cell, tmp_path, hub):
+    pki = tmp_path / "pki"
+    pki.mkdir()
+    make_pki(pki, "keo-ca", [*ROLES, "router.demo"])
+    make_pki(pki, "other-ca", ["enc.other"])  # a stranger's CA and a certificate it signed
+    endpoint = f"tls/localhost:{free_port()}"
+    leaf = {"mode": "client", "listen": [], "connect": [endpoint]}
+    service_bus = leaf if hub == "router" else {"mode": "peer", "listen": [endpoint]}
+    cfg = {
+        name: write_identity(demo_config, tmp_path, pki, "keo-ca", name, **leaf)
+        for name in ROLES
+        if name != "svc.demo"
+    }
+    cfg["svc.demo"] = write_identity(
+        demo_config, tmp_path, pki, "keo-ca", "svc.demo", **service_bus
+    )
+    router = write_identity(demo_config, tmp_path, pki, "keo-ca", "router.demo", **leaf)
+    # the stranger's certificate even carries a legitimate common name
+    stranger = write_identity(demo_config, tmp_path, pki, "other-ca", "enc.other", **leaf)
+
+    run = simulate(demo_cell, make_scenario("paper-step", {"duration_s": "3"}), seed=5)
+    plan = replay_plan(run.encoder.t, run.tracker.t)
+    with process_group(tmp_path) as procs:
+        if hub == "router":
+            procs.start("router", ["router", "--listen", endpoint, "--config", str(router)])
+        procs.start("service", ["run", "--config", str(cfg["svc.demo"])])
+        sessions = {
+            name: session_for_client(load_config(cfg[name]), retry_for=20.0)
+            for name in ("enc.demo", "trk.demo", "hmi.demo", "watch.demo")
+        }
+        try:
+            hmi, watch = sessions["hmi.demo"], sessions["watch.demo"]
+            deadline = time.monotonic() + 20
+            while _status(hmi) is None:  # a client may query status
+                assert time.monotonic() < deadline, procs.log("service")
+            watched = BlockingSubscription(watch, "keo/demo/**")
+            estimates = BlockingSubscription(hmi, topic("demo", "estimate"))
+            time.sleep(0.5)  # subscriptions reach the hub
+            block = zenoh.CongestionControl.BLOCK
+            enc = sessions["enc.demo"].declare_publisher(
+                "keo/demo/encoder", congestion_control=block
+            )
+            trk = sessions["trk.demo"].declare_publisher(
+                "keo/demo/tracker", congestion_control=block
+            )
+            rogue_enc = hmi.declare_publisher("keo/demo/encoder", congestion_control=block)
+            rogue_corr = hmi.declare_publisher("keo/demo/correction", congestion_control=block)
+            sent = rogue = 0
+            for k in range(plan.t.size):
+                i = int(plan.index[k])
+                now = time.time_ns()
+                if plan.kinds[k] == 0:
+                    q = run.encoder.q[i].tolist()
+                    enc.put(
+                        encode(JointSample(t=float(run.encoder.t[i]), host_ns=now, seq=i + 1, q=q))
+                    )
+                    # the client identity puts a sample of its own, and a correction
+                    bad = [x + 0.5 for x in q]
+                    rogue_enc.put(
+                        encode(
+                            JointSample(
+                                t=float(run.encoder.t[i]), host_ns=now, seq=ROGUE_SEQ + i, q=bad
+                            )
+                        )
+                    )
+                    zero = [0.0, 0.0, 0.0]
+                    rogue_corr.put(
+                        encode(
+                            CorrectionMessage(
+                                stamp=0.0,
+                                host_ns=now,
+                                seq=i,
+                                translation=[0.01, 0, 0],
+                                rotation=zero,
+                                feedback_translation=zero,
+                                feedback_rotation=zero,
+                                feedforward_translation=zero,
+                                feedforward_rotation=zero,
+                                valid=True,
+                            )
+                        )
+                    )
+                    rogue += 2
+                else:
+                    p, quat = run.tracker.p[i].tolist(), run.tracker.quat[i].tolist()
+                    trk.put(
+                        encode(
+                            TrackerSample(
+                                t=float(run.tracker.t[i]), host_ns=now, seq=i + 1, p=p, q=quat
+                            )
+                        )
+                    )
+                sent += 1
+                if k % 20 == 0:
+                    time.sleep(0.01)
+            # the service took every legitimate sample and nothing of the client's
+            deadline = time.monotonic() + 20
+            status = _status(hmi)
+            while status is None or status.counters["received"] < sent:
+                assert time.monotonic() < deadline, (
+                    status and status.counters,
+                    sent,
+                    procs.log("service"),
+                )
+                time.sleep(0.2)
+                status = _status(hmi)
+            time.sleep(0.5)
+            status = _status(hmi)
+            assert status is not None
+            assert status.counters["received"] == sent, status.counters
+            assert status.counters["published"] > 50, status.counters
+            # what the operator sees on the bus: the encoder's samples, none of the client's
+            seen: dict[str, list[object]] = {}
+            while (item := watched.get(timeout=0.5)) is not None:
+                seen.setdefault(item[0], []).append(decode(item[1]))
+            encoder_seqs = [
+                m.seq for m in seen.get("keo/demo/encoder", []) if isinstance(m, JointSample)
+            ]
+            assert len(encoder_seqs) == run.encoder.t.size
+            assert max(encoder_seqs) < ROGUE_SEQ
+            assert "keo/demo/correction" not in seen
+            assert len(seen.get("keo/demo/estimate", [])) > 50
+            # the client identity still subscribes to estimates
+            got = 0
+            while (item := estimates.get(timeout=0.5)) is not None:
+                got += isinstance(decode(item[1]), EstimateMessage)
+            assert got > 50
+            assert rogue > 100
+        finally:
+            for session in sessions.values():
+                session.close()
+        # another CA's certificate: the TLS handshake fails, nothing connects
+        with pytest.raises(KeoError, match="cannot reach the bus"):
+            session_for_client(load_config(stranger), retry_for=2.0)
+        assert procs.procs["service"].poll() is None, procs.log("service")
