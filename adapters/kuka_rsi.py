@@ -174,7 +174,7 @@ class RsiCodec:
             if delay_el is not None and "D" in delay_el.attrib:
                 try:
                     delay = int(float(delay_el.attrib["D"]))
-                except ValueError:
+                except (ValueError, OverflowError):  # "1e999" is a float, but inf no int
                     raise _RefusedError(
                         "not_a_number", f"<Delay D={delay_el.attrib['D']!r}>"
                     ) from None

@@ -167,3 +167,11 @@ def test_config_errors_name_the_key(tmp_path, bus, key):
     with pytest.raises(ConfigError) as info:
         load_config(write_config(tmp_path, body.replace("@CERT@", str(cert))))
     assert key in str(info.value)
+
+
+def test_an_encoder_that_writes_corrections_may_read_them(tmp_path):
+    """With `robot.correction` set, the encoder adapter subscribes to keo/<cell>/correction
+    to write it to its controller; without it, the encoder reads nothing of keo's."""
+    acl = access_control(_config(tmp_path, 'protocol = "rtde"\ncorrection = "rtde_registers"\n'))
+    assert _allowed(acl, "encoder", "ingress", SUB) == {"keo/c1/correction"}
+    assert _allowed(acl, "tracker", "ingress", SUB) == set()

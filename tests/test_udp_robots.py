@@ -795,3 +795,16 @@ def test_the_documented_configs_load(tmp_path):
         "device",
         "abb_egm",
     )
+
+
+def test_an_rsi_delay_too_large_for_an_integer_is_a_counted_reject():
+    """Found by `keo selftest --fuzz`: `D="1e999"` parses as a float (inf) that no int holds;
+    it was an OverflowError out of the decoder, now a reject like any other bad number."""
+    codec = kuka_rsi.RsiCodec()
+    datagram = (
+        b'<Rob Type="KUKA"><AIPos A1="0" A2="-90" A3="90" A4="0" A5="0" A6="0"/>'
+        b'<Delay D="1e999"/><IPOC>1000</IPOC></Rob>'
+    )
+    assert codec.parse_rob(datagram) is None
+    assert codec.counters["not_a_number"] == 1
+    assert "1e999" in codec.messages[-1]

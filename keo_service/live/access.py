@@ -55,11 +55,13 @@ def rights(config: Any) -> dict[str, tuple[list[str], list[str]]]:
         if config.tracker.protocol == "ros2"
         else []
     )
+    # an encoder adapter that writes live corrections to its controller reads them from the bus
+    corrections_in = [f"{keo}/correction"] if config.robot.correction != "none" else []
     service_ros = [f"{domain}/keo/{cell}/**", f"{domain}/tf/**"] if ros.enabled else []
     return {
         "encoder": (
             [f"{keo}/encoder", f"{keo}/robot_status", f"{keo}/adapter/encoder/**", *ros_tokens],
-            encoder_in + (ros_tokens if encoder_in else []),
+            encoder_in + (ros_tokens if encoder_in else []) + corrections_in,
         ),
         "tracker": (
             [f"{keo}/tracker", f"{keo}/adapter/tracker/**", *ros_tokens],
