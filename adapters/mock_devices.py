@@ -48,6 +48,25 @@ class PoseTrack(Protocol):
     quat: np.ndarray | None
 
 
+def stall_schedule(
+    times: np.ndarray, late_s: float, burst_every_s: float, rng: np.random.Generator
+) -> np.ndarray:
+    """When rows stamped `times` go out if sending stalls every `burst_every_s` on average
+    (0: never) for up to `late_s`: the rows held up go out together when the stall ends, as a
+    congested network or a busy host delivers them."""
+    send = times.astype(float).copy()
+    if burst_every_s <= 0 or late_s <= 0 or times.size == 0:
+        return send
+    t_end = float(times[-1])
+    at = float(times[0]) + float(rng.uniform(0, burst_every_s))
+    while at < t_end:
+        stall = float(rng.uniform(0.2, 1.0)) * late_s
+        held = (times >= at) & (times < at + stall)
+        send[held] = at + stall
+        at += float(rng.exponential(burst_every_s)) + stall
+    return send
+
+
 class _MockServer:
     def __init__(self, host: str, port: int, t0: float | None, loop_play: bool) -> None:
         self.host, self.port = host, port
@@ -55,6 +74,7 @@ class _MockServer:
         self.loop_play = loop_play
         self.clients = 0
         self._server: asyncio.Server | None = None
+        self.send_offsets: np.ndarray | None = None  # per row: when it goes out (stalls)
 
     async def start(self) -> None:
         self._server = await asyncio.start_server(self._on_client, self.host, self.port)
@@ -89,9 +109,17 @@ class _MockServer:
         while True:
             now = time.time()
             first = int(np.searchsorted(times, now - start))
-            for i in range(first, times.size):
-                await _sleep_until(start + float(times[i]))
-                writer.write(frame(i))
+            send = times if self.send_offsets is None else self.send_offsets
+            i = first
+            while i < times.size:
+                await _sleep_until(start + float(send[i]))
+                due = time.time() - start
+                chunk = [frame(i)]
+                i += 1
+                while i < times.size and send[i] <= due and send[i] > times[i]:
+                    chunk.append(frame(i))  # held up by a stall: out together
+                    i += 1
+                writer.write(b"".join(chunk))
                 await writer.drain()
             if not self.loop_play:
                 return
@@ -145,9 +173,23 @@ class MockTracker(_MockServer):
         wall_clock: bool = False,
         beam_break: tuple[float, float] | None = None,
         clock_step: tuple[float, float] | None = None,
+        device_clock: tuple[float, float] | None = None,
+        late_ms: float = 0.0,
+        burst_every_s: float = 0.0,
+        seed: int = 0,
     ) -> None:
         super().__init__(host, port, t0, loop_play)
         self.tracker = tracker
+        # (offset s, drift ppm): the tracker's own free-running clock stamps each pose at the
+        # instant it measured, `offset + scenario time * (1 + drift)`, whoever is connected
+        # (None: the time since the connection, read when the line is sent)
+        self.device_clock = device_clock
+        self.send_offsets = stall_schedule(
+            np.asarray(tracker.t, dtype=float),
+            late_ms * 1e-3,
+            burst_every_s,
+            np.random.default_rng(seed),
+        )
         # faults a real tracker shows: (start, duration) of a broken beam in scenario seconds,
         # and (at, step) of a jump of its own clock
         self.beam_break = beam_break
@@ -165,7 +207,13 @@ class MockTracker(_MockServer):
         def frame(i: int) -> bytes:
             seq[0] += 1
             t = float(self.tracker.t[i])
-            device_t = time.time() if self.wall_clock else round(time.monotonic() - device_t0, 6)
+            if self.device_clock is not None:
+                offset, ppm = self.device_clock
+                device_t = round(offset + t * (1.0 + ppm * 1e-6), 7)
+            elif self.wall_clock:
+                device_t = time.time()
+            else:
+                device_t = round(time.monotonic() - device_t0, 6)
             if self.clock_step is not None and t >= self.clock_step[0]:
                 device_t += self.clock_step[1]
             if self.beam_break is not None and 0 <= t - self.beam_break[0] < self.beam_break[1]:
@@ -288,22 +336,16 @@ class MockRtdeController:
         t_end = float(self.track.t[-1])
         times = np.arange(math.ceil(float(self.track.t[0]) * frequency), t_end * frequency)
         times = times / frequency
-        send = times.copy()
-        if self.burst_every_s > 0 and self.late_s > 0:
-            at = float(self.rng.uniform(0, self.burst_every_s))
-            while at < t_end:
-                stall = float(self.rng.uniform(0.2, 1.0)) * self.late_s
-                held = (times >= at) & (times < at + stall)
-                send[held] = at + stall  # held up, then out together
-                at += float(self.rng.exponential(self.burst_every_s)) + stall
-        return times, send
+        return times, stall_schedule(times, self.late_s, self.burst_every_s, self.rng)
 
     async def _stream(self, writer: asyncio.StreamWriter, recipe: rtde.Recipe, hz: float) -> None:
         assert self.t0 is not None
         times, send = self._schedule(hz)
         q = np.column_stack([np.interp(times, self.track.t, c) for c in self.track.q.T])
         qd = np.gradient(q, times, axis=0) if times.size > 1 else np.zeros_like(q)
-        i, n = 0, times.size
+        # a client that starts streaming late gets the samples from now on, as from a real
+        # controller (not the backlog since the play began)
+        i, n = int(np.searchsorted(times, time.time() - self.t0)), times.size
         while i < n:
             now = time.time() - self.t0
             if send[i] > now:

@@ -141,6 +141,10 @@ def cmd_mock(args: argparse.Namespace) -> int:
             wall_clock=args.wall_clock_device_time,
             beam_break=_pair(args.beam_break, "--beam-break"),
             clock_step=_pair(args.clock_step, "--clock-step"),
+            device_clock=_pair(args.device_clock, "--device-clock"),
+            late_ms=args.late_ms,
+            burst_every_s=args.burst_every,
+            seed=args.seed,
         )
 
     async def main() -> None:
@@ -305,9 +309,20 @@ def register(add: common.AddCommand) -> None:
         "--clock-offset", type=float, default=1000.0, help="rtde: controller clock at t0"
     )
     p.add_argument("--clock-drift-ppm", type=float, default=0.0, help="rtde: controller clock rate")
-    p.add_argument("--late-ms", type=float, default=0.0, help="rtde: longest delivery stall (ms)")
     p.add_argument(
-        "--burst-every", type=float, default=0.0, help="rtde: mean seconds between stalls"
+        "--late-ms", type=float, default=0.0, help="rtde, tracker: longest delivery stall (ms)"
+    )
+    p.add_argument(
+        "--burst-every",
+        type=float,
+        default=0.0,
+        help="rtde, tracker: mean seconds between stalls",
+    )
+    p.add_argument(
+        "--device-clock",
+        metavar="OFFSET:PPM",
+        help="tracker: stamp each pose with its own free-running clock, OFFSET s at scenario "
+        "time 0 and running PPM fast (default: seconds since the connection, read at sending)",
     )
     p.add_argument(
         "--wall-clock-device-time",

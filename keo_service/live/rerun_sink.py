@@ -5,7 +5,8 @@ so that logging never sits in the estimator's path, on the event loop or on its 
 Entities (values in mm and mrad, on the `stream_time` timeline of the samples):
     keo/error/<px|py|pz|rx|ry|rz>     time series of [measured, estimate]
     world/robot/links (line strip of joint origins), world/tool, world/sensor, world/tracker
-    keo/status/delay_ms, keo/status/rate_hz/<stream>, keo/status/counters/<name>
+    keo/status/delay_ms (the delay in use), keo/status/delay_ms_upper and _lower (it +/- its
+    standard error, when known), keo/status/rate_hz/<stream>, keo/status/counters/<name>
 
 A recording file is rolled every `ROLL_AFTER_S`: the Rerun SDK keeps a few hundred bytes per
 chunk of an open file until it closes it (its index), which at 1 kHz grew the Rerun process
@@ -229,6 +230,10 @@ class RerunSink:
         delay = status.get("delay_s")
         if isinstance(delay, float):
             self._rec.log("keo/status/delay_ms", rr.Scalars([delay * 1e3]))
+            se = status.get("delay_se_s")  # the band: the delay in use +/- its standard error
+            if isinstance(se, float):
+                self._rec.log("keo/status/delay_ms_upper", rr.Scalars([(delay + se) * 1e3]))
+                self._rec.log("keo/status/delay_ms_lower", rr.Scalars([(delay - se) * 1e3]))
         for group in ("rates_hz", "counters"):
             values = status.get(group)
             if isinstance(values, Mapping):

@@ -101,7 +101,7 @@ class KeoService:
         if config.timing.track_delay:
             from keo_service.fit.delay import OnlineDelayTracker
 
-            self._delay_tracker = OnlineDelayTracker(cell)
+            self._delay_tracker = OnlineDelayTracker(cell, max_gap_s=config.timing.max_gap_s)
         self._viz: RerunWorker | None = None
         if rrd is not None or viewer is not None:
             from keo_service.live.rerun_process import RerunWorker
@@ -211,14 +211,18 @@ class KeoService:
                 self._rates["encoder"].tick(now)
                 out = self.estimator.on_encoder(msg.t, msg.q)
                 if self._delay_tracker is not None:
-                    self._delay_tracker.add_encoder(msg.t, msg.q)
+                    self._delay_tracker.add_encoder(
+                        msg.t, msg.q, msg.clock_epoch, msg.seq, bool(msg.flags)
+                    )
             elif isinstance(msg, TrackerSample):
                 self._rates["tracker"].tick(now)
                 out = self.estimator.on_tracker(
                     msg.t, msg.p, msg.q, ok=msg.status == "ok", tag=msg.device_t
                 )
                 if self._delay_tracker is not None and msg.p is not None:
-                    self._delay_tracker.add_tracker(msg.t, msg.p, msg.q)
+                    self._delay_tracker.add_tracker(
+                        msg.t, msg.p, msg.q, msg.clock_epoch, msg.seq, bool(msg.flags)
+                    )
             else:
                 self.estimator.counters["unexpected_message"] += 1
                 continue
@@ -265,7 +269,13 @@ class KeoService:
             delay_s=self.estimator.delay.at(estimate.t),
             seq=self._seq,
             tracker_device_t=estimate.source if isinstance(estimate.source, float) else None,
+            delay_se_s=self.delay_se(),
         )
+
+    def delay_se(self) -> float | None:
+        """The standard error of the delay in use: the online estimate's, once it has one
+        (None before: the configured delay comes without one)."""
+        return None if self._delay_tracker is None else self._delay_tracker.se
 
     # ---- status -----------------------------------------------------------------------------
 
@@ -287,6 +297,9 @@ class KeoService:
         counters["publish_failed"] = self.publish_failures
         if self._viz is not None:
             counters["rerun_dropped"] = self._viz.dropped
+        if self._delay_tracker is not None:
+            for name, value in self._delay_tracker.counters.items():
+                counters[f"delay_{name}"] = value
         last = self.estimator.last
         delay = self.estimator.delay
         return ServiceStatus(
@@ -303,6 +316,7 @@ class KeoService:
             last_estimate=None if last is None else self.to_message(last),
             messages=list(self.estimator.messages)[-10:],
             delay_tracking=None if self._delay_tracker is None else self._delay_tracker.last_result,
+            delay_se_s=self.delay_se(),
         )
 
     def _resolve_if_quiet(self) -> None:
@@ -324,7 +338,9 @@ class KeoService:
             await asyncio.sleep(STATUS_PERIOD_S)
 
     async def _delay_loop(self) -> None:
-        """Online delay tracking: fit on a bounded window off the loop, then slew to it."""
+        """Online delay tracking: fit each stretch off the loop, fold the result into the
+        running estimate on the loop, and slew the estimator's delay to it (never a step).
+        A fit of data from before a time base started anew is dropped."""
         tracker = self._delay_tracker
         assert tracker is not None
         while not self._stop.is_set():
@@ -332,10 +348,13 @@ class KeoService:
             if not tracker.due():
                 continue
             window = tracker.snapshot()
+            restarts = tracker.counters["restarts"]
             current = self.estimator.delay.offset_s
-            found = await asyncio.to_thread(tracker.fit, window, current)
-            if found is not None:
-                self.estimator.set_delay_target(found)
+            found = await asyncio.to_thread(tracker.measure, window, current)
+            if found is not None and tracker.counters["restarts"] == restarts:
+                target = tracker.combine(found)
+                if target is not None:
+                    self.estimator.set_delay_target(target)
             log.info("delay tracking: %s", tracker.last_result)
 
     async def _viz_loop(self) -> None:
@@ -369,6 +388,8 @@ class KeoService:
         if {"timing.delay_s", "timing.drift_ppm", "timing.drift_ref_s"} & set(applied):
             timing = new.timing
             self.estimator.set_delay(delay_model(timing))
+            if self._delay_tracker is not None:
+                self._delay_tracker.forget()  # tracking goes on from the delay set by hand
         hot = {k: v for k, v in msgspec.structs.asdict(new).items() if k in ("observer", "timing")}
         self.config = msgspec.structs.replace(self.config, **hot) if applied else self.config
         self._refresh_status()
