@@ -30,7 +30,8 @@ SPEED = 0.24  # m/s, the tool speed of issue 31's runs
 
 
 def feed(tracker: OnlineDelayTracker, fits: list[tuple[float, float]], t0: float = 0.0):
-    """Measurements (value, se) one after another, 5 s apart; the estimate after each."""
+    """Measurements (value, se) one after another, 5 s apart; the running estimate after
+    each (whether or not the service would apply it)."""
     out = []
     for i, (value, se) in enumerate(fits):
         tracker.combine(DelayMeasurement(value, se, SPEED, t0 + 5.0 * (i + 1)))
@@ -74,7 +75,7 @@ def test_two_agreeing_fits_move_the_delay(demo_cell):
 
 def test_a_fit_too_rough_for_the_speed_is_refused_once_the_delay_is_known(demo_cell):
     tracker = OnlineDelayTracker(demo_cell)  # trusted below 2.5 um of se * speed
-    first = tracker.combine(DelayMeasurement(30e-3, 1e-3, 0.3, 5.0))
+    first = tracker.combine(DelayMeasurement(30e-3, 1e-3, 0.3, 5.0, current_s=0.0))
     assert first == pytest.approx(30e-3)  # nothing known yet: a rough fit still helps
     feed(tracker, [(28e-3, 4e-6)] * 3, t0=5.0)  # outlier gate: twice, then taken
     assert tracker.se is not None
@@ -126,9 +127,8 @@ def test_flagged_samples_are_left_out(demo_cell):
 def test_fits_are_refused_across_an_encoder_gap(demo_cell):
     """A stalled or restarted encoder adapter leaves a gap in the joints: the tracker samples
     in it are not fitted against joints made up by interpolation."""
-    run = simulate(
-        demo_cell, make_scenario("path", {"duration_s": "12", "delay_jitter_s": "0"}), seed=2
-    )
+    sets = {"duration_s": "12", "delay_jitter_s": "0", "tool_error_only": "true"}
+    run = simulate(demo_cell, make_scenario("path", sets), seed=2)
     gap = (run.encoder.t > 4.0) & (run.encoder.t < 6.0)
     tracker = OnlineDelayTracker(demo_cell, span_s=10.0)
     for t, q in zip(run.encoder.t[~gap], run.encoder.q[~gap], strict=True):

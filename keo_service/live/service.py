@@ -273,9 +273,9 @@ class KeoService:
         )
 
     def delay_se(self) -> float | None:
-        """The standard error of the delay in use: the online estimate's, once it has one
+        """The standard error of the delay in use: that of the online estimate last applied
         (None before: the configured delay comes without one)."""
-        return None if self._delay_tracker is None else self._delay_tracker.se
+        return None if self._delay_tracker is None else self._delay_tracker.applied_se
 
     # ---- status -----------------------------------------------------------------------------
 
