@@ -137,7 +137,7 @@ def test_fits_are_refused_across_an_encoder_gap(demo_cell):
         tracker.add_tracker(float(t), p, quat)
     assert tracker.due()
     found = tracker.measure(tracker.snapshot(), 0.028)
-    assert found is not None
+    assert isinstance(found, DelayMeasurement), found
     assert found.delay_s == pytest.approx(0.028, abs=0.3e-3)
 
 

@@ -467,6 +467,14 @@ class DelayMeasurement:
     current_s: float = math.nan  # the delay in use when the stretch was fitted
 
 
+@dataclass(frozen=True)
+class DelayRefused:
+    """A stretch without a delay: the counter it counts under and why, in words."""
+
+    counter: str
+    reason: str
+
+
 class OnlineDelayTracker:
     """The delay found online from the motion, trusted only as far as it is known.
 
@@ -637,21 +645,18 @@ class OnlineDelayTracker:
         current: float,
     ) -> float | None:
         """Fit one stretch and fold it in: the running estimate if this fit moved it."""
-        found = self.measure(window, current)
-        return None if found is None else self.combine(found)
+        return self.combine(self.measure(window, current))
 
     def measure(
         self,
         window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
         current: float,
-    ) -> DelayMeasurement | None:
-        """The delay over one stretch (anywhere: touches nothing of the tracker but
-        `last_result` and the counters), or None with the reason in `last_result`."""
+    ) -> DelayMeasurement | DelayRefused:
+        """The delay over one stretch, or why there is none. Runs anywhere (a worker
+        thread): it reads the tracker's settings only and changes nothing."""
         enc_t, enc_q, trk_t, trk_p, trk_q = _covered(window, current, self.max_gap_s)
         if enc_t.size < 20 or trk_t.size < 50:
-            self.counters["fits_without_data"] += 1
-            self.last_result = "kept: not enough data in the stretch"
-            return None
+            return DelayRefused("fits_without_data", "not enough data in the stretch")
         # the error model of a short stretch: linear in the tool position, with the errors in
         # the tool frame (where the tool's own calibration error is constant) or in the base
         # frame (closer for a robot's geometric errors); the one that leaves less residual
@@ -674,17 +679,19 @@ class OnlineDelayTracker:
             except DelayNotIdentifiableError as exc:
                 reason = exc
         if not fits:
-            self.counters["fits_not_identifiable"] += 1
-            self.last_result = f"kept: {reason}"
-            return None
+            return DelayRefused("fits_not_identifiable", str(reason))
         fit = min(fits, key=lambda f: f.residual_rms_moving)
         return DelayMeasurement(
             fit.delay_s, fit.delay_se_s, fit.speed_rms, float(trk_t[-1]), current
         )
 
-    def combine(self, found: DelayMeasurement) -> float | None:
+    def combine(self, found: DelayMeasurement | DelayRefused) -> float | None:
         """Accept or refuse one measurement (on the loop) and fold it into the running
-        estimate: the new estimate if it moved, else None."""
+        estimate: the estimate to apply, else None (and why, in `last_result`)."""
+        if isinstance(found, DelayRefused):
+            self.counters[found.counter] += 1
+            self.last_result = f"kept: {found.reason}"
+            return None
         value, se, speed = found.delay_s, found.se_s, found.speed_rms
         said = f"{value * 1e6:.1f} +/- {se * 1e6:.1f} us at {speed * 1e3:.0f} mm/s"
         if not (math.isfinite(value) and math.isfinite(se) and se > 0):

@@ -351,7 +351,7 @@ class KeoService:
             restarts = tracker.counters["restarts"]
             current = self.estimator.delay.offset_s
             found = await asyncio.to_thread(tracker.measure, window, current)
-            if found is not None and tracker.counters["restarts"] == restarts:
+            if tracker.counters["restarts"] == restarts:
                 target = tracker.combine(found)
                 if target is not None:
                     self.estimator.set_delay_target(target)
