@@ -233,6 +233,7 @@ def fit_delay(
     with_drift: bool = True,
     max_iterations: int = 6,
     features: str = "joints",
+    check_windows: bool = True,
 ) -> DelayFit:
     """Least-squares delay (and drift) from recorded streams in the tracker frame."""
     _refuse_stop_and_measure(enc_t, trk_t)
@@ -304,12 +305,19 @@ def fit_delay(
     if with_drift and not significant:
         notes.append(f"no significant clock drift ({drift * 1e6:.1f} +/- {drift_se * 1e6:.1f} ppm)")
     # a constant delay (and drift) explains the data if separate stretches of time agree on it
-    windows = _window_delays(
-        X_p[:, 0], y_p - (X_p[:, 1:] @ beta[1:] if with_drift else 0.0), trk_t, nch, float(inflate)
-    )
-    explained, spread_note = _consistent(windows)
-    if not explained:
-        notes.append(spread_note)
+    windows: list[tuple[float, float]] = []
+    explained = True
+    if check_windows:
+        windows = _window_delays(
+            X_p[:, 0],
+            y_p - (X_p[:, 1:] @ beta[1:] if with_drift else 0.0),
+            trk_t,
+            nch,
+            float(inflate),
+        )
+        explained, spread_note = _consistent(windows)
+        if not explained:
+            notes.append(spread_note)
     return DelayFit(
         window_delays_s=[delay - w[0] for w in windows],
         delay_s=delay,
@@ -674,6 +682,9 @@ class OnlineDelayTracker:
                         initial=current,
                         with_drift=False,
                         features=features,
+                        # one stretch is one window; and scipy.stats, which the check
+                        # imports, would cost the service seconds at its first fit
+                        check_windows=False,
                     )
                 )
             except DelayNotIdentifiableError as exc:
