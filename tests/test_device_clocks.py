@@ -231,7 +231,7 @@ def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
     # this shared 2-core machine (load average 5-20 while measuring) the mapped stamps
     # themselves wander: the delay the estimate needs (from the mocks' clocks, per second)
     # moves by 40-240 us within one mapping's life, faster than 5 s fits can follow. Measured
-    # over six runs of this test (and one of 90 s without restarts): the delay in use at the
+    # over five runs of this test (and one of 90 s without restarts): the delay in use at the
     # end -3.7, -3.8, -9.6, -12.9, -97.6 us (-11.4) from the delay needed over the last 8 s
     # (in the fifth the needed delay rose 180 us in the last 10 s); judged estimates at most
     # 13-39 (21.8) um and 29-72 (32.6) urad off, 95th percentile 10.5-35 (13.3) um and 22-57
