@@ -4,12 +4,56 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import contextvars
 import logging
 from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 
 from keo_service.live.backoff import Backoff
 
 log = logging.getLogger("keo.adapter")
+
+
+@dataclass
+class Device:
+    """The device the calling adapter talks to: its config section ("robot", "tracker"), what
+    it should be in words, and the newest connection problem (for the adapter's status)."""
+
+    section: str = ""
+    expected: str = ""
+    last_error: str = ""
+
+
+# set by the adapter before it starts its tasks (they inherit it), so that the messages here
+# name the keys to fix and the adapter sees the newest problem
+DEVICE: contextvars.ContextVar[Device | None] = contextvars.ContextVar(
+    "keo_adapter_device", default=None
+)
+
+
+def _keys(name: str) -> str:
+    device = DEVICE.get()
+    section = device.section if device else {"encoder": "robot"}.get(name, name)
+    return f"{section}.host and {section}.port"
+
+
+def _expected() -> str:
+    device = DEVICE.get()
+    return f"; expected {device.expected}" if device and device.expected else ""
+
+
+def _problem(text: str) -> None:
+    device = DEVICE.get()
+    if device is not None:
+        device.last_error = text
+
+
+def describe(exc: BaseException) -> str:
+    """An exception in one readable phrase (a TimeoutError's text is empty)."""
+    text = str(exc)
+    if isinstance(exc, TimeoutError) and not text:
+        return "no answer in time"
+    return text or type(exc).__name__
 
 
 async def run_tcp_client(
@@ -31,14 +75,12 @@ async def run_tcp_client(
         except OSError as exc:
             counters["connect_failures"] = counters.get("connect_failures", 0) + 1
             delay = backoff.next_delay()
-            log.warning(
-                "%s: cannot connect to %s:%d (%s); retrying in %.2f s",
-                name,
-                host,
-                port,
-                exc.strerror or exc,
-                delay,
+            problem = (
+                f"cannot connect to {host}:{port} ({exc.strerror or exc}): check {_keys(name)} "
+                f"in the config{_expected()}"
             )
+            _problem(problem)
+            log.warning("%s: %s; retrying in %.2f s", name, problem, delay)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), delay)
             continue
@@ -55,8 +97,15 @@ async def run_tcp_client(
             writer.close()
             with contextlib.suppress(OSError):
                 await writer.wait_closed()
-        if reading.done() and not reading.cancelled() and reading.exception() is not None:
-            log.warning("%s: connection error: %s", name, reading.exception())
+        error = reading.exception() if reading.done() and not reading.cancelled() else None
+        if error is not None:
+            counters["connection_errors"] = counters.get("connection_errors", 0) + 1
+            problem = (
+                f"connection to {host}:{port} failed: {describe(error)} (check {_keys(name)} "
+                f"in the config{_expected()})"
+            )
+            _problem(problem)
+            log.warning("%s: %s", name, problem)
         if not stop.is_set():
             counters["disconnects"] = counters.get("disconnects", 0) + 1
             log.warning("%s: connection to %s:%d lost; reconnecting", name, host, port)

@@ -17,17 +17,28 @@ import time
 from collections import Counter
 from typing import Any
 
+import msgspec
 import zenoh
 
 from adapters import rtde
-from adapters.connection import run_tcp_client
+from adapters.connection import DEVICE, Device, run_tcp_client
+from adapters.health import AdapterHealth
 from adapters.line_protocol import MAX_LINE, LineProtocolParser
 from adapters.rtde import Package, RtdeDecoder
 from adapters.simple_message import JointFeedback, RobotStatusFrame, SimpleMessageDecoder
 from keo_service.core.clock import ClockMapper, ReceiptStamps
 from keo_service.core.rejects import RejectLog
 from keo_service.live.bus import AsyncSubscription, session_for_client_async
-from keo_service.live.messages import JointSample, RobotStatus, TrackerSample, encode, topic
+from keo_service.live.compensation import correction_to_send
+from keo_service.live.messages import (
+    CorrectionMessage,
+    JointSample,
+    RobotStatus,
+    TrackerSample,
+    decode,
+    encode,
+    topic,
+)
 from keo_service.live.ros2 import (
     JOINT_STATE,
     POINT_STAMPED,
@@ -38,6 +49,7 @@ from keo_service.live.ros2 import (
 from keo_service.live.supervise import supervise
 
 log = logging.getLogger("keo.adapter")
+WATCH_PERIOD_S = 0.25
 
 
 class _Adapter:
@@ -57,18 +69,44 @@ class _Adapter:
         if self._session is None:
             self._session = await session_for_client_async(self.config)
         self._declare(self._session)
+        self.health = self._make_health()
+        self.device = Device(self.health.section, self.health.expected)
+        DEVICE.set(self.device)  # connection messages name the keys; newest problem in status
         self._status_q = self._session.declare_queryable(
             topic(self.config.cell, f"adapter/{self.name}/status"), self._on_status_query
         )
         task = asyncio.create_task(self._run(), name=f"keo.adapter.{self.name}")
         self._task = supervise(task, self._stop.is_set, self._fail)
+        watcher = asyncio.create_task(self._watch(), name=f"keo.adapter.{self.name}.watch")
+        self._watcher = supervise(watcher, self._stop.is_set, self._fail)
         return self
+
+    def _make_health(self) -> AdapterHealth:
+        section = "robot" if self.name == "encoder" else "tracker"
+        device = getattr(self.config, section)
+        protocol = device.protocol
+        if protocol == "ros2":
+            endpoint = device.joint_states_topic if section == "robot" else device.pose_topic
+        else:
+            port = device.endpoint_port if section == "robot" else device.port
+            endpoint = f"{device.host}:{port}"
+        silent = float(getattr(device, "silent_after_s", 2.0))
+        return AdapterHealth(self.name, section, protocol, endpoint, silent, log)
+
+    async def _watch(self) -> None:
+        """State, rate, silence and rejects in the log and the status (adapters.health)."""
+        while not self._stop.is_set():
+            self.health.tick(self.status(), time.monotonic())
+            if self.health.state == "receiving":
+                self.device.last_error = ""  # the newest problem is over once data flows
+            await asyncio.sleep(WATCH_PERIOD_S)
 
     async def __aexit__(self, *exc: object) -> None:
         self._stop.set()
         if self._task is not None:
             await asyncio.wait({self._task}, timeout=2.0)
             self._task.cancel()
+            self._watcher.cancel()
         self._status_q.undeclare()
         if self._own_session and self._session is not None:
             self._session.close()
@@ -87,7 +125,10 @@ class _Adapter:
         return {"adapter": self.name, "counters": dict(self.counters)}
 
     def _on_status_query(self, query: zenoh.Query) -> None:
-        query.reply(query.key_expr, json.dumps(self.status()).encode())
+        doc = {**self.status(), **self.health.summary(time.monotonic())}
+        doc["last_error"] = self.device.last_error
+        key = topic(self.config.cell, f"adapter/{self.name}/status")  # not the query's wildcard
+        query.reply(key, json.dumps(doc).encode())
 
     def _declare(self, session: zenoh.Session) -> None:
         raise NotImplementedError
@@ -264,6 +305,46 @@ class RtdeEncoderAdapter(EncoderAdapter):
         self._pending: collections.deque[Package] = collections.deque(maxlen=64)
         self._last_status: tuple[int, int] | None = None
         self._last_status_at = 0.0
+        self._declare_corrections(session)
+
+    # ---- corrections to the controller: six input double registers (robot.correction) ----
+
+    def _declare_corrections(self, session: zenoh.Session) -> None:
+        """With robot.correction = "rtde_registers": keo/<cell>/correction in, written to the
+        controller as input double registers correction_register .. +5 (x, y, z m, then the
+        rotation vector rad, tool frame: a URScript program applies pose_trans(target, p)),
+        zero when none is fresh or valid (live.compensation.correction_to_send)."""
+        self._latest_correction: CorrectionMessage | None = None
+        self._correction_sub: zenoh.Subscriber[None] | None = None
+        if self.config.robot.correction != "rtde_registers":
+            return
+        self._correction_sub = session.declare_subscriber(
+            topic(self.config.cell, "correction"), self._on_correction
+        )
+
+    def _on_correction(self, sample: zenoh.Sample) -> None:  # zenoh thread
+        try:
+            msg = decode(sample.payload.to_bytes())
+        except msgspec.DecodeError:
+            self.counters["correction_undecodable"] += 1
+            return
+        if isinstance(msg, CorrectionMessage):
+            self._latest_correction = msg  # one reference, swapped whole
+            self.counters["corrections_received"] += 1
+
+    def _correction_package(self, recipe: rtde.Recipe) -> bytes:
+        p, r = correction_to_send(self._latest_correction, self.config.compensation)
+        values = [*p, *r]
+        self.counters["corrections_written"] += 1
+        if any(values):
+            self.counters["corrections_written_nonzero"] += 1
+        return rtde.data_package(recipe, dict(zip(recipe.names, values, strict=True)))
+
+    async def __aexit__(self, *exc: object) -> None:
+        if getattr(self, "_correction_sub", None) is not None:
+            assert self._correction_sub is not None
+            self._correction_sub.undeclare()
+        await super().__aexit__(*exc)
 
     def status(self) -> dict[str, Any]:
         return {
@@ -285,7 +366,14 @@ class RtdeEncoderAdapter(EncoderAdapter):
         self.rtde_decoder = RtdeDecoder()
         self._pending.clear()
         writer.write(rtde.request_protocol_version())
-        if not rtde.parse_accepted(await self._expect(reader, rtde.REQUEST_PROTOCOL_VERSION)):
+        try:
+            answer = await self._expect(reader, rtde.REQUEST_PROTOCOL_VERSION)
+        except (TimeoutError, rtde.RtdeError) as exc:  # the first answer: is this RTDE at all?
+            why = str(exc) or f"no answer within {HANDSHAKE_TIMEOUT_S:g} s"
+            raise rtde.RtdeError(
+                f"RTDE's protocol version request: {why}; the device does not speak RTDE"
+            ) from None
+        if not rtde.parse_accepted(answer):
             raise rtde.RtdeError("the controller refused RTDE protocol version 2")
         writer.write(rtde.get_controller_version())
         version = rtde.parse_controller_version(
@@ -297,6 +385,13 @@ class RtdeEncoderAdapter(EncoderAdapter):
         recipe = rtde.parse_outputs_reply(
             await self._expect(reader, rtde.CONTROL_PACKAGE_SETUP_OUTPUTS), names
         )
+        inputs = None
+        if self._correction_sub is not None:
+            registers = rtde.input_double_registers(self.config.robot.correction_register)
+            writer.write(rtde.setup_inputs(registers))
+            inputs = rtde.parse_inputs_reply(
+                await self._expect(reader, rtde.CONTROL_PACKAGE_SETUP_INPUTS), registers
+            )
         writer.write(rtde.start())
         if not rtde.parse_accepted(await self._expect(reader, rtde.CONTROL_PACKAGE_START)):
             raise rtde.RtdeError("the controller refused to start streaming")
@@ -315,6 +410,8 @@ class RtdeEncoderAdapter(EncoderAdapter):
             host_ns = time.time_ns()
             for pkg in self._feed(data):
                 self._on_package(pkg, recipe, host_ns)
+            if inputs is not None:  # with every controller cycle seen: the correction now
+                writer.write(self._correction_package(inputs))
 
     def _feed(self, data: bytes) -> list[Package]:
         return self.rtde_decoder.feed(data)
@@ -405,6 +502,10 @@ class RtdeEncoderAdapter(EncoderAdapter):
 def encoder_adapter_for(config: Any) -> type[EncoderAdapter]:
     """The encoder adapter of `robot.protocol` (ros2: `Ros2JointStateAdapter`, which needs
     the URDF's joint names)."""
+    if config.robot.protocol in ("kuka_rsi", "abb_egm"):  # UDP servers (adapters.udp_devices)
+        from adapters.udp_devices import UDP_ADAPTERS
+
+        return UDP_ADAPTERS[config.robot.protocol]
     return RtdeEncoderAdapter if config.robot.protocol == "rtde" else EncoderAdapter
 
 

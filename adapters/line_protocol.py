@@ -1,4 +1,4 @@
-"""keo's tracker line protocol (DESIGN.md section 6): newline-delimited JSON over TCP.
+"""keo's tracker line protocol (docs/design.md §6): newline-delimited JSON over TCP.
 
     {"type": "hello", "length_unit": "mm", "source": "..."}
     {"type": "pose", "seq": 17, "t": 12.345, "p": [x, y, z], "q": [w, x, y, z], "status": "ok"}

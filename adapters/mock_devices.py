@@ -2,13 +2,18 @@
 formats, so an adapter cannot tell them from a MotoROS controller or a tracker.
 
 A row stamped t (scenario seconds) is sent at wall time t0 + t; both mocks given the same t0
-reproduce the scenario's delay between the streams. A client that connects late gets the
-rows from now on, as from a real device.
+reproduce the scenario's delay between the streams. Without a t0 the mocks take the start of
+the current period on a wall-clock grid of the scenario's period (`wall_clock_t0`), so two
+mocks started by hand at any time agree. Looping plays the scenario again every `period_s`
+(the same for both streams). A client that connects late gets the rows from now on, as from
+a real device.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
+import json
 import logging
 import math
 import struct
@@ -24,6 +29,18 @@ from adapters.simple_message import encode_joint_feedback, encode_robot_status
 
 log = logging.getLogger("keo.mock")
 STATUS_PERIOD_S = 0.5
+
+
+def wall_clock_t0(period_s: float, now: float | None = None) -> float:
+    """The start of the current period on a grid of `period_s` seconds since the epoch: every
+    mock playing the same scenario computes the same t0, whenever it was started."""
+    now = time.time() if now is None else now
+    return math.floor(now / period_s) * period_s
+
+
+def _first_pass(t0: float, period_s: float, now: float) -> float:
+    """The start of the pass playing at `now` (t0 when it has not begun)."""
+    return t0 + max(0, math.floor((now - t0) / period_s)) * period_s
 
 
 async def _sleep_until(wall: float) -> None:
@@ -68,13 +85,25 @@ def stall_schedule(
 
 
 class _MockServer:
-    def __init__(self, host: str, port: int, t0: float | None, loop_play: bool) -> None:
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        t0: float | None,
+        loop_play: bool,
+        period_s: float | None = None,
+    ) -> None:
         self.host, self.port = host, port
         self.t0 = t0
         self.loop_play = loop_play
+        self.period_s = period_s  # None: the last row's time + 0.1 s
+        # wall time after which nothing more is sent (None: no limit); with loop_play, a
+        # mock on the wall-clock grid plays one whole period from wherever it starts
+        self.play_until: float | None = None
         self.clients = 0
         self._server: asyncio.Server | None = None
         self.send_offsets: np.ndarray | None = None  # per row: when it goes out (stalls)
+        self.pass_offset_s = 0.0  # scenario seconds of the passes played before this one
 
     async def start(self) -> None:
         self._server = await asyncio.start_server(self._on_client, self.host, self.port)
@@ -104,14 +133,19 @@ class _MockServer:
         self, writer: asyncio.StreamWriter, times: np.ndarray, frame: Callable[[int], bytes]
     ) -> None:
         assert self.t0 is not None
+        duration = self.period_s or (float(times[-1]) + 0.1 if times.size else 0.0)
         start = self.t0
-        duration = float(times[-1]) + 0.1 if times.size else 0.0
+        if self.loop_play and duration > 0:
+            start = _first_pass(self.t0, duration, time.time())
         while True:
             now = time.time()
             first = int(np.searchsorted(times, now - start))
+            self.pass_offset_s = start - self.t0
             send = times if self.send_offsets is None else self.send_offsets
             i = first
             while i < times.size:
+                if self.play_until is not None and start + float(times[i]) > self.play_until:
+                    return
                 await _sleep_until(start + float(send[i]))
                 due = time.time() - start
                 chunk = [frame(i)]
@@ -140,8 +174,9 @@ class MockRobot(_MockServer):
         byte_order: str = "little",
         t0: float | None = None,
         loop_play: bool = False,
+        period_s: float | None = None,
     ) -> None:
-        super().__init__(host, port, t0, loop_play)
+        super().__init__(host, port, t0, loop_play, period_s)
         self.encoder = encoder
         self.byte_order = byte_order
 
@@ -173,12 +208,14 @@ class MockTracker(_MockServer):
         wall_clock: bool = False,
         beam_break: tuple[float, float] | None = None,
         clock_step: tuple[float, float] | None = None,
+        pose_at: Callable[[float], tuple[np.ndarray, np.ndarray] | None] | None = None,
+        period_s: float | None = None,
         device_clock: tuple[float, float] | None = None,
         late_ms: float = 0.0,
         burst_every_s: float = 0.0,
         seed: int = 0,
     ) -> None:
-        super().__init__(host, port, t0, loop_play)
+        super().__init__(host, port, t0, loop_play, period_s)
         self.tracker = tracker
         # (offset s, drift ppm): the tracker's own free-running clock stamps each pose at the
         # instant it measured, `offset + scenario time * (1 + drift)`, whoever is connected
@@ -190,6 +227,9 @@ class MockTracker(_MockServer):
             burst_every_s,
             np.random.default_rng(seed),
         )
+        # measured live instead of played: the sensor pose (m, scalar-first quaternion) for a
+        # row's time, e.g. of an arm that a compensated controller moves (None: no target)
+        self.pose_at = pose_at
         # faults a real tracker shows: (start, duration) of a broken beam in scenario seconds,
         # and (at, step) of a jump of its own clock
         self.beam_break = beam_break
@@ -209,7 +249,7 @@ class MockTracker(_MockServer):
             t = float(self.tracker.t[i])
             if self.device_clock is not None:
                 offset, ppm = self.device_clock
-                device_t = round(offset + t * (1.0 + ppm * 1e-6), 7)
+                device_t = round(offset + (t + self.pass_offset_s) * (1.0 + ppm * 1e-6), 7)
             elif self.wall_clock:
                 device_t = time.time()
             else:
@@ -218,6 +258,16 @@ class MockTracker(_MockServer):
                 device_t += self.clock_step[1]
             if self.beam_break is not None and 0 <= t - self.beam_break[0] < self.beam_break[1]:
                 return format_pose(seq[0], device_t, None, None, status="beam_broken")
+            if self.pose_at is not None:
+                # measured now (the device time above is now): the row's time as it went out,
+                # not as planned (a late wake-up would otherwise skew the stamps by its lag)
+                assert self.t0 is not None
+                measured = self.pose_at(time.time() - self.t0)
+                if measured is None:
+                    return format_pose(seq[0], device_t, None, None, status="no_target")
+                return format_pose(
+                    seq[0], device_t, (measured[0] * self.scale).tolist(), measured[1].tolist()
+                )
             p = (self.tracker.p[i] * self.scale).tolist()
             q = None if self.tracker.quat is None else self.tracker.quat[i].tolist()
             return format_pose(seq[0], device_t, p, q)
@@ -237,6 +287,40 @@ MOCK_RTDE_OUTPUTS = {
     "safety_status_bits": "UINT32",
 }
 _ZERO = {"DOUBLE": 0.0, "INT32": 0, "UINT32": 0, "VECTOR6D": (0.0,) * 6}
+# inputs the mock controller accepts (UR's RTDE guide); registers by pattern, see _input_type
+MOCK_RTDE_INPUTS = {
+    "speed_slider_mask": "UINT32",
+    "speed_slider_fraction": "DOUBLE",
+    "standard_digital_output_mask": "UINT8",
+    "standard_digital_output": "UINT8",
+    "configurable_digital_output_mask": "UINT8",
+    "configurable_digital_output": "UINT8",
+    "tool_digital_output_mask": "UINT8",
+    "tool_digital_output": "UINT8",
+    "standard_analog_output_mask": "UINT8",
+    "standard_analog_output_type": "UINT8",
+    "standard_analog_output_0": "DOUBLE",
+    "standard_analog_output_1": "DOUBLE",
+    "input_bit_registers0_to_31": "UINT32",
+    "input_bit_registers32_to_63": "UINT32",
+    "external_force_torque": "VECTOR6D",
+}
+INPUT_LOG = 20000  # register writes the mock keeps (wall time, values), for tests
+
+
+def _input_type(name: str) -> str:
+    for prefix, kind, top in (
+        ("input_double_register_", "DOUBLE", 47),
+        ("input_int_register_", "INT32", 47),
+        ("input_bit_register_", "BOOL", 127),
+    ):
+        if name.startswith(prefix):
+            index = name[len(prefix) :]
+            ok = index.isdigit() and int(index) <= top
+            if prefix == "input_bit_register_":
+                ok = ok and int(index) >= 64
+            return kind if ok else "NOT_FOUND"
+    return MOCK_RTDE_INPUTS.get(name, "NOT_FOUND")
 
 
 class MockRtdeController:
@@ -247,6 +331,13 @@ class MockRtdeController:
     the scenario time, running `clock_drift_ppm` fast. Delivery can be late in bursts: every
     `burst_every_s` on average (0: never) sending stalls for up to `late_ms` and the packages
     held up go out together, as a congested network or a busy host delivers them.
+
+    Inputs: clients set up input recipes (registers, outputs' masks) and write them with
+    data packages; the latest values are kept in `inputs`, each change of the correction
+    registers logged in `input_log`. With `follow` (scenario time, the six input double
+    registers from `correction_register` on, None before any were written -> joints) the
+    joints are not played from the track but made live, sample by sample: a controller
+    running a program that adds the registers to its commanded tool pose.
     """
 
     def __init__(
@@ -262,8 +353,23 @@ class MockRtdeController:
         burst_every_s: float = 0.0,
         version: tuple[int, int, int, int] = (5, 15, 0, 0),
         seed: int = 0,
+        follow: Callable[[float, tuple[float, ...] | None], np.ndarray] | None = None,
+        correction_register: int = 24,
+        loop_play: bool = False,
+        period_s: float | None = None,
     ) -> None:
         self.track = track
+        self.follow = follow
+        self.correction_names = rtde.input_double_registers(correction_register)
+        self.inputs: dict[str, object] = {}
+        self.input_log: collections.deque[tuple[float, tuple[float, ...]]] = collections.deque(
+            maxlen=INPUT_LOG
+        )
+        # looping: the track again every period_s (default: its last time + 0.1 s), the
+        # controller's clock running on
+        self.loop_play = loop_play
+        self.period_s = period_s or float(track.t[-1]) + 0.1
+        self.play_until: float | None = None  # as _MockServer.play_until
         self.host, self.port, self.t0 = host, port, t0
         self.max_hz = max_hz
         self.clock_offset_s, self.clock_drift = clock_offset_s, clock_drift_ppm * 1e-6
@@ -271,7 +377,8 @@ class MockRtdeController:
         self.version = version
         self.rng = np.random.default_rng(seed)
         self.clients = 0
-        self.sent: list[tuple[float, float]] = []  # (scenario time, controller stamp), for tests
+        # (scenario time, controller stamp) of the newest packages, for tests
+        self.sent: collections.deque[tuple[float, float]] = collections.deque(maxlen=100_000)
         self._server: asyncio.Server | None = None
 
     async def start(self) -> None:
@@ -294,6 +401,8 @@ class MockRtdeController:
         self.clients += 1
         decoder = rtde.RtdeDecoder()
         recipe: rtde.Recipe | None = None
+        input_recipes: dict[int, rtde.Recipe] = {}
+        setups = 0
         frequency = self.max_hz
         streaming: asyncio.Task[None] | None = None
         try:
@@ -310,9 +419,23 @@ class MockRtdeController:
                         if asked > 0:
                             frequency = min(asked, self.max_hz)
                         types = [MOCK_RTDE_OUTPUTS.get(n, "NOT_FOUND") for n in names]
-                        writer.write(rtde.outputs_reply(1, types))
+                        setups += 1  # recipe ids count every setup of the connection, from 1
+                        writer.write(rtde.outputs_reply(setups, types))
                         if "NOT_FOUND" not in types:
-                            recipe = rtde.Recipe(1, tuple(names), tuple(types))
+                            recipe = rtde.Recipe(setups, tuple(names), tuple(types))
+                    elif kind == rtde.CONTROL_PACKAGE_SETUP_INPUTS:
+                        names = rtde.parse_setup_inputs_request(pkg)
+                        types = [_input_type(n) for n in names]
+                        setups += 1
+                        recipe_id = setups
+                        log.debug("input recipe %d: %s -> %s", recipe_id, names, types)
+                        writer.write(rtde.inputs_reply(recipe_id, types))
+                        if names and "NOT_FOUND" not in types and recipe_id < 256:
+                            input_recipes[recipe_id] = rtde.Recipe(
+                                recipe_id, tuple(names), tuple(types)
+                            )
+                    elif kind == rtde.DATA_PACKAGE:
+                        self._on_inputs(decoder, input_recipes, pkg)
                     elif kind == rtde.CONTROL_PACKAGE_START:
                         writer.write(rtde.accepted(kind, recipe is not None))
                         if recipe is not None and streaming is None:
@@ -331,43 +454,126 @@ class MockRtdeController:
                 streaming.cancel()
             writer.close()
 
+    def _on_inputs(
+        self, decoder: rtde.RtdeDecoder, recipes: dict[int, rtde.Recipe], pkg: rtde.Package
+    ) -> None:
+        recipe = recipes.get(pkg.payload[0]) if pkg.payload else None
+        if recipe is None:
+            decoder.reject("unknown_input_recipe", "data package for no input recipe set up")
+            return
+        try:
+            values = recipe.unpack(pkg.payload)
+        except rtde.RtdeError as exc:
+            decoder.reject("bad_input", str(exc))
+            return
+        before = self.correction()
+        changed = {k: v for k, v in values.items() if self.inputs.get(k) != v}
+        if changed:
+            log.debug("inputs written: %s", json.dumps(changed, sort_keys=True))
+        self.inputs.update(values)
+        after = self.correction()
+        if after is not None and after != before:
+            self.input_log.append((time.time(), after))
+
+    def correction(self) -> tuple[float, ...] | None:
+        """The six correction registers as last written, None before any were."""
+        if not all(n in self.inputs for n in self.correction_names):
+            return None
+        return tuple(float(self.inputs[n]) for n in self.correction_names)  # type: ignore[arg-type]
+
     def _schedule(self, frequency: float) -> tuple[np.ndarray, np.ndarray]:
         """Scenario times of the samples and the wall-clock offsets at which they go out."""
         t_end = float(self.track.t[-1])
         times = np.arange(math.ceil(float(self.track.t[0]) * frequency), t_end * frequency)
         times = times / frequency
-        return times, stall_schedule(times, self.late_s, self.burst_every_s, self.rng)
+        send = times.copy()
+        if self.burst_every_s > 0 and self.late_s > 0:
+            at = float(self.rng.uniform(0, self.burst_every_s))
+            while at < t_end:
+                stall = float(self.rng.uniform(0.2, 1.0)) * self.late_s
+                held = (times >= at) & (times < at + stall)
+                send[held] = at + stall  # held up, then out together
+                at += float(self.rng.exponential(self.burst_every_s)) + stall
+        return times, send
 
     async def _stream(self, writer: asyncio.StreamWriter, recipe: rtde.Recipe, hz: float) -> None:
         assert self.t0 is not None
+        start = self.t0
+        if self.loop_play:
+            start = _first_pass(self.t0, self.period_s, time.time())
+        while True:
+            # the pass number keeps the controller's clock running on from pass to pass
+            passes = round((start - self.t0) / self.period_s) if self.loop_play else 0
+            await self._stream_pass(writer, recipe, hz, start, passes * self.period_s)
+            if not self.loop_play or (self.play_until is not None and start > self.play_until):
+                return
+            start += self.period_s
+
+    async def _stream_pass(
+        self,
+        writer: asyncio.StreamWriter,
+        recipe: rtde.Recipe,
+        hz: float,
+        start: float,
+        offset_s: float,
+    ) -> None:
+        """One pass of the track from wall time `start`; the scenario time of each package
+        on the controller's clock is its time in the track + `offset_s`."""
         times, send = self._schedule(hz)
-        q = np.column_stack([np.interp(times, self.track.t, c) for c in self.track.q.T])
-        qd = np.gradient(q, times, axis=0) if times.size > 1 else np.zeros_like(q)
-        # a client that starts streaming late gets the samples from now on, as from a real
-        # controller (not the backlog since the play began)
-        i, n = int(np.searchsorted(times, time.time() - self.t0)), times.size
+        if self.follow is None:
+            q = np.column_stack([np.interp(times, self.track.t, c) for c in self.track.q.T])
+            qd = np.gradient(q, times, axis=0) if times.size > 1 else np.zeros_like(q)
+        else:  # made live, sample by sample
+            q = np.zeros((times.size, len(self.track.q[0])))
+            qd = np.zeros_like(q)
+        n = times.size
+        if self.play_until is not None:
+            n = int(np.searchsorted(send, self.play_until - start, side="right"))
+        i = int(np.searchsorted(send, time.time() - start))  # a late client: from now on
+        first = i
+        made = i - 1  # follow: samples made so far, each ahead of its planned time
+
+        def make(k: int) -> None:
+            assert self.follow is not None
+            q[k] = self.follow(float(times[k]), self.correction())
+            if k > first:
+                qd[k] = (q[k] - q[k - 1]) / (times[k] - times[k - 1])
+
         while i < n:
-            now = time.time() - self.t0
+            if self.follow is not None and made < i:
+                make(i)
+                made = i
+            now = time.time() - start
             if send[i] > now:
                 await asyncio.sleep(send[i] - now)
                 continue
             chunk = []
             while i < n and send[i] <= now:  # everything due: one write, as a burst arrives
-                stamp = self.device_time(float(times[i]))
+                at, joints, speed = float(times[i]), q[i], qd[i]
+                if self.follow is not None:
+                    if made < i:
+                        make(i)
+                        made = i
+                    # stamped when it goes out (an asyncio wake-up comes up to a millisecond
+                    # late; a controller's cycle does not): the joints carried there along the
+                    # last step's velocity
+                    at = time.time() - start
+                    joints = q[i] + qd[i] * (at - times[i])
+                stamp = self.device_time(at + offset_s)
                 values: dict[str, object] = {
                     name: _ZERO[kind] for name, kind in zip(recipe.names, recipe.types, strict=True)
                 }
                 values.update(
                     timestamp=stamp,
-                    actual_q=tuple(q[i].tolist()),
-                    actual_qd=tuple(qd[i].tolist()),
-                    target_q=tuple(q[i].tolist()),
+                    actual_q=tuple(joints.tolist()),
+                    actual_qd=tuple(speed.tolist()),
+                    target_q=tuple(joints.tolist()),
                     robot_mode=7,
                     safety_mode=1,
                     runtime_state=2,
                 )
                 chunk.append(rtde.data_package(recipe, {k: values[k] for k in recipe.names}))
-                self.sent.append((float(times[i]), stamp))
+                self.sent.append((at, stamp))
                 i += 1
             writer.write(b"".join(chunk))
             await writer.drain()

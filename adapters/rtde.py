@@ -8,9 +8,13 @@ Framing (UR's public RTDE description): every package is a big-endian header `ui
     v 118  get controller version     client: (empty)            controller: uint32 x4
     O  79  setup outputs              client: double frequency + names "a,b,c"
                                       controller: uint8 recipe id + types "DOUBLE,VECTOR6D"
+    I  73  setup inputs               client: names "input_double_register_24,..."
+                                      controller: uint8 recipe id + types ("IN_USE" when
+                                      another client writes that variable)
     S  83  start                      client: (empty)            controller: uint8 accepted
     P  80  pause                      client: (empty)            controller: uint8 accepted
-    U  85  data package               controller: uint8 recipe id + the fields, packed
+    U  85  data package               controller: uint8 recipe id + the fields, packed;
+                                      client: the same for an input recipe (its id first)
     M  77  text message (v2)          uint8 length + message, uint8 length + source, uint8 level
 
 A variable the controller does not know comes back as type `NOT_FOUND`. Clients may end the
@@ -27,6 +31,7 @@ import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+from keo_service.core.errors import KeoError
 from keo_service.core.rejects import RejectLog
 
 HEADER = struct.Struct(">HB")
@@ -80,7 +85,7 @@ OUTPUTS = {
 }
 
 
-class RtdeError(ValueError):
+class RtdeError(KeoError, ValueError):
     """A package that is not what the protocol says at this point."""
 
 
@@ -110,7 +115,10 @@ class Recipe:
     def __post_init__(self) -> None:
         missing = [n for n, t in zip(self.names, self.types, strict=True) if t == "NOT_FOUND"]
         if missing:
-            raise RtdeError(f"the controller does not know the output(s) {', '.join(missing)}")
+            raise RtdeError(f"the controller does not know the variable(s) {', '.join(missing)}")
+        taken = [n for n, t in zip(self.names, self.types, strict=True) if t == "IN_USE"]
+        if taken:
+            raise RtdeError(f"another RTDE client already writes {', '.join(taken)}")
         unknown = [t for t in self.types if t not in TYPE_FORMATS]
         if unknown:
             raise RtdeError(f"output type(s) {', '.join(unknown)} are not supported")
@@ -165,6 +173,15 @@ def setup_outputs(frequency_hz: float, names: Sequence[str]) -> bytes:
     )
 
 
+def setup_inputs(names: Sequence[str]) -> bytes:
+    return package(CONTROL_PACKAGE_SETUP_INPUTS, ",".join(names).encode("ascii"))
+
+
+def input_double_registers(first: int, count: int = 6) -> list[str]:
+    """The names of `count` input double registers from `first` on."""
+    return [f"input_double_register_{first + k}" for k in range(count)]
+
+
 def start() -> bytes:
     return package(CONTROL_PACKAGE_START)
 
@@ -185,6 +202,12 @@ def controller_version(major: int, minor: int, bugfix: int, build: int) -> bytes
 def outputs_reply(recipe_id: int, types: Sequence[str]) -> bytes:
     return package(
         CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">B", recipe_id) + ",".join(types).encode()
+    )
+
+
+def inputs_reply(recipe_id: int, types: Sequence[str]) -> bytes:
+    return package(
+        CONTROL_PACKAGE_SETUP_INPUTS, struct.pack(">B", recipe_id) + ",".join(types).encode()
     )
 
 
@@ -215,11 +238,22 @@ def parse_controller_version(p: Package) -> tuple[int, int, int, int]:
 
 def parse_outputs_reply(p: Package, names: Sequence[str]) -> Recipe:
     if not p.payload:
-        raise RtdeError("empty answer to the output setup")
+        raise RtdeError("empty answer to a recipe setup")
     types = tuple(t for t in p.payload[1:].decode("ascii", "replace").split(",") if t)
     if len(types) != len(names):
-        raise RtdeError(f"{len(types)} output types for {len(names)} names")
+        raise RtdeError(f"{len(types)} types for {len(names)} names")
     return Recipe(p.payload[0], tuple(names), types)
+
+
+def parse_inputs_reply(p: Package, names: Sequence[str]) -> Recipe:
+    """The controller's answer to an input setup (raises for NOT_FOUND and IN_USE)."""
+    return parse_outputs_reply(p, names)
+
+
+def parse_setup_inputs_request(p: Package) -> list[str]:
+    """The client's input setup: the names (an empty name from a trailing comma dropped)."""
+    names = [n.strip() for n in p.payload.decode("ascii", "replace").split(",")]
+    return [n for n in names if n]
 
 
 def parse_setup_request(p: Package) -> tuple[float, list[str]]:

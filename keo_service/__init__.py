@@ -2,7 +2,7 @@
 
 The public surface is `__all__`: the client of a running service, the estimator and its
 settings, config loading, and the wire message types. The names load lazily, so that
-`import keo_service.core` stays free of asyncio, Zenoh and msgspec (DESIGN.md section 8).
+`import keo_service.core` stays free of asyncio, Zenoh and msgspec (docs/design.md §8).
 Where each part lives: ARCHITECTURE.md.
 """
 

@@ -14,6 +14,19 @@ from keo_service.live.client import SyncClient
 REPO = Path(__file__).resolve().parent.parent
 CONFIGS = REPO / "configs"
 DEMO = CONFIGS / "demo.toml"
+# the UR10 + laser tracker data: shipped in data/ (MIT, its LICENSE.md beside it); the shared
+# copy beside the checkout when an older clone lacks it
+UR10_DATA = next(
+    (
+        d
+        for d in (
+            REPO / "data" / "ur10_lasertracker",
+            REPO.parent / "shared" / "data" / "ur10_lasertracker",
+        )
+        if d.is_dir()
+    ),
+    REPO / "data" / "ur10_lasertracker",
+)
 
 
 @pytest.fixture(scope="session")

@@ -13,16 +13,9 @@ from keo_service.core.corrections import approach_directions
 from keo_service.fit.analysis import Data, NotIdentifiableError, analyze
 from keo_service.io.interchange import read_estimates
 from keo_service.sim.simulate import make_scenario, simulate
-from tests.conftest import DEMO, REPO, keo
+from tests.conftest import DEMO, REPO, UR10_DATA, keo
 
-UR10_B = (
-    REPO.parent
-    / "shared"
-    / "data"
-    / "ur10_lasertracker"
-    / "Series_B"
-    / "measurements_joint_configurations.csv"
-)
+UR10_B = UR10_DATA / "Series_B" / "measurements_joint_configurations.csv"
 
 
 def run_analysis(cell, sets, seed=3, position_only=False):

@@ -14,7 +14,6 @@ from keo_service.core.batch import (
     BatchResult,
     BatchUnsupportedError,
     _counts_up_to,
-    _first_beyond,
     estimate_batch,
     first_order_recursion,
     measured_errors,
@@ -23,6 +22,7 @@ from keo_service.core.chain import Chain
 from keo_service.core.corrections import Corrections
 from keo_service.core.estimator import Estimator, run_offline
 from keo_service.core.kinematics import Cell, measured_error
+from keo_service.core.rules import first_beyond
 from keo_service.core.timing import DelayModel
 from keo_service.io.cell import estimator_settings
 from keo_service.io.interchange import (
@@ -261,7 +261,7 @@ def test_stale_boundary_uses_the_estimators_subtraction(limit):
         while b < t.size and not t[b] - t[a] > limit:
             b += 1
         want.append(b)
-    got = _first_beyond(t, limit)
+    got = first_beyond(t, limit)
     assert got.tolist() == want
 
 
@@ -359,7 +359,7 @@ def test_keo_estimate_writes_what_the_streaming_estimator_gives(demo_cell, demo_
     assert np.max(np.abs(table.measured[ok] - want_meas[ok])) < TOL
     assert np.max(np.abs(table.estimate - np.array([r.estimate for r in reference]))) < TOL
     assert table.flags == ["|".join(r.flags) for r in reference]
-    # as DESIGN.md writes them: a held row's measured values and a row without flags empty
+    # as docs/design.md writes them: a held row's measured values and a row without flags empty
     rows = (tmp_path / "e.csv").read_text().splitlines()[1:]
     assert "nan" not in "".join(rows).lower()
     for line, r in zip(rows, reference, strict=True):
@@ -386,7 +386,7 @@ def test_keo_estimate_reports_the_encoder_files_error_first(demo_config, demo_ce
     """The tracker file is read on a worker thread while the encoder file is read: which
     error the user sees must not depend on which read finishes first."""
     from keo_service.core.errors import DataFormatError
-    from keo_service.io.estimate_files import estimate_files
+    from keo_service.offline.estimate import estimate_files
 
     run = simulate(demo_cell, make_scenario("path", {"duration_s": "2"}), seed=4)
     good_encoder, good_tracker = tmp_path / "encoder.csv", tmp_path / "tracker.csv"

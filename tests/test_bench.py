@@ -15,8 +15,6 @@ import pytest
 
 from keo_service.bench.benchmarks import (
     TICK,
-    _timed_command,
-    _watch_peak,
     bench_table,
     end_to_end,
     end_to_end_rounds,
@@ -27,6 +25,7 @@ from keo_service.bench.benchmarks import (
     round_ratios,
     soak,
 )
+from keo_service.bench.commands import _timed_command, _watch_peak
 from keo_service.bench.demo import loopback_config
 from keo_service.io.cell import cell_from_config
 from keo_service.io.interchange import read_encoder, read_tracker
@@ -235,7 +234,7 @@ def test_round_ratios_pair_runs_within_their_round():
 
 
 def test_each_round_starts_with_another_kind(monkeypatch, demo_config):
-    from keo_service.bench import benchmarks
+    from keo_service.bench import end_to_end as e2e_module
 
     calls = []
 
@@ -243,7 +242,7 @@ def test_each_round_starts_with_another_kind(monkeypatch, demo_config):
         calls.append("relay" if relay_only else "rrd" if rrd else "service")
         return _e2e(1.0, 2.0, 30.0)
 
-    monkeypatch.setattr(benchmarks, "end_to_end", fake)
+    monkeypatch.setattr(e2e_module, "end_to_end", fake)
     done = end_to_end_rounds(demo_config, 1.0, rounds=3, with_rerun=True)
     assert calls == [
         *("service", "relay", "rrd"),

@@ -12,7 +12,7 @@ from keo_service.fit.delay import DelayNotIdentifiableError, fit_delay, referenc
 from keo_service.io.cell import estimator_settings
 from keo_service.io.interchange import TrackerData
 from keo_service.sim.simulate import make_scenario, simulate, write_run
-from tests.conftest import DEMO, REPO, keo
+from tests.conftest import DEMO, REPO, UR10_DATA, keo
 
 
 def fit_run(cell, run, **kw):
@@ -206,7 +206,7 @@ def _calibrate(enc: Path, trk: Path, config: Path = DEMO):
 
 
 def test_stop_and_measure_data_is_refused_in_words(demo_cell, tmp_path):
-    """One encoder row per tracker row (DESIGN.md 5): nothing moves, no delay to see."""
+    """One encoder row per tracker row (docs/design.md §5): nothing moves, no delay to see."""
     run = simulate(demo_cell, make_scenario("static-poses"), seed=1)
     write_run(run, tmp_path)
     res = _calibrate(tmp_path / "encoder.csv", tmp_path / "tracker.csv")
@@ -230,9 +230,9 @@ def test_dwelling_robot_sampled_densely_is_refused(demo_cell):
 
 
 def test_real_ur10_static_data_is_refused(tmp_path):
-    source = REPO.parent / "shared" / "data" / "ur10_lasertracker" / "Series_B"
+    source = UR10_DATA / "Series_B"
     if not source.is_dir():
-        pytest.skip("the shared UR10 data is not beside this checkout")
+        pytest.skip("the UR10 data is neither in data/ nor beside this checkout")
     res = keo(
         "import",
         "ur10-lasertracker",

@@ -237,35 +237,6 @@ def test_mad_sigma_matches_scipy():
     assert _mad_sigma(x) == pytest.approx(median_abs_deviation(x, scale="normal"), rel=1e-12)
 
 
-def test_rerun_shows_the_delay_with_its_band(demo_cell, tmp_path):
-    """keo/status/delay_ms and, when the standard error is known, delay_ms_upper/_lower."""
-    import pyarrow as pa
-    from rerun.chunk import RrdReader
-
-    from keo_service.core.estimator import Estimate
-    from keo_service.core.kinematics import POSE_CHANNELS
-    from keo_service.live.rerun_sink import RerunSink
-
-    rrd = tmp_path / "d.rrd"
-    sink = RerunSink(demo_cell, rrd=rrd)
-    e = [1e-4] * 6
-    sink.add(Estimate(1.0, e, e, (), 1.0, POSE_CHANNELS, np.zeros(6)))
-    sink.flush({"delay_s": 0.0285, "delay_se_s": 0.0005})
-    sink.add(Estimate(2.0, e, e, (), 2.0, POSE_CHANNELS, np.zeros(6)))
-    sink.flush({"delay_s": 0.0285, "delay_se_s": None})  # not known: no band
-    sink.close()
-    values: dict[str, list[float]] = {}
-    for chunk in RrdReader(str(rrd)).stream().to_chunks():
-        if str(chunk.entity_path).startswith("/keo/status/delay"):
-            table = pa.Table.from_batches([chunk.to_record_batch()])
-            column = next(c for c in table.column_names if c.endswith("Scalars:scalars"))
-            for cell in table.column(column).to_pylist():
-                values.setdefault(str(chunk.entity_path), []).extend(cell)
-    assert values["/keo/status/delay_ms"] == pytest.approx([28.5, 28.5])
-    assert values["/keo/status/delay_ms_upper"] == pytest.approx([29.0])
-    assert values["/keo/status/delay_ms_lower"] == pytest.approx([28.0])
-
-
 def test_an_online_fit_is_quick_and_loads_no_scipy_stats(tmp_path):
     """Tracking is on by default in every service: a fit runs in a worker thread that a
     stopping service waits for. With scipy.stats loaded at the first fit (its window check),

@@ -31,7 +31,7 @@ def trans(x: float, y: float, z: float) -> np.ndarray:
 
 
 def mh180_numpy(q: np.ndarray) -> np.ndarray:
-    """DESIGN.md section 7 joint table, written out by hand."""
+    """docs/design.md §7 joint table, written out by hand."""
     T = trans(0, 0, 0.650) @ rot("z", q[0])
     T = T @ trans(0.325, 0, 0) @ rot("y", q[1])
     T = T @ trans(0, 0, 1.150) @ rot("y", -q[2])

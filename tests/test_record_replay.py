@@ -123,8 +123,11 @@ def test_replay_through_the_service_equals_estimate_on_files(
         "/world/tool",
         "/world/sensor",
         "/world/robot/links",
-        "/keo/status/delay_ms",
-        "/keo/status/rates_hz/tracker",
+        "/world/error",
+        "/keo/tool_speed",
+        "/keo/status/delay/in_use",
+        "/keo/status/rate_hz/tracker",
+        "/keo/log",
         "/keo/error/pz",
     ):
         assert needed in entities

@@ -174,10 +174,10 @@ async def test_mcap_recording_reads_back_with_mcap_and_rosbags_and_estimates_ali
     from mcap.reader import make_reader
     from rosbags.rosbag2 import Reader
 
-    from keo_service.io.estimate_files import estimate_files
     from keo_service.io.mcap_files import McapWriter
     from keo_service.live.messages import JointSample, TrackerSample, encode, topic
     from keo_service.live.recorder import record
+    from keo_service.offline.estimate import estimate_files
     from keo_service.sim.simulate import write_run
 
     run = simulate(demo_cell, make_scenario("paper-step", {"duration_s": "4"}), seed=5)

@@ -1,4 +1,4 @@
-"""The `keo` command line (DESIGN.md section 6): one argparse tree, one module per command
+"""The `keo` command line (docs/design.md §6): one argparse tree, one module per command
 group (`offline`, `live`, `tools`). The CLI only parses and calls; each command imports what
 it runs lazily so that `keo gain` starts fast.
 

@@ -6,8 +6,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import signal
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -37,8 +39,56 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     config = common.load(args.config)
     _setup_logging(args.verbose, args.log_format)
-    asyncio.run(run_service(config, rrd=args.rrd, viewer=args.viewer))
+    viewer, opened = args.viewer, None
+    if viewer in VIEWER_KINDS:  # a bare --viewer (auto), native or web: open one
+        from keo_service.live.rerun_process import open_viewer
+
+        opened = open_viewer(viewer, args.viewer_port, args.web_port, args.viewer_bind)
+        viewer = opened.grpc_url
+        print(f"keo run: Rerun {opened.kind} viewer at {opened.url}", file=sys.stderr, flush=True)
+    try:
+        asyncio.run(
+            run_service(config, rrd=args.rrd, viewer=viewer, viewer_window_s=args.viewer_window)
+        )
+    finally:
+        if opened is not None:
+            opened.close()
     return 0
+
+
+VIEWER_KINDS = ("auto", "native", "web")  # as keo_service.live.rerun_process.VIEWER_KINDS
+
+
+def add_viewer_options(p: argparse.ArgumentParser, url: bool) -> None:
+    """`--viewer` and its ports, for keo run (`url`: it also takes a viewer's URL) and demo."""
+    p.add_argument(
+        "--viewer",
+        nargs="?",
+        const="auto",
+        metavar="URL|native|web" if url else "native|web",
+        help=(
+            "stream to a running Rerun viewer at URL, e.g. rerun+http://127.0.0.1:9876/proxy; "
+            if url
+            else ""
+        )
+        + "bare: open one (a native window when there is a display, else the web viewer "
+        "served on localhost, its URL printed); native or web: that one",
+    )
+    p.add_argument(
+        "--viewer-port", type=int, default=9876, help="the opened viewer's gRPC port (9876)"
+    )
+    p.add_argument("--web-port", type=int, default=9090, help="the web viewer's page port (9090)")
+    p.add_argument(
+        "--viewer-bind",
+        default="127.0.0.1",
+        help="address the opened viewer listens on (127.0.0.1; 0.0.0.0 for other machines)",
+    )
+    p.add_argument(
+        "--viewer-window",
+        type=float,
+        metavar="SECONDS",
+        help="the plots show the newest SECONDS of data (30)",
+    )
 
 
 def cmd_adapter(args: argparse.Namespace) -> int:
@@ -55,9 +105,9 @@ def cmd_adapter(args: argparse.Namespace) -> int:
     _setup_logging(args.verbose)
     robot = robot_from_config(config)
     nq = robot.nq
-    if args.device == "encoder" and config.robot.protocol == "rtde" and nq != 6:
+    if args.device == "encoder" and config.robot.protocol in ("rtde", "kuka_rsi") and nq != 6:
         raise ConfigError(
-            config.source, "robot.urdf", f"{nq} joints; a UR controller (rtde) reports 6"
+            config.source, "robot.urdf", f"{nq} joints; {config.robot.protocol} reports 6"
         )
 
     def make() -> Any:
@@ -65,7 +115,9 @@ def cmd_adapter(args: argparse.Namespace) -> int:
             return tracker_adapter_for(config)(config, nq)
         if config.robot.protocol == "ros2":
             return Ros2JointStateAdapter(config, list(robot.joint_names))
-        return encoder_adapter_for(config)(config, nq)
+        adapter: Any = encoder_adapter_for(config)(config, nq)
+        adapter.realtime = True  # the UDP servers (RSI, EGM) answer within the cycle
+        return adapter
 
     async def main() -> None:
         async with make() as adapter:
@@ -90,10 +142,37 @@ def _pair(text: str | None, option: str) -> tuple[float, float] | None:
     return a, b
 
 
+def _udp_controller(args: argparse.Namespace, config: Any, protocol: str, run: Any) -> Any:
+    """The RSI or EGM controller side, sending to keo's server (the config's robot host and
+    port); with `robot.correction` naming the protocol it applies the corrections it gets."""
+    from adapters.mock_udp import MockEgmController, MockRsiController
+    from keo_service.io.cell import cell_from_config
+    from keo_service.sim.controller import tool_corrector
+
+    cls = MockRsiController if protocol == "kuka_rsi" else MockEgmController
+    port = args.port or (config.robot.endpoint_port if config.robot.protocol == protocol else 0)
+    corrector = (
+        tool_corrector(cell_from_config(config)) if config.robot.correction == protocol else None
+    )
+    return cls(
+        run.encoder,
+        args.host or config.robot.host,
+        port or (49152 if protocol == "kuka_rsi" else 6510),
+        args.t0,
+        cycle_ms=args.cycle_ms,
+        jitter_ms=args.jitter_ms,
+        max_late=args.max_late,
+        corrector=corrector,
+        seed=args.seed,
+        loop_play=args.loop,
+        realtime=True,
+    )
+
+
 def cmd_mock(args: argparse.Namespace) -> int:
     import asyncio
 
-    from adapters.mock_devices import MockRobot, MockRtdeController, MockTracker
+    from adapters.mock_devices import MockRobot, MockRtdeController, MockTracker, wall_clock_t0
     from keo_service.io.cell import cell_from_config
     from keo_service.sim.simulate import make_scenario, simulate
 
@@ -104,11 +183,35 @@ def cmd_mock(args: argparse.Namespace) -> int:
         overrides["duration_s"] = repr(args.duration)
     if getattr(args, "position_only", False):
         overrides["position_only"] = "true"
+    if getattr(args, "follow_corrections", False):
+        return _mock_compensated_cell(args, config, overrides)
     run = simulate(
         cell_from_config(config), make_scenario(args.scenario, overrides), seed=args.seed
     )
+    # both mocks simulate the same run: one period for both streams, and without --t0 the
+    # same start on the wall-clock grid of that period
+    period = mock_period(run.encoder.t, run.tracker.t)
+    until = None
+    if args.t0 is None:  # on the grid every mock plays the same phase: one whole period
+        args.t0 = wall_clock_t0(period)  # from now, or for ever with --loop
+        until = None if args.loop else time.time() + period
+        args.loop = True
+        logging.getLogger("keo.mock").info(
+            "%s: t0 on the wall-clock grid of the scenario's %.1f s period (any mock of this "
+            "scenario agrees); playing %s",
+            args.scenario,
+            period,
+            "for ever" if until is None else "one period (--loop: for ever)",
+        )
     server: MockRobot | MockTracker | MockRtdeController
     protocol = args.protocol or config.robot.protocol
+    section = "robot" if args.device == "robot" else "tracker"
+    if (protocol if section == "robot" else config.tracker.protocol) == "ros2":
+        raise ConfigError(
+            config.source,
+            f"{section}.protocol",
+            "ros2: keo has no mock of a ROS 2 node; any node publishing the topic will do",
+        )
     if args.device == "robot" and protocol == "rtde":
         server = MockRtdeController(
             run.encoder,
@@ -121,7 +224,11 @@ def cmd_mock(args: argparse.Namespace) -> int:
             late_ms=args.late_ms,
             burst_every_s=args.burst_every,
             seed=args.seed,
+            loop_play=args.loop,
+            period_s=period,
         )
+    elif args.device == "robot" and protocol in ("kuka_rsi", "abb_egm"):
+        server = _udp_controller(args, config, protocol, run)
     elif args.device == "robot":
         server = MockRobot(
             run.encoder,
@@ -130,6 +237,7 @@ def cmd_mock(args: argparse.Namespace) -> int:
             config.robot.byte_order,
             args.t0,
             args.loop,
+            period_s=period,
         )
     else:
         server = MockTracker(
@@ -141,11 +249,14 @@ def cmd_mock(args: argparse.Namespace) -> int:
             wall_clock=args.wall_clock_device_time,
             beam_break=_pair(args.beam_break, "--beam-break"),
             clock_step=_pair(args.clock_step, "--clock-step"),
+            period_s=period,
             device_clock=_pair(args.device_clock, "--device-clock"),
             late_ms=args.late_ms,
             burst_every_s=args.burst_every,
             seed=args.seed,
         )
+
+    server.play_until = until
 
     async def main() -> None:
         stop = asyncio.Event()
@@ -153,9 +264,98 @@ def cmd_mock(args: argparse.Namespace) -> int:
         await server.start()
         await stop.wait()
         await server.close()
+        if hasattr(server, "summary"):  # the UDP controllers: what they saw, as one JSON line
+            sys.stdout.write(json.dumps(server.summary()) + "\n")
 
     asyncio.run(main())
     return 0
+
+
+def _numbers(text: str | None, option: str, n: int) -> tuple[float, ...] | None:
+    if text is None:
+        return None
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != n or not all(math.isfinite(v) for v in values):
+        raise ConfigError(
+            option, option.lstrip("-"), f"'{text}' is not {n} comma-separated numbers"
+        )
+    return values
+
+
+def _mock_compensated_cell(args: argparse.Namespace, config: Any, overrides: dict[str, str]) -> int:
+    """`keo mock robot --follow-corrections`: a UR controller (RTDE) that follows the
+    scenario's tool path plus the correction in its input registers, and the tracker that
+    sees the arm it moves, in one process (they share the arm)."""
+    import asyncio
+    import json
+
+    from adapters.mock_devices import MockRtdeController, MockTracker
+    from keo_service.io.cell import cell_from_config
+    from keo_service.sim.closed_loop import ClosedLoopCell
+    from keo_service.sim.simulate import make_scenario, simulate
+
+    if (args.protocol or config.robot.protocol) != "rtde":
+        raise ConfigError("--follow-corrections", "protocol", "needs the rtde robot protocol")
+    cell = cell_from_config(config)
+    scenario = make_scenario(args.scenario, overrides)
+    closed = ClosedLoopCell(
+        cell,
+        scenario,
+        args.seed,
+        tool_error=_numbers(args.tool_error, "--tool-error", 6),
+        joint_offsets=_numbers(args.joint_offsets, "--joint-offsets", cell.robot.nq),
+    )
+    run = simulate(cell, scenario, seed=args.seed)  # the tracker's sample times
+    robot = MockRtdeController(
+        run.encoder,
+        args.host or config.robot.host,
+        args.port or config.robot.endpoint_port,
+        args.t0,
+        max_hz=args.max_hz,
+        clock_offset_s=args.clock_offset,
+        seed=args.seed,
+        follow=closed.joints,
+        correction_register=config.robot.correction_register,
+    )
+    tracker = MockTracker(
+        run.tracker,
+        args.host or config.tracker.host,
+        config.tracker.port,
+        args.t0,
+        beam_break=_pair(args.beam_break, "--beam-break"),
+        pose_at=closed.sensor,
+    )
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        _install_stop(stop.set)
+        await robot.start()
+        tracker.t0 = robot.t0
+        await tracker.start()
+        await stop.wait()
+        await robot.close()
+        await tracker.close()
+
+    asyncio.run(main())
+    if args.summary is not None:
+        doc = {
+            "summary": closed.summary(),
+            "series": closed.series(),
+            # each change of the correction registers: wall time, the six values
+            "register_writes": [[w, list(v)] for w, v in robot.input_log],
+        }
+        args.summary.write_text(json.dumps(doc), encoding="utf-8")
+    return 0
+
+
+def mock_period(*times: Any) -> float:
+    """The scenario's period for looping mocks: its last row (of either stream) plus a tenth
+    of a second, on a 0.1 s grid so that every mock of the same run computes the same."""
+    last = max(float(t[-1]) for t in times if len(t))
+    return math.ceil(last * 10.0 + 1.0) / 10.0
 
 
 def cmd_echo(args: argparse.Namespace) -> int:
@@ -223,13 +423,19 @@ def cmd_status(args: argparse.Namespace) -> int:
     from keo_service.live.client import ClientError, SyncClient
 
     config = common.load(args.config)
+    adapters: dict[str, Any] = {}
     try:
         with SyncClient.from_config(config, connect_timeout_s=args.timeout) as keo:
+            # the adapters answer for themselves: state, rate, counters, newest rejects
+            adapters = keo.adapters(timeout=min(5.0, args.timeout))
             status = keo.status(timeout=args.timeout)
     except ClientError as exc:
         print(f"keo status: {exc}", file=sys.stderr)
+        if adapters:
+            sys.stdout.write(json.dumps({"adapters": adapters}, indent=2, default=str) + "\n")
         return 1
     doc = msgspec.to_builtins(status)
+    doc["adapters"] = doc.get("adapters") or adapters
     sys.stdout.write(json.dumps(doc, indent=2, default=str) + "\n")
     return 0
 
@@ -256,14 +462,29 @@ def cmd_router(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_stall_and_clock_args(p: argparse.ArgumentParser) -> None:
+    """keo mock: late delivery in stalls (RTDE and the tracker) and the tracker's own clock."""
+    p.add_argument(
+        "--late-ms", type=float, default=0.0, help="rtde, tracker: longest delivery stall (ms)"
+    )
+    p.add_argument(
+        "--burst-every",
+        type=float,
+        default=0.0,
+        help="rtde, tracker: mean seconds between stalls",
+    )
+    p.add_argument(
+        "--device-clock",
+        metavar="OFFSET:PPM",
+        help="tracker: stamp each pose with its own free-running clock, OFFSET s at scenario "
+        "time 0 and running PPM fast (default: seconds since the connection, read at sending)",
+    )
+
+
 def register(add: common.AddCommand) -> None:
     p = add("run", cmd_run, "the service (daemon)")
     p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
-    p.add_argument(
-        "--viewer",
-        metavar="URL",
-        help="stream to a running Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy",
-    )
+    add_viewer_options(p, url=True)
     p.add_argument(
         "--log-format",
         choices=["auto", "text", "json"],
@@ -280,9 +501,14 @@ def register(add: common.AddCommand) -> None:
     p = add("mock", cmd_mock, "a device simulator speaking the real wire format", config=False)
     p.add_argument("device", choices=["robot", "tracker"])
     p.add_argument("--config", required=True)
-    p.add_argument("--scenario", required=True)
+    p.add_argument("--scenario", default="path", help="default: path (every joint moving, 60 s)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--t0", type=float, help="wall time (epoch s) of scenario time 0")
+    p.add_argument(
+        "--t0",
+        type=float,
+        help="wall time (epoch s) of scenario time 0 (default: the start of the current "
+        "scenario period since the epoch, the same for every mock of the scenario)",
+    )
     p.add_argument("--duration", type=float, help="play only this many seconds of the scenario")
     p.add_argument("--loop", action="store_true", help="play the scenario again and again")
     p.add_argument("--host", help="bind address (default: the config's, loopback)")
@@ -301,7 +527,7 @@ def register(add: common.AddCommand) -> None:
     )
     p.add_argument(
         "--protocol",
-        choices=["motoros", "rtde"],
+        choices=["motoros", "rtde", "kuka_rsi", "abb_egm"],
         help="robot: the wire format (default: the config's robot.protocol)",
     )
     p.add_argument("--max-hz", type=float, default=500.0, help="rtde: 500 e-Series, 125 CB3")
@@ -309,26 +535,26 @@ def register(add: common.AddCommand) -> None:
         "--clock-offset", type=float, default=1000.0, help="rtde: controller clock at t0"
     )
     p.add_argument("--clock-drift-ppm", type=float, default=0.0, help="rtde: controller clock rate")
+    _add_stall_and_clock_args(p)
+    p.add_argument("--cycle-ms", type=float, default=4.0, help="kuka_rsi/abb_egm: cycle (ms)")
+    p.add_argument("--jitter-ms", type=float, default=0.0, help="kuka_rsi/abb_egm: send jitter")
     p.add_argument(
-        "--late-ms", type=float, default=0.0, help="rtde, tracker: longest delivery stall (ms)"
-    )
-    p.add_argument(
-        "--burst-every",
-        type=float,
-        default=0.0,
-        help="rtde, tracker: mean seconds between stalls",
-    )
-    p.add_argument(
-        "--device-clock",
-        metavar="OFFSET:PPM",
-        help="tracker: stamp each pose with its own free-running clock, OFFSET s at scenario "
-        "time 0 and running PPM fast (default: seconds since the connection, read at sending)",
+        "--max-late", type=int, default=100, help="kuka_rsi/abb_egm: late answers before a stop"
     )
     p.add_argument(
         "--wall-clock-device-time",
         action="store_true",
         help="tracker: send the wall clock as device time (latency benchmarks)",
     )
+    p.add_argument(
+        "--follow-corrections",
+        action="store_true",
+        help="robot (rtde): follow the path plus the correction in the input registers "
+        "(robot.correction_register on); serves the tracker that sees this arm too",
+    )
+    p.add_argument("--tool-error", metavar="X,Y,Z,RX,RY,RZ", help="with corrections: m, rad")
+    p.add_argument("--joint-offsets", metavar="Q1,...", help="with corrections: the arm's (rad)")
+    p.add_argument("--summary", type=Path, help="with corrections: the true errors as JSON")
     p.add_argument("-v", "--verbose", action="store_true")
 
     p = add("echo", cmd_echo, "print what arrives on a key expression", config=False)

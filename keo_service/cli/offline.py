@@ -1,5 +1,5 @@
 """Offline commands: gain, simulate, estimate, calibrate-delay, delay-study, import, paper,
-analyze."""
+analyze, compensate."""
 
 from __future__ import annotations
 
@@ -105,7 +105,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 @common.collector_paused
 def cmd_estimate(args: argparse.Namespace) -> int:
-    from keo_service.io.estimate_files import estimate_files, write_estimates
+    from keo_service.offline.estimate import estimate_files, write_estimates
 
     config = common.load(args.config)
     result = estimate_files(config, args.encoder, args.tracker, streaming=args.streaming)
@@ -151,81 +151,25 @@ def cmd_paper(args: argparse.Namespace) -> int:
 
 @common.collector_paused
 def cmd_calibrate_delay(args: argparse.Namespace) -> int:
-    from keo_service.fit.delay import DelayNotIdentifiableError, fit_delay, reference_method
-    from keo_service.io.cell import cell_from_config
-    from keo_service.io.interchange import read_encoder, read_tracker
+    from keo_service.fit.delay import DelayNotIdentifiableError
+    from keo_service.offline.delay import calibrate_delay
 
     config = common.load(args.config)
-    cell = cell_from_config(config)
-    enc = read_encoder(args.encoder, nq=cell.robot.nq)
-    trk = read_tracker(args.tracker)
     try:
-        fit = fit_delay(
-            cell,
-            enc.t,
-            enc.q,
-            trk.t,
-            trk.p,
-            trk.quat,
-            initial=config.timing.delay_s,
-            with_drift=not args.no_drift,
-        )
+        result = calibrate_delay(config, args.encoder, args.tracker, with_drift=not args.no_drift)
     except DelayNotIdentifiableError as exc:
         if args.json:
             common.print_json({"verdict": "refused", "reason": str(exc)})
         print(f"keo calibrate-delay: refused: {exc}", file=sys.stderr)
         return common.EXIT_FAILURE
-    segments = reference_method(cell, enc.t, enc.q, trk.t, trk.p)
-    doc = {
-        "verdict": "ok" if fit.explained else "unexplained",
-        "delay_s": fit.delay_s,
-        "delay_se_s": fit.delay_se_s,
-        "drift_ppm": fit.drift * 1e6,
-        "drift_se_ppm": fit.drift_se * 1e6,
-        "drift_significant": fit.drift_significant,
-        "t_ref_s": fit.t_ref,
-        "samples": fit.samples,
-        "moving_fraction": fit.moving_fraction,
-        "residual_rms_moving_m": fit.residual_rms_moving,
-        "residual_rms_rest_m": fit.residual_rms_rest,
-        "window_delays_s": fit.window_delays_s,
-        "notes": fit.notes,
-        "reference_method": [s.__dict__ for s in segments],
-        "config": {
-            "timing.delay_s": fit.delay_s,
-            "timing.drift_ppm": fit.drift * 1e6,
-            "timing.drift_ref_s": fit.t_ref if fit.drift_significant else 0.0,
-        },
-    }
     if args.json:
-        common.print_json(doc)
+        common.print_json(result.document())
     else:
+        print("\n".join(result.lines()))
+    if not result.explained:
         print(
-            f"delay: {fit.delay_s * 1e3:.3f} ms +/- {fit.delay_se_s * 1e3:.3f} ms (1 sigma), "
-            f"from {fit.samples} tracker samples, moving {100 * fit.moving_fraction:.0f} % of "
-            "the time"
-        )
-        if fit.drift_significant:
-            print(
-                f"clock drift: {fit.drift * 1e6:.1f} +/- {fit.drift_se * 1e6:.1f} ppm; the delay "
-                f"above holds at t = {fit.t_ref:.3f} s"
-            )
-        for note in fit.notes:
-            print(f"note: {note}")
-        for s in segments:
-            print(
-                f"reference method (offset / speed) on the constant-velocity stretch "
-                f"{s.start:.2f}-{s.end:.2f} s at {s.speed * 1e3:.0f} mm/s: "
-                f"{s.delay_s * 1e3:.2f} ms"
-            )
-        print("config:")
-        print(f"  [timing] delay_s = {fit.delay_s:.6f}")
-        if fit.drift_significant:
-            print(f"           drift_ppm = {fit.drift * 1e6:.3f}")
-            print(f"           drift_ref_s = {fit.t_ref!r}")
-    if not fit.explained:
-        print(
-            "keo calibrate-delay: the number above is not to be trusted: " + "; ".join(fit.notes),
+            "keo calibrate-delay: the number above is not to be trusted: "
+            + "; ".join(result.fit.notes),
             file=sys.stderr,
         )
         return common.EXIT_FAILURE
@@ -265,6 +209,24 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     else:
         print((args.out / "report.md").read_text())
         print(f"wrote {args.out}/report.json, report.md, plots and model.toml")
+    return common.EXIT_OK
+
+
+@common.collector_paused
+def cmd_compensate(args: argparse.Namespace) -> int:
+    from keo_service.io.compensation_files import run_compensate
+
+    summary = run_compensate(common.load(args.config), args.targets, args.out)
+    if args.json:
+        common.print_json(summary)
+    else:
+        flags = ", ".join(f"{k} {v}" for k, v in summary["flags"].items() if v) or "no flags"
+        print(
+            f"wrote {summary['out']}: {summary['targets']} targets ({summary['form']}); "
+            f"correction {summary['correction_mm']['rms']:.4f} mm RMS, "
+            f"{summary['correction_mm']['max']:.4f} mm max, "
+            f"{summary['correction_mrad']['rms']:.4f} mrad RMS; {flags}"
+        )
     return common.EXIT_OK
 
 
@@ -352,4 +314,13 @@ def register(add: common.AddCommand) -> None:
         action="store_true",
         help="keep the effects in the config; re-identify tracker and tool only",
     )
+    p.add_argument("--json", action="store_true")
+    p = add(
+        "compensate",
+        cmd_compensate,
+        "the joints (and the nominal-model pose to command) that put the tool on each target "
+        "under the identified model (--config: the model.toml of keo analyze)",
+    )
+    p.add_argument("--targets", type=Path, required=True, help="targets CSV")
+    p.add_argument("--out", type=Path, required=True, help="compensated targets CSV")
     p.add_argument("--json", action="store_true")

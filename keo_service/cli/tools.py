@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from keo_service.cli import common
+from keo_service.cli.live import add_viewer_options
 from keo_service.core.errors import ConfigError
 from keo_service.resources import demo_config_path
 
@@ -44,7 +45,47 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(args)
 
 
+def cmd_init(args: argparse.Namespace) -> int:
+    from keo_service.io.init_config import InitOptions, write_init_config
+
+    config = write_init_config(
+        InitOptions(
+            robot=args.robot,
+            robot_protocol=args.robot_protocol,
+            tracker_protocol=args.tracker_protocol,
+            out=args.out,
+            cell=args.cell,
+            robot_host=args.robot_host,
+            robot_port=args.robot_port,
+            tracker_host=args.tracker_host,
+            tracker_port=args.tracker_port,
+            listen=args.listen,
+            force=args.force,
+        )
+    )
+    print(f"keo init: wrote {args.out} (robot model: {config.robot.urdf})")
+    return common.EXIT_OK
+
+
+def _register_init(add: common.AddCommand) -> None:
+    from keo_service.io.init_config import ROBOT_PROTOCOLS, TRACKER_PROTOCOLS
+
+    p = add("init", cmd_init, "write a complete, commented config for a cell", config=False)
+    p.add_argument("--robot", required=True, help="ur10, mh180 or a URDF file")
+    p.add_argument("--robot-protocol", required=True, choices=ROBOT_PROTOCOLS)
+    p.add_argument("--tracker-protocol", required=True, choices=TRACKER_PROTOCOLS)
+    p.add_argument("--out", type=Path, required=True, help="the config file to write")
+    p.add_argument("--cell", default="cell1", help="the cell's name (default cell1)")
+    p.add_argument("--robot-host", default="127.0.0.1", help="the controller's address")
+    p.add_argument("--robot-port", type=int, default=0, help="default: the protocol's")
+    p.add_argument("--tracker-host", default="127.0.0.1", help="the line-protocol tracker")
+    p.add_argument("--tracker-port", type=int, default=5005)
+    p.add_argument("--listen", default="tcp/127.0.0.1:7447", help="where keo run listens")
+    p.add_argument("--force", action="store_true", help="overwrite FILE")
+
+
 def register(add: common.AddCommand) -> None:
+    _register_init(add)
     p = add(
         "demo",
         cmd_demo,
@@ -62,6 +103,13 @@ def register(add: common.AddCommand) -> None:
     p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
     p.add_argument("--json", action="store_true")
     p.add_argument("--seed", type=int, default=1)
+    add_viewer_options(p, url=False)
+    p.add_argument(
+        "--compensate",
+        action="store_true",
+        help="close the loop: a UR10 (RTDE) follows a path plus keo's live correction; prints "
+        "the true tool error along the path without and with it",
+    )
 
     p = add("bench", cmd_bench, "the benchmarks (numbers, no verdicts)", config=False)
     p.add_argument("--config", default=str(demo_config_path()))

@@ -1,7 +1,9 @@
 """The estimator over whole recordings at once: the same output as feeding `Estimator` one
 sample at a time in time-stamp order (`run_offline`), computed with array operations.
 
-Streaming semantics, restated for arrays (see `estimator.py` for the one-sample version):
+The decisions (rejects, held steps, the step cap, directions, range flags) are the array
+forms of `rules`, which the streaming estimator applies one sample at a time. What this
+module adds is the bookkeeping of *when* the streaming estimator decides, for arrays:
 
 * Input order is the two-pointer merge of the streams (encoder first on ties). Each sample
   gets its position in that merged order ("event"); rejects are decided per sample from the
@@ -31,40 +33,41 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from keo_service.core.chain import Chain
-from keo_service.core.estimator import (
-    DIRECTION_DEADBAND,
+from keo_service.core.errors import KeoError
+from keo_service.core.estimator import Estimate
+from keo_service.core.kinematics import Cell, channels_for
+from keo_service.core.rotations import log3_many, quaternion_matrices, transposed_times
+from keo_service.core.rules import (
+    HELD_REASONS,
     MAX_MESSAGES,
     MAX_PENDING,
     NON_FINITE_VALUE,
     OUTSIDE_CALIBRATED_RANGE,
-    UNIT_QUATERNION_TOLERANCE,
-    Estimate,
+    CalibratedRanges,
+    directions,
     encoder_non_finite,
     encoder_stamp_problem,
+    encoder_verdicts,
+    first_beyond,
+    held_reasons,
     not_unit_quaternion,
+    step_caps,
     tracker_stamp_problem,
+    tracker_value_problem,
+    tracker_verdicts,
 )
-from keo_service.core.kinematics import Cell, channels_for
-from keo_service.core.rotations import log3_many, quaternion_matrices, transposed_times
-from keo_service.core.settings import EstimatorSettings, encoder_capacity
+from keo_service.core.settings import EstimatorSettings
 
 __all__ = ["BatchResult", "BatchUnsupportedError", "estimate_batch", "measured_errors"]
 
-RECENT_INTERVALS = 64  # the estimator's window of tracker intervals for the step cap
-CAP_REFRESH = 16  # ... refreshed every this many intervals
-CAP_MIN_INTERVALS = 8
 CHUNK = 8192  # rows per pass of the kinematics
 KINEMATICS_THREADS = min(2, os.cpu_count() or 1)
 OBSERVER_ROWS = 8 * CHUNK  # rows per step of the observer's recursion
-MEDIAN_WINDOWS = 1024  # step-cap windows sorted at once
-# held reasons in the estimator's words; code 0 is "not held"
-HELD_REASONS = ("", "encoder_stale", "encoder_too_old", "encoder_gap")
 
 
-class BatchUnsupportedError(Exception):
+class BatchUnsupportedError(KeoError):
     """This input needs the streaming estimator (the message says why)."""
 
 
@@ -245,7 +248,7 @@ def first_order_recursion(x0: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.nd
     return out
 
 
-# ---- the estimator -------------------------------------------------------------------------
+# ---- the estimator's bookkeeping -------------------------------------------------------
 
 
 def _merge_counts(enc_t: np.ndarray, trk_t: np.ndarray) -> np.ndarray:
@@ -264,97 +267,6 @@ def _merge_counts(enc_t: np.ndarray, trk_t: np.ndarray) -> np.ndarray:
         while i < len(e) and not e[i] > tj:
             i += 1
         out[j] = i
-    return out
-
-
-def _prior_max(t: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """For each sample, the largest stamp among earlier samples for which `counts` is True
-    (-inf when none)."""
-    masked = np.where(counts, t, -np.inf)
-    prior = np.empty_like(masked)
-    if masked.size:
-        prior[0] = -np.inf
-        prior[1:] = np.maximum.accumulate(masked)[:-1]
-    return prior
-
-
-def _first_beyond(t_acc: np.ndarray, limit: float) -> np.ndarray:
-    """For each accepted tracker sample a, the first later b with t_b - t_a > limit (the
-    estimator's own subtraction), or t_acc.size."""
-    n = t_acc.size
-    b = np.searchsorted(t_acc, t_acc + limit, side="right")
-    np.maximum(b, np.arange(1, n + 1), out=b)
-    # t_a + limit and t_b - t_a may round apart at the boundary: settle those few one by one
-    unsettled = t_acc[b - 1] - t_acc > limit
-    unsettled |= (b < n) & ~(t_acc[np.minimum(b, n - 1)] - t_acc > limit)
-    for a in np.flatnonzero(unsettled).tolist():
-        k = int(b[a])
-        while k > a + 1 and t_acc[k - 1] - t_acc[a] > limit:
-            k -= 1
-        while k < n and not t_acc[k] - t_acc[a] > limit:
-            k += 1
-        b[a] = k
-    return b
-
-
-def _step_caps(settings: EstimatorSettings, intervals: np.ndarray, seen: np.ndarray) -> np.ndarray:
-    """The estimator's cap on each update's dt (`Estimator._max_step`), for updates that saw
-    `seen` tracker intervals: max_dt_s until 8 were seen, then 3 x the median of the last 64,
-    recomputed at the first such update and whenever the count is a multiple of 16."""
-    caps = np.full(seen.size, settings.max_dt_s)
-    valid = seen >= CAP_MIN_INTERVALS
-    if not valid.any():
-        return caps
-    first = int(np.argmax(valid))
-    recompute = valid & (seen % CAP_REFRESH == 0)
-    recompute[first] = True
-    where = np.flatnonzero(recompute)
-    counts = seen[where]
-    values = np.empty(where.size)
-    full = counts >= RECENT_INTERVALS
-    if full.any():
-        starts = counts[full] - RECENT_INTERVALS
-        every_window = sliding_window_view(intervals, RECENT_INTERVALS)
-        if starts.size > 1 and (np.diff(starts) == CAP_REFRESH).all():  # the usual: a view
-            windows = every_window[starts[0] :: CAP_REFRESH][: starts.size]
-        else:
-            windows = every_window[starts]
-        medians = np.empty(windows.shape[0])
-        for lo in range(0, windows.shape[0], MEDIAN_WINDOWS):  # sorted copies stay in cache
-            rows = slice(lo, lo + MEDIAN_WINDOWS)
-            medians[rows] = _sorted_median(np.sort(windows[rows]))
-        values[full] = medians
-    for k in np.flatnonzero(~full):
-        values[k] = _sorted_median(np.sort(intervals[: counts[k]])[None, :])[0]
-    values = np.minimum(settings.max_dt_s, 3.0 * values)
-    last = np.maximum.accumulate(np.where(recompute, np.arange(seen.size), -1))
-    rank = np.cumsum(recompute) - 1  # a recomputing update's index in `where`
-    caps[valid] = values[rank[last[valid]]]
-    return caps
-
-
-def _sorted_median(rows: np.ndarray) -> np.ndarray:
-    """np.median of each sorted row: the middle value, or (a + b) / 2 of the two middle values
-    as median computes it (for an odd count that is (a + a) / 2 = a, exactly). A sort is 10x
-    faster than median's partition on rows of 64."""
-    k = rows.shape[1]
-    out: np.ndarray = (rows[:, (k - 1) // 2] + rows[:, k // 2]) / 2.0
-    return out
-
-
-def _directions(t: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Each joint's direction of its last move after each accepted encoder sample."""
-    out = np.zeros_like(q)
-    if q.shape[0] < 2:
-        return out
-    step = np.diff(q, axis=0)
-    dt = np.maximum(np.diff(t), 1e-6)
-    moved = np.abs(step) > DIRECTION_DEADBAND * dt[:, None]
-    rows = np.arange(1, q.shape[0])[:, None]
-    last = np.maximum.accumulate(np.where(moved, rows, 0), axis=0)
-    signs = np.zeros_like(q)
-    signs[1:] = np.sign(step)
-    out[1:] = np.take_along_axis(signs, last, axis=0)
     return out
 
 
@@ -385,69 +297,48 @@ def _accept(
     trk_p: np.ndarray,
     trk_quat: np.ndarray | None,
 ) -> _Accepted:
-    """The merged order of the two streams, which samples the estimator accepts, and its
-    counters and messages for the others (the newest MAX_MESSAGES, in arrival order)."""
+    """Phase 1: the merged order of the two streams, which samples the estimator accepts
+    (`rules`), and its counters and messages for the others (the newest MAX_MESSAGES, in
+    arrival order)."""
     counters: dict[str, int] = {}
     # ---- merged order
     before = _merge_counts(enc_t, trk_t)  # encoders ahead of each tracker sample
     trk_pos = before + np.arange(trk_t.size)
     enc_pos = np.arange(enc_t.size) + np.searchsorted(before, np.arange(enc_t.size), "right")
-
-    # ---- encoder acceptance
-    enc_finite = np.isfinite(enc_t) & np.isfinite(enc_q).all(axis=1)
-    enc_newest = _prior_max(enc_t, enc_finite)
-    enc_ok = enc_finite & (enc_t > enc_newest)
-    enc_dup = enc_finite & (enc_t == enc_newest)
-    enc_old = enc_finite & (enc_t < enc_newest)
-
-    # ---- tracker acceptance (time first, then values)
-    t_finite = np.isfinite(trk_t)
-    values_finite = np.isfinite(trk_p).all(axis=1)
-    norm = np.ones(trk_t.size)
-    if trk_quat is not None:
-        values_finite &= np.isfinite(trk_quat).all(axis=1)
-        with np.errstate(invalid="ignore"):
-            norm = np.sqrt(np.einsum("ij,ij->i", trk_quat, trk_quat))
-    unit = ~(np.abs(norm - 1.0) > UNIT_QUATERNION_TOLERANCE)
-    passing = t_finite & values_finite & unit
-    last_t = _prior_max(trk_t, passing)
-    dup = t_finite & (trk_t == last_t)
-    old = t_finite & (trk_t < last_t)
-    timely = t_finite & ~dup & ~old
-    non_finite_value = timely & ~values_finite
-    not_unit = timely & values_finite & ~unit
-    accepted = timely & values_finite & unit
+    enc = encoder_verdicts(enc_t, enc_q)
+    trk = tracker_verdicts(trk_t, trk_p, trk_quat)
 
     # ---- rejects: every one counted, the newest MAX_MESSAGES (in arrival order) in words
     for name, mask in (
-        ("encoder_non_finite", ~enc_finite),
-        ("encoder_duplicate", enc_dup),
-        ("encoder_out_of_order", enc_old),
-        ("tracker_non_finite", ~t_finite | non_finite_value),
-        ("tracker_duplicate", dup),
-        ("tracker_out_of_order", old),
-        ("tracker_not_unit_quaternion", not_unit),
+        ("encoder_non_finite", ~enc.finite),
+        ("encoder_duplicate", enc.duplicate),
+        ("encoder_out_of_order", enc.out_of_order),
+        ("tracker_non_finite", trk.non_finite),
+        ("tracker_duplicate", trk.duplicate),
+        ("tracker_out_of_order", trk.out_of_order),
+        ("tracker_not_unit_quaternion", trk.not_unit),
     ):
         _count(counters, name, mask.sum())
         _count(counters, "rejected", mask.sum())
+    enc_ok, accepted = enc.ok, trk.accepted
     enc_bad, trk_bad = np.flatnonzero(~enc_ok), np.flatnonzero(~accepted)
     bad_pos = np.concatenate([enc_pos[enc_bad], trk_pos[trk_bad]])
     newest_kept = np.sort(bad_pos)[-MAX_MESSAGES] if bad_pos.size > MAX_MESSAGES else -1
     rejects: list[tuple[int, str]] = []  # (event position, message)
     for i in enc_bad[enc_pos[enc_bad] >= newest_kept]:
         t = float(enc_t[i])
-        if enc_finite[i]:
-            _name, msg = encoder_stamp_problem(t, float(enc_newest[i]))
+        if enc.finite[i]:
+            _name, msg = encoder_stamp_problem(t, float(enc.newest[i]))
         else:
             _name, msg = encoder_non_finite(t)
         rejects.append((int(enc_pos[i]), msg))
     for j in trk_bad[trk_pos[trk_bad] >= newest_kept]:
         t = float(trk_t[j])
-        if not timely[j]:
-            _name, msg = tracker_stamp_problem(t, float(last_t[j]))
+        if not trk.timely[j]:
+            _name, msg = tracker_stamp_problem(t, float(trk.last[j]))
         else:
-            what = NON_FINITE_VALUE if non_finite_value[j] else not_unit_quaternion(norm[j])
-            msg = f"tracker sample at t={t!r}: {what[1]}"
+            what = NON_FINITE_VALUE if trk.non_finite_value[j] else not_unit_quaternion(trk.norm[j])
+            _name, msg = tracker_value_problem(t, what)
         rejects.append((int(trk_pos[j]), msg))
     rejects.sort(key=lambda item: item[0])
     messages = [m for _p, m in rejects[-MAX_MESSAGES:]]
@@ -475,6 +366,31 @@ def _accept(
     )
 
 
+@dataclass(frozen=True)
+class _Bracket:
+    """Phase 2: where each accepted tracker sample's encoder time falls among the accepted
+    encoder samples (whatever the verdict on it later)."""
+
+    target: np.ndarray  # the encoder time of each tracker sample (n,)
+    first_cover: np.ndarray  # the first encoder sample at or after it (may be m)
+    g0: np.ndarray  # the encoder samples to interpolate between (clipped to the stream)
+    g: np.ndarray
+    t0: np.ndarray  # their stamps
+    t1: np.ndarray
+    on_sample: np.ndarray  # the target is an encoder stamp
+
+
+def _bracket(settings: EstimatorSettings, streams: _Accepted) -> _Bracket:
+    E, n = streams.E, streams.T.size
+    target = settings.delay.encoder_times(streams.T)
+    first_cover = np.searchsorted(E, target, side="left")
+    g = np.minimum(first_cover, max(E.size - 1, 0))
+    g0 = np.maximum(g - 1, 0)
+    t0, t1 = (E[g0], E[g]) if E.size else (np.zeros(n), np.zeros(n))
+    on_sample = E[g] == target if E.size else np.zeros(n, dtype=bool)
+    return _Bracket(target, first_cover, g0, g, t0, t1, on_sample)
+
+
 def _resolution(
     settings: EstimatorSettings, streams: _Accepted, first_cover: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -486,7 +402,7 @@ def _resolution(
     if streams.E.size:
         covers = first_cover < streams.E.size
         covered_at[covers] = streams.E_pos[first_cover[covers]]
-    stale_index = _first_beyond(streams.T, settings.stale_after_s)
+    stale_index = first_beyond(streams.T, settings.stale_after_s)
     stale_at = np.where(stale_index < n, streams.arrival[np.minimum(stale_index, n - 1)], never)
     ready = np.minimum(np.maximum(streams.arrival, covered_at), stale_at)
     resolved = np.maximum.accumulate(ready)
@@ -511,25 +427,161 @@ def _counts_up_to(positions: np.ndarray, events: int) -> np.ndarray:
     return np.cumsum(counts, out=counts)
 
 
-def _held_reasons(
-    settings: EstimatorSettings,
-    E: np.ndarray,
-    have: np.ndarray,
-    target: np.ndarray,
-    bracket: tuple[np.ndarray, np.ndarray, np.ndarray],
-) -> np.ndarray:
-    """Interpolation's verdict per tracker sample, as an index into HELD_REASONS (0: none),
-    from the encoder samples buffered when it was resolved; `bracket` is (t0, t1, on_sample)."""
-    t0, t1, on_sample = bracket
-    capacity = encoder_capacity(settings)
-    reason = np.zeros(target.size, dtype=np.int8)
-    newest = np.where(have > 0, E[np.maximum(have - 1, 0)] if E.size else 0.0, -np.inf)
-    oldest = np.where(have > 0, E[np.maximum(have - capacity, 0)] if E.size else 0.0, np.inf)
-    reason[(have == 0) | (target > newest)] = 1
-    reason[(reason == 0) & (target < oldest)] = 2
-    reason[(reason == 0) & ~on_sample & (t1 - t0 > settings.max_gap_s)] = 3
-    reason[(reason == 0) & (target < newest - settings.buffer_s)] = 2
-    return reason
+@dataclass(frozen=True)
+class _Verdicts:
+    """Phase 4: which steps are held and why, and what each update saw."""
+
+    reason: np.ndarray  # index into HELD_REASONS per tracker sample (0: not held)
+    ok: np.ndarray  # not held: an update of the observer
+    have: np.ndarray  # encoder samples buffered when each was resolved
+    seen: np.ndarray  # tracker intervals seen by then
+    flags: np.ndarray  # each row's flag (object array of str)
+
+
+def _verdicts(settings: EstimatorSettings, streams: _Accepted, where: _Bracket) -> _Verdicts:
+    have, seen = _resolution(settings, streams, where.first_cover)
+    reason = held_reasons(
+        settings, streams.E, have, where.target, (where.t0, where.t1, where.on_sample)
+    )
+    flags = np.array(HELD_REASONS, dtype=object)[reason]
+    for code, name in enumerate(HELD_REASONS):
+        if code:
+            _count(streams.counters, f"held_{name}", int(np.sum(reason == code)))
+    return _Verdicts(reason, reason == 0, have, seen, flags)
+
+
+class _Rows:
+    """The output rows, each written once, in its chunk (fresh pages cost). Column-major: an
+    estimate file's columns are contiguous, so the writer's columns are views of these."""
+
+    def __init__(self, n: int, nq: int, channels: int, keep_joints: bool) -> None:
+        self.joints = np.empty((n, nq)) if keep_joints else None
+        self.measured = np.empty((n, channels), order="F")
+        self.estimate = np.empty((n, channels), order="F")
+
+
+class _Kinematics:
+    """Phase 3: each row's joints and measured error, chunk by chunk. They do not depend on
+    whether the row ends up held, so they run on worker threads (numpy lets go of the GIL in
+    its loops) while the caller works out which rows are held; in row chunks that stay in
+    cache (whole-recording temporaries cost more in page faults than in arithmetic). Held
+    rows' results are discarded."""
+
+    def __init__(
+        self, cell: Cell, streams: _Accepted, where: _Bracket, rows: _Rows, ranges: bool
+    ) -> None:
+        self.cell, self.streams, self.where, self.rows = cell, streams, where, rows
+        self.chain = Chain(cell.robot)
+        self.ranges = ranges  # hand back each chunk's joints for the range flags
+        self.direction: np.ndarray | None = None  # backlash: the joints' directions
+
+    def __call__(self, lo: int) -> np.ndarray | None:
+        rows = slice(lo, lo + CHUNK)
+        w_, s, out = self.where, self.streams, self.rows
+        q0, q1 = s.Q[w_.g0[rows]], s.Q[w_.g[rows]]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = (w_.target[rows] - w_.t0[rows]) / (w_.t1[rows] - w_.t0[rows])
+            chunk = np.where(w_.on_sample[rows, None], q1, q0 + w[:, None] * (q1 - q0))
+        chunk[~np.isfinite(chunk).all(axis=1)] = 0.0  # outside the encoder data: held
+        out.measured[rows] = measured_errors(
+            self.cell,
+            self.chain,
+            chunk,
+            s.P[rows],
+            None if s.quat is None else s.quat[rows],
+            None if self.direction is None else self.direction[rows],
+        )
+        if out.joints is not None:
+            out.joints[rows] = chunk
+        return chunk if self.ranges else None
+
+
+class _Observer:
+    """Phase 6: the observer over the updates in order, in steps of at least OBSERVER_ROWS
+    rows (the recursion's cost per call falls with its length); the state carries over."""
+
+    def __init__(
+        self,
+        settings: EstimatorSettings,
+        streams: _Accepted,
+        verdicts: _Verdicts,
+        channels: int,
+    ) -> None:
+        self.settings = settings
+        self.ok = ok = verdicts.ok
+        seen = verdicts.seen
+        self.gains = np.asarray(settings.gains[:channels], dtype=float)
+        self.upd = np.flatnonzero(ok)
+        self.every_row = self.upd.size == ok.size
+        self.dt = np.empty(0)
+        if self.upd.size:
+            caps = step_caps(settings, np.diff(streams.T), seen[self.upd[1:]])
+            self.dt = np.minimum(np.diff(streams.T[self.upd]), caps)  # dt[k - 1]: to update k
+        _count(streams.counters, "estimates", self.upd.size)
+        self.state = np.zeros(channels)  # what rows before the first update carry
+        self.done_updates = 0  # updates before the rows observed next
+        self.observed = 0  # rows observed so far
+
+    def run_to(self, hi: int, measured: np.ndarray, estimate: np.ndarray) -> None:
+        """The rows from those observed so far up to `hi`."""
+        upd, dt, gains, settings = self.upd, self.dt, self.gains, self.settings
+        lo, self.observed = self.observed, hi
+        first = self.done_updates
+        last = hi if self.every_row else int(np.searchsorted(upd, hi))
+        if first == 0 and last > 0:
+            m0 = measured[upd[0]]
+            if settings.start == "first":
+                self.state = m0.copy()
+            else:
+                first_dt = 1.0 / settings.sample_rate_hz  # as if one period had passed
+                self.state = -np.expm1(-gains * first_dt) * m0
+            estimate[upd[0]] = self.state
+            first = 1
+        if last > first:
+            update_rows: slice | np.ndarray = (
+                slice(first, last) if self.every_row else upd[first:last]
+            )
+            alpha = -np.expm1(-gains[None, :] * dt[first - 1 : last - 1, None])
+            block = first_order_recursion(self.state, 1.0 - alpha, alpha * measured[update_rows])
+            estimate[update_rows] = block
+            self.state = block[-1]
+        if not self.every_row and upd.size:
+            # a held row carries the state of the newest update before it (these rows' or
+            # an earlier one's), zeros before the first update
+            held_rows = lo + np.flatnonzero(~self.ok[lo:hi])
+            newest_update = np.searchsorted(upd, held_rows) - 1
+            estimate[held_rows] = estimate[upd[np.maximum(newest_update, 0)]]
+            estimate[held_rows[newest_update < 0]] = 0.0
+        self.done_updates = last
+
+
+def _finish_chunk(
+    rows: slice,
+    verdicts: _Verdicts,
+    out: _Rows,
+    chunk_joints: np.ndarray | None,
+    ranges: CalibratedRanges,
+    counters: dict[str, int],
+) -> None:
+    """Phase 5, per chunk once its kinematics are done: held rows emptied, range flags."""
+    held = ~verdicts.ok[rows]  # every row when there is no encoder data (nothing computed)
+    if held.any():
+        out.measured[rows][held] = np.nan
+        if out.joints is not None:
+            out.joints[rows][held] = np.nan
+    if not np.isfinite(out.measured[rows][~held]).all():
+        raise BatchUnsupportedError("the kinematics gave a non-finite error")
+    if chunk_joints is not None:
+        outside = ~held & ranges.outside_rows(chunk_joints)
+        verdicts.flags[rows][outside] = OUTSIDE_CALIBRATED_RANGE
+        _count(counters, OUTSIDE_CALIBRATED_RANGE, int(outside.sum()))
+
+
+def _check_supported(settings: EstimatorSettings) -> None:
+    if settings.alignment != "interpolate":
+        raise BatchUnsupportedError(f"alignment {settings.alignment!r} runs sample by sample")
+    if settings.start not in ("zero", "first"):
+        raise BatchUnsupportedError(f"observer start {settings.start!r}")
 
 
 def estimate_batch(
@@ -543,11 +595,12 @@ def estimate_batch(
     keep_joints: bool = True,
 ) -> BatchResult:
     """What `run_offline(Estimator(cell, settings), ...)` returns, as arrays (without the
-    joints of each row unless `keep_joints`: an estimate file does not hold them)."""
-    if settings.alignment != "interpolate":
-        raise BatchUnsupportedError(f"alignment {settings.alignment!r} runs sample by sample")
-    if settings.start not in ("zero", "first"):
-        raise BatchUnsupportedError(f"observer start {settings.start!r}")
+    joints of each row unless `keep_joints`: an estimate file does not hold them).
+
+    Phases: accept (rejects), bracket (where each encoder time falls), kinematics (worker
+    threads), verdicts (when each sample is resolved and whether it is held), then chunk by
+    chunk as the workers finish: held rows and range flags, and the observer in order."""
+    _check_supported(settings)
     nq = cell.robot.nq
     enc_t = np.asarray(encoder_t, dtype=float).reshape(-1)
     trk_t = np.asarray(tracker_t, dtype=float).reshape(-1)
@@ -558,9 +611,7 @@ def estimate_batch(
         np.asarray(tracker_p, dtype=float).reshape(trk_t.size, 3),
         None if tracker_quat is None else np.asarray(tracker_quat, dtype=float).reshape(-1, 4),
     )
-    E, Q, T, P, quat = streams.E, streams.Q, streams.T, streams.P, streams.quat
-    counters = streams.counters
-    n = T.size
+    n = streams.T.size
     if n == 0:
         return BatchResult(
             np.empty(0),
@@ -570,60 +621,16 @@ def estimate_batch(
             np.empty(0),
             np.empty((0, nq)),
             (),
-            counters,
+            streams.counters,
             streams.messages,
         )
     channels = channels_for(tracker_quat is None)
-    counters["channels"] = len(channels)
-
-    # ---- where each sample's encoder time falls, and the kinematics there: they do not depend
-    # on whether the sample ends up held, so they run on worker threads (numpy lets go of the
-    # GIL in its loops) while this thread works out which samples are held; in row chunks
-    # that stay in cache (whole-recording temporaries cost more in page faults than in
-    # arithmetic). Held rows' results are discarded.
-    target = settings.delay.encoder_times(T)
-    first_cover = np.searchsorted(E, target, side="left")
-    g = np.minimum(first_cover, max(E.size - 1, 0))
-    g0 = np.maximum(g - 1, 0)
-    t0, t1 = (E[g0], E[g]) if E.size else (np.zeros(n), np.zeros(n))
-    on_sample = E[g] == target if E.size else np.zeros(n, dtype=bool)
-    channel_count = len(channels)
-    # each row written once, in its chunk: fresh pages cost
-    joints = np.empty((n, nq)) if keep_joints else None
-    # column-major: an estimate file's columns are contiguous, so the writer's columns are
-    # views of these (no copies of the whole recording)
-    measured = np.empty((n, channel_count), order="F")
-    estimate = np.empty((n, channel_count), order="F")
+    streams.counters["channels"] = len(channels)
+    where = _bracket(settings, streams)
+    out = _Rows(n, nq, len(channels), keep_joints)
     corr = cell.corrections
-    chain = Chain(cell.robot)
-    direction: np.ndarray | None = None  # backlash: the joints' directions, known below
-    ranges = corr.map_ranges() if corr is not None else []
-    spans = [(j, r) for j, r in enumerate(ranges) if r is not None]
-    range_cols = [j for j, _r in spans]
-    range_low = np.array([r[0] for _j, r in spans])
-    range_high = np.array([r[1] for _j, r in spans])
-
-    def kinematics(lo: int) -> np.ndarray | None:
-        """The chunk's joints and measured errors; its joints back when the range flags
-        need them."""
-        rows = slice(lo, lo + CHUNK)
-        q0, q1 = Q[g0[rows]], Q[g[rows]]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            w = (target[rows] - t0[rows]) / (t1[rows] - t0[rows])
-            chunk = np.where(on_sample[rows, None], q1, q0 + w[:, None] * (q1 - q0))
-        chunk[~np.isfinite(chunk).all(axis=1)] = 0.0  # outside the encoder data: held
-        measured[rows] = measured_errors(
-            cell,
-            chain,
-            chunk,
-            P[rows],
-            None if quat is None else quat[rows],
-            None if direction is None else direction[rows],
-        )
-        if joints is not None:
-            joints[rows] = chunk
-        return chunk if spans else None
-
+    ranges = CalibratedRanges(corr)
+    kinematics = _Kinematics(cell, streams, where, out, bool(ranges))
     starts = range(0, n, CHUNK)
     backlash = corr is not None and bool(np.any(corr.backlash))
     # compliance: Pinocchio's gravity per row on the cell's one data object, in Python; one
@@ -633,98 +640,32 @@ def estimate_batch(
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="keo-batch")
     try:
         chunks_done: Iterator[np.ndarray | None] = iter([None] * len(starts))
-        if E.size and not backlash:
+        if streams.E.size and not backlash:
             chunks_done = pool.map(kinematics, starts)
-
-        # ---- when each sample is resolved, and interpolation's verdicts then
-        have, seen = _resolution(settings, streams, first_cover)
-        reason = _held_reasons(settings, E, have, target, (t0, t1, on_sample))
-        ok = reason == 0
-        if E.size and backlash:
-            direction = _directions(E, Q)[np.maximum(have - 1, 0)]
+        verdicts = _verdicts(settings, streams, where)
+        if streams.E.size and backlash:  # the directions need the verdicts' timing
+            kinematics.direction = directions(streams.E, streams.Q)[
+                np.maximum(verdicts.have - 1, 0)
+            ]
             chunks_done = pool.map(kinematics, starts)
-        flags = np.array(HELD_REASONS, dtype=object)[reason]
-        for code, name in enumerate(HELD_REASONS):
-            if code:
-                _count(counters, f"held_{name}", int(np.sum(reason == code)))
-
-        # ---- the observer's inputs over all updates
-        gains = np.asarray(settings.gains[: len(channels)], dtype=float)
-        upd = np.flatnonzero(ok)
-        every_row = upd.size == n
-        dt = np.empty(0)
-        if upd.size:
-            caps = _step_caps(settings, np.diff(T), seen[upd[1:]])
-            dt = np.minimum(np.diff(T[upd]), caps)  # dt[k - 1] leads to update k
-        else:
-            estimate.fill(0.0)
-        _count(counters, "estimates", upd.size)
-
-        # ---- chunk by chunk as the workers finish: held rows emptied, range flags, and the
-        # observer in order (in steps of OBSERVER_ROWS: the recursion's cost per call falls
-        # with its length)
-        state = np.zeros(channel_count)  # what rows before the first update carry
-        done_updates = 0  # updates before the rows observed next
-        observed = 0  # rows observed so far
+        observer = _Observer(settings, streams, verdicts, len(channels))
+        if not observer.upd.size:
+            out.estimate.fill(0.0)
         for start, chunk_joints in zip(starts, chunks_done, strict=True):
             hi = min(start + CHUNK, n)
-            rows = slice(start, hi)
-            held = ~ok[rows]  # every row when there is no encoder data (nothing computed)
-            if held.any():
-                measured[rows][held] = np.nan
-                if joints is not None:
-                    joints[rows][held] = np.nan
-            if not np.isfinite(measured[rows][~held]).all():
-                raise BatchUnsupportedError("the kinematics gave a non-finite error")
-            if chunk_joints is not None:
-                outside = ~held & np.any(
-                    (chunk_joints[:, range_cols] < range_low)
-                    | (chunk_joints[:, range_cols] > range_high),
-                    axis=1,
-                )
-                flags[rows][outside] = OUTSIDE_CALIBRATED_RANGE
-                _count(counters, OUTSIDE_CALIBRATED_RANGE, int(outside.sum()))
-            if hi - observed < OBSERVER_ROWS and hi < n:
-                continue
-            lo, observed = observed, hi
-            # the observer over these rows' updates; the state carries over
-            first = done_updates
-            last = hi if every_row else int(np.searchsorted(upd, hi))
-            if first == 0 and last > 0:
-                m0 = measured[upd[0]]
-                if settings.start == "first":
-                    state = m0.copy()
-                else:
-                    first_dt = 1.0 / settings.sample_rate_hz  # as if one period had passed
-                    state = -np.expm1(-gains * first_dt) * m0
-                estimate[upd[0]] = state
-                first = 1
-            if last > first:
-                update_rows: slice | np.ndarray = (
-                    slice(first, last) if every_row else upd[first:last]
-                )
-                alpha = -np.expm1(-gains[None, :] * dt[first - 1 : last - 1, None])
-                block = first_order_recursion(state, 1.0 - alpha, alpha * measured[update_rows])
-                estimate[update_rows] = block
-                state = block[-1]
-            if not every_row and upd.size:
-                # a held row carries the state of the newest update before it (these rows'
-                # or an earlier one's), zeros before the first update
-                held_rows = lo + np.flatnonzero(~ok[lo:hi])
-                newest_update = np.searchsorted(upd, held_rows) - 1
-                estimate[held_rows] = estimate[upd[np.maximum(newest_update, 0)]]
-                estimate[held_rows[newest_update < 0]] = 0.0
-            done_updates = last
+            _finish_chunk(slice(start, hi), verdicts, out, chunk_joints, ranges, streams.counters)
+            if hi - observer.observed >= OBSERVER_ROWS or hi == n:
+                observer.run_to(hi, out.measured, out.estimate)
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
     return BatchResult(
-        t=T,
-        measured=measured,
-        estimate=estimate,
-        flags=flags.tolist(),
-        encoder_t=target,
-        joints=joints,
+        t=streams.T,
+        measured=out.measured,
+        estimate=out.estimate,
+        flags=verdicts.flags.tolist(),
+        encoder_t=where.target,
+        joints=out.joints,
         channels=channels,
-        counters=counters,
+        counters=streams.counters,
         messages=streams.messages,
     )

@@ -1,9 +1,13 @@
-"""The estimator: validation, alignment, measured error and observer, one sample at a time.
+"""The streaming estimator: validation, alignment, measured error and observer, one sample
+at a time.
 
-One implementation serves `keo estimate` (files), `keo run` (live) and replay: samples go in
-as they arrive (any interleaving of the two streams, each in its own time order) and
-estimates come out. Only stream time stamps are used, never the wall clock, so the same
-input gives the same output however it is delivered. No I/O here.
+It serves `keo run` (live), replay, and `keo estimate --streaming` (and `keo estimate` for
+what the batch path does not cover: see `batch`). Samples go in as they arrive (any
+interleaving of the two streams, each in its own time order) and estimates come out. Only
+stream time stamps are used, never the wall clock, so the same input gives the same output
+however it is delivered. What it refuses, when it holds a step, the step cap, the joints'
+directions and the range flags are the rules of `rules`, which the batch path applies to
+whole recordings. No I/O here.
 """
 
 from __future__ import annotations
@@ -11,11 +15,9 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import statistics
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -29,17 +31,30 @@ from keo_service.core.kinematics import (
     measured_error,
     measured_error_folded,
 )
-from keo_service.core.observer import KinematicErrorObserver, finite_numbers
+from keo_service.core.observer import KinematicErrorObserver
 from keo_service.core.rejects import RejectLog
+from keo_service.core.rules import (
+    CAP_MIN_INTERVALS,
+    MAX_MESSAGES,
+    MAX_PENDING,
+    OBSERVER_REJECTED,
+    OUTSIDE_CALIBRATED_RANGE,
+    TRACKER_GAP,
+    CalibratedRanges,
+    cap_is_due,
+    direction_update,
+    encoder_reject,
+    held_reason,
+    sensor_values,
+    step_cap,
+    tracker_stamp_problem,
+    tracker_value_problem,
+    waits_for_encoder,
+)
 from keo_service.core.settings import EstimatorSettings, encoder_capacity
-from keo_service.core.timing import Coverage, DelayModel, EncoderBuffer
+from keo_service.core.timing import DelayModel, EncoderBuffer
 
-UNIT_QUATERNION_TOLERANCE = 1e-4
-DIRECTION_DEADBAND = 1e-4  # rad/s: a joint slower than this keeps its last direction
 DELAY_SLEW = 0.001  # a new delay is approached at this many s per s of stream time
-MAX_PENDING = 2048
-MAX_MESSAGES = 32
-OUTSIDE_CALIBRATED_RANGE = "outside_calibrated_range"
 
 
 class Estimate:
@@ -158,13 +173,8 @@ class Estimator:
         self._track_direction = cell.corrections is not None and bool(
             np.any(cell.corrections.backlash)
         )
-        # joint-angle maps hold their edge value outside the angles they were calibrated on:
-        # an estimate there is flagged (and counted), not extrapolated
-        ranges = cell.corrections.map_ranges() if cell.corrections is not None else []
-        spans = [(j, r) for j, r in enumerate(ranges) if r is not None]
-        self._map_joints = [j for j, _r in spans]
-        self._map_lo = np.array([r[0] for _j, r in spans])
-        self._map_hi = np.array([r[1] for _j, r in spans])
+        self._ranges = CalibratedRanges(cell.corrections)
+        self._check_ranges = bool(self._ranges)
         self._recent_dt: deque[float] = deque(maxlen=64)
         self._step_cap: float | None = None
         self._dt_seen = 0
@@ -215,17 +225,14 @@ class Estimator:
                 "encoder_wrong_length",
                 f"encoder sample at t={t!r}: {np.size(q)} joints, expected {self._nq}",
             )
-        if not (math.isfinite(t) and finite_numbers(values)):
-            return self._reject(*encoder_non_finite(t))
-        q_arr = np.array(values, dtype=float)  # our own copy: the buffer keeps it
         newest = self.encoder.newest_t
-        if not t > newest:
-            return self._reject(*encoder_stamp_problem(t, newest))
+        refused = encoder_reject(t, values, newest)
+        if refused is not None:
+            return self._reject(*refused)
+        q_arr = np.array(values, dtype=float)  # our own copy: the buffer keeps it
         if self._track_direction:
             if self._prev_q is not None:
-                step = q_arr - self._prev_q
-                moved = np.abs(step) > DIRECTION_DEADBAND * max(t - newest, 1e-6)
-                self._direction[moved] = np.sign(step[moved])
+                direction_update(self._direction, self._prev_q, q_arr, t - newest)
             self._prev_q = q_arr
         self.encoder.push(t, q_arr)
         self.counters["encoder_samples"] += 1
@@ -251,10 +258,9 @@ class Estimator:
             self._last_tracker_t = t
             self.counters["tracker_gaps"] += 1
             return self._enqueue(_TrackerSample(t, None, tag))
-        sensor = _sensor_values(p, quat)
+        sensor = sensor_values(p, quat)
         if isinstance(sensor, tuple):
-            counter, what = sensor
-            return self._reject(counter, f"tracker sample at t={t!r}: {what}")
+            return self._reject(*tracker_value_problem(t, sensor))
         channels = POSITION_CHANNELS if len(sensor) == 3 else POSE_CHANNELS
         if channels is not self.channels:  # a good sample: the same tuple, one comparison
             if self.channels is None:
@@ -305,16 +311,13 @@ class Estimator:
         return np.asarray(self.settings.gains[:n], dtype=float)
 
     def _max_step(self) -> float:
-        """The longest dt one update may use. After a gap, a single sample is one sample's
-        worth of measurement, not the whole gap's: cap at 3 typical periods (and max_dt_s).
-        The typical period is the median of the last 64 intervals, refreshed every 16."""
-        if len(self._recent_dt) < 8:
+        """The longest dt one update may use (`rules.step_cap`), cached as `rules.cap_is_due`
+        says."""
+        if len(self._recent_dt) < CAP_MIN_INTERVALS:
             return self.settings.max_dt_s
-        if self._step_cap is None or self._dt_seen % 16 == 0:
-            typical = statistics.median(self._recent_dt)  # np.median's value, a tenth the cost
-            if self.settings.alignment == "latest":  # updates come at the fixed rate
-                typical = max(typical, 1.0 / self.settings.sample_rate_hz)
-            self._step_cap = min(self.settings.max_dt_s, 3.0 * typical)
+        if cap_is_due(self._dt_seen, self._step_cap):
+            self._step_cap = step_cap(self.settings, self._recent_dt)
+        assert self._step_cap is not None
         return self._step_cap
 
     def _reject(self, counter: str, message: str) -> list[Estimate]:
@@ -347,7 +350,9 @@ class Estimator:
             if head.sensor is not None:
                 target = self._delay.encoder_time(head.t)
                 waited = self._last_tracker_t - head.t
-                if self.encoder.newest_t < target and waited <= self.settings.stale_after_s:
+                if waits_for_encoder(
+                    self.encoder.newest_t, target, waited, self.settings.stale_after_s
+                ):
                     break  # wait for the encoder stream to cover it
             self._pending.popleft()
             out.append(self._resolve(head))
@@ -355,16 +360,16 @@ class Estimator:
 
     def _resolve(self, sample: _TrackerSample) -> Estimate:
         if sample.sensor is None:
-            return self._held(sample.t, "tracker_gap", None, sample.tag)
+            return self._held(sample.t, TRACKER_GAP, None, sample.tag)
         target = self._delay.encoder_time(sample.t)
         return self._resolve_at(sample.t, target, sample.sensor, sample.tag)
 
     def _resolve_at(self, t: float, target: float, sensor: list[float], tag: object) -> Estimate:
         q = self.encoder.interpolate(target, self._max_gap_s)
-        if not isinstance(q, np.ndarray):
-            return self._held(t, _HELD_BECAUSE[q], target, tag)
-        if target < self.encoder.newest_t - self._buffer_s:
-            return self._held(t, "encoder_too_old", target, tag)
+        reason = held_reason(q, target, self.encoder.newest_t, self._buffer_s)
+        if reason is not None:
+            return self._held(t, reason, target, tag)
+        assert isinstance(q, np.ndarray)
         if self._folded_only is not None:
             measured = measured_error_folded(self._folded_only, self._folded_data, q, sensor)
         else:
@@ -401,20 +406,18 @@ class Estimator:
                 self.observer.update(measured, 1.0 / self.settings.sample_rate_hz)
         else:
             cap = self._step_cap
-            if cap is None or self._dt_seen % 16 == 0:
+            if cap is None or cap_is_due(self._dt_seen, cap):
                 cap = self._max_step()
             dt = t - self._last_update_t
             if not self.observer.update(measured, cap if dt > cap else dt):
-                self.counters["observer_rejected"] += 1
-                return self._held(t, "observer_rejected", encoder_t, tag)
+                self.counters[OBSERVER_REJECTED] += 1
+                return self._held(t, OBSERVER_REJECTED, encoder_t, tag)
         self._last_update_t = t
         self.counters["estimates"] += 1
         flags: tuple[str, ...] = ()
-        if self._map_joints:
-            q = joints[self._map_joints]
-            if np.any(q < self._map_lo) or np.any(q > self._map_hi):
-                flags = (OUTSIDE_CALIBRATED_RANGE,)
-                self.counters[OUTSIDE_CALIBRATED_RANGE] += 1
+        if self._check_ranges and self._ranges.outside(joints):
+            flags = (OUTSIDE_CALIBRATED_RANGE,)
+            self.counters[OUTSIDE_CALIBRATED_RANGE] += 1
         est = Estimate(
             t,
             measured,
@@ -448,10 +451,8 @@ class Estimator:
             if tau > newest_tracker:
                 break
             target = self._delay.encoder_time(tau)
-            if (
-                not final
-                and self.encoder.newest_t < target
-                and newest_tracker - tau <= self.settings.stale_after_s
+            if not final and waits_for_encoder(
+                self.encoder.newest_t, target, newest_tracker - tau, self.settings.stale_after_s
             ):
                 break
             out.append(self._tick(tau, target))
@@ -467,7 +468,7 @@ class Estimator:
         enc = self.encoder.latest_at_or_before(target)
         stale = self.settings.stale_after_s
         if trk is None or trk.sensor is None:
-            return self._held(tau, "tracker_gap", target)
+            return self._held(tau, TRACKER_GAP, target)
         if enc is None or target - enc[0] > stale:
             return self._held(tau, "encoder_stale", target)
         if tau - trk.t > stale:
@@ -476,86 +477,6 @@ class Estimator:
         if trk.tag is not None and not est.held:
             est.source = trk.tag
         return est
-
-
-_WRONG_LENGTH = ("tracker_wrong_length", "expected 3 position and 4 quaternion values")
-NON_FINITE_VALUE = ("tracker_non_finite", "non-finite value")
-_HELD_BECAUSE = {
-    Coverage.NOT_YET: "encoder_stale",
-    Coverage.EMPTY: "encoder_stale",
-    Coverage.TOO_OLD: "encoder_too_old",
-    Coverage.GAP: "encoder_gap",
-}
-
-
-# ---- the estimator's words for what it refuses (counter, message); the batch path says the
-# same, so they live here once
-
-
-def encoder_non_finite(t: float) -> tuple[str, str]:
-    return "encoder_non_finite", f"encoder sample at t={t!r}: non-finite time or joint value"
-
-
-def encoder_stamp_problem(t: float, newest: float) -> tuple[str, str]:
-    """A finite encoder stamp that is not newer than the newest accepted one."""
-    if t == newest:
-        return "encoder_duplicate", f"encoder sample at t={t!r}: duplicate stamp"
-    return "encoder_out_of_order", f"encoder sample at t={t!r}: older than the newest ({newest!r})"
-
-
-def tracker_stamp_problem(t: float, last: float) -> tuple[str, str]:
-    """Why a tracker stamp is refused: not finite, or not newer than the last accepted one."""
-    if not math.isfinite(t):
-        return "tracker_non_finite", f"tracker sample: non-finite time {t!r}"
-    if t == last:
-        return "tracker_duplicate", f"tracker sample at t={t!r}: duplicate stamp"
-    return (
-        "tracker_out_of_order",
-        f"tracker sample at t={t!r}: older than the previous one ({last!r})",
-    )
-
-
-def not_unit_quaternion(norm: float) -> tuple[str, str]:
-    return "tracker_not_unit_quaternion", f"quaternion norm {norm:.6g}, expected 1"
-
-
-def _sensor_values(
-    p: Sequence[float] | np.ndarray, quat: Sequence[float] | np.ndarray | None
-) -> list[float] | tuple[str, str]:
-    """The tracker's pose as [x, y, z, qx, qy, qz, qw] (unit quaternion) or [x, y, z], or
-    (counter, what is wrong) for a bad one. Checked on plain floats: for a good sample this
-    costs less than one numpy call."""
-    try:
-        x, y, z = p.tolist() if type(p) is np.ndarray else p
-        if quat is None:
-            qw, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
-        else:
-            qw, qx, qy, qz = quat.tolist() if type(quat) is np.ndarray else quat
-    except (TypeError, ValueError):  # not 3 (and 4) values
-        return _WRONG_LENGTH
-    try:
-        finite = math.isfinite(x + y + z + qw + qx + qy + qz)
-    except TypeError:
-        finite = False
-    if not finite:
-        values = (x, y, z, qw, qx, qy, qz)
-        if not all(_finite(v) for v in values):
-            return NON_FINITE_VALUE
-        x, y, z, qw, qx, qy, qz = (float(v) for v in values)
-    if quat is None:
-        return [x, y, z]
-    norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    if abs(norm - 1.0) > UNIT_QUATERNION_TOLERANCE:
-        return not_unit_quaternion(norm)
-    return [x, y, z, qx / norm, qy / norm, qz / norm, qw / norm]
-
-
-def _finite(value: Any) -> bool:
-    """A finite number (a huge but finite sum lands here, as does a non-number)."""
-    try:
-        return math.isfinite(float(value))
-    except (TypeError, ValueError):
-        return False
 
 
 def run_offline(

@@ -1,4 +1,4 @@
-"""Robot models and the measured kinematic error (DESIGN.md section 1). No I/O beyond the URDF.
+"""Robot models and the measured kinematic error (docs/design.md §1). No I/O beyond the URDF.
 
 Pinocchio style: a `Cell` is data (robot model, tool and tracker registration); the
 algorithms are free functions over `(cell, data, ...)`.

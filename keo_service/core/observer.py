@@ -1,4 +1,4 @@
-"""The Kinematic Error Observer (DESIGN.md section 2) and its analytic properties. No I/O.
+"""The Kinematic Error Observer (docs/design.md §2) and its analytic properties. No I/O.
 
 Model: de/dt = 0, e_m = e + n. Observer: de_hat/dt = L (e_m - e_hat), L = diag(L_i) > 0.
 Each step is discretized exactly for its own dt (zero-order hold on the new measurement):

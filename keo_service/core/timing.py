@@ -1,4 +1,4 @@
-"""Time alignment of the encoder and tracker streams (DESIGN.md section 3). No I/O.
+"""Time alignment of the encoder and tracker streams (docs/design.md §3). No I/O.
 
 The tracker's sample stamped t saw the tool at encoder time t - delay(t), with
 delay(t) = offset + drift * (t - t_ref). `interpolate` evaluates the joints there from a

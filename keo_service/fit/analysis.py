@@ -22,6 +22,7 @@ from scipy.stats import median_abs_deviation
 
 from keo_service.core.chain import Chain, times_constant_frames
 from keo_service.core.corrections import Corrections
+from keo_service.core.errors import KeoError
 from keo_service.core.kinematics import RobotModel
 from keo_service.core.rotations import log3_many, transposed_times
 from keo_service.fit.diagnostics import describe_null_space, repeatability
@@ -33,7 +34,7 @@ NOISE_MARGIN = 2.0  # a residual above this many times the data's repeatability 
 RANK_TOL = 1e-3  # relative singular value below which a direction counts as unidentifiable
 
 
-class NotIdentifiableError(Exception):
+class NotIdentifiableError(KeoError):
     """The data cannot determine what was asked (e.g. registration from one moving joint)."""
 
 

@@ -27,6 +27,7 @@ import numpy as np
 
 from keo_service.core.batch import CHUNK, tool_frames
 from keo_service.core.chain import Chain
+from keo_service.core.errors import KeoError
 from keo_service.core.kinematics import Cell
 from keo_service.core.rotations import log3_many, quaternion_matrices
 
@@ -36,7 +37,7 @@ MIN_SPEED = 0.005  # m/s: slower than this is "at rest"
 MAX_SE_S = 0.002  # refuse when the delay's standard error is larger than this
 
 
-class DelayNotIdentifiableError(Exception):
+class DelayNotIdentifiableError(KeoError):
     """The recorded motion cannot determine the delay; the message says why."""
 
 

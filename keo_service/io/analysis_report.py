@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 from keo_service.core.chain import Chain
 from keo_service.core.corrections import approach_directions, persist_directions
 from keo_service.core.errors import KeoError
+from keo_service.core.rules import DIRECTION_DEADBAND
 from keo_service.core.timing import DelayModel
 from keo_service.fit.analysis import (
     EFFECTS,
@@ -35,8 +36,6 @@ from keo_service.fit.diagnostics import residual_components
 from keo_service.io.cell import cell_from_config, delay_model, robot_from_config
 from keo_service.io.config import Config, ModelConfig, config_to_toml
 from keo_service.io.interchange import read_encoder, read_tracker
-
-DIRECTION_DEADBAND = 1e-4  # rad/s: slower joints count as not moving
 
 
 def load_data(

@@ -1,4 +1,4 @@
-"""The TOML config (DESIGN.md section 6), read with tomllib and validated with msgspec.
+"""The TOML config (docs/design.md §6), read with tomllib and validated with msgspec.
 
 Every key is optional except `robot.urdf`; unknown keys are errors. Errors name the key.
 Relative paths are resolved against the config file's folder.
@@ -6,6 +6,7 @@ Relative paths are resolved against the config file's folder.
 
 from __future__ import annotations
 
+import difflib
 import re
 import tomllib
 from pathlib import Path
@@ -80,6 +81,8 @@ class RobotConfig(_Section):
     frequency_hz: Annotated[float, msgspec.Meta(gt=0.0, le=500.0)] = 500.0
     # ros2: joints picked by name into the URDF's order
     joint_states_topic: RosTopic = "/joint_states"
+    # a connected controller that sends nothing for this long is reported silent (log, status)
+    silent_after_s: Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)] = 2.0
 
     def __post_init__(self) -> None:
         if self.port == 0:
@@ -113,6 +116,8 @@ class TrackerConfig(_Section):
     # distance from the tracker (a datasheet's "15 um + 6 um/m")
     uncertainty_um: Annotated[float, msgspec.Meta(ge=0.0, le=1e5)] = 15.0
     uncertainty_um_per_m: Annotated[float, msgspec.Meta(ge=0.0, le=1e4)] = 6.0
+    # a connected tracker that sends nothing for this long is reported silent (log, status)
+    silent_after_s: Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)] = 2.0
 
     def __post_init__(self) -> None:
         if self.clock is None:
@@ -120,7 +125,7 @@ class TrackerConfig(_Section):
 
 
 class Ros2Config(_Section):
-    """rmw_zenoh's wire format on keo's own Zenoh sessions (DESIGN.md section 6)."""
+    """rmw_zenoh's wire format on keo's own Zenoh sessions (docs/design.md §6)."""
 
     enabled: bool = False
     domain_id: Annotated[int, msgspec.Meta(ge=0, le=232)] = 0
@@ -128,7 +133,12 @@ class Ros2Config(_Section):
     publish_tf: bool = False
 
 
+# the observer's channels: the error's three translations and three rotations
+GAIN_CHANNELS = ("px", "py", "pz", "rx", "ry", "rz")
+
+
 class ObserverConfig(_Section):
+    # one gain (1/s) per channel; a single number in the file is the same gain on every channel
     gain: Annotated[list[Gain], msgspec.Meta(min_length=6, max_length=6)] = msgspec.field(
         default_factory=lambda: list(_DEFAULTS.gains)
     )
@@ -144,7 +154,7 @@ class TimingConfig(_Section):
     drift_ref_s: float = 0.0
     alignment: Literal["interpolate", "latest"] = "interpolate"
     sample_rate_hz: Annotated[float, msgspec.Meta(gt=0.0, le=10000.0)] = _DEFAULTS.sample_rate_hz
-    # follow the delay online while the tool moves, starting from delay_s (DESIGN.md §6)
+    # follow the delay online while the tool moves, starting from delay_s (docs/design.md §6)
     track_delay: bool = True
     # Encoder samples kept for alignment, in seconds of stream time.
     buffer_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = _DEFAULTS.buffer_s
@@ -233,17 +243,57 @@ _UNKNOWN_RE = re.compile(r"Object contains unknown field `(?P<field>[^`]+)`")
 _MISSING_RE = re.compile(r"Object missing required field `(?P<field>[^`]+)`")
 
 
+def known_keys(path: str) -> list[str]:
+    """The keys a section of the config accepts ("" for the top level, "robot", "bus", ...)."""
+    kind: object = Config
+    for part in path.split(".") if path else []:
+        fields = {f.name: f.type for f in msgspec.structs.fields(kind)}  # type: ignore[arg-type]
+        kind = fields.get(part)
+        if not (isinstance(kind, type) and issubclass(kind, msgspec.Struct)):
+            return []
+    return [f.name for f in msgspec.structs.fields(kind) if f.name != "source"]  # type: ignore[arg-type]
+
+
+def _did_you_mean(path: str, field: str) -> str:
+    close = difflib.get_close_matches(field, known_keys(path), n=1, cutoff=0.6)
+    return f"unknown key; did you mean '{close[0]}'?" if close else "unknown key"
+
+
 def _explain(exc: msgspec.ValidationError, source: str) -> ConfigError:
     text = str(exc)
     match = _PATH_RE.search(text)
     path = match.group("path") if match else ""
     what = text[: match.start()] if match else text
-    for pattern, verb in ((_UNKNOWN_RE, "unknown key"), (_MISSING_RE, "required key is missing")):
-        m = pattern.search(what)
-        if m:
-            key = f"{path}.{m.group('field')}" if path else m.group("field")
-            return ConfigError(source, key, verb)
+    m = _UNKNOWN_RE.search(what)
+    if m:
+        key = f"{path}.{m.group('field')}" if path else m.group("field")
+        return ConfigError(source, key, _did_you_mean(path, m.group("field")))
+    m = _MISSING_RE.search(what)
+    if m:
+        key = f"{path}.{m.group('field')}" if path else m.group("field")
+        return ConfigError(source, key, "required key is missing")
     return ConfigError(source, path or "(top level)", f"{what}")
+
+
+def _expand_gain(data: dict[str, object], source: str) -> dict[str, object]:
+    """`observer.gain` as one number: the same gain on every channel. A list must give one
+    gain per channel; say why when its length is wrong."""
+    observer = data.get("observer")
+    if not isinstance(observer, dict) or "gain" not in observer:
+        return data
+    gain = observer["gain"]
+    n = len(GAIN_CHANNELS)
+    if isinstance(gain, int | float) and not isinstance(gain, bool):
+        return {**data, "observer": {**observer, "gain": [gain] * n}}
+    if isinstance(gain, list) and len(gain) != n:
+        raise ConfigError(
+            source,
+            "observer.gain",
+            f"{len(gain)} values; give one number (the same gain on every channel) or a list "
+            f"of length {n}, one gain (1/s) per channel {', '.join(GAIN_CHANNELS)}: the "
+            "observer follows the error's three translations and three rotations separately",
+        )
+    return data
 
 
 def parse_config(
@@ -252,6 +302,7 @@ def parse_config(
     """Validate a parsed TOML document; resolve relative paths against `base_dir`."""
     if "source" in data:
         raise ConfigError(source, "source", "unknown key")
+    data = _expand_gain(data, source)
     try:
         config = msgspec.convert(data, Config)
     except msgspec.ValidationError as exc:

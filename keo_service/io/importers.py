@@ -1,6 +1,6 @@
-"""`keo import`: outside data sets to the interchange files (DESIGN.md section 5).
+"""`keo import`: outside data sets to the interchange files (docs/design.md §5).
 
-ur10-lasertracker (shared/data/ur10_lasertracker): static stop-and-measure poses of a UR10 with
+ur10-lasertracker (data/ur10_lasertracker): static stop-and-measure poses of a UR10 with
 a Leica 6-DoF probe. `;`-separated, decimal comma; positions in mm, orientation as intrinsic
 XYZ Euler angles in degrees (R = Rx(rx) Ry(ry) Rz(rz)). Each pose becomes one encoder row and
 one tracker row at the same t; temperature is kept as an extra tracker column.

@@ -1,4 +1,4 @@
-"""The recording interchange (DESIGN.md section 5): encoder.csv, tracker.csv, truth.csv and
+"""The recording interchange (docs/design.md §5): encoder.csv, tracker.csv, truth.csv and
 estimate files. Plain CSV with a header row; SI units; quaternions scalar first.
 
 Readers check the format and raise DataFormatError naming file, line and column. Values that

@@ -71,8 +71,23 @@ def open_session(
     return zenoh.open(make_zenoh_config(mode, listen, connect, multicast, tls))
 
 
-def _unreachable(endpoints: Sequence[str], exc: Exception) -> KeoError:
-    return KeoError(f"cannot reach the bus at {list(endpoints)}: {exc}")
+def _zenoh_reason(exc: Exception) -> str:
+    """Zenoh's error text without the Rust source location it ends with."""
+    text = str(exc).split(" at /", 1)[0].strip().rstrip("!.").strip()
+    return "" if text.startswith("Unable to connect to any of") else text
+
+
+def _unreachable(endpoints: Sequence[str], exc: Exception, waited: float | None) -> KeoError:
+    """One readable sentence: where, for how long, and which settings decide it."""
+    reason = _zenoh_reason(exc)
+    return KeoError(
+        f"cannot reach the bus at {', '.join(endpoints)}"
+        + (f" ({reason})" if reason else "")
+        + (f" within {waited:g} s" if waited is not None else "")
+        + ": nothing answers there (start `keo run` or a Zenoh router, or fix the config's "
+        "bus.connect, or bus.listen when connect is empty; a client's connect_timeout_s sets "
+        "how long it keeps trying)"
+    )
 
 
 def _log_retry(endpoints: Sequence[str], started: float, delay: float) -> None:
@@ -97,7 +112,7 @@ def open_client(
         except zenoh.ZError as exc:
             delay = backoff.next_delay()
             if retry_for is not None and time.monotonic() + delay > started + retry_for:
-                raise _unreachable(endpoints, exc) from None
+                raise _unreachable(endpoints, exc, retry_for) from None
             _log_retry(endpoints, started, delay)
             time.sleep(delay)
 
@@ -118,7 +133,7 @@ async def open_client_async(
         except zenoh.ZError as exc:
             delay = backoff.next_delay()
             if retry_for is not None and time.monotonic() + delay > started + retry_for:
-                raise _unreachable(endpoints, exc) from None
+                raise _unreachable(endpoints, exc, retry_for) from None
             _log_retry(endpoints, started, delay)
             await asyncio.sleep(delay)
 

@@ -19,6 +19,7 @@ behind); the caller's code runs on its own loop or thread, never on Zenoh's.
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 from collections.abc import AsyncIterator, Iterator, Sequence
 from pathlib import Path
@@ -79,6 +80,24 @@ def _query(session: zenoh.Session, key: str, kind: type[_M], timeout: float) -> 
         if time.monotonic() >= deadline:
             return None
         time.sleep(min(0.1, max(0.0, deadline - time.monotonic())))
+
+
+def query_adapters(session: zenoh.Session, cell: str, timeout: float) -> dict[str, dict[str, Any]]:
+    """Each adapter's own status (keo/<cell>/adapter/<name>/status, JSON): its state, rate,
+    counters and newest reject messages, by adapter name. Adapters that do not answer within
+    `timeout` are missing."""
+    out: dict[str, dict[str, Any]] = {}
+    for reply in session.get(topic(cell, "adapter/*/status"), timeout=timeout):
+        if reply.ok is None:
+            continue
+        name = str(reply.ok.key_expr).split("/")[-2]
+        try:
+            doc = json.loads(reply.ok.payload.to_bytes())
+        except ValueError:
+            continue
+        if isinstance(doc, dict):
+            out[str(doc.get("adapter", name))] = doc
+    return dict(sorted(out.items()))
 
 
 class _Settings(msgspec.Struct, frozen=True):
@@ -147,7 +166,8 @@ class Client(_ClientBase):
     """An async context manager that owns one Zenoh client session and its subscriptions.
 
     `endpoint`: where the service (or a router) listens, e.g. "tcp/127.0.0.1:7447".
-    `connect_timeout_s`: how long to keep trying to reach it (None: until it answers).
+    `connect_timeout_s`: how long to keep trying to reach it (default 20 s; None: until it
+    answers); then `ClientError`, a `KeoError` whose text says where and what to check.
     `queue_size`: samples buffered per iteration before the oldest is dropped.
     """
 
@@ -155,9 +175,12 @@ class Client(_ClientBase):
         if self._session is not None:
             raise ClientError("this Client is already open (it is not re-entrant)")
         s = self._settings
-        self._session = await open_client_async(
-            s.endpoints, s.multicast, s.tls, retry_for=s.connect_timeout_s
-        )
+        try:
+            self._session = await open_client_async(
+                s.endpoints, s.multicast, s.tls, retry_for=s.connect_timeout_s
+            )
+        except KeoError as exc:
+            raise ClientError(str(exc)) from None
         return self
 
     async def __aexit__(self, *exc: object) -> None:
@@ -201,6 +224,11 @@ class Client(_ClientBase):
             _query, session, topic(self.cell, "estimate"), EstimateMessage, timeout
         )
 
+    async def adapters(self, timeout: float = 2.0) -> dict[str, dict[str, Any]]:
+        """Each adapter's own status by name (see `query_adapters`)."""
+        session = self._open_session()
+        return await asyncio.to_thread(query_adapters, session, self.cell, timeout)
+
     async def status(self, timeout: float = 5.0) -> ServiceStatus:
         """The service's status; ClientError when no service answers within `timeout`."""
         session = self._open_session()
@@ -217,7 +245,12 @@ class SyncClient(_ClientBase):
 
     def __enter__(self) -> Self:
         s = self._settings
-        self._session = open_client(s.endpoints, s.multicast, s.tls, retry_for=s.connect_timeout_s)
+        try:
+            self._session = open_client(
+                s.endpoints, s.multicast, s.tls, retry_for=s.connect_timeout_s
+            )
+        except KeoError as exc:
+            raise ClientError(str(exc)) from None
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -249,6 +282,10 @@ class SyncClient(_ClientBase):
 
     def latest(self, timeout: float = 2.0) -> EstimateMessage | None:
         return _query(self._open_session(), topic(self.cell, "estimate"), EstimateMessage, timeout)
+
+    def adapters(self, timeout: float = 2.0) -> dict[str, dict[str, Any]]:
+        """Each adapter's own status by name (see `query_adapters`)."""
+        return query_adapters(self._open_session(), self.cell, timeout)
 
     def status(self, timeout: float = 5.0) -> ServiceStatus:
         key = topic(self.cell, "status")

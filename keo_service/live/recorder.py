@@ -43,6 +43,8 @@ from keo_service.live.supervise import supervise
 
 log = logging.getLogger("keo.record")
 FLUSH_PERIOD_S = 1.0
+# a stream with nothing for this long while the other still sends has stopped: warned, counted
+STREAM_STOPPED_S = 2.0
 
 
 @dataclass
@@ -52,6 +54,7 @@ class RecordStats:
     tracker_gaps: int = 0
     rejected: int = 0
     messages: list[str] = field(default_factory=list)
+    stream_stops: int = 0  # one stream stopped while the other went on (see messages)
 
 
 class _StreamRecorder:
@@ -60,6 +63,30 @@ class _StreamRecorder:
     def __init__(self, nq: int) -> None:
         self.nq = nq
         self.stats = RecordStats()
+        self.last_seen: dict[str, float] = {}  # stream -> monotonic time of its newest sample
+        self._stopped: set[str] = set()
+
+    def check_streams(self, now: float) -> None:
+        """Warn (once per stop) when one stream has stopped while the other goes on: the rows
+        recorded from then on have no partner to be aligned with."""
+        if len(self.last_seen) < 2:
+            return
+        for name, other in (("encoder", "tracker"), ("tracker", "encoder")):
+            quiet = now - self.last_seen[name]
+            if quiet >= STREAM_STOPPED_S and now - self.last_seen[other] < STREAM_STOPPED_S / 2:
+                if name not in self._stopped:
+                    self._stopped.add(name)
+                    self.stats.stream_stops += 1
+                    text = (
+                        f"the {name} stream stopped {quiet:.1f} s ago while the {other} stream "
+                        f"goes on: {other} rows from then on have no {name} data to align with"
+                    )
+                    log.warning("%s", text)
+                    if len(self.stats.messages) < 20:
+                        self.stats.messages.append(text)
+            elif quiet < STREAM_STOPPED_S and name in self._stopped:
+                self._stopped.discard(name)
+                log.info("the %s stream is back", name)
 
     def _note(self, text: str) -> None:
         self.stats.rejected += 1
@@ -72,6 +99,10 @@ class _StreamRecorder:
         except msgspec.DecodeError as exc:
             self._note(f"undecodable payload: {exc}")
             return
+        if isinstance(msg, JointSample | TrackerSample):
+            self.last_seen["encoder" if isinstance(msg, JointSample) else "tracker"] = (
+                time.monotonic()
+            )
         if isinstance(msg, JointSample):
             if len(msg.q) != self.nq:
                 self._note(
@@ -200,6 +231,7 @@ async def record(
         while True:
             await asyncio.sleep(FLUSH_PERIOD_S / 2)
             recorder.maybe_flush()
+            recorder.check_streams(time.monotonic())
 
     failures: list[BaseException] = []
 

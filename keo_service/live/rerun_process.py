@@ -8,7 +8,8 @@ the buffer to a pipe, a few times a second, without ever blocking; this module's
 as `python -m keo_service.live.rerun_process`, reads the pipe and runs the `RerunSink`.
 
 The pipe carries frames: a 4-byte little-endian length, then the payload. The first payload
-is the pickled `(cell, rrd, viewer)` from the parent; then msgpack arrays, an estimate as
+is the pickled `(cell, rrd, viewer, options)` from the parent (options: the URDF for its
+meshes, the plots' time window); then msgpack arrays, an estimate as
 `["e", t, measured | None, estimate, flags, joints | None, channels]`, a status snapshot as
 `["s", {...}]`. End of file is the only stop: the child ignores SIGINT and SIGTERM (a
 supervisor that signals the whole group stops the service, and the service closes the pipe),
@@ -23,20 +24,23 @@ import os
 import pickle
 import select
 import signal
+import socket
 import subprocess
 import sys
 import time
+import urllib.parse
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import msgspec
 import numpy as np
 
+from keo_service.core.errors import KeoError
 from keo_service.core.estimator import Estimate
 from keo_service.core.kinematics import Cell
 from keo_service.live.systemd import JsonFormatter, setup_logging
 
-__all__ = ["RerunWorker", "main"]
+__all__ = ["OpenedViewer", "RerunWorker", "main", "open_viewer"]
 
 log = logging.getLogger("keo.rerun")
 
@@ -44,8 +48,14 @@ HEADER = 4  # bytes of a frame's length
 WRITE_AT = 16_384  # buffered bytes that trigger a write (about 60 estimates)
 MAX_BUFFER = 4 << 20  # buffered bytes at most (about 15 s at 1 kHz); newer estimates dropped
 READ_SIZE = 1 << 20
-FLUSH_PERIOD_S = 0.1  # the child's flushes to Rerun: display rate
+FLUSH_PERIOD_S = 0.1  # the child's flushes to Rerun with a viewer: display rate
+# to a file alone, a batch a second: a tenth of the chunks (and their schemas and row
+# headers); a minute at 1 kHz measured 18.3 -> 13.7 MiB
+FILE_FLUSH_PERIOD_S = 1.0
 NICENESS = 10  # added to the child's nice value
+VIEWER_KINDS = ("auto", "native", "web")  # what `--viewer` takes besides a URL
+VIEWER_START_S = 30.0  # a viewer's gRPC port must accept within this
+WEB_SERVER_MEMORY = "512MiB"  # what the web viewer's server keeps for late browsers
 
 
 def _frame(payload: bytes) -> bytes:
@@ -64,8 +74,11 @@ class RerunWorker:
         rrd: Path | None = None,
         viewer: str | None = None,
         max_buffer: int = MAX_BUFFER,
+        urdf: str | Path | None = None,
+        window_s: float | None = None,
     ) -> None:
-        self._init = pickle.dumps((cell, None if rrd is None else str(rrd), viewer))
+        options = {"urdf": None if urdf is None else str(urdf), "window_s": window_s}
+        self._init = pickle.dumps((cell, None if rrd is None else str(rrd), viewer, options))
         self._max_buffer = max_buffer
         self._buffer = bytearray()
         self._unsent = 0  # bytes buffered since the last write was tried
@@ -178,6 +191,105 @@ class RerunWorker:
             proc.wait()
 
 
+@dataclass
+class OpenedViewer:
+    """A viewer keo started: `grpc_url` is where the recording goes (`--viewer URL`'s
+    meaning), `url` what a person opens (the web page, or the gRPC URL of a native viewer)."""
+
+    kind: str
+    grpc_url: str
+    url: str
+    process: subprocess.Popen[bytes] | None
+
+    def close(self) -> None:
+        """Stop a web viewer's server (a native viewer's window stays: the person closes it)."""
+        proc = self.process
+        if proc is None or self.kind != "web":
+            return
+        # the whole group: `python -m rerun_cli` runs Rerun's binary as its own child
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGTERM)
+        deadline = time.monotonic() + 5.0
+        while _group_alive(proc.pid) and time.monotonic() < deadline:
+            proc.poll()  # reaps the wrapper once it exits
+            time.sleep(0.05)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def has_display() -> bool:
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def grpc_url(host: str, port: int) -> str:
+    return f"rerun+http://{host}:{port}/proxy"
+
+
+def web_url(host: str, web_port: int, grpc: str) -> str:
+    return f"http://{host}:{web_port}/?url={urllib.parse.quote(grpc, safe='')}"
+
+
+def _accepts(host: str, port: int) -> bool:
+    with contextlib.suppress(OSError), socket.create_connection((host, port), timeout=0.5):
+        return True
+    return False
+
+
+def open_viewer(
+    kind: str = "auto", grpc_port: int = 9876, web_port: int = 9090, bind: str = "127.0.0.1"
+) -> OpenedViewer:
+    """Start Rerun's viewer for a live stream: `native` (a window; `auto` picks it when a
+    display is there) listening on `grpc_port`, or `web`: Rerun's server for the web viewer,
+    gRPC on `grpc_port` and the page on `web_port`, bound to `bind` (loopback by default:
+    from another machine, tunnel both ports). Returns once the gRPC port accepts (a sink
+    that connects earlier waits seconds and then fails). A native viewer already listening
+    on the port is used as it is. Raises KeoError when the viewer does not come up."""
+    if kind not in VIEWER_KINDS:
+        raise KeoError(f"--viewer: '{kind}' is none of {', '.join(VIEWER_KINDS)} nor a URL")
+    if kind == "auto":
+        kind = "native" if has_display() else "web"
+    host = "127.0.0.1" if bind in ("0.0.0.0", "::") else bind
+    grpc = grpc_url(host, grpc_port)
+    if kind == "native" and _accepts(host, grpc_port):
+        log.info("a Rerun viewer already listens on %s; streaming to it", grpc)
+        return OpenedViewer(kind, grpc, grpc, None)
+    cli = [sys.executable, "-m", "rerun_cli", "--bind", bind, "--port", str(grpc_port)]
+    if kind == "web":
+        cli += ["--serve-web", "--web-viewer-port", str(web_port)]
+        cli += ["--server-memory-limit", WEB_SERVER_MEMORY]
+    else:
+        cli += ["--expect-data-soon"]
+    proc = subprocess.Popen(
+        cli,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        start_new_session=True,  # a group of its own: a window outlives keo, and close()
+    )  # stops a web server's group (the wrapper and Rerun's binary)
+    deadline = time.monotonic() + VIEWER_START_S
+    while not _accepts(host, grpc_port):
+        if proc.poll() is not None:
+            raise KeoError(f"the Rerun viewer exited with code {proc.returncode} at start")
+        if time.monotonic() > deadline:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            raise KeoError(f"the Rerun viewer did not listen on {grpc} within {VIEWER_START_S:g} s")
+        time.sleep(0.1)
+    url = web_url(host, web_port, grpc) if kind == "web" else grpc
+    return OpenedViewer(kind, grpc, url, proc)
+
+
 # ---- the child -------------------------------------------------------------------------------
 
 
@@ -213,7 +325,7 @@ def _read_frames(fd: int, frames: _Frames, timeout: float | None) -> list[bytes]
 
 
 def _serve(fd: int) -> None:
-    from keo_service.live.rerun_sink import RerunSink  # rerun: only in this process
+    from keo_service.live.rerun_sink import WINDOW_S, RerunSink  # rerun: only in this process
 
     frames = _Frames()
     pending: list[bytes] = []
@@ -222,16 +334,23 @@ def _serve(fd: int) -> None:
         if got is None:
             return  # closed before it began
         pending = got
-    cell, rrd, viewer = pickle.loads(pending.pop(0))  # from our own parent
-    sink = RerunSink(cell, rrd=None if rrd is None else Path(rrd), viewer=viewer)
+    cell, rrd, viewer, options = pickle.loads(pending.pop(0))  # from our own parent
+    window_s = options.get("window_s")
+    sink = RerunSink(
+        cell,
+        rrd=None if rrd is None else Path(rrd),
+        viewer=viewer,
+        urdf=options.get("urdf"),
+        window_s=WINDOW_S if window_s is None else window_s,
+    )
     decode = msgspec.msgpack.Decoder().decode
-    status: dict[str, Any] | None = None
-    next_flush = time.monotonic() + FLUSH_PERIOD_S
+    period = FLUSH_PERIOD_S if viewer is not None else FILE_FLUSH_PERIOD_S
+    next_flush = time.monotonic() + period
     while True:
         for payload in pending:
             item = decode(payload)
-            if item[0] == "s":
-                status = item[1]
+            if item[0] == "s":  # every snapshot: rates and events at the status period
+                sink.add_status(item[1])
                 continue
             _kind, t, measured, estimate, flags, joints, channels = item
             sink.add(
@@ -246,14 +365,12 @@ def _serve(fd: int) -> None:
                 )
             )
         if time.monotonic() >= next_flush:
-            sink.flush(status)
-            status = None
-            next_flush = time.monotonic() + FLUSH_PERIOD_S
+            sink.flush()
+            next_flush = time.monotonic() + period
         got = _read_frames(fd, frames, max(0.0, next_flush - time.monotonic()))
         if got is None:
             break
         pending = got
-    sink.flush(status)
     sink.close()
 
 

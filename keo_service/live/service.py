@@ -54,6 +54,7 @@ def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 if TYPE_CHECKING:
     from keo_service.fit.delay import OnlineDelayTracker
+    from keo_service.live.compensation import CorrectionPublisher
     from keo_service.live.rerun_process import RerunWorker
     from keo_service.live.ros2_bridge import EstimateBridge
 
@@ -92,6 +93,7 @@ class KeoService:
         session: zenoh.Session | None = None,
         rrd: Path | None = None,
         viewer: str | None = None,
+        viewer_window_s: float | None = None,
     ) -> None:
         self.config = config
         self.cell = config.cell
@@ -106,9 +108,12 @@ class KeoService:
         if rrd is not None or viewer is not None:
             from keo_service.live.rerun_process import RerunWorker
 
-            self._viz = RerunWorker(cell, rrd=rrd, viewer=viewer)
+            self._viz = RerunWorker(
+                cell, rrd=rrd, viewer=viewer, urdf=config.robot.urdf, window_s=viewer_window_s
+            )
         self._noise = NoiseMeter()
         self._ros2: EstimateBridge | None = None
+        self._corrections: CorrectionPublisher | None = None
         self._own_session = session is None
         self._session = session
         self._stop = asyncio.Event()
@@ -140,6 +145,11 @@ class KeoService:
             from keo_service.live.ros2_bridge import EstimateBridge
 
             self._ros2 = EstimateBridge(s, self.config)
+        from keo_service.live.compensation import CorrectionPublisher
+
+        self._corrections = CorrectionPublisher(
+            self.config, s, None if self._ros2 is None else self._ros2.node
+        )
         self._sub = AsyncSubscription(s, [topic(self.cell, "encoder"), topic(self.cell, "tracker")])
         self._refresh_status()
         self._start(self._consume(), "keo.service.consume")
@@ -162,6 +172,8 @@ class KeoService:
         self._status_q.undeclare()
         self._latest_q.undeclare()
         self._estimate_pub.undeclare()
+        if self._corrections is not None:
+            self._corrections.close()
         if self._ros2 is not None:
             self._ros2.close()
         if self._viz is not None:
@@ -210,6 +222,8 @@ class KeoService:
             if isinstance(msg, JointSample):
                 self._rates["encoder"].tick(now)
                 out = self.estimator.on_encoder(msg.t, msg.q)
+                if self._corrections is not None:  # with a model: feedforward at these joints
+                    self._corrections.on_joints(msg.t, msg.q)
                 if self._delay_tracker is not None:
                     self._delay_tracker.add_encoder(
                         msg.t, msg.q, msg.clock_epoch, msg.seq, bool(msg.flags)
@@ -243,6 +257,8 @@ class KeoService:
                 )
         self._latest_bytes = payload
         self.published += 1
+        if self._corrections is not None:
+            self._corrections.publish(estimate, self.estimator)
         if self._ros2 is not None and estimate.measured is not None:
             self._noise.add(estimate.measured)
             gains = self.config.observer.gain
@@ -297,6 +313,8 @@ class KeoService:
         counters["publish_failed"] = self.publish_failures
         if self._viz is not None:
             counters["rerun_dropped"] = self._viz.dropped
+        if self._corrections is not None:
+            counters.update(self._corrections.counters)
         if self._delay_tracker is not None:
             for name, value in self._delay_tracker.counters.items():
                 counters[f"delay_{name}"] = value
@@ -400,7 +418,11 @@ class KeoService:
 
 
 async def run_service(
-    config: Config, rrd: Path | None = None, viewer: str | None = None, ready: Any = None
+    config: Config,
+    rrd: Path | None = None,
+    viewer: str | None = None,
+    ready: Any = None,
+    viewer_window_s: float | None = None,
 ) -> None:
     """Run until SIGINT/SIGTERM; SIGHUP reloads the config file. Talks to systemd when
     NOTIFY_SOCKET is set: READY, WATCHDOG pings while the loop runs, RELOADING, STOPPING."""
@@ -411,7 +433,9 @@ async def run_service(
     from keo_service.live import systemd
 
     loop = asyncio.get_running_loop()
-    async with KeoService(config, rrd=rrd, viewer=viewer) as service:
+    async with KeoService(
+        config, rrd=rrd, viewer=viewer, viewer_window_s=viewer_window_s
+    ) as service:
 
         def reload() -> None:
             systemd.notify("RELOADING=1")

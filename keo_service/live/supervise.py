@@ -12,12 +12,14 @@ import asyncio
 import logging
 from collections.abc import Callable
 
+from keo_service.core.errors import KeoError
+
 __all__ = ["TaskFailedError", "supervise"]
 
 log = logging.getLogger("keo.supervise")
 
 
-class TaskFailedError(RuntimeError):
+class TaskFailedError(KeoError, RuntimeError):
     """A supervised task ended while its process was running."""
 
 

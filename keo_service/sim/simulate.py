@@ -182,7 +182,7 @@ def _mh_style_home(cell: Cell) -> np.ndarray:
     robot = cell.robot
     q = np.clip(np.zeros(robot.nq), robot.lower, robot.upper)
     if robot.joint_names[:3] == ("joint_1_s", "joint_2_l", "joint_3_u"):
-        # L - U - B = pi/2 turns the flange's Z straight down (DESIGN.md section 7 axes)
+        # L - U - B = pi/2 turns the flange's Z straight down (docs/design.md §7 axes)
         q[:6] = [0.0, 0.35, 0.05, 0.0, 0.35 - 0.05 - math.pi / 2, 0.0]
     else:
         q[:6] = [0.0, -1.9, 1.9, -1.57, -1.57, 0.0]

@@ -1,0 +1,359 @@
+"""Controller simulators for the UDP real-time interfaces: the KUKA RSI and ABB EGM controller
+side, on the real wire formats.
+
+Each sends one datagram per cycle (4 ms by default) to keo's server, stamped with its own
+millisecond clock (RSI's IPOC, EGM's header.tm: `clock_offset_ms` plus the scenario time),
+the send instant jittered by up to `jitter_ms`. An answer counts as late when it arrives more
+than one cycle after its datagram went out, or never; after `max_late` late answers in a row
+the controller stops the robot as the real one does (RSI's late-packet limit, EGM's comm
+timeout) and sends no more. Judging starts with the sensor's first answer: before it, the
+controller waits for the sensor (unanswered datagrams are only counted).
+`drop_probability` loses datagrams on the way (the counter goes on, as the controller's does).
+
+With `corrector` given, the controller applies the latest correction it received (the tool
+frame transform [x y z (m), rotation vector (rad)]) as RSI's absolute TCP correction or EGM's
+pose correction do: it moves the joints so that the nominal tool pose is the programmed one
+times the correction (`corrector(q, c)` solves that), reports those joints and keeps the
+correction applied at each instant (`correction_at`) so that a tracker can see the true pose.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import math
+import time
+from collections.abc import Callable
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from adapters import abb_egm, kuka_rsi
+from adapters.line_protocol import format_hello, format_pose
+from adapters.mock_devices import JointTrack
+from adapters.realtime import request_realtime
+
+log = logging.getLogger("keo.mock")
+
+Corrector = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+class _Replies(asyncio.DatagramProtocol):
+    def __init__(self, owner: MockUdpController) -> None:
+        self.owner = owner
+
+    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+        self.owner.on_reply(data)
+
+    def error_received(self, exc: Exception) -> None:
+        # nobody listening yet (ICMP port unreachable): the answer simply does not come
+        self.owner.counters["send_errors"] += 1
+
+
+class MockUdpController:
+    protocol = ""
+
+    def __init__(
+        self,
+        track: JointTrack,
+        host: str,
+        port: int,
+        t0: float | None = None,
+        cycle_ms: float = 4.0,
+        jitter_ms: float = 0.0,
+        max_late: int = 100,
+        clock_offset_ms: int = 5_000_000,
+        corrector: Corrector | None = None,
+        seed: int = 0,
+        loop_play: bool = False,
+        drop_probability: float = 0.0,
+        realtime: bool = False,
+    ) -> None:
+        self.realtime = realtime  # ask for real-time scheduling, as a controller has
+        self.track = track
+        self.drop_probability = drop_probability  # datagrams lost on the way to keo
+        self.host, self.port, self.t0 = host, port, t0
+        self.cycle_ms = cycle_ms
+        self.jitter_s = jitter_ms * 1e-3
+        self.max_late = max_late
+        self.clock_offset_ms = clock_offset_ms
+        self.corrector = corrector
+        self.loop_play = loop_play
+        self.rng = np.random.default_rng(seed)
+        self.counters: collections.Counter[str] = collections.Counter()
+        self.rtt_s: collections.deque[float] = collections.deque(maxlen=200_000)
+        self.correction = np.zeros(6)
+        self.received: collections.deque[np.ndarray] = collections.deque(maxlen=100_000)
+        self._history: collections.deque[tuple[float, np.ndarray]] = collections.deque(maxlen=4096)
+        self.stopped = asyncio.Event()
+        self.stop_reason = ""
+        self.cycles = (-1, -1)  # the first and last cycle sent
+        self.late_at: list[int] = []  # scenario ms of the first 50 late answers
+        self._pending: dict[int, int] = {}  # counter -> send time (perf_counter_ns)
+        self._answered: set[int] = set()
+        self._consecutive_late = 0
+        self._transport: asyncio.DatagramTransport | None = None
+        self._task: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        loop = asyncio.get_running_loop()
+        transport, _ = await loop.create_datagram_endpoint(
+            lambda: _Replies(self), remote_addr=(self.host, self.port)
+        )
+        self._transport = transport
+        if self.t0 is None:
+            self.t0 = time.time() + 0.5
+        self._task = asyncio.create_task(self._run(), name=f"keo.mock.{self.protocol}")
+        log.info(
+            "mock %s controller -> %s:%d, %g ms cycle, from t0=%.3f",
+            self.protocol,
+            self.host,
+            self.port,
+            self.cycle_ms,
+            self.t0,
+        )
+
+    async def played(self, timeout: float) -> None:
+        """Until the scenario is played to its end (or the robot stopped)."""
+        if self._task is not None:
+            await asyncio.wait({self._task}, timeout=timeout)
+
+    async def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+        if self._transport is not None:
+            self._transport.close()
+
+    def correction_at(self, scenario_t: float) -> np.ndarray:
+        """The correction the robot had applied at `scenario_t` (zero before any)."""
+        out = np.zeros(6)
+        for t, c in self._history:
+            if t > scenario_t:
+                break
+            out = c
+        return out
+
+    def joints_at(self, scenario_t: float) -> np.ndarray:
+        """The programmed joints at `scenario_t` (before any correction)."""
+        return np.array([np.interp(scenario_t, self.track.t, c) for c in self.track.q.T])
+
+    def summary(self) -> dict[str, object]:
+        """What the controller saw, for logs and tests: answers, late ones, round trips."""
+        return {
+            "protocol": self.protocol,
+            "counters": dict(self.counters),
+            "cycles": self.cycles[1] - self.cycles[0] + 1 if self.cycles[0] >= 0 else 0,
+            "rtt_p50_ms": self.rtt_percentile(50) * 1e3,
+            "rtt_p99_ms": self.rtt_percentile(99) * 1e3,
+            "rtt_max_ms": max(self.rtt_s, default=math.nan) * 1e3,
+            "stopped": self.stop_reason,
+            "late_at_ms": self.late_at,
+        }
+
+    def rtt_percentile(self, p: float) -> float:
+        return float(np.percentile(np.array(self.rtt_s), p)) if self.rtt_s else math.nan
+
+    # -- the cycle -------------------------------------------------------------------------
+
+    async def _run(self) -> None:
+        assert self.t0 is not None
+        assert self._transport is not None
+        if self.realtime:
+            log.info("mock %s controller: %s", self.protocol, request_realtime())
+        cycle_s = self.cycle_ms * 1e-3
+        t_end = float(self.track.t[-1])
+        start = self.t0
+        k = max(0, math.ceil((time.time() - start) / cycle_s))
+        while True:
+            t_scn = k * cycle_s
+            if t_scn > t_end:
+                if not self.loop_play:
+                    return
+                start += t_end + cycle_s
+                k = 0
+                continue
+            jitter = float(self.rng.uniform(0.0, self.jitter_s)) if self.jitter_s else 0.0
+            delay = start + t_scn + jitter - time.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            self._judge_previous()
+            if self.stopped.is_set():
+                return
+            q = self.joints_at(t_scn)
+            if self.corrector is not None and np.any(self.correction):
+                q = self.corrector(q, self.correction)
+            counter = self.clock_offset_ms + round(k * self.cycle_ms)
+            self._history.append((t_scn, self.correction.copy()))
+            if self.drop_probability and self.rng.uniform() < self.drop_probability:
+                self.counters["dropped"] += 1
+                k += 1
+                continue
+            self._pending[counter] = time.perf_counter_ns()
+            self._transport.sendto(self.datagram(counter, k, q))
+            self.counters["sent"] += 1
+            self.cycles = (self.cycles[0] if self.cycles[0] >= 0 else k, k)
+            k += 1
+
+    def _judge_previous(self) -> None:
+        """Every datagram older than one cycle without its answer is late (counted once);
+        before the sensor's first answer they are only counted (the controller waits for the
+        sensor to come up, as a program that starts RSI/EGM once the sensor runs)."""
+        now = time.perf_counter_ns()
+        limit = self.cycle_ms * 1e6
+        for counter, sent in list(self._pending.items()):
+            if now - sent > limit:
+                del self._pending[counter]
+                if not self.counters["answered"]:
+                    self.counters["unanswered_before_first"] += 1
+                    continue
+                self.counters["late"] += 1
+                self.counters["unanswered"] += 1
+                self._late(counter)
+
+    def _late(self, counter: int) -> None:
+        if len(self.late_at) < 50:
+            self.late_at.append(counter - self.clock_offset_ms)  # scenario ms
+        self._consecutive_late += 1
+        if self._consecutive_late >= self.max_late and not self.stopped.is_set():
+            self.stop_reason = f"{self._consecutive_late} late answers in a row"
+            log.error("mock %s controller: robot stopped, %s", self.protocol, self.stop_reason)
+            self.stopped.set()
+
+    def on_reply(self, data: bytes) -> None:
+        now = time.perf_counter_ns()
+        answer = self.parse(data)
+        if answer is None:
+            self.counters["bad_replies"] += 1
+            return
+        counter, correction = answer
+        sent = self._pending.pop(counter, None)
+        if sent is None:
+            self.counters["stray_replies"] += 1  # already judged late, or never sent
+            return
+        rtt = (now - sent) * 1e-9
+        self.rtt_s.append(rtt)
+        self.counters["answered"] += 1
+        if rtt > self.cycle_ms * 1e-3:
+            self.counters["late"] += 1
+            self._late(counter)
+        else:
+            self._consecutive_late = 0
+        if correction is not None and self.corrector is not None:
+            self.correction = correction
+            self.received.append(correction)
+
+    # -- per protocol ----------------------------------------------------------------------
+
+    def datagram(self, counter: int, k: int, q: np.ndarray) -> bytes:
+        raise NotImplementedError
+
+    def parse(self, data: bytes) -> tuple[int, np.ndarray | None] | None:
+        raise NotImplementedError
+
+
+class MockRsiController(MockUdpController):
+    """A KUKA controller's RSI ETHERNET object: `<Rob>` with AIPos, RIst, IPOC (and EIPos
+    when `external` is given); reads RKorr as an absolute correction in the TCP frame."""
+
+    protocol = "kuka_rsi"
+
+    def __init__(
+        self, *args: object, external: list[float] | None = None, **kwargs: object
+    ) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self.external = external
+        self.codec = kuka_rsi.RsiCodec()
+
+    def datagram(self, counter: int, k: int, q: np.ndarray) -> bytes:
+        return kuka_rsi.format_rob(
+            counter,
+            np.degrees(q).tolist(),
+            external=self.external,
+            delay=self.counters["late"],
+        )
+
+    def parse(self, data: bytes) -> tuple[int, np.ndarray | None] | None:
+        sen = self.codec.parse_sen(data)
+        if sen is None:
+            return None
+        if sen.rkorr is None:
+            return sen.ipoc, None
+        x, y, z, a, b, c = sen.rkorr
+        rotvec = Rotation.from_euler("ZYX", [a, b, c], degrees=True).as_rotvec()
+        return sen.ipoc, np.array([x * 1e-3, y * 1e-3, z * 1e-3, *rotvec])
+
+
+class MockEgmController(MockUdpController):
+    """An ABB controller's EGM channel: `EgmRobot` (feedBack joints in degrees, header seqno and
+    tm); reads `EgmSensor.planned.cartesian` as the pose correction in the tool frame."""
+
+    protocol = "abb_egm"
+
+    def __init__(
+        self, *args: object, external: list[float] | None = None, **kwargs: object
+    ) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self.external = external
+        self.codec = abb_egm.EgmCodec()
+        self._tm_of_seq: dict[int, int] = {}
+
+    def datagram(self, counter: int, k: int, q: np.ndarray) -> bytes:
+        return abb_egm.format_robot(k, counter, np.degrees(q).tolist(), self.external)
+
+    def parse(self, data: bytes) -> tuple[int, np.ndarray | None] | None:
+        sensor = self.codec.parse_sensor(data)
+        if sensor is None:
+            return None
+        if sensor.position_mm is None or sensor.quaternion is None:
+            return sensor.tm_ms, None
+        w, x, y, z = sensor.quaternion
+        rotvec = Rotation.from_quat([x, y, z, w]).as_rotvec()
+        p = np.array(sensor.position_mm) * 1e-3
+        return sensor.tm_ms, np.array([*p, *rotvec])
+
+
+PoseAt = Callable[[float], tuple[list[float], list[float] | None]]
+
+
+class LiveTracker:
+    """A line-protocol tracker that measures a pose computed at each sample instant
+    (`pose_at(scenario_t)` -> position m and scalar-first quaternion, in the tracker frame),
+    so that it sees the true tool of a controller that applies corrections."""
+
+    def __init__(
+        self, pose_at: PoseAt, host: str, port: int, t0: float, rate_hz: float = 100.0
+    ) -> None:
+        self.pose_at = pose_at
+        self.host, self.port, self.t0 = host, port, t0
+        self.period = 1.0 / rate_hz
+        self._server: asyncio.Server | None = None
+
+    async def start(self) -> None:
+        self._server = await asyncio.start_server(self._on_client, self.host, self.port)
+
+    async def close(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()
+
+    async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(format_hello("mm", source="keo live mock tracker"))
+        seq = 0
+        try:
+            k = max(0, math.ceil((time.time() - self.t0) / self.period))
+            while True:
+                t = k * self.period
+                delay = self.t0 + t - time.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                p, q = self.pose_at(t)
+                seq += 1
+                writer.write(format_pose(seq, t, [v * 1e3 for v in p], q))
+                await writer.drain()
+                k += 1
+        except (ConnectionError, OSError, asyncio.CancelledError):
+            pass
+        finally:
+            writer.close()

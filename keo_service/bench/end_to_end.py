@@ -1,0 +1,319 @@
+"""End to end over real processes: mock devices, adapters, the service and a subscriber on
+one machine; latency percentiles, each process's CPU and memory, the machine's share; the
+rounds that rotate the kinds of run, and capacity at rising rates."""
+
+from __future__ import annotations
+
+import itertools
+import shutil
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from keo_service.bench.demo import loopback_config
+from keo_service.bench.machine import (
+    children,
+    machine_share,
+    machine_ticks,
+    open_fds,
+    proc_cpu_s,
+    proc_mem_kb,
+)
+from keo_service.bench.procs import process_group
+from keo_service.core.errors import KeoError
+from keo_service.io.cell import cell_from_config
+from keo_service.io.config import Config, config_to_toml
+from keo_service.live.bus import session_for_client
+from keo_service.live.client import SyncClient
+from keo_service.live.messages import EstimateMessage, decode, topic
+from keo_service.sim.simulate import make_scenario, simulate
+
+
+class _Collector:
+    """The subscriber at the end of the chain. It is the measuring instrument, so its callback
+    keeps only an arrival time and the raw bytes (no object the garbage collector tracks: a
+    growing list of decoded messages cost a 30 ms gen-2 pause mid-run) and decodes afterwards."""
+
+    def __init__(self, config: Config) -> None:
+        self.session = session_for_client(config, retry_for=30)
+        self._arrived: list[float] = []
+        self._payloads: list[bytes] = []
+        self._lock = threading.Lock()
+        self.sub = self.session.declare_subscriber(topic(config.cell, "estimate"), self._on)
+
+    def _on(self, sample: Any) -> None:
+        arrived = time.time()
+        payload = sample.payload.to_bytes()
+        with self._lock:
+            self._arrived.append(arrived)
+            self._payloads.append(payload)
+
+    def close(self) -> list[tuple[float, EstimateMessage]]:
+        self.sub.undeclare()
+        self.session.close()
+        with self._lock:
+            pairs = list(zip(self._arrived, self._payloads, strict=True))
+        out = []
+        for arrived, payload in pairs:
+            msg = decode(payload)
+            if isinstance(msg, EstimateMessage):
+                out.append((arrived, msg))
+        return out
+
+
+def _service_counters(config: Config) -> dict[str, int]:
+    try:
+        with SyncClient.from_config(config, connect_timeout_s=5.0) as keo:
+            return dict(keo.status(timeout=3.0).counters)
+    except KeoError:
+        return {}
+
+
+def end_to_end(
+    config: Config,
+    seconds: float,
+    tracker_hz: float = 1000.0,
+    encoder_hz: float = 250.0,
+    rrd: bool = False,
+    sample_every: float | None = None,
+    relay_only: bool = False,
+) -> dict[str, Any]:
+    """Each component its own process; latency from the tracker line leaving the mock to the
+    estimate arriving at a subscriber, split at the service's publish stamp. `relay_only`: the
+    transport floor, with a pass-through relay in the service's place.
+
+    The processes' logs (and the recording) go to a fresh folder, removed after the run; kept,
+    and named in the error, when the run fails."""
+    work = Path(tempfile.mkdtemp(prefix="keo-bench-"))
+    try:
+        res = _end_to_end(
+            work,
+            config,
+            seconds,
+            tracker_hz=tracker_hz,
+            encoder_hz=encoder_hz,
+            rrd=rrd,
+            sample_every=sample_every,
+            relay_only=relay_only,
+        )
+    except BaseException as exc:
+        exc.add_note(f"the processes' logs: {work}")
+        raise
+    shutil.rmtree(work, ignore_errors=True)
+    return res
+
+
+def _end_to_end(
+    work: Path,
+    config: Config,
+    seconds: float,
+    *,
+    tracker_hz: float,
+    encoder_hz: float,
+    rrd: bool,
+    sample_every: float | None,
+    relay_only: bool,
+) -> dict[str, Any]:
+    cfg = work / "bench.toml"
+    cfg.write_text(config_to_toml(config))
+    sets = [
+        f"tracker_rate_hz={tracker_hz}",
+        "tracker_rate_std_hz=0",
+        f"encoder_rate_hz={encoder_hz}",
+        "encoder_rate_std_hz=0",
+        "drop_probability=0",
+        f"duration_s={seconds}",
+    ]
+    set_args = [a for s in sets for a in ("--set", s)]
+    # the mocks simulate the whole scenario before they listen (about 2 % of its length at
+    # 1 kHz): start the play late enough that no device data is skipped
+    startup = 5.0 + 0.04 * seconds * tracker_hz / 1000.0
+    t0 = time.time() + startup
+    play = ["--scenario", "path", "--seed", "1", "--t0", repr(t0), *set_args]
+    names = ["service", "mock-robot", "mock-tracker", "adapter-encoder", "adapter-tracker"]
+    with process_group(work) as procs:
+        recording = work / "bench.rrd"
+        extra = ["--rrd", str(recording)] if rrd else []
+        procs.start_cell(
+            cfg, play, service=extra, tracker=["--wall-clock-device-time"], relay_only=relay_only
+        )
+        collector = _Collector(config)
+        pids = {n: procs.procs[n].pid for n in names}
+        time.sleep(max(0.0, t0 + 0.5 - time.time()))
+        rerun_process = children(pids["service"]) if rrd else []
+        if rerun_process:  # the service's only child, started by then
+            pids["rerun-process"] = rerun_process[0]
+        warm_cpu = {n: proc_cpu_s(p) for n, p in pids.items()}
+        warm_machine = machine_ticks()
+        time.sleep(max(0.0, seconds / 3))
+        warm_mem = {n: proc_mem_kb(p) for n, p in pids.items()}
+        trace = []
+        while sample_every is not None and time.time() + sample_every < t0 + seconds:
+            time.sleep(sample_every)
+            trace.append(
+                {
+                    "t_s": round(time.time() - t0, 1),
+                    "rss_mb": {n: proc_mem_kb(p).get("VmRSS", 0) / 1024 for n, p in pids.items()},
+                    "open_fds": {n: open_fds(p) for n, p in pids.items()},
+                }
+            )
+        time.sleep(max(0.0, t0 + seconds - time.time()))
+        end_cpu = {n: proc_cpu_s(p) for n, p in pids.items()}
+        end_machine = machine_ticks()
+        end_mem = {n: proc_mem_kb(p) for n, p in pids.items()}
+        time.sleep(1.5)  # the last samples: encoder coverage, or the quiet-time flush
+        items = collector.close()
+        counters = {} if relay_only else _service_counters(config)
+    run_s = seconds - 0.5
+    played = simulate(
+        cell_from_config(config), make_scenario("path", dict(s.split("=", 1) for s in sets)), seed=1
+    )
+    sent = int(played.tracker.t.size)
+    # latency after a warm-up of 0.5 s (connections settle, the first samples wait for encoder
+    # data that predates the subscription)
+    # good estimates only: the held ones at the very end (tracker samples stamped after the
+    # last encoder sample, answered by the quiet-time flush) say nothing about latency
+    in_window = [
+        (a, m)
+        for a, m in items
+        if m.tracker_device_t is not None and m.tracker_device_t > t0 + 0.5 and not m.flags
+    ]
+    device_t = np.array([m.tracker_device_t for _a, m in in_window], dtype=float)
+    lat = (np.array([a for a, _m in in_window]) - device_t) * 1e3
+    to_publish = (np.array([m.host_ns * 1e-9 for _a, m in in_window]) - device_t) * 1e3
+    to_subscriber = np.array([a - m.host_ns * 1e-9 for a, m in in_window]) * 1e3
+    held = sum(1 for _a, m in items if m.measured is None)
+    procs_out = {
+        n: {
+            "cpu_pct": 100.0 * (end_cpu[n] - warm_cpu[n]) / run_s,
+            "peak_rss_mb": end_mem[n].get("VmHWM", 0) / 1024,
+            "rss_growth_mb": (end_mem[n].get("VmRSS", 0) - warm_mem[n].get("VmRSS", 0)) / 1024,
+        }
+        for n in pids
+    }
+    out: dict[str, Any] = {
+        "tracker_hz": tracker_hz,
+        "encoder_hz": encoder_hz,
+        "seconds": seconds,
+        "tracker_samples_sent": sent,
+        "estimates_received": len(items),
+        "held": held,
+        "lost": max(0, sent - len(items)),
+        "latency_ms": _percentiles(lat),
+        "latency_to_service_publish_ms": _percentiles(to_publish),
+        "latency_publish_to_subscriber_ms": _percentiles(to_subscriber),
+        "processes": procs_out,
+        "machine": machine_share(warm_machine, end_machine),
+        "trace": trace,
+        "rerun_dropped": counters.get("rerun_dropped", 0),
+        "service_counters": counters,
+    }
+    if rrd:  # the recording rolls every 10 minutes: its files in the sink's own order
+        from keo_service.live.rerun_sink import rolled_path  # imports Rerun: only here
+
+        files = list(
+            itertools.takewhile(Path.exists, (rolled_path(recording, i) for i in itertools.count()))
+        )
+        out["recording"] = {
+            "files": len(files),
+            "mb": [round(f.stat().st_size / 2**20, 1) for f in files],
+        }
+    return out
+
+
+def _percentiles(ms: np.ndarray) -> dict[str, float | None]:
+    if not ms.size:
+        return {"p50": None, "p99": None, "max": None}
+    return {
+        "p50": float(np.percentile(ms, 50)),
+        "p99": float(np.percentile(ms, 99)),
+        "max": float(ms.max()),
+    }
+
+
+# the end-to-end kinds a round runs, and how `end_to_end` runs each
+E2E_KINDS: dict[str, dict[str, bool]] = {
+    "end_to_end": {},
+    "transport_floor": {"relay_only": True},
+    "end_to_end_rerun": {"rrd": True},
+}
+
+
+def end_to_end_rounds(
+    config: Config, seconds: float, rounds: int, with_rerun: bool
+) -> list[dict[str, Any]]:
+    """`rounds` runs of each end-to-end kind, the order rotated every round so that no kind
+    always runs first (a machine's load drifts over minutes; one run's p99 moves 1-5 ms)."""
+    kinds = [k for k in E2E_KINDS if with_rerun or k != "end_to_end_rerun"]
+    out = []
+    for i in range(rounds):
+        order = kinds[i % len(kinds) :] + kinds[: i % len(kinds)]
+        done: dict[str, Any] = {"order": order}
+        for kind in order:
+            done[kind] = end_to_end(loopback_config(config), seconds, **E2E_KINDS[kind])
+        out.append(done)
+    return out
+
+
+def _spread_of(values: list[float]) -> dict[str, Any]:
+    return {
+        "median": float(np.median(values)),
+        "min": min(values),
+        "max": max(values),
+        "each": values,
+    }
+
+
+def value_at(run: dict[str, Any], path: tuple[str, ...]) -> Any:
+    for key in path:
+        run = run[key]
+    return run
+
+
+def round_ratios(rounds: list[dict[str, Any]]) -> dict[str, Any]:
+    """The service against its references, each ratio within one round (runs minutes apart,
+    not a median run against another run's median)."""
+
+    def ratio(over: str, under: str, *path: str) -> dict[str, Any] | None:
+        pairs = [
+            (value_at(r[over], path), value_at(r[under], path))
+            for r in rounds
+            if over in r and under in r
+        ]
+        values = [a / b for a, b in pairs if a is not None and b]
+        return _spread_of(values) if values else None
+
+    cpu = ("processes", "service", "cpu_pct")
+    found = {
+        "service_cpu_over_relay": ratio("end_to_end", "transport_floor", *cpu),
+        "p50_over_relay": ratio("end_to_end", "transport_floor", "latency_ms", "p50"),
+        "p99_over_relay": ratio("end_to_end", "transport_floor", "latency_ms", "p99"),
+        "rrd_p50_over_plain": ratio("end_to_end_rerun", "end_to_end", "latency_ms", "p50"),
+        "rrd_p99_over_plain": ratio("end_to_end_rerun", "end_to_end", "latency_ms", "p99"),
+    }
+    return {name: spread for name, spread in found.items() if spread is not None}
+
+
+def capacity(config: Config, rates: list[float], seconds: float) -> dict[str, Any]:
+    steps = []
+    best = 0.0
+    for rate in rates:
+        res = end_to_end(config, seconds, tracker_hz=rate, encoder_hz=250.0)
+        ok = res["lost"] == 0
+        steps.append(
+            {
+                "tracker_hz": rate,
+                "sent": res["tracker_samples_sent"],
+                "received": res["estimates_received"],
+                "lost": res["lost"],
+                "p99_ms": res["latency_ms"]["p99"],
+            }
+        )
+        if not ok:
+            break
+        best = rate
+    return {"highest_rate_without_drops_hz": best, "steps": steps}

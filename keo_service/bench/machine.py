@@ -1,0 +1,84 @@
+"""The machine and its processes as /proc shows them: CPU model, clock ticks, each
+process's CPU time, memory, children and open files (Linux)."""
+
+from __future__ import annotations
+
+import os
+import platform
+from pathlib import Path
+from typing import Any
+
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+def machine() -> dict[str, Any]:
+    model = ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "cpu": model or platform.processor(),
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "system": platform.platform(),
+    }
+
+
+def stat_fields(pid: int | str) -> list[str]:
+    """/proc/<pid>/stat after the command name (which may hold spaces): state, ppid, ..."""
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+
+
+def machine_ticks() -> dict[str, int]:
+    """The machine's CPU time so far by kind, all cores, in clock ticks (/proc/stat's first
+    line: user nice system idle iowait irq softirq steal ...)."""
+    with open("/proc/stat", encoding="ascii") as f:
+        values = [int(v) for v in f.readline().split()[1:9]]
+    return {"busy": sum(values[:3]) + sum(values[5:7]), "steal": values[7], "all": sum(values)}
+
+
+def machine_share(before: dict[str, int], after: dict[str, int]) -> dict[str, float]:
+    """Busy and stolen time between two `machine_ticks`, in % of all cores' time (stolen: the
+    hypervisor ran something else while these cores had work)."""
+    span = max(1, after["all"] - before["all"])
+    return {
+        "busy_pct": 100.0 * (after["busy"] - before["busy"]) / span,
+        "steal_pct": 100.0 * (after["steal"] - before["steal"]) / span,
+    }
+
+
+def proc_cpu_s(pid: int) -> float:
+    fields = stat_fields(pid)
+    return (int(fields[11]) + int(fields[12])) / TICK
+
+
+def proc_mem_kb(pid: int) -> dict[str, int]:
+    out = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(("VmRSS", "VmHWM")):
+            key, value = line.split(":", 1)
+            out[key] = int(value.split()[0])
+    return out
+
+
+def children(pid: int) -> list[int]:
+    """The processes whose parent is `pid`."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = stat_fields(entry.name)
+        except OSError:
+            continue  # gone meanwhile
+        if int(fields[1]) == pid:
+            out.append(int(entry.name))
+    return out
+
+
+def open_fds(pid: int) -> int:
+    return len(os.listdir(f"/proc/{pid}/fd"))

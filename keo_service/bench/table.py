@@ -1,0 +1,240 @@
+"""The bench's results as the README's table, and as JSON."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+
+from keo_service.bench.end_to_end import value_at
+
+
+def _spread(hp: dict[str, Any]) -> str:
+    if "repeats" not in hp:
+        return ""
+    return (
+        f" (median of {hp['repeats']} passes; best {hp['samples_per_s_best']:,.0f}, "
+        f"worst {hp['samples_per_s_worst']:,.0f})"
+    )
+
+
+def _over_floor(hp: dict[str, Any], floor: dict[str, Any]) -> str:
+    if "over_floor" not in hp:  # runs before the passes alternated
+        return f"{hp['samples_per_s'] / floor['samples_per_s']:.2f}"
+    return (
+        f"{hp['over_floor']:.2f} (median of {hp['repeats']} alternating pairs; "
+        f"{hp['over_floor_worst']:.2f} to {hp['over_floor_best']:.2f})"
+    )
+
+
+def _rerun_row(hp: dict[str, Any], hpr: dict[str, Any]) -> str:
+    cost = (
+        f"{hpr['samples_per_s']:,.0f} (x{hp['samples_per_s'] / hpr['samples_per_s']:.2f} the cost)"
+    )
+    if hpr.get("rerun") != "process":  # runs from before: the sink in the same thread
+        return f"| hot path with the Rerun sink in the same thread | {cost} |"
+    return (
+        "| hot path with `--rrd`'s Rerun worker (each estimate encoded and piped to the Rerun "
+        f"process; that process's own CPU: the end-to-end `--rrd` run below) | {cost} |"
+    )
+
+
+def _runs(command: dict[str, Any]) -> str:
+    walls = command.get("runs_wall_s", [])
+    if len(walls) < 2:
+        return ""
+    warmup = command.get("warmup_wall_s")
+    after = "" if warmup is None else f" after a warm-up run of {warmup:.2f} s"
+    return f" (median of {len(walls)} runs{after}, {min(walls):.2f} to {max(walls):.2f} s wall)"
+
+
+def _command_over_floor(rec: dict[str, Any]) -> str:
+    b = rec["batch"]
+    if "over_floor" not in rec:  # runs before the floor passes alternated with the command
+        return f"{b['wall_s'] / rec['floor_s']:.2f}"
+    return (
+        f"{rec['over_floor']:.2f} (median of {len(b['runs_wall_s'])} pairs of a floor pass "
+        f"and a command run; {rec['over_floor_best']:.2f} to {rec['over_floor_worst']:.2f})"
+    )
+
+
+def _ratio(spread: dict[str, Any] | None) -> str:
+    if spread is None:
+        return "not measured"
+    each = ", ".join(f"{v:.2f}" for v in spread["each"])
+    if len(spread["each"]) == 1:
+        return f"x{each}"
+    return f"x{spread['median']:.2f} (median; each round: {each})"
+
+
+def _round_rows(r: dict[str, Any]) -> list[str]:
+    rounds, ratios = r["end_to_end_rounds"], r["round_ratios"]
+    n = len(rounds)
+    label = (
+        "same run"
+        if n == 1
+        else f"{n} rounds of the runs above, each ratio within its round, the order rotated"
+    )
+    lines = [
+        f"| keo over the transport floor, {label} | "
+        f"CPU {_ratio(ratios.get('service_cpu_over_relay'))}; "
+        f"p50 {_ratio(ratios.get('p50_over_relay'))}; p99 {_ratio(ratios.get('p99_over_relay'))} |"
+    ]
+    if n > 1:
+        names = {"end_to_end": "service", "transport_floor": "relay", "end_to_end_rerun": "--rrd"}
+
+        def each_run(path: tuple[str, ...], digits: int) -> str:
+            """A value of every run, kind by kind (a p99 of no samples is None: nan)."""
+            values = {k: [value_at(x[k], path) for x in rounds] for k in names if k in rounds[0]}
+            return "; ".join(
+                f"{names[k]} "
+                + ", ".join(f"{float('nan') if v is None else v:.{digits}f}" for v in vs)
+                for k, vs in values.items()
+            )
+
+        lines.append(f"| p99 in each round (ms) | {each_run(('latency_ms', 'p99'), 2)} |")
+        if all("machine" in x[kind] for x in rounds for kind in names if kind in x):
+            lines.append(
+                "| CPU time the hypervisor took in each run (% of all cores) | "
+                f"{each_run(('machine', 'steal_pct'), 1)} |"
+            )
+    if "rrd_p99_over_plain" in ratios:
+        drops = [x["end_to_end_rerun"].get("rerun_dropped", 0) for x in rounds]
+        lines.append(
+            f"| --rrd over the plain run, {'same bench' if n == 1 else f'{n} rounds'} | "
+            f"p50 {_ratio(ratios.get('rrd_p50_over_plain'))}; "
+            f"p99 {_ratio(ratios['rrd_p99_over_plain'])}; Rerun queue drops "
+            f"{sum(drops)} |"
+        )
+    return lines
+
+
+def bench_table(r: dict[str, Any]) -> str:
+    m = r["machine"]
+    lines = [
+        f"machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}"
+        + (" (quick run)" if r["quick"] else ""),
+        "",
+    ]
+    hp, hpr = r["hot_path"], r["hot_path_rerun"]
+    lines += [
+        "| measure | value |",
+        "|---|---|",
+        f"| hot path: aligned samples/s, one core{_spread(hp)} | {hp['samples_per_s']:,.0f} "
+        f"({hp['us_per_sample']:.1f} us each; a 1 kHz tracker costs "
+        f"{hp['core_share_at_1kHz_pct']:.1f} % of a core) |",
+        f"| naive per-sample floor (FK, two SE3 products, log3; same run) | "
+        f"{r['naive_floor']['samples_per_s']:,.0f} ({r['naive_floor']['us_per_sample']:.1f} us "
+        f"each); hot path / floor = {_over_floor(hp, r['naive_floor'])} |"
+        if "naive_floor" in r
+        else "| naive per-sample floor | not measured in this run |",
+        _rerun_row(hp, hpr),
+    ]
+
+    if "recording" in r:
+        rec = r["recording"]
+        b = rec["batch"]
+        lines.append(
+            f"| keo estimate, {rec['seconds']:.0f} s at 1 kHz ({rec['tracker_samples']:,} tracker, "
+            f"{rec['encoder_samples']:,} encoder rows; CSV in and out, process start included) | "
+            f"{b['wall_s']:.2f} s wall, {b['cpu_s']:.2f} s CPU, "
+            f"peak RSS {b['peak_rss_mb']:.0f} MB{_runs(b)}; "
+            f"naive floor over the same samples {rec['floor_s']:.2f} s CPU; command / floor = "
+            f"{_command_over_floor(rec)} (wall), {b['cpu_s'] / rec['floor_s']:.2f} (CPU) |"
+        )
+        if "streaming" in rec:
+            st = rec["streaming"]
+            lines.append(
+                f"| keo estimate --streaming (per-sample path), same files | {st['wall_s']:.2f} s "
+                f"wall, {st['cpu_s']:.2f} s CPU, peak RSS {st['peak_rss_mb']:.0f} MB; batch is "
+                f"x{st['wall_s'] / b['wall_s']:.1f} faster |"
+            )
+        if "calibrate_delay" in rec:
+            cd = rec["calibrate_delay"]
+            lines.append(
+                f"| keo calibrate-delay, same files (delay and drift, Gauss-Newton to 0.1 us) | "
+                f"{cd['wall_s']:.2f} s wall, {cd['cpu_s']:.2f} s CPU, "
+                f"peak RSS {cd['peak_rss_mb']:.0f} MB |"
+            )
+        if "analyze" in rec:
+            an = rec["analyze"]
+            lines.append(
+                f"| keo analyze, the first {an['seconds']:.0f} s of the same files "
+                f"({an['poses']:,} poses; registration, then every candidate effect fitted and "
+                f"judged on held-out poses) | {an['wall_s']:.1f} s wall, {an['cpu_s']:.1f} s CPU, "
+                f"peak RSS {an['peak_rss_mb']:.0f} MB |"
+            )
+
+    def ms(d: dict[str, float | None]) -> str:
+        return ", ".join(f"{k} {v:.2f} ms" for k, v in d.items() if v is not None)
+
+    rows = (
+        ("end_to_end", "end to end"),
+        ("transport_floor", "transport floor (pass-through relay in the service's place)"),
+        ("end_to_end_rerun", "end to end, --rrd"),
+    )
+    first_of = len(r.get("end_to_end_rounds", []))
+    for key, kind in rows:
+        if key not in r:
+            continue
+        e = r[key]
+        label = kind + (f" (round 1 of {first_of})" if first_of > 1 else "")
+        lines.append(
+            f"| {label}: tracker {e['tracker_hz']:.0f} Hz, robot {e['encoder_hz']:.0f} Hz, "
+            f"{e['seconds']:.0f} s | latency {ms(e['latency_ms'])}; "
+            f"{e['estimates_received']} estimates for {e['tracker_samples_sent']} samples"
+            + (
+                f"; the machine {e['machine']['busy_pct']:.0f} % busy, "
+                f"{e['machine']['steal_pct']:.1f} % stolen |"
+                if "machine" in e
+                else " |"
+            )
+        )
+        if "latency_to_service_publish_ms" in e:
+            lines.append(
+                f"| {label}: tracker line -> service publish / publish -> subscriber | "
+                f"{ms(e['latency_to_service_publish_ms'])} / "
+                f"{ms(e['latency_publish_to_subscriber_ms'])} |"
+            )
+        for name, p in e["processes"].items():
+            lines.append(
+                f"| {label}: {name} | CPU {p['cpu_pct']:.1f} %, peak RSS "
+                f"{p['peak_rss_mb']:.0f} MB, RSS growth after warm-up "
+                f"{p['rss_growth_mb']:+.1f} MB |"
+            )
+    if "round_ratios" in r:
+        lines += _round_rows(r)
+    elif "transport_floor" in r:  # runs before rounds: the one pair
+        keo, floor = r["end_to_end"]["latency_ms"], r["transport_floor"]["latency_ms"]
+        if keo["p99"] and floor["p99"]:
+            lines.append(
+                f"| keo over the transport floor, same run | p50 x{keo['p50'] / floor['p50']:.2f}, "
+                f"p99 x{keo['p99'] / floor['p99']:.2f} |"
+            )
+    if "end_to_end_rerun" in r and "round_ratios" not in r:
+        plain, rrd = r["end_to_end"]["latency_ms"], r["end_to_end_rerun"]["latency_ms"]
+        if plain["p99"] and rrd["p99"]:
+            lines.append(
+                f"| --rrd over the plain run, same bench | p50 x{rrd['p50'] / plain['p50']:.2f}, "
+                f"p99 x{rrd['p99'] / plain['p99']:.2f}; Rerun queue drops "
+                f"{r['end_to_end_rerun'].get('rerun_dropped', 0)} |"
+            )
+    c = r["capacity"]
+    steps = ", ".join(f"{s['tracker_hz']:.0f} Hz: {s['received']}/{s['sent']}" for s in c["steps"])
+    lines.append(
+        f"| capacity: highest tracker rate with no drops | "
+        f"{c['highest_rate_without_drops_hz']:.0f} Hz ({steps}) |"
+    )
+    a = r["accuracy"]
+    lines.append(
+        f"| accuracy ({a['scenario']}), RMS position error after 5 s | keo interpolate "
+        f"L={a['configured_gain']:g}: {a['interpolate_pos_mm']:.4f} mm; reference latest: "
+        f"{a['latest_pos_mm']:.4f} mm; keo at best gain L={a['best_gain']:g}: "
+        f"{a['best_gain_interpolate_pos_mm']:.4f} mm; reference / keo-best = "
+        f"{a['reference_over_keo']:.1f} |"
+    )
+    return "\n".join(lines) + "\n"
+
+
+def dumps(r: dict[str, Any]) -> str:
+    return msgspec.json.encode(r).decode()
