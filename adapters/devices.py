@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import dataclasses
 import json
 import logging
 import math
@@ -26,7 +25,7 @@ from adapters.health import AdapterHealth
 from adapters.line_protocol import MAX_LINE, LineProtocolParser
 from adapters.rtde import Package, RtdeDecoder
 from adapters.simple_message import JointFeedback, RobotStatusFrame, SimpleMessageDecoder
-from keo_service.core.clock import ClockMapper, ReceiptStamps
+from keo_service.core.clock import Stamp, Stamper
 from keo_service.core.rejects import RejectLog
 from keo_service.live.bus import AsyncSubscription, session_for_client_async
 from keo_service.live.compensation import correction_to_send
@@ -64,6 +63,13 @@ class _Adapter:
         self._stop = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self.failure: BaseException | None = None
+        # the clock domain of this device's stamps ([robot] / [tracker] clock); the epoch
+        # starts at the process's start (ms since the Unix epoch), so that a restarted
+        # adapter never repeats one
+        section = config.tracker if self.name == "tracker" else config.robot
+        self.stamper = Stamper(
+            section.clock, config.timing.max_stamp_age_s, epoch=time.time_ns() // 1_000_000
+        )
 
     async def __aenter__(self) -> _Adapter:
         if self._session is None:
@@ -122,7 +128,32 @@ class _Adapter:
         self._stop.set()
 
     def status(self) -> dict[str, Any]:
-        return {"adapter": self.name, "counters": dict(self.counters)}
+        return {
+            "adapter": self.name,
+            "counters": dict(self.counters),
+            "clock": self.stamper.state(),
+        }
+
+    def _stamp(self, device_t: float | None, receipt_t: float) -> Stamp:
+        """The sample's stamp under this adapter's clock domain; what it flags is logged
+        (the first time and then at every power of ten) besides being counted."""
+        stamp = self.stamper.stamp(device_t, receipt_t)
+        for flag in stamp.flags:
+            self._log_flag(flag)
+        return stamp
+
+    def _log_flag(self, flag: str) -> None:
+        n = self.stamper.counters[flag]
+        if n and n == 10 ** int(math.log10(n)) and flag in self.stamper.last:
+            log.warning("%s: %s (%d so far)", self.name, self.stamper.last[flag], n)
+
+    def _clock_fields(self, stamp: Stamp) -> dict[str, Any]:
+        """The clock fields every sample carries."""
+        return {
+            "clock": self.stamper.domain,
+            "clock_epoch": self.stamper.epoch,
+            "flags": list(stamp.flags),
+        }
 
     def _on_status_query(self, query: zenoh.Query) -> None:
         doc = {**self.status(), **self.health.summary(time.monotonic())}
@@ -144,7 +175,6 @@ class EncoderAdapter(_Adapter):
 
     def _declare(self, session: zenoh.Session) -> None:
         self.decoder = SimpleMessageDecoder(self.config.robot.byte_order)
-        self._stamps = ReceiptStamps()
         self._declare_publishers(session)
 
     def _declare_publishers(self, session: zenoh.Session) -> None:
@@ -161,7 +191,7 @@ class EncoderAdapter(_Adapter):
             **super().status(),
             "decoder": dict(self.decoder.counters),
             "messages": list(self.decoder.messages),
-            "stamps_held_back": self._stamps.held_back,
+            "stamps_held_back": self.stamper.receipt.held_back,
         }
 
     async def _run(self) -> None:
@@ -171,6 +201,7 @@ class EncoderAdapter(_Adapter):
         )
 
     async def _read(self, reader: asyncio.StreamReader, _writer: asyncio.StreamWriter) -> None:
+        self.stamper.restart()  # a new connection: a new time base
         try:
             while True:
                 data = await reader.read(4096)
@@ -179,18 +210,23 @@ class EncoderAdapter(_Adapter):
                 host_ns = time.time_ns()
                 frames = self.decoder.feed(data)
                 joints = [isinstance(f, JointFeedback) and f.group == 0 for f in frames]
-                stamps = iter(self._stamps.place(host_ns * 1e-9, sum(joints)))
                 if sum(joints) > 1:
                     self.counters["coalesced_frames"] += sum(joints) - 1
-                for frame, is_joint in zip(frames, joints, strict=True):
-                    self.publish_frame(frame, host_ns, next(stamps) if is_joint else None)
+                if self.stamper.domain == "receipt":  # MotoROS: no device time
+                    stamps = iter(self.stamper.stamp_received_together(sum(joints), host_ns * 1e-9))
+                    for frame, is_joint in zip(frames, joints, strict=True):
+                        self.publish_frame(frame, host_ns, next(stamps) if is_joint else None)
+                else:
+                    for frame in frames:
+                        self.publish_frame(frame, host_ns)
         finally:
             self.decoder.reset()
 
     def publish_frame(
-        self, frame: JointFeedback | RobotStatusFrame, host_ns: int, t: float | None = None
+        self, frame: JointFeedback | RobotStatusFrame, host_ns: int, stamp: Stamp | None = None
     ) -> None:
-        """One decoded frame out; `t` is the joint sample's host stamp (receipt time if None)."""
+        """One decoded frame out; `stamp` is the joint sample's stamp (None: the clock
+        domain's rule on the frame's time and its receipt)."""
         if isinstance(frame, RobotStatusFrame):
             self._status_pub.put(encode(RobotStatus(host_ns=host_ns, **frame.__dict__)))
             return
@@ -201,10 +237,19 @@ class EncoderAdapter(_Adapter):
         q = list(frame.positions[: self.nq])
         dq = list(frame.velocities[: self.nq]) if frame.velocities is not None else None
         device_t = frame.time if frame.valid_fields & 1 else None
-        stamp = host_ns * 1e-9 if t is None else t
+        if stamp is None:
+            stamp = self._stamp(device_t, host_ns * 1e-9)
         self._pub.put(
             encode(
-                JointSample(t=stamp, host_ns=host_ns, seq=self._seq, q=q, dq=dq, device_t=device_t)
+                JointSample(
+                    t=stamp.t,
+                    host_ns=host_ns,
+                    seq=self._seq,
+                    q=q,
+                    dq=dq,
+                    device_t=device_t,
+                    **self._clock_fields(stamp),
+                )
             )
         )
         self.counters["published"] += 1
@@ -217,7 +262,6 @@ class TrackerAdapter(_Adapter):
 
     def _declare(self, session: zenoh.Session) -> None:
         self.parser = LineProtocolParser()
-        self.clock = ClockMapper()
         self._pub = session.declare_publisher(
             topic(self.config.cell, "tracker"),
             congestion_control=zenoh.CongestionControl.BLOCK,
@@ -229,7 +273,6 @@ class TrackerAdapter(_Adapter):
             **super().status(),
             "parser": dict(self.parser.counters),
             "messages": list(self.parser.messages),
-            "clock": dataclasses.asdict(self.clock.state()),
         }
 
     async def _run(self) -> None:
@@ -240,7 +283,7 @@ class TrackerAdapter(_Adapter):
 
     async def _read(self, reader: asyncio.StreamReader, _writer: asyncio.StreamWriter) -> None:
         self.parser.reset()
-        self.clock = ClockMapper()  # a new connection may bring a new device clock
+        self.stamper.restart()  # a new connection may bring a new device clock
         while True:
             try:
                 line = await reader.readuntil(b"\n")
@@ -258,18 +301,18 @@ class TrackerAdapter(_Adapter):
             pose = self.parser.parse(line)
             if pose is None:
                 continue
-            # the tracker's own stamps, mapped onto the host clock, carry less jitter than
-            # the receipt time; a tracker without a device time is stamped on receipt
-            receipt = host_ns * 1e-9
-            t = receipt if pose.device_t is None else self.clock.map(pose.device_t, receipt)
+            # the tracker's own stamps ("device": mapped onto the host clock, which carries
+            # less jitter than the receipt time; "shared": used as they are)
+            stamp = self._stamp(pose.device_t, host_ns * 1e-9)
             sample = TrackerSample(
-                t=t,
+                t=stamp.t,
                 host_ns=host_ns,
                 seq=pose.seq,
                 status=pose.status,
                 p=list(pose.p) if pose.p is not None else None,
                 q=list(pose.q) if pose.q is not None else None,
                 device_t=pose.device_t,
+                **self._clock_fields(stamp),
             )
             self._pub.put(encode(sample))
             self.counters["published"] += 1
@@ -300,7 +343,6 @@ class RtdeEncoderAdapter(EncoderAdapter):
                 "elbow, wrist 1-3) in the URDF's joint order"
             )
         self.rtde_decoder = RtdeDecoder()
-        self.clock = ClockMapper()
         self.controller = ""
         self._pending: collections.deque[Package] = collections.deque(maxlen=64)
         self._last_status: tuple[int, int] | None = None
@@ -353,7 +395,7 @@ class RtdeEncoderAdapter(EncoderAdapter):
             "decoder": dict(self.rtde_decoder.counters),
             "messages": list(self.rtde_decoder.messages),
             "controller": self.controller,
-            "clock": dataclasses.asdict(self.clock.state()),
+            "clock": self.stamper.state(),
         }
 
     async def _run(self) -> None:
@@ -365,6 +407,7 @@ class RtdeEncoderAdapter(EncoderAdapter):
     async def _rtde(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self.rtde_decoder = RtdeDecoder()
         self._pending.clear()
+        self.stamper.restart()  # a new connection: the controller may have restarted
         writer.write(rtde.request_protocol_version())
         try:
             answer = await self._expect(reader, rtde.REQUEST_PROTOCOL_VERSION)
@@ -466,12 +509,18 @@ class RtdeEncoderAdapter(EncoderAdapter):
         if not all(math.isfinite(v) for v in (stamp, *q, *qd)):
             self.rtde_decoder.reject("non_finite", f"data package at controller time {stamp!r}")
             return
-        t = self.clock.map(stamp, host_ns * 1e-9)
+        sample_stamp = self._stamp(stamp, host_ns * 1e-9)
         self._seq += 1
         self._pub.put(
             encode(
                 JointSample(
-                    t=t, host_ns=host_ns, seq=self._seq, q=list(q), dq=list(qd), device_t=stamp
+                    t=sample_stamp.t,
+                    host_ns=host_ns,
+                    seq=self._seq,
+                    q=list(q),
+                    dq=list(qd),
+                    device_t=stamp,
+                    **self._clock_fields(sample_stamp),
                 )
             )
         )
@@ -520,7 +569,6 @@ class _Ros2Adapter(_Adapter):
         self.node = Ros2Node(
             session, f"keo_{self.config.cell}_{self.name}", ros.domain_id, ros.distro
         )
-        self.clock = ClockMapper()
         self.rejects = RejectLog(keep=16)
         self._seq = 0
         self._declare_output(session)
@@ -533,7 +581,6 @@ class _Ros2Adapter(_Adapter):
             **super().status(),
             "decoder": dict(self.rejects.counters),
             "messages": list(self.rejects.messages),
-            "clock": dataclasses.asdict(self.clock.state()),
             "topics": [ros_topic for ros_topic, _type in self.topics],
         }
 
@@ -620,9 +667,19 @@ class Ros2JointStateAdapter(_Ros2Adapter):
             self.rejects.reject("non_finite", f"JointState at stamp {stamp!r}")
             return
         self._seq += 1
-        t = self.clock.map(stamp, host_ns * 1e-9)
+        st = self._stamp(stamp, host_ns * 1e-9)
         self._pub.put(
-            encode(JointSample(t=t, host_ns=host_ns, seq=self._seq, q=q, dq=dq, device_t=stamp))
+            encode(
+                JointSample(
+                    t=st.t,
+                    host_ns=host_ns,
+                    seq=self._seq,
+                    q=q,
+                    dq=dq,
+                    device_t=stamp,
+                    **self._clock_fields(st),
+                )
+            )
         )
         self.counters["published"] += 1
 
@@ -664,8 +721,16 @@ class Ros2PoseAdapter(_Ros2Adapter):
                 return
             q = [v / norm for v in q]
         self._seq += 1
-        t = self.clock.map(stamp, host_ns * 1e-9)
-        sample = TrackerSample(t=t, host_ns=host_ns, seq=self._seq, p=p, q=q, device_t=stamp)
+        st = self._stamp(stamp, host_ns * 1e-9)
+        sample = TrackerSample(
+            t=st.t,
+            host_ns=host_ns,
+            seq=self._seq,
+            p=p,
+            q=q,
+            device_t=stamp,
+            **self._clock_fields(st),
+        )
         self._pub.put(encode(sample))
         self.counters["published"] += 1
 

@@ -3,10 +3,10 @@ sends to; every datagram is answered from the datagram callback itself (no queue
 switch in between), carrying keo's live correction when `robot.correction` names this protocol
 and a zero correction otherwise.
 
-Both publish `JointSample`s like the TCP adapters, stamped from the controller's own clock
-(RSI's IPOC and EGM's header.tm, milliseconds) mapped onto the host's by `ClockMapper`
-(`robot.clock = "device"`, the default); `"receipt"` stamps on arrival and `"shared"` takes
-the controller's milliseconds as they are.
+Both publish `JointSample`s like the TCP adapters, stamped by the adapters' one rule
+(`core.clock.Stamper`) from the controller's own clock (RSI's IPOC and EGM's header.tm,
+milliseconds): mapped onto the host's (`robot.clock = "device"`, the default); `"receipt"`
+stamps on arrival and `"shared"` takes the controller's milliseconds as they are, checked.
 
 What the status shows: replies sent, the reply time (receipt to sendto, µs: last, max, p99 of
 the last 1000), replies slower than the cycle (`late_replies`), cycles the controller's
@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import dataclasses
 import logging
 import math
 import threading
@@ -32,7 +31,7 @@ from scipy.spatial.transform import Rotation
 from adapters import abb_egm, kuka_rsi
 from adapters.devices import ROBOT_STATUS_PERIOD_S, EncoderAdapter
 from adapters.realtime import request_realtime
-from keo_service.core.clock import ClockMapper
+from keo_service.core.clock import Stamp
 from keo_service.live.messages import (
     CorrectionMessage,
     JointSample,
@@ -167,10 +166,6 @@ class UdpEncoderAdapter(EncoderAdapter):
 
     def _declare(self, session: zenoh.Session) -> None:
         self._declare_publishers(session)
-        self.clock = ClockMapper()
-        self.clock_domain = str(self.config.robot.clock or "device")
-        self.clock_epoch = 0
-        self._steps_seen = 0
         self._peer: tuple[str | Any, int] | None = None
         self.reply_us: collections.deque[float] = collections.deque(maxlen=REPLY_WINDOW)
         self.reply_max_us = 0.0
@@ -242,9 +237,7 @@ class UdpEncoderAdapter(EncoderAdapter):
 
     def new_session(self) -> None:
         """The controller restarted or another one took over: a new time base."""
-        self.clock = ClockMapper()
-        self.clock_epoch += 1
-        self._steps_seen = 0
+        self.stamper.restart()
         self._last_device_ms = None
         self.counters["sessions"] += 1
 
@@ -262,38 +255,28 @@ class UdpEncoderAdapter(EncoderAdapter):
         if missed > 0:
             self.counters["missed_cycles"] += missed
 
-    def stamp(self, device_ms: float, host_ns: int) -> tuple[float, float]:
-        """(t on the host clock, device time in s) for the configured clock domain."""
+    def stamp(self, device_ms: float, host_ns: int) -> tuple[Stamp, float]:
+        """(the sample's stamp under the configured clock domain, device time in s): the
+        adapters' one rule (core.clock.Stamper)."""
         self._track_cycle(device_ms)
         device_t = device_ms * 1e-3
-        receipt = host_ns * 1e-9
-        domain = self.clock_domain
-        if domain == "receipt":
-            return receipt, device_t
-        if domain == "shared":
-            return device_t, device_t
-        t = self.clock.map(device_t, receipt)
-        if self.clock.steps != self._steps_seen:
-            self._steps_seen = self.clock.steps
-            self.clock_epoch += 1
-        return t, device_t
+        return self._stamp(device_t, host_ns * 1e-9), device_t
 
     def put_joints(self, q: list[float], device_ms: float, host_ns: int) -> None:
         if len(q) < self.nq:
             self.rejects_short(len(q))
             return
-        t, device_t = self.stamp(device_ms, host_ns)
+        st, device_t = self.stamp(device_ms, host_ns)
         self._seq += 1
         self._pub.put(
             encode(
                 JointSample(
-                    t=t,
+                    t=st.t,
                     host_ns=host_ns,
                     seq=self._seq,
                     q=q[: self.nq],
                     device_t=device_t,
-                    clock=self.clock_domain,
-                    clock_epoch=self.clock_epoch,
+                    **self._clock_fields(st),
                 )
             )
         )
@@ -322,8 +305,7 @@ class UdpEncoderAdapter(EncoderAdapter):
             },
             "cycle_ms": self.cycle_s * 1e3,
             "scheduling": self.scheduling,
-            "clock": dataclasses.asdict(self.clock.state()),
-            "clock_epoch": self.clock_epoch,
+            "clock": self.stamper.state(),
             "correction": None if self.correction is None else self.correction.state(),
             "peer": None if self._peer is None else f"{self._peer[0]}:{self._peer[1]}",
         }

@@ -98,8 +98,8 @@ def test_a_single_reflector_publishes_unknown_orientation(demo_config):
 def test_estimate_from_ros2_inputs_alone_reaches_a_ros2_subscriber(
     demo_config, demo_cell, tmp_path
 ):
-    robot = msgspec.structs.replace(demo_config.robot, protocol="ros2")
-    tracker = msgspec.structs.replace(demo_config.tracker, protocol="ros2")
+    robot = msgspec.structs.replace(demo_config.robot, protocol="ros2", clock="shared")
+    tracker = msgspec.structs.replace(demo_config.tracker, protocol="ros2", clock="shared")
     ros2 = msgspec.structs.replace(demo_config.ros2, enabled=True, publish_tf=True)
     config = loopback_config(
         msgspec.structs.replace(demo_config, robot=robot, tracker=tracker, ros2=ros2)

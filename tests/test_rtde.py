@@ -168,7 +168,7 @@ async def test_adapter_maps_a_drifting_bursty_controller_onto_the_host_clock(dem
     t = np.linspace(0.0, seconds, 1201)
     q = np.column_stack([0.2 * np.sin(0.5 * t + k) for k in range(6)])
     robot = msgspec.structs.replace(
-        demo_config.robot, protocol="rtde", port=free_port(), host="127.0.0.1"
+        demo_config.robot, protocol="rtde", clock="device", port=free_port(), host="127.0.0.1"
     )
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     bus = msgspec.structs.replace(demo_config.bus, listen=[endpoint], connect=[])

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import signal
 import sys
 from collections.abc import Callable, Sequence
 
@@ -58,6 +59,14 @@ def console() -> int:
     collections over every loaded module's objects (with polars loaded, the exit took 75-160
     ms after `main` returned, 25-43 ms without them; the memory goes back to the system
     whole either way)."""
-    code = main()
+    # SIGTERM asks what SIGINT asks: stop. Until a command installs its own handlers (a
+    # running loop stops gracefully), both raise KeyboardInterrupt, which `main` turns into
+    # exit 0 instead of the signal's default death (seen: `keo mock` stopped while it still
+    # computed its scenario)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        code = main()
+    except KeyboardInterrupt:  # before `main` could catch it (parsing the arguments)
+        code = common.EXIT_OK
     gc.freeze()
     return code

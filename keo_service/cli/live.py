@@ -378,7 +378,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
 
         def stop_echo() -> None:
             stop.set()
-            sub.close()
+            sub.close()  # ends the iteration below; `finally` closes nothing twice
 
         _install_stop(stop_echo)
         seen = 0

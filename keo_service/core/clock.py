@@ -252,3 +252,168 @@ class ReceiptStamps:
         stamps = [start + step * (i + 1) for i in range(count - 1)] + [receipt_t]
         self._last = receipt_t
         return stamps
+
+
+# ---- clock domains: which rule turns a device stamp into a sample's `t` ------------------------
+# (the stream's [robot] / [tracker] clock: `Stamper` is the one rule every adapter stamps
+# through; docs/timing.md tells the user's side)
+
+__all__ += ["DOMAINS", "Stamp", "Stamper"]
+
+DOMAINS = ("shared", "device", "receipt")
+# A "shared" stamp may lead its receipt by this much before it is flagged. On one host the
+# stamp is read before the message leaves and the receipt after it arrives, from the same
+# clock, so it can never lead; across hosts it leads by at most their synchronisation error
+# minus the transport time. PTP keeps hosts within microseconds (hardware) to ~0.1 ms
+# (software), NTP/chrony on a LAN within ~0.1-1 ms: 1 ms flags only clocks that disagree by
+# more than a working synchronisation allows (a stamp from another clock, a sync that broke).
+SHARED_AHEAD_TOLERANCE_S = 1e-3
+# What a user whose stamps are not on the cell's clock after all should do.
+_NOT_SHARED = 'stamps not on the cell\'s clock: set this input\'s clock to "device" or "receipt"'
+# How many messages a Stamper keeps (the counters count every case).
+_KEEP_MESSAGES = 8
+
+
+@dataclass(frozen=True)
+class Stamp:
+    t: float  # the sample's stream time (host clock, or the shared clock that is the host's)
+    flags: tuple[str, ...] = ()
+
+
+class Stamper:
+    """The one rule for turning a device's stamps into sample times, per clock domain:
+
+    - "shared": the stamps are already on the cell's common clock (ROS time on one host,
+      PTP): used as they are. A stamp ahead of its receipt by more than `ahead_tolerance_s`
+      or older than `max_age_s` at receipt is counted and flagged ("stamp_ahead",
+      "stamp_old"), never remapped. A stamp that goes back (a publisher restarted, a
+      simulated clock reset) starts a new epoch and is flagged "stamp_back".
+    - "device": the device's free-running clock, mapped onto the host's (ClockMapper). A
+      clock step the mapper detects starts a new epoch; samples stamped while the mapping has
+      no line yet (its first block) are flagged "clock_relearning".
+    - "receipt": no device time: the receipt time (ReceiptStamps spreads frames that arrive
+      in one read); the device's time, if any, stays in the sample's device_t.
+
+    A sample without a device time in the "shared" or "device" domain is stamped on receipt,
+    counted ("no_device_time") and flagged. `epoch` grows whenever the time base starts anew
+    (`restart()` on a new connection, a step, a stamp going back); the caller starts it from
+    a number of its own (e.g. the process's start time) so that a restarted process does not
+    repeat one. Pure: no I/O, no clock reads.
+    """
+
+    def __init__(
+        self,
+        domain: str,
+        max_age_s: float = 0.5,
+        ahead_tolerance_s: float = SHARED_AHEAD_TOLERANCE_S,
+        epoch: int = 0,
+    ) -> None:
+        if domain not in DOMAINS:
+            raise ValueError(f"clock domain {domain!r} is not one of {', '.join(DOMAINS)}")
+        self.domain = domain
+        self.max_age_s = max_age_s
+        self.ahead_tolerance_s = ahead_tolerance_s
+        self.epoch = epoch
+        self.counters: collections.Counter[str] = collections.Counter()
+        self.messages: collections.deque[str] = collections.deque(maxlen=_KEEP_MESSAGES)
+        self.last: dict[str, str] = {}  # the newest message per counter
+        self.mapper = ClockMapper()
+        self.receipt = ReceiptStamps()
+        self._last_shared = -math.inf
+
+    def restart(self) -> None:
+        """A new connection: the device's time base may start anew (a new mapping)."""
+        self.epoch += 1
+        self.mapper = ClockMapper()
+        self._last_shared = -math.inf
+
+    def stamp(self, device_t: float | None, receipt_t: float) -> Stamp:
+        """The stamp of one sample the device stamped `device_t` (None: it gives none) and
+        the host received at `receipt_t`."""
+        if self.domain == "receipt":
+            return Stamp(self.receipt.place(receipt_t, 1)[0])
+        if device_t is None:
+            self._note(
+                "no_device_time",
+                f"a sample without device time in the {self.domain!r} "
+                "clock domain: stamped on receipt",
+            )
+            return Stamp(self.receipt.place(receipt_t, 1)[0], ("no_device_time",))
+        if self.domain == "device":
+            return self._mapped(device_t, receipt_t)
+        return self._shared(device_t, receipt_t)
+
+    def stamp_received_together(self, count: int, receipt_t: float) -> list[Stamp]:
+        """Stamps for `count` samples without device time that arrived in one read (receipt
+        domain only): spread between the previous stamp and this receipt."""
+        return [Stamp(t) for t in self.receipt.place(receipt_t, count)]
+
+    def _mapped(self, device_t: float, receipt_t: float) -> Stamp:
+        steps = self.mapper.steps
+        t = self.mapper.map(device_t, receipt_t)
+        flags: tuple[str, ...] = ()
+        if self.mapper.steps != steps:
+            self.epoch += 1
+            self._note(
+                "clock_step",
+                f"the device clock stepped at device time {device_t:.6f}: the mapping starts anew",
+            )
+            flags = ("clock_step",)
+        if self.mapper.state().blocks < 2:  # no line yet: an offset from one block
+            flags = (*flags, "clock_relearning")
+        return Stamp(t, flags)
+
+    def _shared(self, device_t: float, receipt_t: float) -> Stamp:
+        flags: list[str] = []
+        tol = self.ahead_tolerance_s
+        if device_t < self._last_shared - tol:
+            self.epoch += 1
+            back = self._last_shared - device_t
+            self._note(
+                "stamp_back",
+                f"a shared-clock stamp went back by {back:.6f} s (a "
+                "publisher restarted or its clock was reset): a new epoch",
+            )
+            flags.append("stamp_back")
+        self._last_shared = device_t
+        age = receipt_t - device_t
+        if age < -tol:
+            self._note(
+                "stamp_ahead",
+                f"a shared-clock stamp {-age * 1e3:.3f} ms ahead of its receipt (more than "
+                f"{tol * 1e3:g} ms): are the clocks synchronised? ({_NOT_SHARED})",
+            )
+            flags.append("stamp_ahead")
+        elif age > self.max_age_s:
+            self._note(
+                "stamp_old",
+                f"a shared-clock stamp {age:.3f} s old at receipt (more "
+                f"than timing.max_stamp_age_s = {self.max_age_s:g} s; {_NOT_SHARED})",
+            )
+            flags.append("stamp_old")
+        return Stamp(device_t, tuple(flags))
+
+    def _note(self, counter: str, message: str) -> None:
+        self.counters[counter] += 1
+        self.messages.append(message)
+        self.last[counter] = message
+
+    def state(self) -> dict[str, object]:
+        """For an adapter's status: the domain, the epoch, what was counted and, for a
+        mapped clock, the mapping (offset, drift, residual...)."""
+        out: dict[str, object] = {"domain": self.domain, "epoch": self.epoch}
+        if self.domain == "device":
+            st = self.mapper.state()
+            out.update(
+                offset_s=st.offset_s,
+                drift_ppm=st.drift_ppm,
+                residual_s=st.residual_s,
+                blocks=st.blocks,
+                steps=st.steps,
+                held_back=st.held_back,
+            )
+        else:
+            out["held_back"] = self.receipt.held_back
+        out["counters"] = dict(self.counters)
+        out["messages"] = list(self.messages)
+        return out

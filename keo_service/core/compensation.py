@@ -1,6 +1,6 @@
 """Compensation: turning the known error into a tool that lands where it is told. No I/O.
 
-Frames (DESIGN.md section 1). The controller moves its *nominal* model: commanded tool pose
+Frames (docs/design.md §1). The controller moves its *nominal* model: commanded tool pose
 T_cmd, it turns the joints to q with T_bt(q) = T_cmd, and the real tool lands at
 T_bt(q) T_ts, where T_ts is the error transform keo estimates (tool frame). To land on a goal
 T_goal the controller must be commanded T_goal T_ts^-1. So the correction is applied on the

@@ -255,3 +255,40 @@ def estimate_variance(
     factor = np.array([noise_gain(float(g), period) for g in gains])
     out: np.ndarray = (factor * noise_std) ** 2
     return out
+
+
+# ---- the noise behind a published covariance --------------------------------------------------
+
+# A 6-DoF probe's orientation comes from targets about this far apart: its orientation noise
+# is the position noise over this base (15 um over 0.1 m: 150 urad, a probe datasheet's 0.01
+# degree). keo's config gives the tracker's position uncertainty only.
+PROBE_BASE_M = 0.1
+# Never claim perfect knowledge: below these a tracker resolves nothing (0.1 um, 1 urad).
+MIN_NOISE_M = 1e-7
+MIN_NOISE_RAD = 1e-6
+
+
+def tracker_noise_floor(
+    uncertainty_um: float,
+    uncertainty_um_per_m: float,
+    p_ks: Sequence[float] | None,
+    channels: int,
+) -> np.ndarray:
+    """The configured measurement noise per channel (std; m, rad): a datasheet's
+    "u0 + u1 per metre" at the distance of the measured point from the tracker (`p_ks`, its
+    position in the tracker frame; unknown: 0 m), rotations over PROBE_BASE_M."""
+    distance = 0.0 if p_ks is None else math.sqrt(sum(float(v) * float(v) for v in p_ks))
+    sigma_p = max((uncertainty_um + uncertainty_um_per_m * distance) * 1e-6, MIN_NOISE_M)
+    out = np.full(channels, sigma_p)
+    out[3:] = max(sigma_p / PROBE_BASE_M, MIN_NOISE_RAD)
+    return out
+
+
+def covariance_noise(measured_std: np.ndarray | None, floor: np.ndarray) -> np.ndarray:
+    """The noise a published covariance stands on: the measured noise where it exceeds the
+    configured floor, the floor otherwise (before anything is measured, or on noise-free
+    input): never zero."""
+    if measured_std is None or measured_std.shape != floor.shape:
+        return floor
+    out: np.ndarray = np.maximum(measured_std, floor)
+    return out

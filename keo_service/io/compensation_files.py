@@ -1,6 +1,6 @@
 """`keo compensate` over files, and the compensation objects built from a config.
 
-Targets (DESIGN.md section 6): CSV with a header, either `q1..qN` (a joint program: each target
+Targets (docs/design.md §6): CSV with a header, either `q1..qN` (a joint program: each target
 is the nominal tool pose at those joints) or `x,y,z,qw,qx,qy,qz` (tool pose in the robot base
 frame, m, scalar first) optionally followed by `q1..qN` as seeds; an optional first column
 `id` or `t` is carried through as written. Output: that column, then `q1..qN` (corrected

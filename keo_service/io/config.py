@@ -332,7 +332,24 @@ def parse_config(
             source, "bus.tls_mtls", "mutual TLS needs bus.tls_certificate and bus.tls_private_key"
         )
     bus = msgspec.structs.replace(bus, **tls_paths)
+    _check_clocks(config, source)
     return msgspec.structs.replace(config, robot=robot, bus=bus, source=source)
+
+
+# protocols whose stamps can only be taken on receipt: MotoROS leaves its time at 0
+RECEIPT_ONLY_PROTOCOLS = frozenset({"motoros"})
+
+
+def _check_clocks(config: Config, source: str) -> None:
+    """A clock domain the protocol cannot give is a config error naming the key."""
+    robot = config.robot
+    if robot.protocol in RECEIPT_ONLY_PROTOCOLS and robot.clock != "receipt":
+        raise ConfigError(
+            source,
+            "robot.clock",
+            f'"{robot.clock}" needs time stamps from the controller, and {robot.protocol} '
+            'sends none: only "receipt" works (or leave the key out)',
+        )
 
 
 def load_config(path: str | Path) -> Config:

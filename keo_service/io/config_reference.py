@@ -31,8 +31,8 @@ SECTIONS: dict[str, str] = {
     "robot": "the robot: its model and the controller's joint stream",
     "tool": "the nominal tool frame seen from the flange (T_nt)",
     "tracker": "the tracker: its frame seen from the robot base (T_bk) and its stream",
-    "observer": "the observer (DESIGN.md section 2)",
-    "timing": "aligning the two streams (DESIGN.md section 3)",
+    "observer": "the observer (docs/design.md §2)",
+    "timing": "aligning the two streams (docs/design.md §3)",
     "bus": "Zenoh: where `keo run` listens and the other processes connect",
     "bus.roles": "mTLS certificate common name -> role (needs bus.tls_mtls and "
     "bus.access_control); roles: encoder, tracker, service, client, operator",

@@ -1,4 +1,4 @@
-"""`keo init`: a complete, commented config for a cell (DESIGN.md section 6).
+"""`keo init`: a complete, commented config for a cell (docs/design.md §6).
 
 The values are the config's defaults except what the cell needs: the robot model (copied next
 to the config, so the pair moves together), the protocols and their ports, and a plausible

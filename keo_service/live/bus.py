@@ -222,6 +222,10 @@ class AsyncSubscription:
             await self._wake.wait()
 
     def close(self) -> None:
+        """Undeclare and end the iteration; a second call does nothing (Zenoh refuses to
+        undeclare a subscriber twice)."""
+        if self._closed:
+            return
         self._closed = True
         for sub in self._subs:
             sub.undeclare()

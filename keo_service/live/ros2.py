@@ -7,7 +7,11 @@ What rmw_zenoh puts on the wire (ros2/rmw_zenoh, docs/design.md) and keo writes 
   RIHS01 from Iron on; Humble writes `TypeHashNotSupported`);
 - payload: CDR with its 4-byte encapsulation header (rosbags serialises it);
 - attachment, 33 bytes: int64 LE sequence number, int64 LE source time [ns since epoch],
-  one byte 16, the 16-byte publisher id (rmw_zenoh subscribers drop samples without it);
+  one byte 16, the 16-byte publisher gid (rmw_zenoh subscribers drop samples without it);
+  rmw_zenoh's gid is XXH3-128 of the publisher's liveliness token key expression, the low 64
+  bits then the high 64, each in the host's byte order (little endian where ROS 2 runs);
+- payload encoding: none set on the publisher or the put, i.e. Zenoh's default
+  (`zenoh/bytes`), as rmw_zenoh_cpp publishes;
 - discovery by liveliness tokens, a node's
   `@ros2_lv/<domain>/<zid>/<node id>/<node id>/NN/<enclave>/<namespace>/<node>` and an
   endpoint's `@ros2_lv/<domain>/<zid>/<node id>/<entity id>/MP|MS/<enclave>/<namespace>/<node>/
@@ -20,11 +24,11 @@ definitions of every distro: nothing is hand-written for the wire's payloads.
 from __future__ import annotations
 
 import itertools
-import os
 import struct
 import time
 from typing import Any
 
+import xxhash
 import zenoh
 
 from keo_service.io.ros2_messages import (
@@ -44,6 +48,7 @@ __all__ = [
     "attachment",
     "data_key",
     "dds_type_name",
+    "entity_gid",
     "mangle",
     "seconds_of",
     "typestore",
@@ -79,6 +84,14 @@ def attachment(seq: int, source_ns: int, gid: bytes) -> bytes:
     return ATTACHMENT.pack(seq, source_ns, 16, gid)
 
 
+def entity_gid(liveliness_key: str) -> bytes:
+    """rmw_zenoh's gid of an entity: XXH3-128 of its liveliness token's key expression,
+    low 64 bits first, each half little endian."""
+    digest = xxhash.xxh3_128_intdigest(liveliness_key.encode())
+    low, high = digest & 0xFFFF_FFFF_FFFF_FFFF, digest >> 64
+    return low.to_bytes(8, "little") + high.to_bytes(8, "little")
+
+
 class Ros2Publisher:
     """One ROS 2 publisher: CDR payload, attachment, and its liveliness token."""
 
@@ -87,16 +100,15 @@ class Ros2Publisher:
         self._node = node
         self.key = data_key(node.domain, topic, typename, node.hash(typename))
         self._pub = node.session.declare_publisher(self.key, express=True)
-        self._gid = os.urandom(16)
+        token = node.endpoint_token("MP", entity_id, topic, typename)
+        self.gid = entity_gid(token)
         self._seq = itertools.count(1)
-        self._token = node.session.liveliness().declare_token(
-            node.endpoint_token("MP", entity_id, topic, typename)
-        )
+        self._token = node.session.liveliness().declare_token(token)
 
     def publish(self, message: Any, source_ns: int | None = None) -> None:
         payload = self._node.store.serialize_cdr(message, self.typename)
         stamp = time.time_ns() if source_ns is None else source_ns
-        self._pub.put(bytes(payload), attachment=attachment(next(self._seq), stamp, self._gid))
+        self._pub.put(bytes(payload), attachment=attachment(next(self._seq), stamp, self.gid))
 
     def close(self) -> None:
         self._token.undeclare()

@@ -22,7 +22,7 @@ import zenoh
 
 from keo_service.core.errors import KeoError
 from keo_service.core.estimator import Estimate, Estimator
-from keo_service.core.observer import NoiseMeter
+from keo_service.core.observer import NoiseMeter, covariance_noise, tracker_noise_floor
 from keo_service.io.cell import cell_from_config, delay_model, estimator_settings
 from keo_service.io.config import Config
 from keo_service.live.bus import AsyncSubscription, session_for_service
@@ -131,6 +131,10 @@ class KeoService:
         self.received = 0
         self._last_arrival = time.monotonic()
         self.decode_errors = 0
+        self._clock_domains: dict[str, str] = {}
+        self._clock_flags: collections.Counter[str] = collections.Counter()
+        self._last_tracker_p: list[float] | None = None  # for the covariance's noise floor
+        self._update_stamps: collections.deque[float] = collections.deque(maxlen=50)
 
     async def __aenter__(self) -> KeoService:
         if self._session is None:
@@ -220,6 +224,7 @@ class KeoService:
             self._last_arrival = now
             self._progress_at = now
             if isinstance(msg, JointSample):
+                self._note_sample("encoder", msg)
                 self._rates["encoder"].tick(now)
                 out = self.estimator.on_encoder(msg.t, msg.q)
                 if self._corrections is not None:  # with a model: feedforward at these joints
@@ -229,6 +234,7 @@ class KeoService:
                         msg.t, msg.q, msg.clock_epoch, msg.seq, bool(msg.flags)
                     )
             elif isinstance(msg, TrackerSample):
+                self._note_sample("tracker", msg)
                 self._rates["tracker"].tick(now)
                 out = self.estimator.on_tracker(
                     msg.t, msg.p, msg.q, ok=msg.status == "ok", tag=msg.device_t
@@ -242,6 +248,29 @@ class KeoService:
                 continue
             for estimate in out:
                 self._publish(estimate, now)
+
+    def _note_sample(self, stream: str, msg: JointSample | TrackerSample) -> None:
+        """Record the clock domain a stream's samples declare and count their stamp flags;
+        warn once per change when the domain is not the configured one (a delay calibrated
+        under the config's domains need not hold for these stamps). Keeps the tracker's
+        newest position too (the covariance's noise floor depends on its distance)."""
+        for flag in msg.flags:
+            self._clock_flags[f"{stream}_{flag}"] += 1
+        if isinstance(msg, TrackerSample) and msg.p is not None:
+            self._last_tracker_p = msg.p  # for the covariance's noise floor
+        if not msg.clock or self._clock_domains.get(stream) == msg.clock:
+            return
+        self._clock_domains[stream] = msg.clock
+        section = self.config.robot if stream == "encoder" else self.config.tracker
+        configured = section.clock
+        if msg.clock != configured:
+            text = (
+                f"the {stream} samples declare clock domain {msg.clock!r}, the config's "
+                f"{'robot' if stream == 'encoder' else 'tracker'}.clock is {configured!r}: "
+                "timing.delay_s was calibrated under the config's domains and may not hold"
+            )
+            log.warning(text)
+            self.estimator.messages.append(text)
 
     def _publish(self, estimate: Estimate, now: float) -> None:
         self._seq += 1
@@ -262,7 +291,16 @@ class KeoService:
         if self._ros2 is not None and estimate.measured is not None:
             self._noise.add(estimate.measured)
             gains = self.config.observer.gain
-            self._ros2.publish(msg, self._noise.std(), gains, self._period())
+            tracker = self.config.tracker
+            floor = tracker_noise_floor(
+                tracker.uncertainty_um,
+                tracker.uncertainty_um_per_m,
+                self._last_tracker_p,
+                estimate.measured.size,
+            )
+            noise = covariance_noise(self._noise.std(), floor)
+            self._update_stamps.append(estimate.t)
+            self._ros2.publish(msg, noise, gains, self._period())
         self._rates["estimate"].tick(now)
         if self._viz is not None:
             self._viz.submit(estimate)
@@ -270,9 +308,13 @@ class KeoService:
             self._last_estimate_wall = now
 
     def _period(self) -> float:
-        """The tracker's sample period [s] as measured (its nominal 10 ms before a rate)."""
-        rate = self._rates["tracker"].rate(time.monotonic())
-        return 1.0 / rate if rate > 0 else 0.01
+        """The observer's mean step [s] over its last updates, in stream time (its nominal
+        10 ms before two). Not the arrival rate: arrivals bunch when samples wait for encoder
+        data, and a step that looks short would shrink the covariance."""
+        stamps = self._update_stamps
+        if len(stamps) < 2 or stamps[-1] <= stamps[0]:
+            return 0.01
+        return (stamps[-1] - stamps[0]) / (len(stamps) - 1)
 
     def to_message(self, estimate: Estimate) -> EstimateMessage:
         return EstimateMessage(
@@ -311,6 +353,7 @@ class KeoService:
         counters["decode_errors"] = self.decode_errors
         counters["queue_dropped"] = self._sub.dropped
         counters["publish_failed"] = self.publish_failures
+        counters.update(self._clock_flags)
         if self._viz is not None:
             counters["rerun_dropped"] = self._viz.dropped
         if self._corrections is not None:
@@ -330,6 +373,7 @@ class KeoService:
             drift=delay.drift,
             gains=list(self.estimator.settings.gains),
             alignment=self.estimator.settings.alignment,
+            clock_domains=dict(self._clock_domains),
             counters=counters,
             last_estimate=None if last is None else self.to_message(last),
             messages=list(self.estimator.messages)[-10:],

@@ -3,7 +3,7 @@ with the reference method's number beside it, as a document and as lines to prin
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -18,6 +18,9 @@ if TYPE_CHECKING:
 class DelayCalibration:
     fit: DelayFit
     segments: list[ReferenceSegment]  # the reference method on each constant-velocity stretch
+    # the clock domains the delay holds under (the config's [robot] / [tracker] clock): samples
+    # stamped under other domains make `keo run` warn
+    clocks: dict[str, str] = field(default_factory=dict)
 
     @property
     def explained(self) -> bool:
@@ -41,6 +44,7 @@ class DelayCalibration:
             "window_delays_s": fit.window_delays_s,
             "notes": fit.notes,
             "reference_method": [s.__dict__ for s in self.segments],
+            "clocks": dict(self.clocks),
             "config": {
                 "timing.delay_s": fit.delay_s,
                 "timing.drift_ppm": fit.drift * 1e6,
@@ -68,6 +72,12 @@ class DelayCalibration:
             f"{s.delay_s * 1e3:.2f} ms"
             for s in self.segments
         )
+        if self.clocks:
+            out.append(
+                "clock domains: "
+                + ", ".join(f"{key} = {value}" for key, value in self.clocks.items())
+                + " (the delay holds for stamps under these domains)"
+            )
         out.append("config:")
         out.append(f"  [timing] delay_s = {fit.delay_s:.6f}")
         if fit.drift_significant:
@@ -82,7 +92,9 @@ def calibrate_delay(
     """Read the recording once (interchange CSV files) and fit the delay from the config's
     value; raises `DelayNotIdentifiableError` when the motion cannot determine it."""
     recording = read_recording(config, encoder_path, tracker_path, mcap=False)
-    return calibrate_recording(recording, config.timing.delay_s, with_drift)
+    result = calibrate_recording(recording, config.timing.delay_s, with_drift)
+    clocks = {"robot.clock": str(config.robot.clock), "tracker.clock": str(config.tracker.clock)}
+    return replace(result, clocks=clocks)
 
 
 def calibrate_recording(
