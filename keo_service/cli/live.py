@@ -250,6 +250,10 @@ def cmd_mock(args: argparse.Namespace) -> int:
             beam_break=_pair(args.beam_break, "--beam-break"),
             clock_step=_pair(args.clock_step, "--clock-step"),
             period_s=period,
+            device_clock=_pair(args.device_clock, "--device-clock"),
+            late_ms=args.late_ms,
+            burst_every_s=args.burst_every,
+            seed=args.seed,
         )
 
     server.play_until = until
@@ -463,6 +467,25 @@ def cmd_router(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_stall_and_clock_args(p: argparse.ArgumentParser) -> None:
+    """keo mock: late delivery in stalls (RTDE and the tracker) and the tracker's own clock."""
+    p.add_argument(
+        "--late-ms", type=float, default=0.0, help="rtde, tracker: longest delivery stall (ms)"
+    )
+    p.add_argument(
+        "--burst-every",
+        type=float,
+        default=0.0,
+        help="rtde, tracker: mean seconds between stalls",
+    )
+    p.add_argument(
+        "--device-clock",
+        metavar="OFFSET:PPM",
+        help="tracker: stamp each pose with its own free-running clock, OFFSET s at scenario "
+        "time 0 and running PPM fast (default: seconds since the connection, read at sending)",
+    )
+
+
 def register(add: common.AddCommand) -> None:
     p = add("run", cmd_run, "the service (daemon)")
     p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
@@ -517,10 +540,7 @@ def register(add: common.AddCommand) -> None:
         "--clock-offset", type=float, default=1000.0, help="rtde: controller clock at t0"
     )
     p.add_argument("--clock-drift-ppm", type=float, default=0.0, help="rtde: controller clock rate")
-    p.add_argument("--late-ms", type=float, default=0.0, help="rtde: longest delivery stall (ms)")
-    p.add_argument(
-        "--burst-every", type=float, default=0.0, help="rtde: mean seconds between stalls"
-    )
+    _add_stall_and_clock_args(p)
     p.add_argument("--cycle-ms", type=float, default=4.0, help="kuka_rsi/abb_egm: cycle (ms)")
     p.add_argument("--jitter-ms", type=float, default=0.0, help="kuka_rsi/abb_egm: send jitter")
     p.add_argument(

@@ -154,7 +154,8 @@ class TimingConfig(_Section):
     drift_ref_s: float = 0.0
     alignment: Literal["interpolate", "latest"] = "interpolate"
     sample_rate_hz: Annotated[float, msgspec.Meta(gt=0.0, le=10000.0)] = _DEFAULTS.sample_rate_hz
-    track_delay: bool = False
+    # follow the delay online while the tool moves, starting from delay_s (docs/design.md §6)
+    track_delay: bool = True
     # Encoder samples kept for alignment, in seconds of stream time.
     buffer_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = _DEFAULTS.buffer_s
     # Two encoder samples further apart than this are not interpolated between.

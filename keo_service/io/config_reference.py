@@ -161,7 +161,10 @@ KEYS: dict[str, tuple[str, str]] = {
         "reference method: the newest joints at a fixed rate)",
     ),
     "timing.sample_rate_hz": ("Hz", "latest: the fixed rate"),
-    "timing.track_delay": ("", "follow the delay online while the tool moves"),
+    "timing.track_delay": (
+        "",
+        "follow the delay online while the tool moves, from delay_s (docs/timing-delay.md)",
+    ),
     "timing.buffer_s": ("s", "encoder samples kept for alignment (stream time)"),
     "timing.max_gap_s": ("s", "two encoder samples further apart are not interpolated between"),
     "timing.stale_after_s": (
