@@ -23,9 +23,9 @@ from typing import Protocol
 
 import numpy as np
 
-from adapters import rtde
-from adapters.line_protocol import format_hello, format_pose
-from adapters.simple_message import encode_joint_feedback, encode_robot_status
+from keo_service.adapters import rtde
+from keo_service.adapters.line_protocol import format_hello, format_pose
+from keo_service.adapters.simple_message import encode_joint_feedback, encode_robot_status
 
 log = logging.getLogger("keo.mock")
 STATUS_PERIOD_S = 0.5

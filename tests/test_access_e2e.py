@@ -1,5 +1,5 @@
 """Access control with real certificates and processes: `keo run` (and `keo router`) enforce
-the rights of DESIGN.md §6 by mTLS certificate common name. A client identity that puts
+the rights of docs/design.md §6 by mTLS certificate common name. A client identity that puts
 encoder samples or corrections is refused while the legitimate encoder and tracker keep the
 service estimating; the client may still subscribe to estimates and query status; a
 certificate from another CA does not connect at all."""

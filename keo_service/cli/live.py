@@ -94,11 +94,8 @@ def add_viewer_options(p: argparse.ArgumentParser, url: bool) -> None:
 def cmd_adapter(args: argparse.Namespace) -> int:
     import asyncio
 
-    from adapters.devices import (
-        Ros2JointStateAdapter,
-        encoder_adapter_for,
-        tracker_adapter_for,
-    )
+    from keo_service.adapters.devices import Ros2JointStateAdapter
+    from keo_service.adapters.select import encoder_adapter_for, tracker_adapter_for
     from keo_service.io.cell import robot_from_config
 
     config = common.load(args.config)
@@ -145,7 +142,7 @@ def _pair(text: str | None, option: str) -> tuple[float, float] | None:
 def _udp_controller(args: argparse.Namespace, config: Any, protocol: str, run: Any) -> Any:
     """The RSI or EGM controller side, sending to keo's server (the config's robot host and
     port); with `robot.correction` naming the protocol it applies the corrections it gets."""
-    from adapters.mock_udp import MockEgmController, MockRsiController
+    from keo_service.adapters.mock_udp import MockEgmController, MockRsiController
     from keo_service.io.cell import cell_from_config
     from keo_service.sim.controller import tool_corrector
 
@@ -172,7 +169,12 @@ def _udp_controller(args: argparse.Namespace, config: Any, protocol: str, run: A
 def cmd_mock(args: argparse.Namespace) -> int:
     import asyncio
 
-    from adapters.mock_devices import MockRobot, MockRtdeController, MockTracker, wall_clock_t0
+    from keo_service.adapters.mock_devices import (
+        MockRobot,
+        MockRtdeController,
+        MockTracker,
+        wall_clock_t0,
+    )
     from keo_service.io.cell import cell_from_config
     from keo_service.sim.simulate import make_scenario, simulate
 
@@ -292,7 +294,7 @@ def _mock_compensated_cell(args: argparse.Namespace, config: Any, overrides: dic
     import asyncio
     import json
 
-    from adapters.mock_devices import MockRtdeController, MockTracker
+    from keo_service.adapters.mock_devices import MockRtdeController, MockTracker
     from keo_service.io.cell import cell_from_config
     from keo_service.sim.closed_loop import ClosedLoopCell
     from keo_service.sim.simulate import make_scenario, simulate
