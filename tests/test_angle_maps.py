@@ -102,7 +102,7 @@ def test_the_live_estimator_applies_a_map_as_the_analysis_predicts(demo_config, 
     for i in range(50):
         q = data.q[i]
         live = corrected_joints(cell, q, data.direction[i])
-        _T_bk, _T_ns, corr, _d = result.model.unpack(result.x)
+        _T_bk, _T_ns, corr = result.model.unpack(result.x)
         expected = corr.joint_angles(
             q[None, :], result.model.chain.gravity_torques(q[None, :]), data.direction[i][None, :]
         )[0]
@@ -130,7 +130,7 @@ def test_maps_carried_to_new_data_are_kept_only_where_they_help(demo_cell):
     # any seed come from the same robot, so the carried model fits new, independent poses
     nominal = {"geometric_errors": "false"}
     _run, _data, source = _analysed(demo_cell, {**RIPPLE, **nominal})
-    assert MAPS in source.model.effects
+    assert MAPS in source.model.names
     for sets, kept in (({**RIPPLE, **nominal}, True), (nominal, False)):
         run = simulate(demo_cell, make_scenario("static-poses", {"poses": "800", **sets}), seed=23)
         R = Rotation.from_quat(run.tracker.quat, scalar_first=True).as_matrix()
@@ -140,7 +140,7 @@ def test_maps_carried_to_new_data_are_kept_only_where_they_help(demo_cell):
         carried = analyze(demo_cell.robot, data, False, fixed_model=source.model)
         judged = carried.report["carried_maps"]
         assert judged["kept"] is kept, judged
-        assert (MAPS in carried.model.effects) is kept
+        assert (MAPS in carried.model.names) is kept
         with_maps = judged["held_out_pos_rms_mm_with"]
         without = judged["held_out_pos_rms_mm_without"]
         if kept:  # the maps remove the ripple: about the noise floor of the clean analysis

@@ -25,7 +25,8 @@ from typing import Any
 import numpy as np
 from scipy.linalg import block_diag
 
-from keo_service.fit.analysis import MAPS, Data, Model, numeric_jacobian
+from keo_service.fit.effects import JointMaps
+from keo_service.fit.model import Data, Model, numeric_jacobian, stats
 
 SPACINGS = (0.05, 0.075, 0.1)  # rad between knots
 SMOOTHING = (1e-3, 1e-2, 1e-1, 1.0)  # weight of the second-difference penalty
@@ -182,7 +183,7 @@ def fit_maps(
     P = _penalty(x.size, knots)
     step = _solve(A, lin.r0.ravel(), P, smoothing)
     n_maps = sum(k.size for k in knots)
-    trial = dataclasses.replace(model, effects=[*model.effects, MAPS], knots=knots)
+    trial = dataclasses.replace(model, effects=[*model.effects, JointMaps(knots)])
     x_new = np.concatenate([x, np.zeros(n_maps)]) + step
     # standard errors: the penalised normal equations' inverse, scaled by the residual variance
     resid = lin.r0.ravel() + A @ step
@@ -206,26 +207,10 @@ def held_out_band(data: Data, joint: int = 0, fraction: float = 0.2) -> tuple[np
 
 def map_records(fit: MapFit, joint_names: Sequence[str]) -> list[dict[str, Any]]:
     """Each joint's map as a record: knots, values and standard errors (rad), its range."""
-    out = []
+    maps = fit.model.find(JointMaps)
+    assert maps is not None
     k = fit.x.size - fit.parameters
-    for j, kn in enumerate(fit.model.knots):
-        if not kn.size:
-            continue
-        values, se = fit.x[k : k + kn.size], fit.se[k : k + kn.size]
-        k += kn.size
-        out.append(
-            {
-                "joint": joint_names[j] if j < len(joint_names) else f"joint_{j + 1}",
-                "parameter": "angle error map",
-                "unit": "rad",
-                "knots": kn.tolist(),
-                "values": values.tolist(),
-                "se": se.tolist(),
-                "range_rad": [float(kn[0]), float(kn[-1])],
-                "peak_mrad": float(np.max(np.abs(values)) * 1e3),
-            }
-        )
-    return out
+    return maps.records(fit.x[k:], fit.se[k:], joint_names)
 
 
 def _linear_rms(
@@ -261,8 +246,6 @@ def try_maps(
     they lower the held-out error by `keep_margin` on the held-out blocks and on a held-out
     band of the first joint's angle. The report gets the maps' entry either way, with the
     parameter count, both splits and a learning curve."""
-    from keo_service.fit.analysis import stats
-
     say = say or (lambda _m: None)
     model, x = analysis.model, analysis.x
     chain = model.chain
@@ -290,8 +273,8 @@ def try_maps(
         rms = _linear_rms(lin, data.q, kn, sub, val_idx, fit.smoothing, x.size, True)
         curve.append({"train_poses": int(sub.size), "held_out_pos_rms_mm": rms})
     entry: dict[str, Any] = {
-        "name": MAPS,
-        "description": "joint-angle error maps: angle error vs the joint's own angle (rad)",
+        "name": JointMaps.name,
+        "description": JointMaps.description,
         "parameters": {"maps": map_records(fit, joint_names)},
         "parameter_count": fit.parameters,
         "knot_spacing_rad": fit.spacing,

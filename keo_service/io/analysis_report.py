@@ -19,12 +19,8 @@ from keo_service.core.corrections import approach_directions, persist_directions
 from keo_service.core.errors import KeoError
 from keo_service.core.timing import DelayModel
 from keo_service.fit.analysis import (
-    EFFECTS,
     KEEP_MARGIN,
-    MAPS,
     Analysis,
-    Data,
-    Model,
     NotIdentifiableError,
     analyze,
     describe_remaining,
@@ -32,6 +28,8 @@ from keo_service.fit.analysis import (
 )
 from keo_service.fit.angle_maps import try_maps
 from keo_service.fit.diagnostics import residual_components
+from keo_service.fit.effects import JointMaps, config_fields, effect_from_config
+from keo_service.fit.model import Data, Model, fit, initial_registration, stats
 from keo_service.io.cell import cell_from_config, delay_model, robot_from_config
 from keo_service.io.config import Config, ModelConfig, config_to_toml
 from keo_service.io.interchange import read_encoder, read_tracker
@@ -94,26 +92,20 @@ def saved_model(config: Config, chain: Chain, position_only: bool) -> Model:
     """The effects in the config's [model] section, as a fixed Model (registration-only)."""
     m: ModelConfig = config.model
     nq = chain.nq
+    section = msgspec.structs.asdict(m)
     effects, parts = [], []
     for name in m.effects:
-        if name == "geometry":
-            values = m.placement
-        elif name == "temperature":
-            values = m.temperature_m_per_c
-        elif name == "time_drift":
-            values = m.time_drift_m_per_s
-        elif name == MAPS:
-            values = [v for joint in m.map_values for v in joint]
-        elif name in EFFECTS:
-            values = getattr(m, name)
-        else:
-            raise KeoError(f"{config.source}: key 'model.effects': unknown effect '{name}'")
-        effects.append(name)
-        parts.append(np.asarray(values, dtype=float))
+        try:
+            effect, values = effect_from_config(name, section)
+        except KeyError:
+            raise KeoError(
+                f"{config.source}: key 'model.effects': unknown effect '{name}'"
+            ) from None
+        effects.append(effect)
+        parts.append(values)
     n_reg = 9 if position_only else 12
     x = np.concatenate([np.zeros(n_reg), *parts]) if parts else np.zeros(n_reg)
-    knots = tuple(np.asarray(k, dtype=float) for k in m.map_knots) if MAPS in effects else ()
-    model = Model(chain, position_only, effects, x, {}, m.temperature_ref_c, m.time_ref_s, knots)
+    model = Model(chain, position_only, effects, x, {}, m.temperature_ref_c, m.time_ref_s)
     expected = n_reg + sum(model.sizes(nq))
     if x.size != expected:
         raise KeoError(
@@ -126,21 +118,14 @@ def saved_model(config: Config, chain: Chain, position_only: bool) -> Model:
 def model_config(result: Analysis, base: Config) -> Config:
     """The config with the identified registration and every kept effect."""
     model, x = result.model, result.x
-    T_bk, T_ns, corr, drifts = model.unpack(x)
-    nq = model.chain.nq
-    m = ModelConfig(
-        effects=list(model.effects),
-        joint_offsets=corr.joint_offsets.tolist() if "joint_offsets" in model.effects else [],
-        compliance=corr.compliance.tolist() if "compliance" in model.effects else [],
-        backlash=corr.backlash.tolist() if "backlash" in model.effects else [],
-        cyclic=corr.cyclic.reshape(nq * 4).tolist() if "cyclic" in model.effects else [],
-        placement=corr.placement.reshape(nq * 6).tolist() if "geometry" in model.effects else [],
-        temperature_m_per_c=drifts.get("temperature", np.zeros(0)).tolist(),
-        temperature_ref_c=model.temperature_ref,
-        time_drift_m_per_s=drifts.get("time_drift", np.zeros(0)).tolist(),
-        time_ref_s=model.time_ref,
-        map_knots=[k.tolist() for k, _v in corr.maps] if MAPS in model.effects else [],
-        map_values=[v.tolist() for _k, v in corr.maps] if MAPS in model.effects else [],
+    T_bk, T_ns, _corr = model.unpack(x)
+    m = msgspec.convert(
+        {
+            **config_fields(model, x),
+            "temperature_ref_c": model.temperature_ref,
+            "time_ref_s": model.time_ref,
+        },
+        ModelConfig,
     )
 
     def xyz_rpy(T: np.ndarray) -> tuple[list[float], list[float]]:
@@ -172,7 +157,7 @@ def _plots(
     before = baseline_model.residuals(baseline_x, data, tau).reshape(-1, width)[:, :3] * 1e3
     after = result.model.residuals(result.x, data, tau).reshape(-1, width)[:, :3] * 1e3
     files = []
-    maps_entry = next((e for e in result.report["effects"] if e["name"] == MAPS), None)
+    maps_entry = next((e for e in result.report["effects"] if "maps" in e["parameters"]), None)
     for m in maps_entry["parameters"]["maps"] if maps_entry else []:
         knots, values, se = (
             np.asarray(m[k]) * 1e3 if k != "knots" else np.asarray(m[k])
@@ -263,7 +248,7 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
     carried = report.get("carried_maps")
     if carried:
         lines.append(
-            f"- carried {MAPS} (registration refitted): held out "
+            f"- carried {JointMaps.name} (registration refitted): held out "
             f"{carried['held_out_pos_rms_mm_with']:.4f} mm with them, "
             f"{carried['held_out_pos_rms_mm_without']:.4f} mm without: "
             + ("kept" if carried["kept"] else "dropped, the model is written without them")
@@ -303,7 +288,7 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
     lines += ["", "## Parameters (value +/- standard error)", ""]
     for e in report["effects"]:
         p = e["parameters"]
-        if e["name"] == MAPS:
+        if "maps" in p:
             lines += _maps_markdown(e)
             continue
         head = f"### {e['name']}"
@@ -355,7 +340,7 @@ def _parameter_count(entry: dict[str, Any]) -> int:
 def _maps_markdown(entry: dict[str, Any]) -> list[str]:
     band = entry["band_split"]
     lines = [
-        f"### {MAPS}: knots every {entry['knot_spacing_rad']:g} rad, smoothing "
+        f"### {JointMaps.name}: knots every {entry['knot_spacing_rad']:g} rad, smoothing "
         f"{entry['smoothing']:g} (chosen by cross-validation), {entry['parameter_count']} values",
         "",
         "Outside its calibrated range a map holds its edge value and `keo run` flags the "
@@ -433,7 +418,6 @@ def _time_delay_effect(
 ) -> tuple[Data, dict[str, Any] | None]:
     """Motion data: the delay (and drift) from the motion itself, kept if pairing the
     streams with it lowers the held-out error of the registered nominal model by 5 %."""
-    from keo_service.fit.analysis import KEEP_MARGIN, fit, initial_registration, split, stats
     from keo_service.fit.delay import DelayNotIdentifiableError, fit_delay
 
     cell = cell_from_config(config)
@@ -510,12 +494,10 @@ def run_analysis(
     if fixed is None:
         train_idx, val_idx = split(data.n)
         try_maps(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
-        if MAPS in result.model.effects:  # the verdict was on the model before the maps
+        if result.model.find(JointMaps) is not None:  # the verdict was on the model before the maps
             describe_remaining(result.report, result.model, result.x, data)
     out.mkdir(parents=True, exist_ok=True)
     baseline = Model(chain, position_only, [], result.x[: result.model.n_reg])
-    from keo_service.fit.analysis import fit, initial_registration
-
     tau = chain.gravity_torques(data.q)
     base_x = fit(
         baseline,
@@ -539,7 +521,7 @@ def run_analysis(
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False, default=float))
     (out / "report.md").write_text(markdown(report, plots))
     improved = model_config(result, config)
-    kept_delay = next((e for e in report["effects"] if e["name"] == "time_delay"), None)
+    kept_delay = delay_entry if any(e is delay_entry for e in report["effects"]) else None
     if kept_delay is not None:
         p = kept_delay["parameters"]
         timing = msgspec.structs.replace(
