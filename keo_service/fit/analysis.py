@@ -38,6 +38,7 @@ from keo_service.fit.model import (
     numeric_jacobian,
     stats,
 )
+from keo_service.fit.uncertainty import NOISE_RATIO, TrackerUncertainty, floor_report
 
 __all__ = [
     "CANDIDATES",
@@ -49,6 +50,7 @@ __all__ = [
     "Data",
     "Model",
     "NotIdentifiableError",
+    "TrackerUncertainty",
     "analyze",
     "describe_remaining",
     "parameter_records",
@@ -56,7 +58,6 @@ __all__ = [
 ]
 
 KEEP_MARGIN = 0.05  # an effect must lower the held-out position RMS by 5 % to be kept
-NOISE_MARGIN = 2.0  # a residual above this many times the data's repeatability is not noise
 
 
 # ---- the analysis ----------------------------------------------------------------------------
@@ -166,7 +167,11 @@ def analyze(
     fixed_model: Model | None = None,
     progress: Callable[[str], None] | None = None,
     candidates: tuple[str, ...] = CANDIDATES,
+    uncertainty: TrackerUncertainty | None = None,
 ) -> Analysis:
+    """Register, try each candidate effect, keep what lowers the held-out error, and judge
+    what remains against the floor (`uncertainty`: the tracker's specification; None: keo's
+    assumed default)."""
     say = progress or (lambda _msg: None)
     chain = Chain(robot)
     train_idx, val_idx = split(data.n)
@@ -251,7 +256,13 @@ def analyze(
                 f"{rec['joint']} {rec['parameter']}"
                 for rec in effect.records(zeros, zeros, chain.robot.joint_names)
             ]
-            entry["parameters"]["unidentifiable"] = describe_null_space(null, labels)
+            unseen = describe_null_space(null, labels)
+            entry["parameters"]["unidentifiable"] = unseen
+            # a parameter the poses cannot see alone is held at zero: its record says so
+            held = {u["members"][0]["parameter"] for u in unseen if len(u["members"]) == 1}
+            for rec in entry["parameters"].get("records", []):
+                if f"{rec['joint']} {rec['parameter']}" in held:
+                    rec["held"] = True
         gain = 1 - val_stats.pos_rms_mm / current_val
         entry["held_out_improvement_pct"] = 100 * gain
         if gain >= KEEP_MARGIN:
@@ -267,9 +278,8 @@ def analyze(
         "train": stats(model, x, train, tau_tr).as_dict(),
         "validation": stats(model, x, val, tau_va).as_dict(),
     }
-    rep = repeatability(data.q, data.p_ks)
-    report["repeatability"] = None if rep is None else rep.as_dict()
-    describe_remaining(report, model, x, data)
+    report["repeatability"] = _repeatability_entry(data)
+    describe_remaining(report, model, x, data, uncertainty or TrackerUncertainty())
     T_bk, T_ns, _c = model.unpack(x)
     report["registration"] = {
         "T_bk": T_bk.tolist(),
@@ -342,32 +352,85 @@ def _judge_carried_maps(
     return (model, x) if kept else (without, x_without)
 
 
-def describe_remaining(report: dict[str, Any], model: Model, x: np.ndarray, data: Data) -> None:
-    """What the residual of `model` still correlates with, and the verdict in words (called
-    again when a later stage, the angle maps, changes the final model)."""
+def _repeatability_entry(data: Data) -> dict[str, Any] | None:
+    """The data's repeatability from rows with equal joints. Only stop-and-measure data
+    repeat a commanded pose: in motion data equal joints are the same angles passed at
+    different times (with the delay's and the dynamics' errors in them), so what is found
+    there is reported and not used as a floor."""
+    rep = repeatability(data.q, data.p_ks)
+    if rep is None:
+        return None
+    out = rep.as_dict()
+    static = data.velocity is None
+    out["used_as_floor"] = static
+    if not static:
+        out["note"] = (
+            f"{rep.measurements} rows of motion at {rep.poses} joint positions passed more "
+            f"than once scatter by {rep.rms_mm:.4f} mm RMS: the same angles reached at "
+            "different times in motion, not repeats of one commanded pose, so not used as "
+            "a floor"
+        )
+    return out
+
+
+def describe_remaining(
+    report: dict[str, Any],
+    model: Model,
+    x: np.ndarray,
+    data: Data,
+    uncertainty: TrackerUncertainty | None = None,
+) -> None:
+    """What the residual of `model` still correlates with, the floor a perfect model would
+    reach on the held-out poses, and the verdict in words (called again when a later stage,
+    the angle maps, changes the final model). `uncertainty`: the tracker's specification
+    (None: the one this report already holds, else keo's assumed default)."""
     corr = correlations(model, x, data, model.chain.gravity_torques(data.q))
     report["correlations"] = corr[:10]
+    if uncertainty is None:
+        held = report.get("floor", {}).get("tracker_uncertainty")
+        uncertainty = TrackerUncertainty(**held) if held else TrackerUncertainty()
+    train_idx, val_idx = split(data.n)
+    rep = report.get("repeatability")
+    width = 3 if model.position_only or data.R_ks is None else 6
+    report["floor"] = floor_report(
+        None if data.sigma is None else data.sigma[val_idx],
+        data.p_ks[val_idx],
+        uncertainty,
+        rep["rms_mm"] if rep and rep.get("used_as_floor") else None,
+        int(x.size),
+        width * int(train_idx.size),
+    )
+    final = report["final"]["validation"]["pos_rms_mm"]
+    report["floor"]["ratio"] = final / report["floor"]["pos_rms_mm"]
     report["unexplained"] = _verdict(report, corr)
 
 
 def _verdict(report: dict[str, Any], corr: list[dict[str, Any]]) -> str:
+    """Within NOISE_RATIO x the floor and without structure: consistent with noise; else the
+    excess over the floor in mm (sqrt(final^2 - floor^2), the part noise cannot explain) and
+    where the correlations point."""
     strong = [c for c in corr if c["r2"] > max(0.15, 5 * c["chance"])]
     final = report["final"]["validation"]["pos_rms_mm"]
-    rep = report.get("repeatability")
-    if not strong:
-        head = (
-            f"the remaining {final:.4f} mm RMS shows no structure against the candidate "
-            f"variables (largest R^2 {corr[0]['r2']:.2f} with {corr[0]['variable']})"
+    floor = report["floor"]
+    ratio = floor["ratio"]
+    excess = float(np.sqrt(max(final**2 - floor["pos_rms_mm"] ** 2, 0.0)))
+    against = f"{ratio:.2f}x the floor of {floor['pos_rms_mm']:.4f} mm (from the {floor['label']})"
+    if strong:
+        names = ", ".join(f"{c['variable']} (R^2 {c['r2']:.2f})" for c in strong[:4])
+        return (
+            f"structured residual remains ({final:.4f} mm RMS held out, {against}; "
+            f"{excess:.4f} mm above the noise) that no effect in the library explains; it "
+            f"correlates with {names}"
         )
-        if rep is not None and final > NOISE_MARGIN * rep["rms_mm"]:
-            return (
-                f"{head}, yet it is {final / rep['rms_mm']:.1f}x this data's repeatability "
-                f"({rep['rms_mm']:.4f} mm): model error that none of these variables explains "
-                "alone, not noise"
-            )
+    head = (
+        f"the remaining {final:.4f} mm RMS held out is {against} and shows no structure "
+        f"against the candidate variables (largest R^2 {corr[0]['r2']:.2f} with "
+        f"{corr[0]['variable']})"
+    )
+    if ratio <= NOISE_RATIO:
         return f"{head}: consistent with noise"
-    names = ", ".join(f"{c['variable']} (R^2 {c['r2']:.2f})" for c in strong[:4])
+    pointing = ", ".join(f"{c['variable']} (R^2 {c['r2']:.2f})" for c in corr[:3])
     return (
-        f"structured residual remains ({final:.4f} mm RMS held out) that no effect in the "
-        f"library explains; it correlates with {names}"
+        f"{head}, yet it exceeds the noise by {excess:.4f} mm RMS: model error that none of "
+        f"these variables explains alone; the largest correlations point at {pointing}"
     )

@@ -90,6 +90,8 @@ class Data:
     extra: dict[str, np.ndarray] = field(default_factory=dict)
     direction: np.ndarray | None = None  # (N, nq) direction of each joint's last move, +-1 / 0
     velocity: np.ndarray | None = None  # (N, nq) joint velocities (motion data), rad/s
+    # (N, 3) the tracker's standard deviation of each measured coordinate (m), when known
+    sigma: np.ndarray | None = None
 
     def subset(self, idx: np.ndarray) -> Data:
         return Data(
@@ -100,6 +102,7 @@ class Data:
             {k: v[idx] for k, v in self.extra.items()},
             None if self.direction is None else self.direction[idx],
             None if self.velocity is None else self.velocity[idx],
+            None if self.sigma is None else self.sigma[idx],
         )
 
     @property

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -27,14 +28,34 @@ from keo_service.fit.analysis import (
     split,
 )
 from keo_service.fit.angle_maps import try_maps
-from keo_service.fit.diagnostics import residual_components
+from keo_service.fit.diagnostics import repeatability, residual_components
 from keo_service.fit.effects import JointMaps, config_fields, effect_from_config
 from keo_service.fit.model import Data, Model, fit, initial_registration, stats
+from keo_service.fit.uncertainty import TrackerUncertainty, iso_path_figures, iso_pose_figures
 from keo_service.io.cell import cell_from_config, delay_model, robot_from_config
 from keo_service.io.config import Config, ModelConfig, config_to_toml
 from keo_service.io.interchange import read_encoder, read_tracker
 
 DIRECTION_DEADBAND = 1e-4  # rad/s: slower joints count as not moving
+SIGMA_COLUMNS = ("sx", "sy", "sz")  # optional tracker.csv columns: per-point std (m)
+
+
+def tracker_uncertainty(config: Config) -> TrackerUncertainty:
+    """The config's [tracker] uncertainty; assumed unless the config file states either key
+    (a config built in code: assumed when both equal keo's defaults)."""
+    t = config.tracker
+    stated: bool | None = None
+    source = Path(config.source) if config.source else None
+    if source is not None and source.is_file():
+        try:
+            raw = tomllib.loads(source.read_text(encoding="utf-8")).get("tracker", {})
+            stated = bool({"uncertainty_um", "uncertainty_um_per_m"} & set(raw))
+        except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
+            stated = None
+    if stated is None:
+        default = TrackerUncertainty()
+        stated = (t.uncertainty_um, t.uncertainty_um_per_m) != (default.um, default.um_per_m)
+    return TrackerUncertainty(t.uncertainty_um, t.uncertainty_um_per_m, assumed=not stated)
 
 
 def load_data(
@@ -82,10 +103,14 @@ def load_data(
     if trk.quat is not None:
         quat = trk.quat[ok]
         R = Rotation.from_quat(quat, scalar_first=True).as_matrix()
-    extra = {k: v[ok] for k, v in trk.extra.items()}
+    extra = {k: v[ok] for k, v in trk.extra.items() if k not in SIGMA_COLUMNS}
+    sigma = None
+    if all(c in trk.extra for c in SIGMA_COLUMNS):
+        sigma = np.column_stack([trk.extra[c][ok] for c in SIGMA_COLUMNS])
     if tool_speed is not None:
         extra["tool_speed_m_s"] = tool_speed
-    return Data(q, trk.p[ok], R, trk.t[ok], extra, direction, velocity), trk.quat is None
+    data = Data(q, trk.p[ok], R, trk.t[ok], extra, direction, velocity, sigma)
+    return data, trk.quat is None
 
 
 def saved_model(config: Config, chain: Chain, position_only: bool) -> Model:
@@ -262,8 +287,10 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
         for e in report["rejected"]:
             lines.append(f"- {e['name']}: {e['held_out_improvement_pct']:+.1f} %")
     lines += ["", "## What remains", ""]
+    lines += _floor_markdown(report)
     if "against_repeatability" in report:
         lines += [report["against_repeatability"], ""]
+    lines += _iso_markdown(report.get("iso9283"))
     comps = report.get("residual_components_mm")
     if comps:
         lines += [
@@ -320,12 +347,75 @@ _DISPLAY = {"m": (1e3, "mm"), "rad": (1e3, "mrad"), "m/C": (1e6, "um/C"), "m/s":
 
 
 def _record_line(rec: dict[str, Any]) -> str:
-    """`shoulder_lift_joint  link x  +0.300 +/- 0.070 mm` (display units)."""
+    """`shoulder_lift_joint  link x  +0.300 +/- 0.070 mm` (display units); a parameter the
+    poses cannot see is listed as held, without a value."""
     scale, unit = _DISPLAY.get(rec["unit"], (1.0, rec["unit"]))
+    if rec.get("held"):
+        return f"    {rec['joint']:<22} {rec['parameter']:<18} held at zero (not identifiable here)"
     return (
         f"    {rec['joint']:<22} {rec['parameter']:<18} {rec['value'] * scale:+.4g} +/- "
         f"{rec['se'] * scale:.2g} {unit}"
     )
+
+
+def _floor_markdown(report: dict[str, Any]) -> list[str]:
+    floor = report.get("floor")
+    if not floor:
+        return []
+    lines = [
+        f"Floor (the held-out RMS a perfect model would reach on these {floor['held_out_poses']} "
+        f"held-out poses, {floor['parameters']} parameters fitted): "
+        f"**{floor['pos_rms_mm']:.4f} mm**, from the {floor['source']}"
+        + (" (assumed)" if floor["assumed"] else "")
+        + f"; the final model is at **{floor['ratio']:.2f}x** the floor "
+        "(consistent with noise only within 1.2x).",
+        "",
+    ]
+    others = floor["sources"][1:]
+    if others:
+        lines += [
+            "Other estimates of the floor: "
+            + "; ".join(
+                f"{o['floor_mm']:.4f} mm from the {o['source']}"
+                + (" (assumed)" if o["assumed"] else "")
+                for o in others
+            ),
+            "",
+        ]
+    return lines
+
+
+def _iso_markdown(iso: dict[str, Any] | None) -> list[str]:
+    if not iso:
+        return []
+    lines = ["ISO 9283 figures (mm; before: nominal model, after: identified model):", ""]
+    pose = iso.get("pose")
+    if pose:
+        ap = pose["AP_mm"]
+        lines += [
+            "| figure | before (mean / max) | after (mean / max) |",
+            "|---|---|---|",
+            f"| AP, pose accuracy ({pose['poses']} repeated poses, median "
+            f"{pose['cycles_median']:g} cycles) | {ap['before']['mean']:.4f} / "
+            f"{ap['before']['max']:.4f} | {ap['after']['mean']:.4f} / {ap['after']['max']:.4f} |",
+            f"| RP, pose repeatability | {pose['RP_mm']['mean']:.4f} / "
+            f"{pose['RP_mm']['max']:.4f} | (the same: the model does not change it) |",
+            "",
+            "(AP after is on poses the fit used; ISO 9283 asks for 30 cycles per pose, fewer "
+            "make these figures indicative.)",
+            "",
+        ]
+    path = iso.get("path")
+    if path:
+        at = path["AT_mm"]
+        lines += [
+            f"AT, path accuracy over the held-out motion (one pass): {at['before']:.4f} mm "
+            f"before, {at['after']:.4f} mm after.",
+            "",
+        ]
+    if iso.get("pose_note"):
+        lines += [f"({iso['pose_note']}.)", ""]
+    return lines
 
 
 def _parameter_count(entry: dict[str, Any]) -> int:
@@ -393,6 +483,8 @@ def _add_diagnostics(
             f"{final:.3f} mm RMS held out; these data repeat fewer than 5 poses, so their "
             "repeatability is not measured here"
         )
+    elif not rep.get("used_as_floor", True):
+        report["against_repeatability"] = f"{final:.3f} mm RMS held out; {rep['note']}"
     else:
         report["against_repeatability"] = (
             f"{final:.3f} mm RMS held out, {final / rep['rms_mm']:.1f}x the repeatability "
@@ -405,6 +497,34 @@ def _add_diagnostics(
                 else ")"
             )
         )
+    report["iso9283"] = _iso_figures(result, data, base_x, baseline, val_idx)
+
+
+def _iso_figures(
+    result: Analysis, data: Data, base_x: np.ndarray, baseline: Model, val_idx: np.ndarray
+) -> dict[str, Any]:
+    """ISO 9283 figures the data allow, for the nominal model (registration fitted) and the
+    identified one: AP and RP from repeated stop-and-measure poses, AT from motion."""
+    chain = result.model.chain
+    width = 3 if result.model.position_only or data.R_ks is None else 6
+    tau = chain.gravity_torques(data.q)
+
+    def residual(model: Model, x: np.ndarray) -> np.ndarray:
+        return model.residuals(x, data, tau).reshape(-1, width)[:, :3]
+
+    both = {"before": residual(baseline, base_x), "after": residual(result.model, result.x)}
+    out: dict[str, Any] = {}
+    if data.velocity is None:
+        rep = repeatability(data.q, data.p_ks)
+        pose = None if rep is None else iso_pose_figures(rep.groups, data.p_ks, both)
+        if pose is not None:
+            out["pose"] = pose
+        else:
+            out["pose_note"] = "no repeated poses: AP and RP need poses measured repeatedly"
+    else:
+        out["path"] = iso_path_figures({k: r[val_idx] for k, r in both.items()})
+        out["pose_note"] = "motion data: AP and RP need repeated stop-and-measure poses"
+    return out
 
 
 def _is_static(config: Config, encoder: Path, tracker: Path) -> bool:
@@ -488,7 +608,14 @@ def run_analysis(
     chain = Chain(robot)
     fixed = saved_model(config, chain, position_only) if registration_only else None
     try:
-        result = analyze(robot, data, position_only, fixed_model=fixed, progress=progress)
+        result = analyze(
+            robot,
+            data,
+            position_only,
+            fixed_model=fixed,
+            progress=progress,
+            uncertainty=tracker_uncertainty(config),
+        )
     except NotIdentifiableError as exc:
         raise KeoError(f"cannot analyze these data: {exc}") from None
     if fixed is None:
