@@ -24,7 +24,6 @@ from keo_service.fit.analysis import (
     Analysis,
     NotIdentifiableError,
     analyze,
-    describe_remaining,
     split,
 )
 from keo_service.fit.angle_maps import try_maps
@@ -621,8 +620,6 @@ def run_analysis(
     if fixed is None:
         train_idx, val_idx = split(data.n)
         try_maps(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
-        if result.model.find(JointMaps) is not None:  # the verdict was on the model before the maps
-            describe_remaining(result.report, result.model, result.x, data)
     out.mkdir(parents=True, exist_ok=True)
     baseline = Model(chain, position_only, [], result.x[: result.model.n_reg])
     tau = chain.gravity_torques(data.q)
