@@ -310,6 +310,98 @@ class JointMaps:
         return JointMaps(knots), np.asarray(values, dtype=float)
 
 
+@dataclass(frozen=True, eq=False)
+class Couplings:
+    """Effects across joints (fit.coupling): joint j's angle error as a smooth function of
+    joint k's angle, a linear term (about the centre of the knots) and a piecewise-linear map
+    on knots of q_k. `pairs`: per coupling (j, k, knots); values per coupling: the slope
+    (rad/rad), then the map's values (rad)."""
+
+    pairs: tuple[tuple[int, int, np.ndarray], ...] = ()
+    name: ClassVar[str] = "couplings"
+    description: ClassVar[str] = (
+        "couplings across joints: a joint's angle error vs another joint's angle (rad)"
+    )
+    reduce: ClassVar[bool] = False
+
+    def size(self, nq: int) -> int:
+        return sum(1 + kn.size for _j, _k, kn in self.pairs)
+
+    def usable(self, data: Data) -> bool:
+        return True
+
+    def split(self, values: np.ndarray) -> list[tuple[int, int, float, np.ndarray, np.ndarray]]:
+        out, i = [], 0
+        for j, k, kn in self.pairs:
+            out.append((j, k, float(values[i]), kn, values[i + 1 : i + 1 + kn.size]))
+            i += 1 + kn.size
+        return out
+
+    def correct(self, corr: Corrections, values: np.ndarray) -> Corrections:
+        return dataclasses.replace(corr, couplings=tuple(self.split(values)))
+
+    def sensor_offset(self, values: np.ndarray, data: Data, model: Model) -> np.ndarray | None:
+        return None
+
+    def records(
+        self, values: np.ndarray, se: np.ndarray, joint_names: Sequence[str]
+    ) -> list[dict[str, Any]]:
+        """Per coupling: the slope with its standard error and the map, and a sentence."""
+
+        def name(j: int) -> str:
+            return joint_names[j] if j < len(joint_names) else f"joint_{j + 1}"
+
+        out = []
+        for (j, k, slope, kn, v), (_j, _k, slope_se, _kn, v_se) in zip(
+            self.split(values), self.split(se), strict=True
+        ):
+            peak = float(np.max(np.abs(v)) * 1e3) if v.size else 0.0
+            text = (
+                f"{name(j)}'s angle moves with {name(k)}: {slope * 1e3:+.3f} mrad per rad "
+                f"(+/- {slope_se * 1e3:.3f})"
+            )
+            if v.size:
+                text += f", and a map of {name(k)}'s angle peaking at {peak:.3f} mrad"
+            out.append(
+                {
+                    "joint": name(j),
+                    "parameter": f"angle error per rad of {name(k)}",
+                    "unit": "rad/rad",
+                    "value": slope,
+                    "se": slope_se,
+                    "with": name(k),
+                    "knots": kn.tolist(),
+                    "values": v.tolist(),
+                    "values_se": v_se.tolist(),
+                    "peak_mrad": peak,
+                    "text": text,
+                }
+            )
+        return out
+
+    def to_config(self, values: np.ndarray, nq: int) -> dict[str, Any]:
+        parts = self.split(values)
+        return {
+            "coupling_joints": [[j, k] for j, k, _s, _kn, _v in parts],
+            "coupling_slopes": [s for _j, _k, s, _kn, _v in parts],
+            "coupling_knots": [kn.tolist() for _j, _k, _s, kn, _v in parts],
+            "coupling_values": [v.tolist() for _j, _k, _s, _kn, v in parts],
+        }
+
+    def from_config(self, section: Mapping[str, Any]) -> tuple[Effect, np.ndarray]:
+        pairs, values = [], []
+        for (j, k), slope, kn, v in zip(
+            section["coupling_joints"],
+            section["coupling_slopes"],
+            section["coupling_knots"],
+            section["coupling_values"],
+            strict=True,
+        ):
+            pairs.append((int(j), int(k), np.asarray(kn, dtype=float)))
+            values += [float(slope), *[float(x) for x in v]]
+        return Couplings(tuple(pairs)), np.asarray(values, dtype=float)
+
+
 # every effect by its name; the analysis tries CANDIDATES in this order, then the maps
 EFFECTS: dict[str, Effect] = {
     e.name: e
@@ -322,6 +414,7 @@ EFFECTS: dict[str, Effect] = {
         Temperature(),
         TimeDrift(),
         JointMaps(),
+        Couplings(),
     )
 }
 CANDIDATES = (

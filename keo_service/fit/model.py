@@ -232,6 +232,8 @@ def _corrections_key(corr: Corrections) -> bytes:
     ]
     for knots, values in corr.maps:
         parts += [knots.tobytes(), b"|", values.tobytes(), b"|"]
+    for j, k, slope, knots, values in corr.couplings:
+        parts += [repr((j, k, slope)).encode(), knots.tobytes(), b"|", values.tobytes(), b"|"]
     return b"/".join(parts)
 
 

@@ -27,6 +27,7 @@ from keo_service.fit.analysis import (
     split,
 )
 from keo_service.fit.angle_maps import try_maps
+from keo_service.fit.coupling import try_couplings
 from keo_service.fit.diagnostics import repeatability, residual_components
 from keo_service.fit.effects import JointMaps, config_fields, effect_from_config
 from keo_service.fit.model import Data, Model, fit, initial_registration, stats
@@ -324,6 +325,9 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
             lines += [head, ""]
             lines += [_record_line(rec) for rec in p["records"]]
             lines.append("")
+            lines += [f"- {text}" for text in p.get("couplings", [])]
+            if p.get("couplings"):
+                lines.append("")
             if p.get("unidentifiable"):
                 lines += ["What these poses cannot tell apart:", ""]
                 lines += [f"- {u['text']}" for u in p["unidentifiable"]]
@@ -342,7 +346,13 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-_DISPLAY = {"m": (1e3, "mm"), "rad": (1e3, "mrad"), "m/C": (1e6, "um/C"), "m/s": (1e6, "um/s")}
+_DISPLAY = {
+    "m": (1e3, "mm"),
+    "rad": (1e3, "mrad"),
+    "m/C": (1e6, "um/C"),
+    "m/s": (1e6, "um/s"),
+    "rad/rad": (1e3, "mrad/rad"),
+}
 
 
 def _record_line(rec: dict[str, Any]) -> str:
@@ -620,6 +630,7 @@ def run_analysis(
     if fixed is None:
         train_idx, val_idx = split(data.n)
         try_maps(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
+        try_couplings(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
     out.mkdir(parents=True, exist_ok=True)
     baseline = Model(chain, position_only, [], result.x[: result.model.n_reg])
     tau = chain.gravity_torques(data.q)
