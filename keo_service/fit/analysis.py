@@ -34,7 +34,7 @@ from keo_service.fit.model import (
     NotIdentifiableError,
     fit,
     identifiable_basis,
-    initial_registration,
+    initial_registration_sessions,
     numeric_jacobian,
     stats,
 )
@@ -70,6 +70,23 @@ def split(n: int) -> tuple[np.ndarray, np.ndarray]:
     idx = np.arange(n)
     val = (idx // block) % 4 == 3
     return idx[~val], idx[val]
+
+
+def sessions_of(data: Data) -> int:
+    """How many recordings the data pool (1 without session labels)."""
+    return 1 if data.session is None else int(data.session.max()) + 1
+
+
+def split_data(data: Data) -> tuple[np.ndarray, np.ndarray]:
+    """split() within each session, so every session has held-out blocks."""
+    if data.session is None:
+        return split(data.n)
+    train, val = [], []
+    for rows in data.session_rows(sessions_of(data)):
+        a, b = split(rows.size)
+        train.append(rows[a])
+        val.append(rows[b])
+    return np.sort(np.concatenate(train)), np.sort(np.concatenate(val))
 
 
 def parameter_records(
@@ -174,7 +191,8 @@ def analyze(
     assumed default)."""
     say = progress or (lambda _msg: None)
     chain = Chain(robot)
-    train_idx, val_idx = split(data.n)
+    sessions = sessions_of(data)
+    train_idx, val_idx = split_data(data)
     train, val = data.subset(train_idx), data.subset(val_idx)
     say(f"{data.n} poses: {train.n} to fit, {val.n} held out")
     tau_all = chain.gravity_torques(data.q)
@@ -182,8 +200,8 @@ def analyze(
     t_ref = TimeDrift.reference(data)
     temp_ref = Temperature.reference(data)
 
-    reg0 = initial_registration(chain, train, None, position_only)
-    base = Model(chain, position_only, [], reg0, temperature_ref=temp_ref, time_ref=t_ref)
+    reg0 = initial_registration_sessions(chain, train, position_only, sessions)
+    base = Model(chain, position_only, [], reg0, {}, temp_ref, t_ref, sessions)
     _check_registration(base, train, tau_tr)
     noise = 50e-6
     fitted = fit(base, train, tau_tr, reg0, noise)
@@ -236,7 +254,14 @@ def analyze(
         else:
             null = np.zeros((0, 0))
         trial = Model(
-            chain, position_only, [*model.effects, effect], x, trial_basis, temp_ref, t_ref
+            chain,
+            position_only,
+            [*model.effects, effect],
+            x,
+            trial_basis,
+            temp_ref,
+            t_ref,
+            sessions,
         )
         size = trial.sizes(chain.nq)[-1]
         x0 = np.concatenate([x, np.zeros(size)])
@@ -286,7 +311,25 @@ def analyze(
         "T_ns": T_ns.tolist(),
         "noise_estimate_mm": noise * 1e3,
     }
+    if sessions > 1:
+        report["registration"]["T_bk_sessions"] = [T.tolist() for T in model.registrations(x)]
     return Analysis(report, model, x)
+
+
+def session_report(report: dict[str, Any], model: Model, x: np.ndarray, data: Data) -> None:
+    """Several recordings: the final model's numbers on each one's held-out and fitted rows
+    (the pooled ones are report["final"])."""
+    train_idx, val_idx = split_data(data)
+    tau = model.chain.gravity_torques(data.q)
+    out = []
+    for s, rows in enumerate(data.session_rows(model.sessions)):
+        entry: dict[str, Any] = {"session": s}
+        for label, idx in (("train", train_idx), ("validation", val_idx)):
+            mine = np.intersect1d(idx, rows)
+            entry[label] = stats(model, x, data.subset(mine), tau[mine]).as_dict()
+        entry["T_bk"] = model.registrations(x)[s].tolist()
+        out.append(entry)
+    report["sessions"] = out
 
 
 def _check_registration(model: Model, data: Data, tau: np.ndarray) -> None:
@@ -332,6 +375,7 @@ def _judge_carried_maps(
         dict(model.basis),
         model.temperature_ref,
         model.time_ref,
+        model.sessions,
     )
     fixed = np.zeros(without.x.size, dtype=bool)
     fixed[without.n_reg :] = True
@@ -389,7 +433,7 @@ def describe_remaining(
     if uncertainty is None:
         held = report.get("floor", {}).get("tracker_uncertainty")
         uncertainty = TrackerUncertainty(**held) if held else TrackerUncertainty()
-    train_idx, val_idx = split(data.n)
+    train_idx, val_idx = split_data(data)
     rep = report.get("repeatability")
     width = 3 if model.position_only or data.R_ks is None else 6
     report["floor"] = floor_report(
@@ -403,6 +447,8 @@ def describe_remaining(
     final = report["final"]["validation"]["pos_rms_mm"]
     report["floor"]["ratio"] = final / report["floor"]["pos_rms_mm"]
     report["unexplained"] = _verdict(report, corr)
+    if model.sessions > 1:
+        session_report(report, model, x, data)
 
 
 def _verdict(report: dict[str, Any], corr: list[dict[str, Any]]) -> str:

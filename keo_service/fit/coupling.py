@@ -168,6 +168,7 @@ def _with_coupling(
         dict(model.basis),
         model.temperature_ref,
         model.time_ref,
+        model.sessions,
     )
     return trial, x_new
 

@@ -92,6 +92,8 @@ class Data:
     velocity: np.ndarray | None = None  # (N, nq) joint velocities (motion data), rad/s
     # (N, 3) the tracker's standard deviation of each measured coordinate (m), when known
     sigma: np.ndarray | None = None
+    # (N,) the recording (session) each row comes from, 0..S-1; None: one session
+    session: np.ndarray | None = None
 
     def subset(self, idx: np.ndarray) -> Data:
         return Data(
@@ -103,7 +105,14 @@ class Data:
             None if self.direction is None else self.direction[idx],
             None if self.velocity is None else self.velocity[idx],
             None if self.sigma is None else self.sigma[idx],
+            None if self.session is None else self.session[idx],
         )
+
+    def session_rows(self, sessions: int) -> list[np.ndarray]:
+        """Each session's rows (all rows for one session)."""
+        if sessions == 1 or self.session is None:
+            return [np.arange(self.n)]
+        return [np.flatnonzero(self.session == s) for s in range(sessions)]
 
     @property
     def n(self) -> int:
@@ -135,12 +144,16 @@ class Model:
     basis: dict[str, np.ndarray] = field(default_factory=dict)  # identifiable directions
     temperature_ref: float = 0.0
     time_ref: float = 0.0
+    # recordings with their own tracker registration (T_bk each), one robot and one tool
+    sessions: int = 1
     # the newest chain evaluation: (data, tau, corrections' key, R_bn, p_bn)
     _frames: tuple[Any, ...] | None = field(default=None, repr=False, compare=False)
 
     @property
     def n_reg(self) -> int:
-        return 9 if self.position_only else 12
+        """Registration parameters: T_bk per session (translation, rotation vector), then the
+        sensor mount T_ns (translation and rotation vector, or the reflector offset)."""
+        return 6 * self.sessions + (3 if self.position_only else 6)
 
     @property
     def names(self) -> list[str]:
@@ -169,21 +182,31 @@ class Model:
             yield effect, part
 
     def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, Corrections]:
-        reg = x[: self.n_reg]
+        """The first session's T_bk, the mount T_ns and the corrections."""
         corr = Corrections(nq=self.chain.nq)
         for effect, part in self.parts(x):
             corr = effect.correct(corr, part)
-        T_bk = np.eye(4)
-        T_bk[:3, :3] = Rotation.from_rotvec(reg[3:6]).as_matrix()
-        T_bk[:3, 3] = reg[:3]
-        if self.position_only:
-            T_ns = np.eye(4)
-            T_ns[:3, 3] = reg[6:9]
-        else:
-            T_ns = np.eye(4)
-            T_ns[:3, :3] = Rotation.from_rotvec(reg[9:12]).as_matrix()
-            T_ns[:3, 3] = reg[6:9]
-        return T_bk, T_ns, corr
+        return self.registrations(x)[0], self.mount(x), corr
+
+    def registrations(self, x: np.ndarray) -> list[np.ndarray]:
+        """T_bk of each session (4x4)."""
+        out = []
+        for s in range(self.sessions):
+            reg = x[6 * s : 6 * s + 6]
+            T_bk = np.eye(4)
+            T_bk[:3, :3] = Rotation.from_rotvec(reg[3:6]).as_matrix()
+            T_bk[:3, 3] = reg[:3]
+            out.append(T_bk)
+        return out
+
+    def mount(self, x: np.ndarray) -> np.ndarray:
+        """T_ns (4x4): the sensor in the flange frame."""
+        reg = x[6 * self.sessions : self.n_reg]
+        T_ns = np.eye(4)
+        T_ns[:3, 3] = reg[:3]
+        if not self.position_only:
+            T_ns[:3, :3] = Rotation.from_rotvec(reg[3:6]).as_matrix()
+        return T_ns
 
     def residuals(self, x: np.ndarray, data: Data, tau: np.ndarray) -> np.ndarray:
         """Per pose, predicted minus measured sensor position in the base frame (m) and, for a
@@ -192,6 +215,8 @@ class Model:
         # the sensor frame for every pose, component-major: (3, 3, N) and (3, N)
         R_bs, p_bs = self.flange_frames(corr, data, tau)
         times_constant_frames(R_bs, p_bs, T_ns)
+        if self.sessions > 1:
+            return self._session_residuals(x, data, R_bs, p_bs)
         p_meas = data.p_ks @ T_bk[:3, :3].T + T_bk[:3, 3]
         p_pred = p_bs.T
         for effect, part in self.parts(x):  # effects that move the sensor, not the joints
@@ -208,6 +233,31 @@ class Model:
         out = np.empty((data.n, 6))
         out[:, :3] = pos
         out[:, 3:] = ROT_WEIGHT * log3_many(R_err)
+        return out.ravel()
+
+    def _session_residuals(
+        self, x: np.ndarray, data: Data, R_bs: np.ndarray, p_bs: np.ndarray
+    ) -> np.ndarray:
+        """residuals() for several sessions: each row measured through its session's T_bk."""
+        p_pred = p_bs.T
+        for effect, part in self.parts(x):
+            offset = effect.sensor_offset(part, data, self)
+            if offset is not None:
+                p_pred = p_pred + offset
+        six = not (self.position_only or data.R_ks is None)
+        out = np.empty((data.n, 6 if six else 3))
+        for T_bk, rows in zip(self.registrations(x), data.session_rows(self.sessions), strict=True):
+            if not rows.size:
+                continue
+            p_meas = data.p_ks[rows] @ T_bk[:3, :3].T + T_bk[:3, 3]
+            out[rows, :3] = p_pred[rows] - p_meas
+            if six:
+                assert data.R_ks is not None
+                R_kb = T_bk[:3, :3].T
+                R_sub = R_bs[:, :, rows]
+                R_ks_pred = np.stack([R_kb @ R_sub[:, k, :] for k in range(3)], axis=1)
+                R_err = transposed_times(data.R_ks[rows].transpose(1, 2, 0), R_ks_pred)
+                out[rows, 3:] = ROT_WEIGHT * log3_many(R_err)
         return out.ravel()
 
     def flange_frames(
@@ -292,6 +342,23 @@ def initial_registration(
     R_ns = [T_bn[i, :3, :3].T @ R_bk @ data.R_ks[i] for i in range(data.n)]  # type: ignore[index]
     mean = Rotation.from_matrix(np.array(R_ns)).mean().as_rotvec()
     return np.concatenate([reg, mean])
+
+
+def initial_registration_sessions(
+    chain: Chain, data: Data, position_only: bool, sessions: int
+) -> np.ndarray:
+    """initial_registration per session; T_bk of each, the mount averaged over them."""
+    if sessions == 1:
+        return initial_registration(chain, data, None, position_only)
+    regs = [
+        initial_registration(chain, data.subset(rows), None, position_only)
+        for rows in data.session_rows(sessions)
+    ]
+    out = [r[:6] for r in regs]
+    out.append(np.mean([r[6:9] for r in regs], axis=0))
+    if not position_only:
+        out.append(Rotation.from_rotvec(np.array([r[9:12] for r in regs])).mean().as_rotvec())
+    return np.concatenate(out)
 
 
 @dataclass
@@ -381,6 +448,7 @@ def identifiable_basis(
         dict(model.basis),
         model.temperature_ref,
         model.time_ref,
+        model.sessions,
     )
     x_t = trial.x
     base = trial.residuals(x_t, data, tau)

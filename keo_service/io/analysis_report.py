@@ -25,12 +25,21 @@ from keo_service.fit.analysis import (
     NotIdentifiableError,
     analyze,
     split,
+    split_data,
 )
 from keo_service.fit.angle_maps import try_maps
 from keo_service.fit.coupling import try_couplings
 from keo_service.fit.diagnostics import repeatability, residual_components
 from keo_service.fit.effects import JointMaps, config_fields, effect_from_config
-from keo_service.fit.model import Data, Model, fit, initial_registration, stats
+from keo_service.fit.model import (
+    Data,
+    Model,
+    fit,
+    initial_registration,
+    initial_registration_sessions,
+    stats,
+)
+from keo_service.fit.sampling import MAX_ROWS, informative_rows, selection_report
 from keo_service.fit.uncertainty import TrackerUncertainty, iso_path_figures, iso_pose_figures
 from keo_service.io.cell import cell_from_config, delay_model, robot_from_config
 from keo_service.io.config import Config, ModelConfig, config_to_toml
@@ -59,10 +68,17 @@ def tracker_uncertainty(config: Config) -> TrackerUncertainty:
 
 
 def load_data(
-    config: Config, encoder_path: Path, tracker_path: Path, delay: DelayModel | None = None
+    config: Config,
+    encoder_path: Path,
+    tracker_path: Path,
+    delay: DelayModel | None = None,
+    max_rows: int = MAX_ROWS,
+    info: dict[str, Any] | None = None,
 ) -> tuple[Data, bool]:
     """Pair each tracker row with the joints at its time minus the delay (the config's
-    unless given); stop-and-measure data (an encoder row at every tracker t) uses none."""
+    unless given); stop-and-measure data (an encoder row at every tracker t) uses none. Of a
+    long motion recording at most `max_rows` informative rows are kept (fit.sampling);
+    `info` gets how many were recorded and used, and how they were chosen."""
     robot = robot_from_config(config)
     enc = read_encoder(encoder_path, nq=robot.nq)
     trk = read_tracker(tracker_path)
@@ -96,6 +112,15 @@ def load_data(
         velocity = (ahead - behind) / (2 * h)
         moving = np.where(np.abs(velocity) > DIRECTION_DEADBAND, np.sign(velocity), 0.0)
         direction = persist_directions(moving)
+        rows = informative_rows(q, direction, max_rows)
+        if info is not None:
+            info.update(selection_report(q.shape[0], rows))
+        if rows.size < q.shape[0]:
+            keep = np.zeros(ok.size, dtype=bool)
+            keep[np.flatnonzero(ok)[rows]] = True
+            ok = keep
+            q, velocity, direction = q[rows], velocity[rows], direction[rows]
+            ahead, behind = ahead[rows], behind[rows]
         chain = Chain(robot)
         moved = chain.flange_poses(ahead)[:, :3, 3] - chain.flange_poses(behind)[:, :3, 3]
         tool_speed = np.linalg.norm(moved, axis=1) / (2 * h)
@@ -282,6 +307,14 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
         )
     lines.append(f"- final: {_stats_line(report['final']['validation'])}")
     lines.append(f"- (final on the fitted poses: {_stats_line(report['final']['train'])})")
+    if report.get("sessions"):
+        lines += ["", "Sessions (one tracker registration each, one robot model):", ""]
+        for entry in report["sessions"]:
+            t = np.array(entry["T_bk"])[:3, 3]
+            lines.append(
+                f"- session {entry['session'] + 1}: held out {_stats_line(entry['validation'])}"
+                f"; tracker at [{t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}] m in the base frame"
+            )
     if report["rejected"]:
         lines += ["", "Tried and not kept (held-out change below 5 %):", ""]
         for e in report["rejected"]:
@@ -477,7 +510,7 @@ def _add_diagnostics(
     component: held out for the identified model, all rows for the nominal one."""
     rep = report.get("repeatability")
     chain = result.model.chain
-    _train_idx, val_idx = split(data.n)
+    _train_idx, val_idx = split_data(data)
     val = data.subset(val_idx)
     width = 3 if result.model.position_only or data.R_ks is None else 6
     after = result.model.residuals(result.x, val, chain.gravity_torques(val.q))
@@ -599,19 +632,71 @@ def _time_delay_effect(
     return (new_data if entry["kept"] else data), entry
 
 
+def _pooled(parts: list[Data]) -> Data:
+    """Several recordings as one Data with session labels (columns all share, else none)."""
+
+    def stack(arrays: list[np.ndarray | None]) -> np.ndarray | None:
+        if any(a is None for a in arrays):
+            return None
+        return np.concatenate([a for a in arrays if a is not None])
+
+    extra_keys = set.intersection(*(set(d.extra) for d in parts))
+    return Data(
+        np.concatenate([d.q for d in parts]),
+        np.concatenate([d.p_ks for d in parts]),
+        stack([d.R_ks for d in parts]),
+        np.concatenate([d.t for d in parts]),
+        {k: np.concatenate([d.extra[k] for d in parts]) for k in sorted(extra_keys)},
+        stack([d.direction for d in parts]),
+        stack([d.velocity for d in parts]),
+        stack([d.sigma for d in parts]),
+        np.concatenate([np.full(d.n, s) for s, d in enumerate(parts)]),
+    )
+
+
+def _load_sessions(
+    config: Config, encoders: list[Path], trackers: list[Path], registration_only: bool
+) -> tuple[Data, bool]:
+    if len(encoders) != len(trackers):
+        raise KeoError(
+            f"--encoder and --tracker come in pairs (one of each per recording): got "
+            f"{len(encoders)} and {len(trackers)}"
+        )
+    if registration_only:
+        raise KeoError("--registration-only takes one recording (one --encoder/--tracker pair)")
+    loaded = [load_data(config, e, t) for e, t in zip(encoders, trackers, strict=True)]
+    if len({p for _d, p in loaded}) > 1:
+        raise KeoError("the recordings mix a 6-DoF probe and a single reflector")
+    return _pooled([d for d, _p in loaded]), loaded[0][1]
+
+
 def run_analysis(
-    config: Config, encoder: Path, tracker: Path, out: Path, registration_only: bool
+    config: Config,
+    encoder: Path | list[Path],
+    tracker: Path | list[Path],
+    out: Path,
+    registration_only: bool,
 ) -> dict[str, Any]:
-    data, position_only = load_data(config, encoder, tracker)
+    """`keo analyze`: one recording, or several (repeated --encoder/--tracker pairs: each with
+    its own tracker registration, one robot model; the delay is the config's for each)."""
 
     def progress(msg: str) -> None:
         print(f"[analyze] {msg}", file=sys.stderr, flush=True)
 
+    samples: dict[str, Any] = {}
+    encoders = encoder if isinstance(encoder, list) else [encoder]
+    trackers = tracker if isinstance(tracker, list) else [tracker]
     delay_entry = None
-    if not registration_only and not _is_static(config, encoder, tracker):
-        data, delay_entry = _time_delay_effect(
-            config, encoder, tracker, data, position_only, progress
-        )
+    if len(encoders) == 1 and len(trackers) == 1:
+        encoder, tracker = encoders[0], trackers[0]
+        data, position_only = load_data(config, encoder, tracker, info=samples)
+        if not registration_only and not _is_static(config, encoder, tracker):
+            data, delay_entry = _time_delay_effect(
+                config, encoder, tracker, data, position_only, progress
+            )
+    else:
+        data, position_only = _load_sessions(config, encoders, trackers, registration_only)
+        progress(f"{len(encoders)} recordings, one tracker registration each, one robot model")
 
     robot = robot_from_config(config)
     chain = Chain(robot)
@@ -628,17 +713,20 @@ def run_analysis(
     except NotIdentifiableError as exc:
         raise KeoError(f"cannot analyze these data: {exc}") from None
     if fixed is None:
-        train_idx, val_idx = split(data.n)
+        train_idx, val_idx = split_data(data)
         try_maps(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
         try_couplings(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
     out.mkdir(parents=True, exist_ok=True)
-    baseline = Model(chain, position_only, [], result.x[: result.model.n_reg])
+    sessions = result.model.sessions
+    baseline = Model(
+        chain, position_only, [], result.x[: result.model.n_reg], {}, 0.0, 0.0, sessions
+    )
     tau = chain.gravity_torques(data.q)
     base_x = fit(
         baseline,
         data,
         tau,
-        initial_registration(chain, data, None, position_only),
+        initial_registration_sessions(chain, data, position_only, sessions),
         result.report["registration"]["noise_estimate_mm"] * 1e-3,
     ).x
     plots = _plots(out, result, data, base_x, baseline)
@@ -653,6 +741,8 @@ def run_analysis(
             report["rejected"].insert(0, delay_entry)
     report["position_only"] = position_only
     report["registration_only"] = registration_only
+    if samples:
+        report["samples"] = samples
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False, default=float))
     (out / "report.md").write_text(markdown(report, plots))
     improved = model_config(result, config)
