@@ -46,6 +46,7 @@ from keo_service.io.config import Config, ModelConfig, config_to_toml
 from keo_service.io.interchange import read_encoder, read_tracker
 
 DIRECTION_DEADBAND = 1e-4  # rad/s: slower joints count as not moving
+DELAY_SAMPLES = 60_000  # tracker samples the delay fit uses at most (evenly thinned)
 SIGMA_COLUMNS = ("sx", "sy", "sz")  # optional tracker.csv columns: per-point std (m)
 
 
@@ -586,8 +587,13 @@ def _time_delay_effect(
     enc = read_encoder(encoder, nq=cell.robot.nq)
     trk = read_tracker(tracker)
     say("trying time_delay (the delay between the streams, from the motion)")
+    # a long recording: every k-th tracker sample is plenty for one delay and one drift
+    k = max(1, trk.t.size // DELAY_SAMPLES)
+    quat = None if trk.quat is None else trk.quat[::k]
     try:
-        found = fit_delay(cell, enc.t, enc.q, trk.t, trk.p, trk.quat, initial=config.timing.delay_s)
+        found = fit_delay(
+            cell, enc.t, enc.q, trk.t[::k], trk.p[::k], quat, initial=config.timing.delay_s
+        )
     except DelayNotIdentifiableError as exc:
         say(f"time_delay: not identifiable ({exc})")
         return data, None
