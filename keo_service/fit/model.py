@@ -24,6 +24,7 @@ from keo_service.core.rotations import log3_many, transposed_times
 
 ROT_WEIGHT = 0.5  # m per rad: 20 um of position ~ 40 urad of orientation
 RANK_TOL = 1e-3  # relative singular value below which a direction counts as unidentifiable
+LSMR_ROWS = 100_000  # residual rows above which the robust fit's steps are solved by LSMR
 
 
 class NotIdentifiableError(Exception):
@@ -405,10 +406,14 @@ def fit(
         return model.residuals(xx, data, tau)
 
     k_huber = 3.0 * noise_m
+    rows = data.n * (3 if model.position_only or data.R_ks is None else 6)
     result = least_squares(
         fun,
         x[free],
         method="trf",
+        # the exact trust-region step takes an SVD of the whole Jacobian at every iteration
+        # (most of the time on long recordings); LSMR solves it iteratively
+        tr_solver="lsmr" if rows > LSMR_ROWS else "exact",
         loss="huber",
         f_scale=k_huber,
         x_scale="jac",
