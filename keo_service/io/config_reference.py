@@ -213,6 +213,13 @@ KEYS: dict[str, tuple[str, str]] = {
     "model.temperature_ref_c": ("degC", "the temperature where that drift is zero"),
     "model.time_drift_m_per_s": ("m/s", "sensor drift with time (reported)"),
     "model.time_ref_s": ("s", "the time where that drift is zero"),
+    "model.coupling_joints": (
+        "",
+        "per coupling [j, k] (0-based): joint j's angle error moves with joint k's angle",
+    ),
+    "model.coupling_slopes": ("rad/rad", "per coupling: the linear term in joint k's angle"),
+    "model.coupling_knots": ("rad", "per coupling: knots of the map of joint k's angle"),
+    "model.coupling_values": ("rad", "per coupling: joint j's angle error at each knot"),
     "ros2.enabled": (
         "",
         "keo run also publishes each estimate as "
