@@ -1,6 +1,11 @@
-"""Device adapters: bytes in, typed samples out, one class per wire format.
+"""Device adapters (installed as `keo_service.adapters`): bytes in, typed samples out, one
+codec per wire format, connections apart from codecs.
 
-`simple_message` and `line_protocol` are pure codecs (no sockets); `encoder` and `tracker`
-move bytes between a device's TCP connection and the codecs and publish samples on Zenoh;
-`mock_devices` are TCP servers that speak the same wire formats from a simulated scenario.
+Codecs, pure (no sockets): `simple_message` (MotoROS), `line_protocol` (keo's tracker lines),
+`rtde` (Universal Robots), `kuka_rsi` (KUKA RSI XML), `abb_egm` (ABB EGM, protobuf from
+`egm/egm.proto`). Connections: `connection` (the reconnecting TCP loop), `health` (what a user
+sees of an adapter), `realtime` (best-effort real-time priority for the UDP answers).
+Adapters, which join a connection, a codec and the bus: `devices` (TCP and ROS 2),
+`udp_devices` (RSI, EGM), chosen by `select`. Mock devices speaking the same wire formats:
+`mock_devices` (TCP), `mock_udp` (RSI, EGM controllers).
 """

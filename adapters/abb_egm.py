@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 from google.protobuf.message import DecodeError
 
-from adapters.egm import egm_pb2
+from keo_service.adapters.egm import egm_pb2
 from keo_service.core.rejects import RejectLog
 
 MAX_DATAGRAM = 8192  # an EgmRobot with every field is ~400 bytes

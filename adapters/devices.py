@@ -19,14 +19,20 @@ from typing import Any
 import msgspec
 import zenoh
 
-from adapters import rtde
-from adapters.connection import DEVICE, Device, run_tcp_client
-from adapters.health import AdapterHealth
-from adapters.line_protocol import MAX_LINE, LineProtocolParser
-from adapters.rtde import Package, RtdeDecoder
-from adapters.simple_message import JointFeedback, RobotStatusFrame, SimpleMessageDecoder
+from keo_service.adapters import rtde
+from keo_service.adapters.connection import DEVICE, Device, run_tcp_client
+from keo_service.adapters.health import AdapterHealth
+from keo_service.adapters.line_protocol import MAX_LINE, LineProtocolParser
+from keo_service.adapters.rtde import Package, RtdeDecoder
+from keo_service.adapters.simple_message import (
+    JointFeedback,
+    RobotStatusFrame,
+    SimpleMessageDecoder,
+)
 from keo_service.core.clock import Stamp, Stamper
 from keo_service.core.rejects import RejectLog
+from keo_service.io.config import Config
+from keo_service.io.ros2_messages import JOINT_STATE, POINT_STAMPED, POSE_STAMPED, seconds_of
 from keo_service.live.bus import AsyncSubscription, session_for_client_async
 from keo_service.live.compensation import correction_to_send
 from keo_service.live.messages import (
@@ -38,13 +44,7 @@ from keo_service.live.messages import (
     encode,
     topic,
 )
-from keo_service.live.ros2 import (
-    JOINT_STATE,
-    POINT_STAMPED,
-    POSE_STAMPED,
-    Ros2Node,
-    seconds_of,
-)
+from keo_service.live.ros2 import Ros2Node
 from keo_service.live.supervise import supervise
 
 log = logging.getLogger("keo.adapter")
@@ -54,7 +54,7 @@ WATCH_PERIOD_S = 0.25
 class _Adapter:
     name = "adapter"
 
-    def __init__(self, config: Any, nq: int, session: zenoh.Session | None = None) -> None:
+    def __init__(self, config: Config, nq: int, session: zenoh.Session | None = None) -> None:
         self.config = config
         self.nq = nq
         self._own_session = session is None
@@ -67,6 +67,7 @@ class _Adapter:
         # starts at the process's start (ms since the Unix epoch), so that a restarted
         # adapter never repeats one
         section = config.tracker if self.name == "tracker" else config.robot
+        assert section.clock is not None  # the config resolves it from the protocol
         self.stamper = Stamper(
             section.clock, config.timing.max_stamp_age_s, epoch=time.time_ns() // 1_000_000
         )
@@ -548,16 +549,6 @@ class RtdeEncoderAdapter(EncoderAdapter):
         self._status_pub.put(encode(status))
 
 
-def encoder_adapter_for(config: Any) -> type[EncoderAdapter]:
-    """The encoder adapter of `robot.protocol` (ros2: `Ros2JointStateAdapter`, which needs
-    the URDF's joint names)."""
-    if config.robot.protocol in ("kuka_rsi", "abb_egm"):  # UDP servers (adapters.udp_devices)
-        from adapters.udp_devices import UDP_ADAPTERS
-
-        return UDP_ADAPTERS[config.robot.protocol]
-    return RtdeEncoderAdapter if config.robot.protocol == "rtde" else EncoderAdapter
-
-
 class _Ros2Adapter(_Adapter):
     """A ROS 2 topic over rmw_zenoh in, keo's samples out; the ROS messages arrive on the same
     Zenoh session (a client of the service or router), through the bounded hand-off."""
@@ -640,7 +631,7 @@ class Ros2JointStateAdapter(_Ros2Adapter):
 
     name = "encoder"
 
-    def __init__(self, config: Any, joint_names: list[str], session: Any = None) -> None:
+    def __init__(self, config: Config, joint_names: list[str], session: Any = None) -> None:
         super().__init__(config, len(joint_names), session)
         self.joint_names = list(joint_names)
         self.topics = ((config.robot.joint_states_topic, JOINT_STATE),)
@@ -701,7 +692,7 @@ class Ros2PoseAdapter(_Ros2Adapter):
 
     name = "tracker"
 
-    def __init__(self, config: Any, nq: int, session: Any = None) -> None:
+    def __init__(self, config: Config, nq: int, session: Any = None) -> None:
         super().__init__(config, nq, session)
         topic_ = config.tracker.pose_topic
         self.topics = ((topic_, POSE_STAMPED), (topic_, POINT_STAMPED))
@@ -744,8 +735,3 @@ class Ros2PoseAdapter(_Ros2Adapter):
         )
         self._pub.put(encode(sample))
         self.counters["published"] += 1
-
-
-def tracker_adapter_for(config: Any) -> type[_Adapter]:
-    """The tracker adapter of `tracker.protocol`."""
-    return Ros2PoseAdapter if config.tracker.protocol == "ros2" else TrackerAdapter

@@ -23,9 +23,9 @@ from typing import Protocol
 
 import numpy as np
 
-from adapters import rtde
-from adapters.line_protocol import format_hello, format_pose
-from adapters.simple_message import encode_joint_feedback, encode_robot_status
+from keo_service.adapters import rtde
+from keo_service.adapters.line_protocol import format_hello, format_pose
+from keo_service.adapters.simple_message import encode_joint_feedback, encode_robot_status
 
 log = logging.getLogger("keo.mock")
 STATUS_PERIOD_S = 0.5
@@ -65,6 +65,25 @@ class PoseTrack(Protocol):
     quat: np.ndarray | None
 
 
+def stall_schedule(
+    times: np.ndarray, late_s: float, burst_every_s: float, rng: np.random.Generator
+) -> np.ndarray:
+    """When rows stamped `times` go out if sending stalls every `burst_every_s` on average
+    (0: never) for up to `late_s`: the rows held up go out together when the stall ends, as a
+    congested network or a busy host delivers them."""
+    send = times.astype(float).copy()
+    if burst_every_s <= 0 or late_s <= 0 or times.size == 0:
+        return send
+    t_end = float(times[-1])
+    at = float(times[0]) + float(rng.uniform(0, burst_every_s))
+    while at < t_end:
+        stall = float(rng.uniform(0.2, 1.0)) * late_s
+        held = (times >= at) & (times < at + stall)
+        send[held] = at + stall
+        at += float(rng.exponential(burst_every_s)) + stall
+    return send
+
+
 class _MockServer:
     def __init__(
         self,
@@ -83,6 +102,8 @@ class _MockServer:
         self.play_until: float | None = None
         self.clients = 0
         self._server: asyncio.Server | None = None
+        self.send_offsets: np.ndarray | None = None  # per row: when it goes out (stalls)
+        self.pass_offset_s = 0.0  # scenario seconds of the passes played before this one
 
     async def start(self) -> None:
         self._server = await asyncio.start_server(self._on_client, self.host, self.port)
@@ -119,11 +140,20 @@ class _MockServer:
         while True:
             now = time.time()
             first = int(np.searchsorted(times, now - start))
-            for i in range(first, times.size):
+            self.pass_offset_s = start - self.t0
+            send = times if self.send_offsets is None else self.send_offsets
+            i = first
+            while i < times.size:
                 if self.play_until is not None and start + float(times[i]) > self.play_until:
                     return
-                await _sleep_until(start + float(times[i]))
-                writer.write(frame(i))
+                await _sleep_until(start + float(send[i]))
+                due = time.time() - start
+                chunk = [frame(i)]
+                i += 1
+                while i < times.size and send[i] <= due and send[i] > times[i]:
+                    chunk.append(frame(i))  # held up by a stall: out together
+                    i += 1
+                writer.write(b"".join(chunk))
                 await writer.drain()
             if not self.loop_play:
                 return
@@ -180,9 +210,23 @@ class MockTracker(_MockServer):
         clock_step: tuple[float, float] | None = None,
         pose_at: Callable[[float], tuple[np.ndarray, np.ndarray] | None] | None = None,
         period_s: float | None = None,
+        device_clock: tuple[float, float] | None = None,
+        late_ms: float = 0.0,
+        burst_every_s: float = 0.0,
+        seed: int = 0,
     ) -> None:
         super().__init__(host, port, t0, loop_play, period_s)
         self.tracker = tracker
+        # (offset s, drift ppm): the tracker's own free-running clock stamps each pose at the
+        # instant it measured, `offset + scenario time * (1 + drift)`, whoever is connected
+        # (None: the time since the connection, read when the line is sent)
+        self.device_clock = device_clock
+        self.send_offsets = stall_schedule(
+            np.asarray(tracker.t, dtype=float),
+            late_ms * 1e-3,
+            burst_every_s,
+            np.random.default_rng(seed),
+        )
         # measured live instead of played: the sensor pose (m, scalar-first quaternion) for a
         # row's time, e.g. of an arm that a compensated controller moves (None: no target)
         self.pose_at = pose_at
@@ -203,7 +247,13 @@ class MockTracker(_MockServer):
         def frame(i: int) -> bytes:
             seq[0] += 1
             t = float(self.tracker.t[i])
-            device_t = time.time() if self.wall_clock else round(time.monotonic() - device_t0, 6)
+            if self.device_clock is not None:
+                offset, ppm = self.device_clock
+                device_t = round(offset + (t + self.pass_offset_s) * (1.0 + ppm * 1e-6), 7)
+            elif self.wall_clock:
+                device_t = time.time()
+            else:
+                device_t = round(time.monotonic() - device_t0, 6)
             if self.clock_step is not None and t >= self.clock_step[0]:
                 device_t += self.clock_step[1]
             if self.beam_break is not None and 0 <= t - self.beam_break[0] < self.beam_break[1]:

@@ -29,10 +29,10 @@ from collections.abc import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from adapters import abb_egm, kuka_rsi
-from adapters.line_protocol import format_hello, format_pose
-from adapters.mock_devices import JointTrack
-from adapters.realtime import request_realtime
+from keo_service.adapters import abb_egm, kuka_rsi
+from keo_service.adapters.line_protocol import format_hello, format_pose
+from keo_service.adapters.mock_devices import JointTrack
+from keo_service.adapters.realtime import request_realtime
 
 log = logging.getLogger("keo.mock")
 

@@ -28,9 +28,9 @@ import numpy as np
 import zenoh
 from scipy.spatial.transform import Rotation
 
-from adapters import abb_egm, kuka_rsi
-from adapters.devices import ROBOT_STATUS_PERIOD_S, EncoderAdapter
-from adapters.realtime import request_realtime
+from keo_service.adapters import abb_egm, kuka_rsi
+from keo_service.adapters.devices import ROBOT_STATUS_PERIOD_S, EncoderAdapter
+from keo_service.adapters.realtime import request_realtime
 from keo_service.core.clock import Stamp
 from keo_service.live.messages import (
     CorrectionMessage,

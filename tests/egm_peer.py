@@ -3,7 +3,7 @@ generated from ABB's egm.proto, field by field, without keo's codec (adapters.ab
 
 from __future__ import annotations
 
-from adapters.egm import egm_pb2
+from keo_service.adapters.egm import egm_pb2
 
 
 def robot_datagram(

@@ -1,4 +1,4 @@
-"""Access control on the bus: the rights table DESIGN.md §6 gives each role, as the Zenoh
+"""Access control on the bus: the rights table docs/design.md §6 gives each role, as the Zenoh
 `access_control` section keo builds, and the config errors around it. The end-to-end test
 with real certificates and processes is tests/test_access_e2e.py."""
 
@@ -53,7 +53,7 @@ def _allowed(acl, role: str, flow: str, kinds: set[str]) -> set[str]:
     return keys
 
 
-# DESIGN.md §6, written out by hand for cell "c1" without ROS 2
+# docs/design.md §6, written out by hand for cell "c1" without ROS 2
 EXPECTED = {
     "encoder": ({"keo/c1/encoder", "keo/c1/robot_status", "keo/c1/adapter/encoder/**"}, set()),
     "tracker": ({"keo/c1/tracker", "keo/c1/adapter/tracker/**"}, set()),

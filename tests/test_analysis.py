@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from keo_service.core.corrections import approach_directions
 from keo_service.fit.analysis import Data, NotIdentifiableError, analyze
+from keo_service.fit.uncertainty import TrackerUncertainty
 from keo_service.io.interchange import read_estimates
 from keo_service.sim.simulate import make_scenario, simulate
 from tests.conftest import DEMO, REPO, UR10_DATA, keo
@@ -33,7 +34,9 @@ def run_analysis(cell, sets, seed=3, position_only=False):
         dict(run.tracker.extra),
         approach_directions(run.encoder.q),
     )
-    return run, analyze(cell.robot, data, position_only)
+    # the simulator's tracker noise (20 um per coordinate), stated as the tracker's own
+    noise = TrackerUncertainty(20.0, 0.0, assumed=False)
+    return run, analyze(cell.robot, data, position_only, uncertainty=noise)
 
 
 def effect(report, name):
@@ -64,6 +67,11 @@ def test_geometry_is_found_with_only_identifiable_combinations(demo_cell):
     for axis in ("x", "y", "z", "rx", "ry", "rz"):
         assert f"{first} link {axis}" in named
     assert all(u["text"] for u in unseen)
+    # a parameter the poses cannot see alone is listed as held (no value to read)
+    alone = {u["members"][0]["parameter"] for u in unseen if len(u["members"]) == 1}
+    held = {f"{r['joint']} {r['parameter']}" for r in geo["records"] if r.get("held")}
+    assert alone
+    assert held == alone
     assert result.report["baseline"]["validation"]["pos_rms_mm"] > 0.5
     assert result.report["final"]["validation"]["pos_rms_mm"] < 0.05
 
@@ -250,6 +258,13 @@ def test_real_ur10_data_imports_and_improves(tmp_path):
     assert "x the repeatability measured in this data" in report["against_repeatability"]
     # ten times the repeatability is model error, whatever the correlations say
     assert "consistent with noise" not in report["unexplained"]
+    # the file's measurement_std_x,y,z (Series B, mm) arrive as sx, sy, sz and set the floor:
+    # their median is 10-12 um per coordinate (the data's own columns)
+    floor = report["floor"]
+    assert floor["source"].startswith("per-point standard deviations")
+    assert 0.015 < floor["pos_rms_mm"] < 0.06
+    assert floor["ratio"] > 1.2
+    assert report["iso9283"]["pose"]["poses"] == rep["poses"]
     comps = report["residual_components_mm"]["final_held_out"]
     assert np.sqrt(sum(v**2 for v in comps.values())) == pytest.approx(final, rel=0.02)
     md = (tmp_path / "an" / "report.md").read_text()

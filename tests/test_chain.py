@@ -14,7 +14,7 @@ from keo_service.core.chain import Chain
 from keo_service.core.corrections import Corrections
 from keo_service.core.kinematics import flange_pose, load_robot
 from keo_service.core.rotations import log3_many
-from keo_service.fit.analysis import ROT_WEIGHT, Data, Model
+from keo_service.fit.analysis import EFFECTS, ROT_WEIGHT, Data, Model
 from tests.conftest import CONFIGS
 
 
@@ -118,8 +118,8 @@ def test_analysis_residuals_equal_a_pose_by_pose_reference():
     chain = Chain(robot)
     tau = chain.gravity_torques(q)
     direction = rng.choice([-1.0, 1.0], size=q.shape)
-    effects = ["joint_offsets", "geometry", "compliance", "backlash", "cyclic"]
-    model = Model(chain, False, effects, np.zeros(0))
+    names = ["joint_offsets", "geometry", "compliance", "backlash", "cyclic"]
+    model = Model(chain, False, [EFFECTS[n] for n in names], np.zeros(0))
     corr = _corrections(robot.nq, rng)
     reg = np.concatenate([[1.5, -0.4, 0.2], [0.1, 0.2, -2.5], [0.01, -0.02, 0.2], [0.3, -0.1, 0.2]])
     x = np.concatenate(
@@ -178,10 +178,10 @@ def test_residuals_reuse_the_chain_only_while_corrections_and_data_stay(monkeypa
         return evaluate(*args, **kwargs)
 
     monkeypatch.setattr(chain, "flange_frames", counted)
-    model = Model(chain, False, ["joint_offsets"], x)
+    model = Model(chain, False, [EFFECTS["joint_offsets"]], x)
 
     def fresh(x_now, d, t):
-        return Model(chain, False, ["joint_offsets"], x_now).residuals(x_now, d, t)
+        return Model(chain, False, [EFFECTS["joint_offsets"]], x_now).residuals(x_now, d, t)
 
     steps = []
     for k in range(12):  # the registration, one parameter at a time

@@ -10,8 +10,8 @@ import msgspec
 import numpy as np
 import pytest
 
-from adapters.devices import TrackerAdapter
-from adapters.line_protocol import format_hello, format_pose
+from keo_service.adapters.devices import TrackerAdapter
+from keo_service.adapters.line_protocol import format_hello, format_pose
 from keo_service.bench.procs import free_port
 from keo_service.core.clock import SHARED_AHEAD_TOLERANCE_S, Stamper
 from keo_service.core.errors import ConfigError

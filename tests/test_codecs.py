@@ -9,8 +9,8 @@ import struct
 import msgspec
 import pytest
 
-from adapters.line_protocol import LineProtocolParser, format_hello, format_pose
-from adapters.simple_message import (
+from keo_service.adapters.line_protocol import LineProtocolParser, format_hello, format_pose
+from keo_service.adapters.simple_message import (
     JointFeedback,
     RobotStatusFrame,
     SimpleMessageDecoder,

@@ -21,7 +21,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from adapters import rtde
+from keo_service.adapters import rtde
 from keo_service.bench.demo import STARTUP_S, loopback_config
 from keo_service.bench.procs import process_group
 from keo_service.core.correction import (

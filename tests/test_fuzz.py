@@ -14,8 +14,8 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from adapters.line_protocol import LineProtocolParser, format_hello, format_pose
-from adapters.simple_message import (
+from keo_service.adapters.line_protocol import LineProtocolParser, format_hello, format_pose
+from keo_service.adapters.simple_message import (
     JointFeedback,
     SimpleMessageDecoder,
     encode_joint_feedback,
@@ -73,7 +73,7 @@ def test_good_frames_survive_garbage_between_them(frames, junk, byte_order, chun
 def test_huge_or_negative_lengths_resynchronise(length, msg_type, byte_order):
     """A header that is not a valid (type, length) pair is passed over. (A forged header that
     *is* valid is, on a TCP stream, indistinguishable from a frame and is not tested here.)"""
-    from adapters.simple_message import OTHER_KNOWN_LENGTHS
+    from keo_service.adapters.simple_message import OTHER_KNOWN_LENGTHS
 
     valid = {15: 144, 13: 40, **OTHER_KNOWN_LENGTHS}
     assume(valid.get(msg_type) != length)

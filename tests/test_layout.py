@@ -11,7 +11,7 @@ import pytest
 import keo_service
 from keo_service.core.chain import Chain
 from keo_service.core.kinematics import flange_pose, load_robot
-from tests.conftest import CONFIGS
+from tests.conftest import CONFIGS, REPO
 
 CORE_MODULES = [
     "keo_service.core",
@@ -97,7 +97,7 @@ def test_every_exception_class_derives_from_keo_error():
     import inspect
     import pkgutil
 
-    import adapters
+    from keo_service import adapters
     from keo_service.core.errors import KeoError
 
     found = []
@@ -128,3 +128,18 @@ def test_docstrings_cite_the_design_page_in_the_repository():
             cited |= set(re.findall(r"docs/design\.md §(\d)", text))
     assert cited
     assert cited <= sections, cited - sections
+
+
+def test_the_wheel_installs_keo_service_only(tmp_path):
+    """The adapters install as keo_service.adapters: a top-level `adapters` package would
+    clash with PyPI's package of that name."""
+    import zipfile
+
+    wheel_builder = pytest.importorskip("hatchling.builders.wheel")
+    built = wheel_builder.WheelBuilder(str(REPO)).build(
+        directory=str(tmp_path), versions=["standard"]
+    )
+    names = zipfile.ZipFile(next(iter(built))).namelist()
+    assert {n.split("/")[0] for n in names} == {"keo_service", "keo-0.1.0.dist-info"}
+    assert "keo_service/adapters/devices.py" in names
+    assert "keo_service/adapters/egm/egm_pb2.py" in names

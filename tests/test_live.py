@@ -18,8 +18,8 @@ import msgspec
 import numpy as np
 import pytest
 
-from adapters.devices import EncoderAdapter, TrackerAdapter
-from adapters.mock_devices import MockRobot, MockTracker
+from keo_service.adapters.devices import EncoderAdapter, TrackerAdapter
+from keo_service.adapters.mock_devices import MockRobot, MockTracker
 from keo_service.bench.demo import loopback_config
 from keo_service.bench.procs import process_group
 from keo_service.core.observer import noise_gain

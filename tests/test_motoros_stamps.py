@@ -11,8 +11,8 @@ import time
 import msgspec
 import pytest
 
-from adapters.devices import EncoderAdapter
-from adapters.simple_message import encode_joint_feedback, encode_robot_status
+from keo_service.adapters.devices import EncoderAdapter
+from keo_service.adapters.simple_message import encode_joint_feedback, encode_robot_status
 from keo_service.bench.procs import free_port
 from keo_service.core.clock import ReceiptStamps
 from keo_service.live.bus import open_session

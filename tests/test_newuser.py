@@ -247,10 +247,10 @@ async def test_loop_plays_the_scenario_again_for_every_mock_protocol(protocol):
     clock runs on instead of starting over."""
     import numpy as np
 
-    from adapters import rtde
-    from adapters.line_protocol import LineProtocolParser
-    from adapters.mock_devices import MockRobot, MockRtdeController, MockTracker
-    from adapters.simple_message import JointFeedback, SimpleMessageDecoder
+    from keo_service.adapters import rtde
+    from keo_service.adapters.line_protocol import LineProtocolParser
+    from keo_service.adapters.mock_devices import MockRobot, MockRtdeController, MockTracker
+    from keo_service.adapters.simple_message import JointFeedback, SimpleMessageDecoder
 
     class Track:
         t = np.arange(0.0, 1.2, 0.02)
@@ -373,8 +373,8 @@ async def _watch(adapter_cls, config, seconds: float, *args: object) -> dict[str
 async def test_tracker_rejects_are_warned_with_the_reason_and_silence_is_reported(
     demo_config, caplog
 ):
-    from adapters.devices import TrackerAdapter
-    from adapters.line_protocol import format_hello, format_pose
+    from keo_service.adapters.devices import TrackerAdapter
+    from keo_service.adapters.line_protocol import format_hello, format_pose
 
     lines = format_hello("mm") + format_pose(1, 0.1, [1.0, 2.0, 3.0], [1.0, 0, 0, 0])
     lines += b'{"type": "pose", "seq": 2, "t": 0.2, "p": [NaN, 2.0, 3.0], "q": [1, 0, 0, 0]}\n'
@@ -399,8 +399,8 @@ async def test_tracker_rejects_are_warned_with_the_reason_and_silence_is_reporte
 async def test_a_device_speaking_another_protocol_is_named_as_such(
     demo_config, caplog, monkeypatch
 ):
-    from adapters import devices
-    from adapters.simple_message import encode_joint_feedback
+    from keo_service.adapters import devices
+    from keo_service.adapters.simple_message import encode_joint_feedback
 
     monkeypatch.setattr(devices, "HANDSHAKE_TIMEOUT_S", 0.5)
     motoros = encode_joint_feedback([0.1] * 6) * 20
@@ -439,7 +439,7 @@ async def test_a_device_speaking_another_protocol_is_named_as_such(
 
 
 async def test_a_wrong_port_names_the_key_to_fix(demo_config, caplog):
-    from adapters.devices import EncoderAdapter
+    from keo_service.adapters.devices import EncoderAdapter
 
     caplog.set_level("INFO", logger="keo.adapter")
     config = _adapter_config(demo_config, robot={"port": free_port()})  # nothing listens
@@ -524,7 +524,7 @@ def test_the_real_ur10_data_ships_in_the_clone_with_its_license():
 def test_the_topics_page_names_every_payload_field_and_the_line_page_every_reject_reason():
     import typing
 
-    from adapters import line_protocol
+    from keo_service.adapters import line_protocol
     from keo_service.live import messages
 
     page = (REPO / "docs" / "topics-and-files.md").read_text(encoding="utf-8")
@@ -547,7 +547,7 @@ def test_the_topics_page_names_every_payload_field_and_the_line_page_every_rejec
 def test_mocks_on_the_wall_clock_grid_agree_across_a_period_boundary():
     """Two mocks started just before and just after a period boundary pick t0 a period
     apart; playing phase-aligned, both send each row at the same wall time."""
-    from adapters.mock_devices import _first_pass, wall_clock_t0
+    from keo_service.adapters.mock_devices import _first_pass, wall_clock_t0
 
     period = 60.2
     boundary = wall_clock_t0(period, 1.8e9)
@@ -563,7 +563,7 @@ def test_reject_warnings_are_rate_limited_and_the_rate_is_measured(caplog):
     each naming how many and the newest reasons; the rate over the last seconds."""
     import logging
 
-    from adapters.health import WARN_EVERY_S, AdapterHealth
+    from keo_service.adapters.health import WARN_EVERY_S, AdapterHealth
 
     health = AdapterHealth("tracker", "tracker", "line", "h:1", 2.0, logging.getLogger("t.h"))
     caplog.set_level("INFO", logger="t.h")

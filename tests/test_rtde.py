@@ -16,9 +16,9 @@ import msgspec
 import numpy as np
 import pytest
 
-from adapters import rtde
-from adapters.devices import RtdeEncoderAdapter
-from adapters.mock_devices import MockRtdeController
+from keo_service.adapters import rtde
+from keo_service.adapters.devices import RtdeEncoderAdapter
+from keo_service.adapters.mock_devices import MockRtdeController
 from keo_service.bench.procs import free_port
 from keo_service.core.clock import ClockMapper
 from keo_service.live.bus import open_session

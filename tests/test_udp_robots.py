@@ -22,11 +22,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from adapters import abb_egm, kuka_rsi
-from adapters.devices import TrackerAdapter, encoder_adapter_for
-from adapters.egm import egm_pb2
-from adapters.mock_udp import LiveTracker, MockEgmController, MockRsiController
-from adapters.udp_devices import CorrectionOutput, rkorr_of
+from keo_service.adapters import abb_egm, kuka_rsi
+from keo_service.adapters.devices import TrackerAdapter
+from keo_service.adapters.egm import egm_pb2
+from keo_service.adapters.mock_udp import LiveTracker, MockEgmController, MockRsiController
+from keo_service.adapters.select import encoder_adapter_for
+from keo_service.adapters.udp_devices import CorrectionOutput, rkorr_of
 from keo_service.bench.demo import loopback_config
 from keo_service.bench.procs import process_group
 from keo_service.core.kinematics import pose_error, quat_wxyz, tool_pose

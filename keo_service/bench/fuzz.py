@@ -217,7 +217,7 @@ class _Motoros:
         self.counters: Counter[str] = Counter()
 
     def __call__(self, data: bytes, index: int) -> int:
-        from adapters.simple_message import SimpleMessageDecoder
+        from keo_service.adapters.simple_message import SimpleMessageDecoder
 
         dec = SimpleMessageDecoder("little" if index % 2 == 0 else "big")
         chunk = 1 + (index * 7919) % 97
@@ -230,7 +230,7 @@ class _Motoros:
 
 
 def _motoros(work: Path) -> tuple[list[bytes], Runner]:
-    from adapters.simple_message import encode_joint_feedback, encode_robot_status
+    from keo_service.adapters.simple_message import encode_joint_feedback, encode_robot_status
 
     seeds = []
     for order in ("little", "big"):
@@ -249,7 +249,7 @@ class _Line:
         self.counters: Counter[str] = Counter()
 
     def __call__(self, data: bytes, index: int) -> int:
-        from adapters.line_protocol import LineProtocolParser, format_hello
+        from keo_service.adapters.line_protocol import LineProtocolParser, format_hello
 
         parser = LineProtocolParser()
         parser.parse(format_hello("mm" if index % 2 else "m"))
@@ -264,7 +264,7 @@ class _Line:
 
 
 def _line(work: Path) -> tuple[list[bytes], Runner]:
-    from adapters.line_protocol import format_hello, format_pose
+    from keo_service.adapters.line_protocol import format_hello, format_pose
 
     seeds = [
         format_pose(17, 12.345, [1000.0, -250.5, 30.25], [1.0, 0.0, 0.0, 0.0]),
@@ -282,13 +282,13 @@ class _Rtde:
     RtdeError is the documented reject (counted by the decoder under the adapter's reason)."""
 
     def __init__(self) -> None:
-        from adapters import rtde
+        from keo_service.adapters import rtde
 
         self.counters: Counter[str] = Counter()
         self.recipe = rtde.Recipe(1, tuple(rtde.OUTPUTS), tuple(rtde.OUTPUTS.values()))
 
     def __call__(self, data: bytes, index: int) -> int:
-        from adapters import rtde
+        from keo_service.adapters import rtde
 
         dec = rtde.RtdeDecoder()
         chunk = 1 + (index * 7919) % 97
@@ -308,7 +308,7 @@ class _Rtde:
         return frames
 
     def _handle(self, pkg: Any) -> object:
-        from adapters import rtde
+        from keo_service.adapters import rtde
 
         if pkg.type == rtde.DATA_PACKAGE:
             return self.recipe.unpack(pkg.payload)
@@ -327,7 +327,7 @@ _RTDE_REASONS = {85: "bad_data", 77: "bad_text", 118: "bad_version", 79: "bad_se
 
 
 def _rtde(work: Path) -> tuple[list[bytes], Runner]:
-    from adapters import rtde
+    from keo_service.adapters import rtde
 
     runner = _Rtde()
     values = {
@@ -392,7 +392,7 @@ def _quiet_session() -> Any:
 
 
 def _ros2_joint_states(work: Path) -> tuple[list[bytes], Runner]:
-    from adapters.devices import Ros2JointStateAdapter
+    from keo_service.adapters.devices import Ros2JointStateAdapter
     from keo_service.io.cell import robot_from_config
     from keo_service.io.ros2_messages import JOINT_STATE, joint_state, typestore
 
@@ -413,7 +413,7 @@ def _ros2_joint_states(work: Path) -> tuple[list[bytes], Runner]:
 
 
 def _ros2_poses(work: Path) -> tuple[list[bytes], Runner]:
-    from adapters.devices import Ros2PoseAdapter
+    from keo_service.adapters.devices import Ros2PoseAdapter
     from keo_service.io.ros2_messages import (
         POINT_STAMPED,
         POSE_STAMPED,
@@ -454,7 +454,7 @@ class _Codec:
 
 
 def _kuka_rsi(work: Path) -> tuple[list[bytes], Runner]:
-    rsi = importlib.import_module("adapters.kuka_rsi")
+    rsi = importlib.import_module("keo_service.adapters.kuka_rsi")
     seeds = [rsi.format_rob(1000 + k, [0.0, -90.0 + k, 90.0, 0.0, 45.5, -10.25]) for k in range(3)]
     seeds.append(
         rsi.format_rob(2000, [1.0] * 6, tcp=[500.0, 0.0, 800.0, 0.0, 90.0, 0.0], external=[0.0] * 6)
@@ -463,7 +463,7 @@ def _kuka_rsi(work: Path) -> tuple[list[bytes], Runner]:
 
 
 def _abb_egm(work: Path) -> tuple[list[bytes], Runner]:
-    egm = importlib.import_module("adapters.abb_egm")
+    egm = importlib.import_module("keo_service.adapters.abb_egm")
     seeds = [
         egm.format_robot(k + 1, 4 * k, [0.0, -30.0 + k, 20.0, 0.0, 45.5, -10.25]) for k in range(3)
     ]
@@ -568,8 +568,8 @@ TARGETS: tuple[Target, ...] = (
     Target("rtde", _rtde),
     Target("ros2 JointState", _ros2_joint_states),
     Target("ros2 PoseStamped/PointStamped", _ros2_poses),
-    Target("kuka_rsi", _kuka_rsi, text=True, needs="adapters.kuka_rsi"),
-    Target("abb_egm", _abb_egm, needs="adapters.abb_egm"),
+    Target("kuka_rsi", _kuka_rsi, text=True, needs="keo_service.adapters.kuka_rsi"),
+    Target("abb_egm", _abb_egm, needs="keo_service.adapters.abb_egm"),
     Target("interchange encoder.csv", _encoder_csv, text=True),
     Target("interchange tracker.csv", _tracker_csv, text=True),
     Target("config (TOML)", _config, text=True),

@@ -94,11 +94,8 @@ def add_viewer_options(p: argparse.ArgumentParser, url: bool) -> None:
 def cmd_adapter(args: argparse.Namespace) -> int:
     import asyncio
 
-    from adapters.devices import (
-        Ros2JointStateAdapter,
-        encoder_adapter_for,
-        tracker_adapter_for,
-    )
+    from keo_service.adapters.devices import Ros2JointStateAdapter
+    from keo_service.adapters.select import encoder_adapter_for, tracker_adapter_for
     from keo_service.io.cell import robot_from_config
 
     config = common.load(args.config)
@@ -145,7 +142,7 @@ def _pair(text: str | None, option: str) -> tuple[float, float] | None:
 def _udp_controller(args: argparse.Namespace, config: Any, protocol: str, run: Any) -> Any:
     """The RSI or EGM controller side, sending to keo's server (the config's robot host and
     port); with `robot.correction` naming the protocol it applies the corrections it gets."""
-    from adapters.mock_udp import MockEgmController, MockRsiController
+    from keo_service.adapters.mock_udp import MockEgmController, MockRsiController
     from keo_service.io.cell import cell_from_config
     from keo_service.sim.controller import tool_corrector
 
@@ -172,7 +169,12 @@ def _udp_controller(args: argparse.Namespace, config: Any, protocol: str, run: A
 def cmd_mock(args: argparse.Namespace) -> int:
     import asyncio
 
-    from adapters.mock_devices import MockRobot, MockRtdeController, MockTracker, wall_clock_t0
+    from keo_service.adapters.mock_devices import (
+        MockRobot,
+        MockRtdeController,
+        MockTracker,
+        wall_clock_t0,
+    )
     from keo_service.io.cell import cell_from_config
     from keo_service.sim.simulate import make_scenario, simulate
 
@@ -250,6 +252,10 @@ def cmd_mock(args: argparse.Namespace) -> int:
             beam_break=_pair(args.beam_break, "--beam-break"),
             clock_step=_pair(args.clock_step, "--clock-step"),
             period_s=period,
+            device_clock=_pair(args.device_clock, "--device-clock"),
+            late_ms=args.late_ms,
+            burst_every_s=args.burst_every,
+            seed=args.seed,
         )
 
     server.play_until = until
@@ -288,7 +294,7 @@ def _mock_compensated_cell(args: argparse.Namespace, config: Any, overrides: dic
     import asyncio
     import json
 
-    from adapters.mock_devices import MockRtdeController, MockTracker
+    from keo_service.adapters.mock_devices import MockRtdeController, MockTracker
     from keo_service.io.cell import cell_from_config
     from keo_service.sim.closed_loop import ClosedLoopCell
     from keo_service.sim.simulate import make_scenario, simulate
@@ -463,6 +469,25 @@ def cmd_router(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_stall_and_clock_args(p: argparse.ArgumentParser) -> None:
+    """keo mock: late delivery in stalls (RTDE and the tracker) and the tracker's own clock."""
+    p.add_argument(
+        "--late-ms", type=float, default=0.0, help="rtde, tracker: longest delivery stall (ms)"
+    )
+    p.add_argument(
+        "--burst-every",
+        type=float,
+        default=0.0,
+        help="rtde, tracker: mean seconds between stalls",
+    )
+    p.add_argument(
+        "--device-clock",
+        metavar="OFFSET:PPM",
+        help="tracker: stamp each pose with its own free-running clock, OFFSET s at scenario "
+        "time 0 and running PPM fast (default: seconds since the connection, read at sending)",
+    )
+
+
 def register(add: common.AddCommand) -> None:
     p = add("run", cmd_run, "the service (daemon)")
     p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
@@ -517,10 +542,7 @@ def register(add: common.AddCommand) -> None:
         "--clock-offset", type=float, default=1000.0, help="rtde: controller clock at t0"
     )
     p.add_argument("--clock-drift-ppm", type=float, default=0.0, help="rtde: controller clock rate")
-    p.add_argument("--late-ms", type=float, default=0.0, help="rtde: longest delivery stall (ms)")
-    p.add_argument(
-        "--burst-every", type=float, default=0.0, help="rtde: mean seconds between stalls"
-    )
+    _add_stall_and_clock_args(p)
     p.add_argument("--cycle-ms", type=float, default=4.0, help="kuka_rsi/abb_egm: cycle (ms)")
     p.add_argument("--jitter-ms", type=float, default=0.0, help="kuka_rsi/abb_egm: send jitter")
     p.add_argument(

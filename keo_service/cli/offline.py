@@ -306,8 +306,14 @@ def register(add: common.AddCommand) -> None:
     p.add_argument("--json", action="store_true")
 
     p = add("analyze", cmd_analyze, "what the model still gets wrong, effects added and judged")
-    p.add_argument("--encoder", type=Path, required=True)
-    p.add_argument("--tracker", type=Path, required=True)
+    p.add_argument(
+        "--encoder",
+        type=Path,
+        required=True,
+        action="append",
+        help="repeat with --tracker for several recordings of one robot",
+    )
+    p.add_argument("--tracker", type=Path, required=True, action="append")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument(
         "--registration-only",

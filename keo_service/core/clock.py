@@ -5,20 +5,44 @@ Model: a sample the device stamped `d` (its clock) reaches the host at
     r = d + offset + drift * (d - d_ref) + latency,     latency >= floor >= 0
 
 where latency carries the TCP and scheduling jitter (milliseconds, in bursts when the host or
-the network stalls). The stamps the device gives are far more regular than the receipt times,
-so the mapped stamp `d + offset + drift * (d - d_ref)` keeps the device's regularity on the
-host's clock. The lower envelope of `r - d` against `d` is the line `offset + drift * (d -
-d_ref)` shifted up by the latency floor: per block of `block_s` device seconds we keep the
-sample that waited least, and fit a line through the block minima of the last `window_s`
-seconds, refitted without blocks far above it (a block delivered late as a whole). The floor
-itself (the shortest transport time) cannot be seen from the host and stays in the offset.
+the network stalls, and rises lasting seconds when the host is loaded). The stamps the device
+gives are far more regular than the receipt times, so the mapped stamp `d + offset + drift *
+(d - d_ref)` keeps the device's regularity on the host's clock. The line is a low envelope of
+`r - d` against `d`: per block of `block_s` device seconds we keep the sample that waited
+least, and
+
+- the drift is the median of the slopes between pairs of block minima over the last
+  `drift_window_s` seconds (Theil and Sen's estimator; pairs closer than a quarter of
+  `min_drift_span_s` are left out): blocks above the line, for seconds at a time, do not
+  move it;
+- the offset puts the line, at that slope, through the mean of the lowest `low_fraction`
+  (half) of the block minima of the last `window_s` seconds: a rise in latency lasting
+  seconds (a loaded host) leaves it alone, one lasting most of `window_s` is a new floor and
+  the line follows it.
+
+Not through the lowest blocks alone: on a loaded host the least latency of a block varies by
+a hundred microseconds from block to block (whether the receiving process happened to be
+awake), with rare "lucky" samples far below the rest; a line through those (a lower convex
+hull, tried) jumps whenever one enters or leaves the window and tilts between them: measured
+on loopback with two busy cores, block minima 80-270 us, and hull-mapped stamps stepping by
+100 us and drifting by up to 60 ppm. The mean of the lower half sits on the usual least
+latency and moves little. So the mapped stamps carry the stream's usual shortest transport
+time (which cannot be seen from the host and stays in the offset) and little else.
+
+A drift needs a span of device time to be resolved: until the blocks span `min_drift_span_s`
+(and `min_drift_blocks` of them), the drift is held at its prior, the drift the mapper had
+before it re-learned (or zero for a new mapper, or the `prior_drift` given), and the offset is
+taken from the newest blocks only (`hold_s` seconds), so a wrong prior costs about
+`drift * hold_s / 2`. (Fitting a drift from two blocks, as the first version did, turned one slow
+block after a restart into a slope of hundreds of ppm and the stamps swung by -160 to -380 us.)
 
 A device clock that steps (controller restart, resync) shows as samples arriving earlier than
 the line allows (more than `step_threshold_s`) or device time going backwards: after
 `step_confirm` such samples in a row the mapper forgets the old line and learns anew (a first
-offset at once, a drift after two blocks). Late samples never count as a step: a stalled host
-delays them, and their mapped stamps are what removes the stall. (A host clock stepping
-forward looks like lateness: the line follows it once the old minima leave the window.)
+offset at once, the drift held at the previous one until the span supports a new one). Late
+samples never count as a step: a stalled host delays them, and their mapped stamps are what
+removes the stall. (A host clock stepping forward looks like lateness: the line follows it once
+the old minima leave the window.)
 """
 
 from __future__ import annotations
@@ -29,7 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ClockMapper", "ClockState", "ReceiptStamps"]
+__all__ = ["ClockMapper", "ClockState", "ReceiptStamps", "pairwise_median_slope"]
 
 MIN_STEP_S = 1e-6
 
@@ -38,25 +62,53 @@ MIN_STEP_S = 1e-6
 class ClockState:
     offset_s: float  # host minus device time at the reference device time (incl. the floor)
     drift_ppm: float  # how much faster the host clock runs than the device's, in ppm
-    residual_s: float  # RMS of the block minima about the fitted line
-    blocks: int  # block minima in the current fit
+    residual_s: float  # RMS of the block minima above the line (the recent window)
+    blocks: int  # block minima in the recent window
     steps: int  # clock steps detected and re-learned
     held_back: int  # stamps moved just after the previous one so that none goes back
+    drift_held: bool = False  # the span does not support a drift yet: the prior is used
+    span_s: float = 0.0  # device seconds the drift fit spans
+
+
+def pairwise_median_slope(d: np.ndarray, y: np.ndarray, min_dd: float) -> float:
+    """The median of the slopes between all pairs of points at least `min_dd` apart in d
+    (Theil and Sen's estimator: a third of the points may lie anywhere without moving it)."""
+    i, j = np.triu_indices(d.size, k=1)
+    dd = d[j] - d[i]
+    far = dd >= min_dd
+    if not far.any():
+        return 0.0
+    return float(np.median((y[j] - y[i])[far] / dd[far]))
 
 
 class ClockMapper:
     def __init__(
         self,
         block_s: float = 0.25,
-        window_s: float = 10.0,
+        window_s: float = 20.0,
         step_threshold_s: float = 0.05,
         step_confirm: int = 3,
+        drift_window_s: float = 60.0,
+        min_drift_span_s: float = 4.0,
+        min_drift_blocks: int = 12,
+        hold_s: float = 1.0,
+        prior_drift: float = 0.0,
+        low_fraction: float = 0.5,
+        max_drift: float = 1e-3,
     ) -> None:
         self.block_s = block_s
+        self.window_s = window_s
         self.step_threshold_s = step_threshold_s
         self.step_confirm = step_confirm
+        self.min_drift_span_s = min_drift_span_s
+        self.min_drift_blocks = min_drift_blocks
+        self.hold_s = hold_s
+        self.prior_drift = prior_drift
+        self.low_fraction = low_fraction
+        self.max_drift = max_drift
+        self._recent = max(1, math.ceil(window_s / block_s))
         self._blocks: collections.deque[tuple[float, float]] = collections.deque(
-            maxlen=max(2, math.ceil(window_s / block_s))
+            maxlen=max(2, math.ceil(max(drift_window_s, window_s) / block_s))
         )
         self.steps = 0
         self.held_back = 0
@@ -69,10 +121,17 @@ class ClockMapper:
         self._block_min = (math.inf, math.inf)  # (host - device, device) of the least-late sample
         self._ref = 0.0
         self._offset: float | None = None
-        self._drift = 0.0
+        self._drift = self.prior_drift
+        self._held = True
+        self._span = 0.0
         self._residual = 0.0
         self._last_device = -math.inf
         self._outliers = 0
+
+    @property
+    def learning(self) -> bool:
+        """True while the drift is held (a new or re-learned clock): stamps are less sure."""
+        return self._held
 
     def predict(self, device_t: float) -> float:
         """Host time of a device stamp under the current fit (device time itself if none)."""
@@ -86,6 +145,8 @@ class ClockMapper:
         receipt time."""
         if self._is_step(device_t, host_t):
             self.steps += 1
+            if not self._held:
+                self.prior_drift = self._drift  # the same oscillator after a restart
             self._reset()
         elif self._outliers:
             return self._monotonic(host_t)
@@ -101,10 +162,8 @@ class ClockMapper:
             self._fit()
         elif lag < self._block_min[0]:
             self._block_min = (lag, device_t)
-        if len(self._blocks) < 2:
-            # before a line: the least-late sample so far gives the offset, no drift
-            best = min([self._block_min[0], *(y for _d, y in self._blocks)])
-            self._offset, self._drift, self._ref = best, 0.0, device_t
+            if not self._blocks:
+                self._fit()  # the first block: the least-late sample so far gives the offset
         return self._monotonic(self.predict(device_t))
 
     def _monotonic(self, t: float) -> float:
@@ -131,31 +190,39 @@ class ClockMapper:
         return self._outliers >= self.step_confirm
 
     def _fit(self) -> None:
-        if len(self._blocks) < 2:
+        n = len(self._blocks)
+        if n == 0:  # the first block: its least-late sample so far
+            lag, device_t = self._block_min
+            self._ref, self._offset, self._drift, self._held = device_t, lag, self.prior_drift, True
             return
-        d = np.fromiter((b[0] for b in self._blocks), float, len(self._blocks))
-        y = np.fromiter((b[1] for b in self._blocks), float, len(self._blocks))
-        ref = float(d.mean())
-        keep = np.ones(d.size, dtype=bool)
-        for _ in range(2):  # the envelope: refit without blocks that arrived late as a whole
-            slope, intercept = np.polyfit(d[keep] - ref, y[keep], 1)
-            resid = y - (intercept + slope * (d - ref))
-            spread = 1.4826 * float(np.median(np.abs(resid[keep]))) + 1e-6
-            new_keep = resid < 3.0 * spread
-            if new_keep.sum() < 2 or np.array_equal(new_keep, keep):
-                break
-            keep = new_keep
-        self._ref, self._offset, self._drift = ref, float(intercept), float(slope)
-        self._residual = float(np.sqrt(np.mean(resid[keep] ** 2)))
+        d = np.fromiter((b[0] for b in self._blocks), float, n)
+        y = np.fromiter((b[1] for b in self._blocks), float, n)
+        ref = float(d[-1])
+        self._span = float(d[-1] - d[0])
+        if n >= self.min_drift_blocks and self._span >= self.min_drift_span_s:
+            slope = pairwise_median_slope(d, y, self.min_drift_span_s / 4)
+            slope = min(max(slope, -self.max_drift), self.max_drift)
+            self._held = False
+            recent = d >= ref - self.window_s
+        else:
+            slope = self.prior_drift
+            self._held = True
+            recent = d >= ref - self.hold_s
+        above = np.sort(y[recent] - slope * (d[recent] - ref))
+        offset = float(above[: max(1, round(self.low_fraction * above.size))].mean())
+        self._ref, self._offset, self._drift = ref, offset, slope
+        self._residual = float(np.sqrt(np.mean((above - offset) ** 2)))
 
     def state(self) -> ClockState:
         return ClockState(
             offset_s=0.0 if self._offset is None else self._offset,
             drift_ppm=self._drift * 1e6,
             residual_s=self._residual,
-            blocks=len(self._blocks),
+            blocks=min(len(self._blocks), self._recent),
             steps=self.steps,
             held_back=self.held_back,
+            drift_held=self._held,
+            span_s=self._span,
         )
 
 

@@ -18,6 +18,9 @@ class Corrections:
     # joint-angle error maps: per joint (knots [rad], values [rad]), piecewise linear in the
     # joint's own angle, holding the edge value outside the knots; empty: no map
     maps: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
+    # couplings across joints: (j, k, slope, knots, values): joint j's angle error moves with
+    # joint k's angle, slope x (q_k - centre of the knots) + a piecewise-linear map of q_k
+    couplings: tuple[tuple[int, int, float, np.ndarray, np.ndarray], ...] = ()
 
     def __post_init__(self) -> None:
         zero = {
@@ -33,6 +36,8 @@ class Corrections:
 
     @property
     def is_zero(self) -> bool:
+        if any(slope or np.any(v) for _j, _k, slope, _kn, v in self.couplings):
+            return False
         return not any(v.size and np.any(v) for _k, v in self.maps) and all(
             not np.any(getattr(self, n))
             for n in ("joint_offsets", "compliance", "backlash", "cyclic", "placement")
@@ -65,7 +70,22 @@ class Corrections:
                 )
         if self.maps:
             q_eff = q_eff + self.map_error(q)
+        if self.couplings:
+            q_eff = q_eff + self.coupling_error(q)
         return q_eff
+
+    def coupling_error(self, q: np.ndarray) -> np.ndarray:
+        """The couplings' angle error at joints q (..., nq): per coupling, on joint j, the
+        slope times joint k's angle from the knots' centre plus the map of joint k's angle
+        (its edge value beyond the knots)."""
+        out = np.zeros(np.shape(q))
+        for j, k, slope, knots, values in self.couplings:
+            qk = q[..., k]
+            centre = 0.5 * (knots[0] + knots[-1]) if knots.size else 0.0
+            out[..., j] += slope * (qk - centre)
+            if knots.size:
+                out[..., j] += np.interp(qk, knots, values)
+        return out
 
     def map_error(self, q: np.ndarray) -> np.ndarray:
         """The maps' angle error at joints q (..., nq): linear between knots, the edge value

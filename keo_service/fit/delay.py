@@ -24,7 +24,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import median_abs_deviation
 
 from keo_service.core.batch import CHUNK, tool_frames
 from keo_service.core.chain import Chain
@@ -58,6 +57,14 @@ class DelayFit:
     iterations: int
     window_delays_s: list[float] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    speed_rms: float = math.nan  # the tool's RMS speed over the fitted samples (m/s)
+
+
+def _mad_sigma(x: np.ndarray) -> float:
+    """The median absolute deviation scaled to a normal's sigma (what scipy.stats'
+    median_abs_deviation(scale="normal") gives; scipy.stats costs the service 1.7 s of
+    start-up to import, and online delay tracking is on by default)."""
+    return float(np.median(np.abs(x - np.median(x)))) * 1.482602218505602
 
 
 def _interp_joints(enc_t: np.ndarray, enc_q: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -101,9 +108,13 @@ def _measured_base_errors(
 
 def _features(q: np.ndarray, p: np.ndarray, kind: str) -> np.ndarray:
     """Smooth models of the configuration-dependent error: of the joints (whole recordings)
-    or, fewer parameters for short windows, linear in the tool position."""
+    or, fewer parameters for short windows, linear in the tool position ("position" in the
+    base frame, "tool" with the errors and velocities taken in the tool frame, where the
+    tool's own calibration error is a constant: in the base frame it turns with the tool,
+    which a model linear in the position leaves in the residual, correlated with the
+    motion; measured 50-100 us of bias on 5 s stretches of a UR10 turning its tool)."""
     ones = np.ones((q.shape[0], 1))
-    if kind == "position":
+    if kind in ("position", "tool"):
         return np.hstack([ones, p - p.mean(axis=0)])
     return np.hstack([ones, np.sin(q), np.cos(q)])
 
@@ -143,6 +154,7 @@ class _Round:
     y_p: np.ndarray  # (nch * N,) the errors, features partialled out
     nch: int
     inflate: float  # variance inflation for the residual's autocorrelation
+    speed_rms: float  # m/s
 
 
 def _linearised_round(
@@ -160,7 +172,6 @@ def _linearised_round(
     trk_t, p_bs, R_bs = tracker
     q, p_bt, R_bt, v, w = _tool_states(cell, enc_t, enc_q, enc_times)
     err = _measured_base_errors(p_bt, R_bt, p_bs, R_bs)
-    del R_bt
     speed = np.linalg.norm(v, axis=1)
     moving = speed > MIN_SPEED
     if moving.mean() < 0.05 or np.sqrt(np.mean(speed**2)) < 2 * MIN_SPEED:
@@ -170,12 +181,16 @@ def _linearised_round(
             "moves; record motion with changes of speed or direction"
         )
     vel = np.hstack([v, w]) if R_bs is not None else v
+    if features == "tool":  # errors and velocities in the tool frame: R_bt^T x
+        for part in (slice(0, 3), slice(3, 6))[: err.shape[1] // 3]:
+            err[:, part] = np.einsum("nji,nj->ni", R_bt, err[:, part])
+            vel[:, part] = np.einsum("nji,nj->ni", R_bt, vel[:, part])
     n, nch = err.shape
     # weight each channel group by its noise (median absolute first difference)
     scale = np.empty(nch)
     for c in range(nch):
         d1 = np.diff(err[:, c])
-        scale[c] = max(median_abs_deviation(d1, scale="normal") / math.sqrt(2), 1e-9)
+        scale[c] = max(_mad_sigma(d1) / math.sqrt(2), 1e-9)
     groups = [slice(0, 3)] + ([slice(3, 6)] if nch == 6 else [])
     for g in groups:
         scale[g] = np.median(scale[g])
@@ -193,7 +208,7 @@ def _linearised_round(
         rows = slice(c * n, (c + 1) * n)
         for out, a in ((y_p, err[:, c] / scale[c]), (X_p, np.column_stack(cols))):
             out[rows] = a - Qf @ (Qf.T @ a)
-    del Qf, q, p_bt, v, w, vel, err
+    del Qf, q, p_bt, R_bt, v, w, vel, err
     beta, *_ = np.linalg.lstsq(X_p, y_p, rcond=None)
     resid = y_p - X_p @ beta
     inflate = float(np.mean([_effective_factor(resid[c * n : (c + 1) * n]) for c in range(nch)]))
@@ -204,7 +219,8 @@ def _linearised_round(
         cov = bread @ meat @ bread * inflate
     except np.linalg.LinAlgError:
         cov = np.full((X_p.shape[1], X_p.shape[1]), np.inf)
-    return _Round(beta, cov, resid, scale, moving, X_p, y_p, nch, inflate)
+    speed_rms = float(np.sqrt(np.mean(speed**2)))
+    return _Round(beta, cov, resid, scale, moving, X_p, y_p, nch, inflate, speed_rms)
 
 
 def fit_delay(
@@ -218,6 +234,7 @@ def fit_delay(
     with_drift: bool = True,
     max_iterations: int = 6,
     features: str = "joints",
+    check_windows: bool = True,
 ) -> DelayFit:
     """Least-squares delay (and drift) from recorded streams in the tracker frame."""
     _refuse_stop_and_measure(enc_t, trk_t)
@@ -289,12 +306,19 @@ def fit_delay(
     if with_drift and not significant:
         notes.append(f"no significant clock drift ({drift * 1e6:.1f} +/- {drift_se * 1e6:.1f} ppm)")
     # a constant delay (and drift) explains the data if separate stretches of time agree on it
-    windows = _window_delays(
-        X_p[:, 0], y_p - (X_p[:, 1:] @ beta[1:] if with_drift else 0.0), trk_t, nch, float(inflate)
-    )
-    explained, spread_note = _consistent(windows)
-    if not explained:
-        notes.append(spread_note)
+    windows: list[tuple[float, float]] = []
+    explained = True
+    if check_windows:
+        windows = _window_delays(
+            X_p[:, 0],
+            y_p - (X_p[:, 1:] @ beta[1:] if with_drift else 0.0),
+            trk_t,
+            nch,
+            float(inflate),
+        )
+        explained, spread_note = _consistent(windows)
+        if not explained:
+            notes.append(spread_note)
     return DelayFit(
         window_delays_s=[delay - w[0] for w in windows],
         delay_s=delay,
@@ -310,6 +334,7 @@ def fit_delay(
         explained=explained,
         iterations=iterations,
         notes=notes,
+        speed_rms=last.speed_rms,
     )
 
 
@@ -439,16 +464,76 @@ def _stroke_end(v: np.ndarray, fast: np.ndarray, i: int, tolerance: float) -> in
     return n - 1
 
 
-class OnlineDelayTracker:
-    """Keeps a bounded window of raw samples and fits the delay on it when asked.
+@dataclass(frozen=True)
+class DelayMeasurement:
+    """One stretch's fitted delay, its standard error, the tool's RMS speed over it and the
+    stream time it ends at."""
 
-    The service decides when (every `period_s`, off the event loop); the estimator moves its
-    delay toward the result slowly, so the estimate sees no step. At rest, or when the fit is
-    not trustworthy, the delay is left alone.
+    delay_s: float
+    se_s: float
+    speed_rms: float
+    t: float
+    current_s: float = math.nan  # the delay in use when the stretch was fitted
+
+
+@dataclass(frozen=True)
+class DelayRefused:
+    """A stretch without a delay: the counter it counts under and why, in words."""
+
+    counter: str
+    reason: str
+
+
+class OnlineDelayTracker:
+    """The delay found online from the motion, trusted only as far as it is known.
+
+    Samples go into bounded buffers (on the event loop); when `span_s` seconds of clean data
+    have gathered since the last fit, the service takes that stretch (`snapshot`) and fits
+    it off the loop (`measure`: `fit_delay` over that stretch only, so successive fits see
+    disjoint data), then folds the result in on the loop (`combine`). A fit is accepted only
+    when
+
+    - the tool moved (`fit_delay` refuses otherwise: at rest nothing changes),
+    - its standard error is small against what it changes at the tool's speed there:
+      `se * v_rms <= max_position_se_m` (a delay only matters through `v * delay`), or the
+      delay in use is not known that well yet (then a rougher fit still helps: it is
+      weighted by its variance); and always `se <= max_se_s`,
+    - it agrees with the running estimate (within `outlier_sigmas` combined standard
+      errors), unless the next fit agrees with it too (then the delay really moved).
+
+    The running estimate is the inverse-variance weighted mean of the last `keep` accepted
+    fits, each weighted by 1 / (se^2 + tau^2), where tau^2 is the scatter of successive fits
+    beyond their own standard errors (the stamps' transport times wander with the host's
+    load, a fit's standard error cannot know that), at least `min_wander_s`^2. Its standard
+    error is 1 / sqrt(sum of the weights). The service slews the estimator's delay to it,
+    never jumps, when it is known to `max_apply_m` at the tool's speed or is more than three
+    standard errors away from the delay in use; otherwise (fits scattering widely, as when
+    the robot's geometry makes an error the stretches' model does not hold) it is shown but
+    not applied.
+
+    Samples a source flagged (its clock re-learning, a stamp ahead of its receipt or too
+    old) are left out. When either stream's time base starts anew (its `clock_epoch`
+    changes, or its `seq` goes back: an adapter restarted), the data before it is dropped,
+    the first `settle_s` seconds after it too (the new mapping learns its drift), and so are
+    the fits before it (a new mapping carries a new transport floor): the next accepted fit
+    decides the delay; until then the delay in use stays as it was, its standard error grown
+    by `restart_sigma_s`.
     """
 
     def __init__(
-        self, cell: Cell, window_s: float = 20.0, period_s: float = 10.0, max_samples: int = 40_000
+        self,
+        cell: Cell,
+        span_s: float = 5.0,
+        max_samples: int = 40_000,
+        max_gap_s: float = 0.05,
+        max_position_se_m: float = 2.5e-6,
+        max_se_s: float = 2e-3,
+        outlier_sigmas: float = 4.0,
+        settle_s: float = 4.0,
+        keep: int = 8,
+        min_wander_s: float = 2e-6,
+        restart_sigma_s: float = 50e-6,
+        max_apply_m: float = 10e-6,
     ) -> None:
         # fits run off the event loop: give them their own scratch data for gravity torques
         self.cell = (
@@ -456,47 +541,107 @@ class OnlineDelayTracker:
             if cell.nominal_model is None
             else dataclasses.replace(cell, gravity_data=cell.nominal_model.createData())
         )
-        self.window_s = window_s
-        self.period_s = period_s
+        self.span_s = span_s
+        self.max_gap_s = max_gap_s
+        self.max_position_se_m = max_position_se_m
+        self.max_se_s = max_se_s
+        self.outlier_sigmas = outlier_sigmas
+        self.settle_s = settle_s
+        self.min_wander_s = min_wander_s
+        self.restart_sigma_s = restart_sigma_s
+        self.max_apply_m = max_apply_m
         self._enc: collections.deque[tuple[float, np.ndarray]] = collections.deque(
             maxlen=max_samples
         )
         self._trk: collections.deque[tuple[float, np.ndarray, np.ndarray | None]] = (
             collections.deque(maxlen=max_samples)
         )
-        self._last_fit_t = -math.inf
-        self.last_result: str = "waiting for data"
+        self._start = -math.inf  # stream time from which samples count
+        self._sources: dict[str, tuple[int, int]] = {}  # stream -> (epoch, last seq)
+        self._fits: collections.deque[tuple[float, float]] = collections.deque(maxlen=keep)
+        # accepted fits (value, se, segment): a segment ends when a time base starts anew
+        self._history: collections.deque[tuple[float, float, int]] = collections.deque(maxlen=32)
+        self._segment = 0
+        self._suspect: tuple[float, float] | None = None  # an outlier fit, kept to compare
+        self.estimate: float | None = None  # the running estimate of the delay (s)
+        self.se: float | None = None  # its standard error (s)
+        self.applied_se: float | None = None  # that of the estimate last applied (s)
+        self.counters: collections.Counter[str] = collections.Counter()
+        self.last_result: str = "waiting for motion"
 
-    def add_encoder(self, t: float, q: Sequence[float]) -> None:
+    # ---- samples (on the event loop: cheap) ---------------------------------------------
+
+    def add_encoder(
+        self, t: float, q: Sequence[float], epoch: int = 0, seq: int = 0, flagged: bool = False
+    ) -> None:
+        self._source("encoder", t, epoch, seq)
+        if flagged or t < self._start:
+            self.counters["encoder_left_out"] += 1
+            return
         q_arr = np.asarray(q, dtype=float)
         newer = not self._enc or t > self._enc[-1][0]
         if math.isfinite(t) and np.isfinite(q_arr).all() and newer:
             self._enc.append((t, q_arr))
 
-    def add_tracker(self, t: float, p: Sequence[float], quat: Sequence[float] | None) -> None:
+    def add_tracker(
+        self,
+        t: float,
+        p: Sequence[float],
+        quat: Sequence[float] | None,
+        epoch: int = 0,
+        seq: int = 0,
+        flagged: bool = False,
+    ) -> None:
+        self._source("tracker", t, epoch, seq)
+        if flagged or t < self._start:
+            self.counters["tracker_left_out"] += 1
+            return
         p_arr = np.asarray(p, dtype=float)
         q_arr = None if quat is None else np.asarray(quat, dtype=float)
         finite = np.isfinite(p_arr).all() and (q_arr is None or np.isfinite(q_arr).all())
         if math.isfinite(t) and finite and (not self._trk or t > self._trk[-1][0]):
             self._trk.append((t, p_arr, q_arr))
 
+    def _source(self, stream: str, t: float, epoch: int, seq: int) -> None:
+        known = self._sources.get(stream)
+        self._sources[stream] = (epoch, seq)
+        if known is not None and (epoch != known[0] or seq < known[1]):
+            self.restart(t, f"the {stream} time base started anew")
+
+    def restart(self, t: float, why: str) -> None:
+        """A stream's time base started anew at stream time t: drop what came before."""
+        self._enc.clear()
+        self._trk.clear()
+        self._fits.clear()
+        self._suspect = None
+        self._segment += 1
+        if self.se is not None:  # the delay in use is less sure under the new mapping
+            self.se = math.hypot(self.se, self.restart_sigma_s)
+        if self.applied_se is not None:
+            self.applied_se = math.hypot(self.applied_se, self.restart_sigma_s)
+        if math.isfinite(t):
+            self._start = t + self.settle_s
+        self.counters["restarts"] += 1
+        self.last_result = f"restarted: {why}; fitting again after {self.settle_s:g} s"
+
+    # ---- fits ---------------------------------------------------------------------------
+
     def due(self) -> bool:
-        if not self._trk:
-            return False
-        newest = self._trk[-1][0]
-        return (
-            newest - self._last_fit_t >= self.period_s
-            and newest - self._trk[0][0] >= 0.5 * self.window_s
-        )
+        return bool(self._trk) and self._trk[-1][0] - self._trk[0][0] >= self.span_s
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-        """Copies of the window (call on the loop, then fit anywhere)."""
-        newest = self._trk[-1][0]
-        self._last_fit_t = newest
-        trk = [s for s in self._trk if s[0] >= newest - self.window_s]
-        enc = [s for s in self._enc if s[0] >= newest - self.window_s - 1.0]
+        """Copies of the stretch to fit (call on the loop, then fit anywhere); the stretch is
+        consumed: the next fit sees only newer samples."""
+        first = self._trk[0][0]
+        trk = [s for s in self._trk if s[0] <= first + self.span_s]
+        end = trk[-1][0]
+        enc = [s for s in self._enc if first - 1.0 <= s[0] <= end + 1.0]
+        while self._trk and self._trk[0][0] <= end:
+            self._trk.popleft()
+        while self._enc and self._enc[0][0] < end - 1.0:
+            self._enc.popleft()
         enc_t = np.array([s[0] for s in enc])
-        enc_q = np.array([s[1] for s in enc])
+        enc_q = np.array([s[1] for s in enc]) if enc else np.empty((0, 0))
         trk_t = np.array([s[0] for s in trk])
         trk_p = np.array([s[1] for s in trk])
         quats = [s[2] for s in trk]
@@ -508,35 +653,159 @@ class OnlineDelayTracker:
         window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
         current: float,
     ) -> float | None:
-        enc_t, enc_q, trk_t, trk_p, trk_q = window
+        """Fit one stretch and fold it in: the running estimate if this fit moved it."""
+        return self.combine(self.measure(window, current))
+
+    def measure(
+        self,
+        window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
+        current: float,
+    ) -> DelayMeasurement | DelayRefused:
+        """The delay over one stretch, or why there is none. Runs anywhere (a worker
+        thread): it reads the tracker's settings only and changes nothing."""
+        enc_t, enc_q, trk_t, trk_p, trk_q = _covered(window, current, self.max_gap_s)
         if enc_t.size < 20 or trk_t.size < 50:
-            self.last_result = "not enough data"
-            return None
-        try:
-            fit = fit_delay(
-                self.cell,
-                enc_t,
-                enc_q,
-                trk_t,
-                trk_p,
-                trk_q,
-                initial=current,
-                with_drift=False,
-                features="position",
-            )
-        except DelayNotIdentifiableError as exc:
-            self.last_result = f"kept: {exc}"
-            return None
-        if fit.delay_se_s > 0.5e-3:
-            self.last_result = (
-                f"kept: fit not precise enough ({fit.delay_s * 1e3:.2f} +/- "
-                f"{fit.delay_se_s * 1e3:.2f} ms)"
-            )
-            return None
-        # over a short window the position-linear error model can leave some structure; the
-        # slow slew toward the result keeps a single odd window from moving the delay much
-        caveat = "" if fit.explained else " (windows disagree somewhat)"
-        self.last_result = (
-            f"updated to {fit.delay_s * 1e3:.3f} +/- {fit.delay_se_s * 1e3:.3f} ms{caveat}"
+            return DelayRefused("fits_without_data", "not enough data in the stretch")
+        # the error model of a short stretch: linear in the tool position, with the errors in
+        # the tool frame (where the tool's own calibration error is constant) or in the base
+        # frame (closer for a robot's geometric errors); the one that leaves less residual
+        fits: list[DelayFit] = []
+        for features in ("tool", "position"):
+            try:
+                fits.append(
+                    fit_delay(
+                        self.cell,
+                        enc_t,
+                        enc_q,
+                        trk_t,
+                        trk_p,
+                        trk_q,
+                        initial=current,
+                        with_drift=False,
+                        features=features,
+                        # one stretch is one window; and scipy.stats, which the check
+                        # imports, would cost the service seconds at its first fit
+                        check_windows=False,
+                    )
+                )
+            except DelayNotIdentifiableError as exc:
+                reason = exc
+        if not fits:
+            return DelayRefused("fits_not_identifiable", str(reason))
+        fit = min(fits, key=lambda f: f.residual_rms_moving)
+        return DelayMeasurement(
+            fit.delay_s, fit.delay_se_s, fit.speed_rms, float(trk_t[-1]), current
         )
-        return fit.delay_s
+
+    def combine(self, found: DelayMeasurement | DelayRefused) -> float | None:
+        """Accept or refuse one measurement (on the loop) and fold it into the running
+        estimate: the estimate to apply, else None (and why, in `last_result`)."""
+        if isinstance(found, DelayRefused):
+            self.counters[found.counter] += 1
+            self.last_result = f"kept: {found.reason}"
+            return None
+        value, se, speed = found.delay_s, found.se_s, found.speed_rms
+        said = f"{value * 1e6:.1f} +/- {se * 1e6:.1f} us at {speed * 1e3:.0f} mm/s"
+        if not (math.isfinite(value) and math.isfinite(se) and se > 0):
+            self.counters["fits_refused_imprecise"] += 1
+            self.last_result = "kept: the fit gave no finite value"
+            return None
+        # welcome while the delay in use is not known to max_position_se_m at this speed;
+        # once it is, only fits that are themselves that precise count
+        known = self.se is not None and self.se * speed <= self.max_position_se_m
+        if se > self.max_se_s or (known and se * speed > self.max_position_se_m):
+            self.counters["fits_refused_imprecise"] += 1
+            self.last_result = (
+                f"kept: fit {said} not precise enough ({se * speed * 1e6:.1f} um at that "
+                f"speed; trusted below {self.max_position_se_m * 1e6:g} um)"
+            )
+            return None
+        tau2 = self._wander2()
+        if self.estimate is not None and self.se is not None and self._fits:
+            gap = value - self.estimate
+            spread = math.sqrt(self.se**2 + se * se + tau2)
+            if abs(gap) > self.outlier_sigmas * spread:
+                suspect = self._suspect
+                self._suspect = (value, se)
+                agrees = suspect is not None and abs(value - suspect[0]) <= (
+                    self.outlier_sigmas * math.sqrt(se * se + suspect[1] ** 2 + tau2)
+                )
+                if not agrees:
+                    self.counters["fits_refused_outlier"] += 1
+                    self.last_result = (
+                        f"kept: fit {said} disagrees with {self.estimate * 1e6:.1f} +/- "
+                        f"{spread * 1e6:.1f} us (one more like it and it is taken)"
+                    )
+                    return None
+                self._fits.clear()  # two in a row: the delay moved
+                assert suspect is not None
+                self._fits.append(suspect)
+        self._suspect = None
+        self._fits.append((value, se))
+        self._history.append((value, se, self._segment))
+        tau2 = self._wander2()
+        weights = [1.0 / (s * s + tau2) for _v, s in self._fits]
+        total = sum(weights)
+        self.estimate = sum(w * v for w, (v, _s) in zip(weights, self._fits, strict=True)) / total
+        self.se = 1.0 / math.sqrt(total)
+        self.counters["fits_accepted"] += 1
+        self.last_result = (
+            f"fit {said}; delay {self.estimate * 1e6:.1f} +/- {self.se * 1e6:.1f} us "
+            f"({len(self._fits)} fits, wander {math.sqrt(tau2) * 1e6:.1f} us)"
+        )
+        # applied when known well enough at this speed, or clearly better than the delay in
+        # use; otherwise the fits scatter too much (an error the short stretches' model does
+        # not hold, e.g. a robot's geometry) and the delay in use is left alone
+        current = found.current_s
+        better = math.isfinite(current) and abs(self.estimate - current) > 3 * self.se
+        if self.se * speed > self.max_apply_m and not better:
+            self.counters["estimates_not_applied"] += 1
+            self.last_result += f"; not applied ({self.se * speed * 1e6:.0f} um at that speed)"
+            return None
+        self.applied_se = self.se
+        return self.estimate
+
+    def _wander2(self) -> float:
+        """tau^2: the variance of the accepted fits beyond their standard errors, by
+        DerSimonian and Laird's moment estimator over the recent history, each segment
+        (between restarts) about its own mean (the wander is the host's, not one
+        mapping's); at least min_wander_s^2, and (10 min_wander_s)^2 until 3 fits say."""
+        floor = self.min_wander_s**2
+        q = dof = denom = 0.0
+        for segment in {h[2] for h in self._history}:
+            vals = np.array([h[0] for h in self._history if h[2] == segment])
+            w = np.array([1.0 / h[1] ** 2 for h in self._history if h[2] == segment])
+            if vals.size < 2:
+                continue
+            mean = float(w @ vals / w.sum())
+            q += float(w @ (vals - mean) ** 2)
+            dof += vals.size - 1
+            denom += float(w.sum() - (w @ w) / w.sum())
+        if dof < 2 or denom <= 0:
+            return max(floor, (10 * self.min_wander_s) ** 2)  # unknown yet: be modest
+        return max(floor, (q - dof) / denom)
+
+    def forget(self) -> None:
+        """The delay was set by hand (a reload): start the running estimate afresh."""
+        self._fits.clear()
+        self._suspect = None
+        self.estimate = self.se = self.applied_se = None
+
+
+def _covered(
+    window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
+    delay: float,
+    max_gap_s: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """The window without tracker samples whose encoder time (under `delay`) falls outside
+    the encoder samples or between two further apart than `max_gap_s` (a stalled or restarted
+    adapter): interpolating the joints across such a gap would read a made-up motion."""
+    enc_t, enc_q, trk_t, trk_p, trk_q = window
+    if enc_t.size < 2 or trk_t.size == 0:
+        return window
+    at = trk_t - delay
+    k = np.searchsorted(enc_t, at)
+    inside = (k > 0) & (k < enc_t.size)
+    k = np.clip(k, 1, enc_t.size - 1)
+    keep = inside & (enc_t[k] - enc_t[k - 1] <= max_gap_s)
+    return enc_t, enc_q, trk_t[keep], trk_p[keep], None if trk_q is None else trk_q[keep]

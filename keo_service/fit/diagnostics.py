@@ -4,7 +4,7 @@ itself is, and which parameters the poses cannot tell apart. No I/O."""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -26,6 +26,8 @@ class Repeatability:
     measurements: int  # measurements of those poses
     rms_mm: float
     left_out: int  # repeated poses left out as outliers
+    # per row, the repeated pose it belongs to (-1: measured once, or left out)
+    groups: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=int), compare=False)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -68,7 +70,8 @@ def repeatability(
         return None
     m = int(counts[keep].sum())
     rms = float(np.sqrt(sq[keep].sum() / (m - keep.size)))
-    return Repeatability(int(keep.size), m, rms * 1e3, int(repeated.size - keep.size))
+    labels = np.where(np.isin(group, keep), group, -1)
+    return Repeatability(int(keep.size), m, rms * 1e3, int(repeated.size - keep.size), labels)
 
 
 def describe_null_space(null: np.ndarray, labels: Sequence[str]) -> list[dict[str, Any]]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -20,29 +21,65 @@ from keo_service.core.errors import KeoError
 from keo_service.core.rules import DIRECTION_DEADBAND
 from keo_service.core.timing import DelayModel
 from keo_service.fit.analysis import (
-    EFFECTS,
     KEEP_MARGIN,
-    MAPS,
     Analysis,
-    Data,
-    Model,
     NotIdentifiableError,
     analyze,
-    describe_remaining,
     split,
+    split_data,
 )
 from keo_service.fit.angle_maps import try_maps
-from keo_service.fit.diagnostics import residual_components
+from keo_service.fit.coupling import try_couplings
+from keo_service.fit.diagnostics import repeatability, residual_components
+from keo_service.fit.effects import JointMaps, config_fields, effect_from_config
+from keo_service.fit.model import (
+    Data,
+    Model,
+    fit,
+    initial_registration,
+    initial_registration_sessions,
+    stats,
+)
+from keo_service.fit.sampling import MAX_ROWS, informative_rows, selection_report
+from keo_service.fit.uncertainty import TrackerUncertainty, iso_path_figures, iso_pose_figures
 from keo_service.io.cell import cell_from_config, delay_model, robot_from_config
 from keo_service.io.config import Config, ModelConfig, config_to_toml
 from keo_service.io.interchange import read_encoder, read_tracker
 
+DELAY_SAMPLES = 60_000  # tracker samples the delay fit uses at most (evenly thinned)
+SIGMA_COLUMNS = ("sx", "sy", "sz")  # optional tracker.csv columns: per-point std (m)
+
+
+def tracker_uncertainty(config: Config) -> TrackerUncertainty:
+    """The config's [tracker] uncertainty; assumed unless the config file states either key
+    (a config built in code: assumed when both equal keo's defaults)."""
+    t = config.tracker
+    stated: bool | None = None
+    source = Path(config.source) if config.source else None
+    if source is not None and source.is_file():
+        try:
+            raw = tomllib.loads(source.read_text(encoding="utf-8")).get("tracker", {})
+            stated = bool({"uncertainty_um", "uncertainty_um_per_m"} & set(raw))
+        except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
+            stated = None
+    if stated is None:
+        default = TrackerUncertainty()
+        stated = (t.uncertainty_um, t.uncertainty_um_per_m) != (default.um, default.um_per_m)
+    return TrackerUncertainty(t.uncertainty_um, t.uncertainty_um_per_m, assumed=not stated)
+
 
 def load_data(
-    config: Config, encoder_path: Path, tracker_path: Path, delay: DelayModel | None = None
+    config: Config,
+    encoder_path: Path,
+    tracker_path: Path,
+    delay: DelayModel | None = None,
+    max_rows: int = MAX_ROWS,
+    info: dict[str, Any] | None = None,
 ) -> tuple[Data, bool]:
     """Pair each tracker row with the joints at its time minus the delay (the config's
-    unless given); stop-and-measure data (an encoder row at every tracker t) uses none."""
+    unless given); stop-and-measure data (an encoder row at every tracker t) uses none. Of a
+    long motion recording at most `max_rows` informative rows are kept (fit.sampling);
+    `info` gets how many were recorded and used, and how they were chosen."""
     robot = robot_from_config(config)
     enc = read_encoder(encoder_path, nq=robot.nq)
     trk = read_tracker(tracker_path)
@@ -76,6 +113,15 @@ def load_data(
         velocity = (ahead - behind) / (2 * h)
         moving = np.where(np.abs(velocity) > DIRECTION_DEADBAND, np.sign(velocity), 0.0)
         direction = persist_directions(moving)
+        rows = informative_rows(q, direction, max_rows)
+        if info is not None:
+            info.update(selection_report(q.shape[0], rows))
+        if rows.size < q.shape[0]:
+            keep = np.zeros(ok.size, dtype=bool)
+            keep[np.flatnonzero(ok)[rows]] = True
+            ok = keep
+            q, velocity, direction = q[rows], velocity[rows], direction[rows]
+            ahead, behind = ahead[rows], behind[rows]
         chain = Chain(robot)
         moved = chain.flange_poses(ahead)[:, :3, 3] - chain.flange_poses(behind)[:, :3, 3]
         tool_speed = np.linalg.norm(moved, axis=1) / (2 * h)
@@ -83,36 +129,34 @@ def load_data(
     if trk.quat is not None:
         quat = trk.quat[ok]
         R = Rotation.from_quat(quat, scalar_first=True).as_matrix()
-    extra = {k: v[ok] for k, v in trk.extra.items()}
+    extra = {k: v[ok] for k, v in trk.extra.items() if k not in SIGMA_COLUMNS}
+    sigma = None
+    if all(c in trk.extra for c in SIGMA_COLUMNS):
+        sigma = np.column_stack([trk.extra[c][ok] for c in SIGMA_COLUMNS])
     if tool_speed is not None:
         extra["tool_speed_m_s"] = tool_speed
-    return Data(q, trk.p[ok], R, trk.t[ok], extra, direction, velocity), trk.quat is None
+    data = Data(q, trk.p[ok], R, trk.t[ok], extra, direction, velocity, sigma)
+    return data, trk.quat is None
 
 
 def saved_model(config: Config, chain: Chain, position_only: bool) -> Model:
     """The effects in the config's [model] section, as a fixed Model (registration-only)."""
     m: ModelConfig = config.model
     nq = chain.nq
+    section = msgspec.structs.asdict(m)
     effects, parts = [], []
     for name in m.effects:
-        if name == "geometry":
-            values = m.placement
-        elif name == "temperature":
-            values = m.temperature_m_per_c
-        elif name == "time_drift":
-            values = m.time_drift_m_per_s
-        elif name == MAPS:
-            values = [v for joint in m.map_values for v in joint]
-        elif name in EFFECTS:
-            values = getattr(m, name)
-        else:
-            raise KeoError(f"{config.source}: key 'model.effects': unknown effect '{name}'")
-        effects.append(name)
-        parts.append(np.asarray(values, dtype=float))
+        try:
+            effect, values = effect_from_config(name, section)
+        except KeyError:
+            raise KeoError(
+                f"{config.source}: key 'model.effects': unknown effect '{name}'"
+            ) from None
+        effects.append(effect)
+        parts.append(values)
     n_reg = 9 if position_only else 12
     x = np.concatenate([np.zeros(n_reg), *parts]) if parts else np.zeros(n_reg)
-    knots = tuple(np.asarray(k, dtype=float) for k in m.map_knots) if MAPS in effects else ()
-    model = Model(chain, position_only, effects, x, {}, m.temperature_ref_c, m.time_ref_s, knots)
+    model = Model(chain, position_only, effects, x, {}, m.temperature_ref_c, m.time_ref_s)
     expected = n_reg + sum(model.sizes(nq))
     if x.size != expected:
         raise KeoError(
@@ -125,21 +169,14 @@ def saved_model(config: Config, chain: Chain, position_only: bool) -> Model:
 def model_config(result: Analysis, base: Config) -> Config:
     """The config with the identified registration and every kept effect."""
     model, x = result.model, result.x
-    T_bk, T_ns, corr, drifts = model.unpack(x)
-    nq = model.chain.nq
-    m = ModelConfig(
-        effects=list(model.effects),
-        joint_offsets=corr.joint_offsets.tolist() if "joint_offsets" in model.effects else [],
-        compliance=corr.compliance.tolist() if "compliance" in model.effects else [],
-        backlash=corr.backlash.tolist() if "backlash" in model.effects else [],
-        cyclic=corr.cyclic.reshape(nq * 4).tolist() if "cyclic" in model.effects else [],
-        placement=corr.placement.reshape(nq * 6).tolist() if "geometry" in model.effects else [],
-        temperature_m_per_c=drifts.get("temperature", np.zeros(0)).tolist(),
-        temperature_ref_c=model.temperature_ref,
-        time_drift_m_per_s=drifts.get("time_drift", np.zeros(0)).tolist(),
-        time_ref_s=model.time_ref,
-        map_knots=[k.tolist() for k, _v in corr.maps] if MAPS in model.effects else [],
-        map_values=[v.tolist() for _k, v in corr.maps] if MAPS in model.effects else [],
+    T_bk, T_ns, _corr = model.unpack(x)
+    m = msgspec.convert(
+        {
+            **config_fields(model, x),
+            "temperature_ref_c": model.temperature_ref,
+            "time_ref_s": model.time_ref,
+        },
+        ModelConfig,
     )
 
     def xyz_rpy(T: np.ndarray) -> tuple[list[float], list[float]]:
@@ -171,7 +208,7 @@ def _plots(
     before = baseline_model.residuals(baseline_x, data, tau).reshape(-1, width)[:, :3] * 1e3
     after = result.model.residuals(result.x, data, tau).reshape(-1, width)[:, :3] * 1e3
     files = []
-    maps_entry = next((e for e in result.report["effects"] if e["name"] == MAPS), None)
+    maps_entry = next((e for e in result.report["effects"] if "maps" in e["parameters"]), None)
     for m in maps_entry["parameters"]["maps"] if maps_entry else []:
         knots, values, se = (
             np.asarray(m[k]) * 1e3 if k != "knots" else np.asarray(m[k])
@@ -262,7 +299,7 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
     carried = report.get("carried_maps")
     if carried:
         lines.append(
-            f"- carried {MAPS} (registration refitted): held out "
+            f"- carried {JointMaps.name} (registration refitted): held out "
             f"{carried['held_out_pos_rms_mm_with']:.4f} mm with them, "
             f"{carried['held_out_pos_rms_mm_without']:.4f} mm without: "
             + ("kept" if carried["kept"] else "dropped, the model is written without them")
@@ -271,13 +308,23 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
         )
     lines.append(f"- final: {_stats_line(report['final']['validation'])}")
     lines.append(f"- (final on the fitted poses: {_stats_line(report['final']['train'])})")
+    if report.get("sessions"):
+        lines += ["", "Sessions (one tracker registration each, one robot model):", ""]
+        for entry in report["sessions"]:
+            t = np.array(entry["T_bk"])[:3, 3]
+            lines.append(
+                f"- session {entry['session'] + 1}: held out {_stats_line(entry['validation'])}"
+                f"; tracker at [{t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}] m in the base frame"
+            )
     if report["rejected"]:
         lines += ["", "Tried and not kept (held-out change below 5 %):", ""]
         for e in report["rejected"]:
             lines.append(f"- {e['name']}: {e['held_out_improvement_pct']:+.1f} %")
     lines += ["", "## What remains", ""]
+    lines += _floor_markdown(report)
     if "against_repeatability" in report:
         lines += [report["against_repeatability"], ""]
+    lines += _iso_markdown(report.get("iso9283"))
     comps = report.get("residual_components_mm")
     if comps:
         lines += [
@@ -302,7 +349,7 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
     lines += ["", "## Parameters (value +/- standard error)", ""]
     for e in report["effects"]:
         p = e["parameters"]
-        if e["name"] == MAPS:
+        if "maps" in p:
             lines += _maps_markdown(e)
             continue
         head = f"### {e['name']}"
@@ -312,6 +359,9 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
             lines += [head, ""]
             lines += [_record_line(rec) for rec in p["records"]]
             lines.append("")
+            lines += [f"- {text}" for text in p.get("couplings", [])]
+            if p.get("couplings"):
+                lines.append("")
             if p.get("unidentifiable"):
                 lines += ["What these poses cannot tell apart:", ""]
                 lines += [f"- {u['text']}" for u in p["unidentifiable"]]
@@ -330,16 +380,85 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-_DISPLAY = {"m": (1e3, "mm"), "rad": (1e3, "mrad"), "m/C": (1e6, "um/C"), "m/s": (1e6, "um/s")}
+_DISPLAY = {
+    "m": (1e3, "mm"),
+    "rad": (1e3, "mrad"),
+    "m/C": (1e6, "um/C"),
+    "m/s": (1e6, "um/s"),
+    "rad/rad": (1e3, "mrad/rad"),
+}
 
 
 def _record_line(rec: dict[str, Any]) -> str:
-    """`shoulder_lift_joint  link x  +0.300 +/- 0.070 mm` (display units)."""
+    """`shoulder_lift_joint  link x  +0.300 +/- 0.070 mm` (display units); a parameter the
+    poses cannot see is listed as held, without a value."""
     scale, unit = _DISPLAY.get(rec["unit"], (1.0, rec["unit"]))
+    if rec.get("held"):
+        return f"    {rec['joint']:<22} {rec['parameter']:<18} held at zero (not identifiable here)"
     return (
         f"    {rec['joint']:<22} {rec['parameter']:<18} {rec['value'] * scale:+.4g} +/- "
         f"{rec['se'] * scale:.2g} {unit}"
     )
+
+
+def _floor_markdown(report: dict[str, Any]) -> list[str]:
+    floor = report.get("floor")
+    if not floor:
+        return []
+    lines = [
+        f"Floor (the held-out RMS a perfect model would reach on these {floor['held_out_poses']} "
+        f"held-out poses, {floor['parameters']} parameters fitted): "
+        f"**{floor['pos_rms_mm']:.4f} mm**, from the {floor['source']}"
+        + (" (assumed)" if floor["assumed"] else "")
+        + f"; the final model is at **{floor['ratio']:.2f}x** the floor "
+        "(consistent with noise only within 1.2x).",
+        "",
+    ]
+    others = floor["sources"][1:]
+    if others:
+        lines += [
+            "Other estimates of the floor: "
+            + "; ".join(
+                f"{o['floor_mm']:.4f} mm from the {o['source']}"
+                + (" (assumed)" if o["assumed"] else "")
+                for o in others
+            ),
+            "",
+        ]
+    return lines
+
+
+def _iso_markdown(iso: dict[str, Any] | None) -> list[str]:
+    if not iso:
+        return []
+    lines = ["ISO 9283 figures (mm; before: nominal model, after: identified model):", ""]
+    pose = iso.get("pose")
+    if pose:
+        ap = pose["AP_mm"]
+        lines += [
+            "| figure | before (mean / max) | after (mean / max) |",
+            "|---|---|---|",
+            f"| AP, pose accuracy ({pose['poses']} repeated poses, median "
+            f"{pose['cycles_median']:g} cycles) | {ap['before']['mean']:.4f} / "
+            f"{ap['before']['max']:.4f} | {ap['after']['mean']:.4f} / {ap['after']['max']:.4f} |",
+            f"| RP, pose repeatability | {pose['RP_mm']['mean']:.4f} / "
+            f"{pose['RP_mm']['max']:.4f} | (the same: the model does not change it) |",
+            "",
+            "(AP after is on poses the fit used; ISO 9283 asks for 30 cycles per pose, fewer "
+            "make these figures indicative.)",
+            "",
+        ]
+    path = iso.get("path")
+    if path:
+        at = path["AT_mm"]
+        lines += [
+            f"AT, path accuracy over the held-out motion (one pass): {at['before']:.4f} mm "
+            f"before, {at['after']:.4f} mm after.",
+            "",
+        ]
+    if iso.get("pose_note"):
+        lines += [f"({iso['pose_note']}.)", ""]
+    return lines
 
 
 def _parameter_count(entry: dict[str, Any]) -> int:
@@ -354,7 +473,7 @@ def _parameter_count(entry: dict[str, Any]) -> int:
 def _maps_markdown(entry: dict[str, Any]) -> list[str]:
     band = entry["band_split"]
     lines = [
-        f"### {MAPS}: knots every {entry['knot_spacing_rad']:g} rad, smoothing "
+        f"### {JointMaps.name}: knots every {entry['knot_spacing_rad']:g} rad, smoothing "
         f"{entry['smoothing']:g} (chosen by cross-validation), {entry['parameter_count']} values",
         "",
         "Outside its calibrated range a map holds its edge value and `keo run` flags the "
@@ -392,7 +511,7 @@ def _add_diagnostics(
     component: held out for the identified model, all rows for the nominal one."""
     rep = report.get("repeatability")
     chain = result.model.chain
-    _train_idx, val_idx = split(data.n)
+    _train_idx, val_idx = split_data(data)
     val = data.subset(val_idx)
     width = 3 if result.model.position_only or data.R_ks is None else 6
     after = result.model.residuals(result.x, val, chain.gravity_torques(val.q))
@@ -407,6 +526,8 @@ def _add_diagnostics(
             f"{final:.3f} mm RMS held out; these data repeat fewer than 5 poses, so their "
             "repeatability is not measured here"
         )
+    elif not rep.get("used_as_floor", True):
+        report["against_repeatability"] = f"{final:.3f} mm RMS held out; {rep['note']}"
     else:
         report["against_repeatability"] = (
             f"{final:.3f} mm RMS held out, {final / rep['rms_mm']:.1f}x the repeatability "
@@ -419,6 +540,34 @@ def _add_diagnostics(
                 else ")"
             )
         )
+    report["iso9283"] = _iso_figures(result, data, base_x, baseline, val_idx)
+
+
+def _iso_figures(
+    result: Analysis, data: Data, base_x: np.ndarray, baseline: Model, val_idx: np.ndarray
+) -> dict[str, Any]:
+    """ISO 9283 figures the data allow, for the nominal model (registration fitted) and the
+    identified one: AP and RP from repeated stop-and-measure poses, AT from motion."""
+    chain = result.model.chain
+    width = 3 if result.model.position_only or data.R_ks is None else 6
+    tau = chain.gravity_torques(data.q)
+
+    def residual(model: Model, x: np.ndarray) -> np.ndarray:
+        return model.residuals(x, data, tau).reshape(-1, width)[:, :3]
+
+    both = {"before": residual(baseline, base_x), "after": residual(result.model, result.x)}
+    out: dict[str, Any] = {}
+    if data.velocity is None:
+        rep = repeatability(data.q, data.p_ks)
+        pose = None if rep is None else iso_pose_figures(rep.groups, data.p_ks, both)
+        if pose is not None:
+            out["pose"] = pose
+        else:
+            out["pose_note"] = "no repeated poses: AP and RP need poses measured repeatedly"
+    else:
+        out["path"] = iso_path_figures({k: r[val_idx] for k, r in both.items()})
+        out["pose_note"] = "motion data: AP and RP need repeated stop-and-measure poses"
+    return out
 
 
 def _is_static(config: Config, encoder: Path, tracker: Path) -> bool:
@@ -432,15 +581,19 @@ def _time_delay_effect(
 ) -> tuple[Data, dict[str, Any] | None]:
     """Motion data: the delay (and drift) from the motion itself, kept if pairing the
     streams with it lowers the held-out error of the registered nominal model by 5 %."""
-    from keo_service.fit.analysis import KEEP_MARGIN, fit, initial_registration, split, stats
     from keo_service.fit.delay import DelayNotIdentifiableError, fit_delay
 
     cell = cell_from_config(config)
     enc = read_encoder(encoder, nq=cell.robot.nq)
     trk = read_tracker(tracker)
     say("trying time_delay (the delay between the streams, from the motion)")
+    # a long recording: every k-th tracker sample is plenty for one delay and one drift
+    k = max(1, trk.t.size // DELAY_SAMPLES)
+    quat = None if trk.quat is None else trk.quat[::k]
     try:
-        found = fit_delay(cell, enc.t, enc.q, trk.t, trk.p, trk.quat, initial=config.timing.delay_s)
+        found = fit_delay(
+            cell, enc.t, enc.q, trk.t[::k], trk.p[::k], quat, initial=config.timing.delay_s
+        )
     except DelayNotIdentifiableError as exc:
         say(f"time_delay: not identifiable ({exc})")
         return data, None
@@ -485,42 +638,101 @@ def _time_delay_effect(
     return (new_data if entry["kept"] else data), entry
 
 
+def _pooled(parts: list[Data]) -> Data:
+    """Several recordings as one Data with session labels (columns all share, else none)."""
+
+    def stack(arrays: list[np.ndarray | None]) -> np.ndarray | None:
+        if any(a is None for a in arrays):
+            return None
+        return np.concatenate([a for a in arrays if a is not None])
+
+    extra_keys = set.intersection(*(set(d.extra) for d in parts))
+    return Data(
+        np.concatenate([d.q for d in parts]),
+        np.concatenate([d.p_ks for d in parts]),
+        stack([d.R_ks for d in parts]),
+        np.concatenate([d.t for d in parts]),
+        {k: np.concatenate([d.extra[k] for d in parts]) for k in sorted(extra_keys)},
+        stack([d.direction for d in parts]),
+        stack([d.velocity for d in parts]),
+        stack([d.sigma for d in parts]),
+        np.concatenate([np.full(d.n, s) for s, d in enumerate(parts)]),
+    )
+
+
+def _load_sessions(
+    config: Config, encoders: list[Path], trackers: list[Path], registration_only: bool
+) -> tuple[Data, bool]:
+    if len(encoders) != len(trackers):
+        raise KeoError(
+            f"--encoder and --tracker come in pairs (one of each per recording): got "
+            f"{len(encoders)} and {len(trackers)}"
+        )
+    if registration_only:
+        raise KeoError("--registration-only takes one recording (one --encoder/--tracker pair)")
+    loaded = [load_data(config, e, t) for e, t in zip(encoders, trackers, strict=True)]
+    if len({p for _d, p in loaded}) > 1:
+        raise KeoError("the recordings mix a 6-DoF probe and a single reflector")
+    return _pooled([d for d, _p in loaded]), loaded[0][1]
+
+
 def run_analysis(
-    config: Config, encoder: Path, tracker: Path, out: Path, registration_only: bool
+    config: Config,
+    encoder: Path | list[Path],
+    tracker: Path | list[Path],
+    out: Path,
+    registration_only: bool,
 ) -> dict[str, Any]:
-    data, position_only = load_data(config, encoder, tracker)
+    """`keo analyze`: one recording, or several (repeated --encoder/--tracker pairs: each with
+    its own tracker registration, one robot model; the delay is the config's for each)."""
 
     def progress(msg: str) -> None:
         print(f"[analyze] {msg}", file=sys.stderr, flush=True)
 
+    samples: dict[str, Any] = {}
+    encoders = encoder if isinstance(encoder, list) else [encoder]
+    trackers = tracker if isinstance(tracker, list) else [tracker]
     delay_entry = None
-    if not registration_only and not _is_static(config, encoder, tracker):
-        data, delay_entry = _time_delay_effect(
-            config, encoder, tracker, data, position_only, progress
-        )
+    if len(encoders) == 1 and len(trackers) == 1:
+        encoder, tracker = encoders[0], trackers[0]
+        data, position_only = load_data(config, encoder, tracker, info=samples)
+        if not registration_only and not _is_static(config, encoder, tracker):
+            data, delay_entry = _time_delay_effect(
+                config, encoder, tracker, data, position_only, progress
+            )
+    else:
+        data, position_only = _load_sessions(config, encoders, trackers, registration_only)
+        progress(f"{len(encoders)} recordings, one tracker registration each, one robot model")
 
     robot = robot_from_config(config)
     chain = Chain(robot)
     fixed = saved_model(config, chain, position_only) if registration_only else None
     try:
-        result = analyze(robot, data, position_only, fixed_model=fixed, progress=progress)
+        result = analyze(
+            robot,
+            data,
+            position_only,
+            fixed_model=fixed,
+            progress=progress,
+            uncertainty=tracker_uncertainty(config),
+        )
     except NotIdentifiableError as exc:
         raise KeoError(f"cannot analyze these data: {exc}") from None
     if fixed is None:
-        train_idx, val_idx = split(data.n)
+        train_idx, val_idx = split_data(data)
         try_maps(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
-        if MAPS in result.model.effects:  # the verdict was on the model before the maps
-            describe_remaining(result.report, result.model, result.x, data)
+        try_couplings(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
     out.mkdir(parents=True, exist_ok=True)
-    baseline = Model(chain, position_only, [], result.x[: result.model.n_reg])
-    from keo_service.fit.analysis import fit, initial_registration
-
+    sessions = result.model.sessions
+    baseline = Model(
+        chain, position_only, [], result.x[: result.model.n_reg], {}, 0.0, 0.0, sessions
+    )
     tau = chain.gravity_torques(data.q)
     base_x = fit(
         baseline,
         data,
         tau,
-        initial_registration(chain, data, None, position_only),
+        initial_registration_sessions(chain, data, position_only, sessions),
         result.report["registration"]["noise_estimate_mm"] * 1e-3,
     ).x
     plots = _plots(out, result, data, base_x, baseline)
@@ -535,10 +747,12 @@ def run_analysis(
             report["rejected"].insert(0, delay_entry)
     report["position_only"] = position_only
     report["registration_only"] = registration_only
+    if samples:
+        report["samples"] = samples
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False, default=float))
     (out / "report.md").write_text(markdown(report, plots))
     improved = model_config(result, config)
-    kept_delay = next((e for e in report["effects"] if e["name"] == "time_delay"), None)
+    kept_delay = delay_entry if any(e is delay_entry for e in report["effects"]) else None
     if kept_delay is not None:
         p = kept_delay["parameters"]
         timing = msgspec.structs.replace(

@@ -77,11 +77,49 @@ def corrections_from_config(model: ModelConfig, nq: int, source: str) -> Correct
             )
         values[key] = np.asarray(v, dtype=float) if v else None
     maps = _maps_from_config(model, nq, source)
-    if all(v is None for v in values.values()) and not maps:
+    couplings = _couplings_from_config(model, nq, source)
+    if all(v is None for v in values.values()) and not maps and not couplings:
         return None
     shapes = {"cyclic": (nq, 2, 2), "placement": (nq, 6)}
     given = {k: v.reshape(shapes.get(k, (nq,))) for k, v in values.items() if v is not None}
-    return Corrections(nq, **given, maps=maps)
+    return Corrections(nq, **given, maps=maps, couplings=couplings)
+
+
+def _couplings_from_config(
+    model: ModelConfig, nq: int, source: str
+) -> tuple[tuple[int, int, float, np.ndarray, np.ndarray], ...]:
+    n = len(model.coupling_joints)
+    lengths = (len(model.coupling_slopes), len(model.coupling_knots), len(model.coupling_values))
+    if any(m != n for m in lengths):
+        raise ConfigError(
+            source,
+            "model.coupling_joints",
+            "one entry per coupling in coupling_joints, coupling_slopes, coupling_knots and "
+            "coupling_values",
+        )
+    out = []
+    for i, (pair, slope, knots, values) in enumerate(
+        zip(
+            model.coupling_joints,
+            model.coupling_slopes,
+            model.coupling_knots,
+            model.coupling_values,
+            strict=True,
+        )
+    ):
+        k, v = np.asarray(knots, dtype=float), np.asarray(values, dtype=float)
+        if len(pair) != 2 or not all(0 <= p < nq for p in pair) or pair[0] == pair[1]:
+            raise ConfigError(
+                source, f"model.coupling_joints[{i}]", f"two different joints 0..{nq - 1}"
+            )
+        if k.size != v.size or (k.size and (k.size < 2 or np.any(np.diff(k) <= 0))):
+            raise ConfigError(
+                source,
+                f"model.coupling_knots[{i}]",
+                "at least two increasing knots, as many as coupling_values",
+            )
+        out.append((int(pair[0]), int(pair[1]), float(slope), k, v))
+    return tuple(out)
 
 
 def _maps_from_config(

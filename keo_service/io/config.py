@@ -154,7 +154,8 @@ class TimingConfig(_Section):
     drift_ref_s: float = 0.0
     alignment: Literal["interpolate", "latest"] = "interpolate"
     sample_rate_hz: Annotated[float, msgspec.Meta(gt=0.0, le=10000.0)] = _DEFAULTS.sample_rate_hz
-    track_delay: bool = False
+    # follow the delay online while the tool moves, starting from delay_s (docs/design.md §6)
+    track_delay: bool = True
     # Encoder samples kept for alignment, in seconds of stream time.
     buffer_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = _DEFAULTS.buffer_s
     # Two encoder samples further apart than this are not interpolated between.
@@ -208,6 +209,13 @@ class ModelConfig(_Section):
     # (rad); an empty list: no map for that joint
     map_knots: list[list[float]] = msgspec.field(default_factory=list)
     map_values: list[list[float]] = msgspec.field(default_factory=list)
+    # couplings across joints (keo analyze): per coupling [j, k] (joint j's angle error moves
+    # with joint k's angle, 0-based), the slope (rad/rad, about the knots' centre), and a map
+    # of joint k's angle (knots rad, increasing; values rad)
+    coupling_joints: list[list[int]] = msgspec.field(default_factory=list)
+    coupling_slopes: list[float] = msgspec.field(default_factory=list)
+    coupling_knots: list[list[float]] = msgspec.field(default_factory=list)
+    coupling_values: list[list[float]] = msgspec.field(default_factory=list)
     temperature_m_per_c: list[float] = msgspec.field(default_factory=list)
     temperature_ref_c: float = 0.0
     time_drift_m_per_s: list[float] = msgspec.field(default_factory=list)

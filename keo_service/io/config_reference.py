@@ -161,7 +161,10 @@ KEYS: dict[str, tuple[str, str]] = {
         "reference method: the newest joints at a fixed rate)",
     ),
     "timing.sample_rate_hz": ("Hz", "latest: the fixed rate"),
-    "timing.track_delay": ("", "follow the delay online while the tool moves"),
+    "timing.track_delay": (
+        "",
+        "follow the delay online while the tool moves, from delay_s (docs/timing-delay.md)",
+    ),
     "timing.buffer_s": ("s", "encoder samples kept for alignment (stream time)"),
     "timing.max_gap_s": ("s", "two encoder samples further apart are not interpolated between"),
     "timing.stale_after_s": (
@@ -210,6 +213,13 @@ KEYS: dict[str, tuple[str, str]] = {
     "model.temperature_ref_c": ("degC", "the temperature where that drift is zero"),
     "model.time_drift_m_per_s": ("m/s", "sensor drift with time (reported)"),
     "model.time_ref_s": ("s", "the time where that drift is zero"),
+    "model.coupling_joints": (
+        "",
+        "per coupling [j, k] (0-based): joint j's angle error moves with joint k's angle",
+    ),
+    "model.coupling_slopes": ("rad/rad", "per coupling: the linear term in joint k's angle"),
+    "model.coupling_knots": ("rad", "per coupling: knots of the map of joint k's angle"),
+    "model.coupling_values": ("rad", "per coupling: joint j's angle error at each knot"),
     "ros2.enabled": (
         "",
         "keo run also publishes each estimate as "

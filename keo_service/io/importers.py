@@ -3,7 +3,10 @@
 ur10-lasertracker (data/ur10_lasertracker): static stop-and-measure poses of a UR10 with
 a Leica 6-DoF probe. `;`-separated, decimal comma; positions in mm, orientation as intrinsic
 XYZ Euler angles in degrees (R = Rx(rx) Ry(ry) Rz(rz)). Each pose becomes one encoder row and
-one tracker row at the same t; temperature is kept as an extra tracker column.
+one tracker row at the same t; temperature is kept as an extra tracker column, and where the
+file carries the tracker's standard deviation of each coordinate (`measurement_std_x,y,z`, mm;
+Series B) it becomes the optional sx, sy, sz columns (m) that `keo analyze` takes its floor
+from.
 """
 
 from __future__ import annotations
@@ -58,7 +61,9 @@ def read_ur10_lasertracker(path: str | Path) -> tuple[EncoderData, TrackerData, 
     if missing:
         raise DataFormatError(str(path), 1, missing[0], "column missing from the header")
     col = {name: header.index(name) for name in header}
-    stamps, q, p, quat, temp = [], [], [], [], []
+    std_cols = [f"measurement_std_{a}" for a in "xyz"]
+    has_std = all(c in col for c in std_cols)
+    stamps, q, p, quat, temp, std = [], [], [], [], [], []
     timestamps_usable = True
     for line, row in enumerate(rows[1:], start=2):
         if not row or all(not c.strip() for c in row):
@@ -85,6 +90,8 @@ def read_ur10_lasertracker(path: str | Path) -> tuple[EncoderData, TrackerData, 
         temp.append(
             _number(row[col["measurement_temperature"]], path, line, "measurement_temperature")
         )
+        if has_std:
+            std.append([_number(row[col[c]], path, line, c) * 1e-3 for c in std_cols])
     n = len(q)
     if timestamps_usable:
         t = np.array(stamps)
@@ -102,7 +109,11 @@ def read_ur10_lasertracker(path: str | Path) -> tuple[EncoderData, TrackerData, 
     q_arr, p_arr = np.array(q)[order], np.array(p)[order]
     quat_arr, temp_arr = np.array(quat)[order], np.array(temp)[order]
     enc = EncoderData(t=t, q=q_arr)
-    trk = TrackerData(t=t.copy(), p=p_arr, quat=quat_arr, extra={"temperature_c": temp_arr})
+    extra = {"temperature_c": temp_arr}
+    if has_std:
+        std_arr = np.array(std)[order]
+        extra.update({name: std_arr[:, k] for k, name in enumerate(("sx", "sy", "sz"))})
+    trk = TrackerData(t=t.copy(), p=p_arr, quat=quat_arr, extra=extra)
     return enc, trk, {"rows": str(n), "time": note}
 
 

@@ -1,6 +1,6 @@
 """Who may put what on the bus: Zenoh's `access_control` configuration built from [bus].
 
-DESIGN.md §6 gives each role the keys it may put (or reply on) and the keys it may subscribe
+docs/design.md §6 gives each role the keys it may put (or reply on) and the keys it may subscribe
 to (or query). Zenoh matches a rule's subject against the REMOTE side's mTLS certificate
 common name on each link and enforces the rules on the node that has them configured, on
 that node's ingress and egress. So the rules here describe, for a remote of role R:
@@ -38,7 +38,7 @@ SUBSCRIBE_SIDE = [
 
 
 def rights(config: Any) -> dict[str, tuple[list[str], list[str]]]:
-    """Role -> (keys it may put / reply on, keys it may subscribe to / query), DESIGN §6."""
+    """Role -> (keys it may put / reply on, keys it may subscribe to / query), docs/design.md §6."""
     cell = config.cell
     keo = f"keo/{cell}"
     ros = config.ros2

@@ -84,7 +84,7 @@ class CorrectionPublisher:
         self._ros2 = None
         self._types: Any = None
         if ros2_node is not None:
-            from keo_service.live.ros2 import POSE_STAMPED
+            from keo_service.io.ros2_messages import POSE_STAMPED
 
             self._types = ros2_node.store.types
             self._ros2 = ros2_node.publisher(correction_topic(config.cell), POSE_STAMPED)

@@ -31,18 +31,9 @@ from typing import Any
 import xxhash
 import zenoh
 
-from keo_service.io.ros2_messages import (
-    JOINT_STATE,
-    POINT_STAMPED,
-    POSE_STAMPED,
-    seconds_of,
-    typestore,
-)
+from keo_service.io.ros2_messages import typestore
 
 __all__ = [
-    "JOINT_STATE",
-    "POINT_STAMPED",
-    "POSE_STAMPED",
     "Ros2Node",
     "Ros2Publisher",
     "attachment",
@@ -50,8 +41,6 @@ __all__ = [
     "dds_type_name",
     "entity_gid",
     "mangle",
-    "seconds_of",
-    "typestore",
 ]
 
 ATTACHMENT = struct.Struct("<qqB16s")

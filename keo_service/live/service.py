@@ -103,7 +103,7 @@ class KeoService:
         if config.timing.track_delay:
             from keo_service.fit.delay import OnlineDelayTracker
 
-            self._delay_tracker = OnlineDelayTracker(cell)
+            self._delay_tracker = OnlineDelayTracker(cell, max_gap_s=config.timing.max_gap_s)
         self._viz: RerunWorker | None = None
         if rrd is not None or viewer is not None:
             from keo_service.live.rerun_process import RerunWorker
@@ -230,7 +230,9 @@ class KeoService:
                 if self._corrections is not None:  # with a model: feedforward at these joints
                     self._corrections.on_joints(msg.t, msg.q)
                 if self._delay_tracker is not None:
-                    self._delay_tracker.add_encoder(msg.t, msg.q)
+                    self._delay_tracker.add_encoder(
+                        msg.t, msg.q, msg.clock_epoch, msg.seq, bool(msg.flags)
+                    )
             elif isinstance(msg, TrackerSample):
                 self._note_sample("tracker", msg)
                 self._rates["tracker"].tick(now)
@@ -238,7 +240,9 @@ class KeoService:
                     msg.t, msg.p, msg.q, ok=msg.status == "ok", tag=msg.device_t
                 )
                 if self._delay_tracker is not None and msg.p is not None:
-                    self._delay_tracker.add_tracker(msg.t, msg.p, msg.q)
+                    self._delay_tracker.add_tracker(
+                        msg.t, msg.p, msg.q, msg.clock_epoch, msg.seq, bool(msg.flags)
+                    )
             else:
                 self.estimator.counters["unexpected_message"] += 1
                 continue
@@ -323,7 +327,13 @@ class KeoService:
             delay_s=self.estimator.delay.at(estimate.t),
             seq=self._seq,
             tracker_device_t=estimate.source if isinstance(estimate.source, float) else None,
+            delay_se_s=self.delay_se(),
         )
+
+    def delay_se(self) -> float | None:
+        """The standard error of the delay in use: that of the online estimate last applied
+        (None before: the configured delay comes without one)."""
+        return None if self._delay_tracker is None else self._delay_tracker.applied_se
 
     # ---- status -----------------------------------------------------------------------------
 
@@ -348,6 +358,9 @@ class KeoService:
             counters["rerun_dropped"] = self._viz.dropped
         if self._corrections is not None:
             counters.update(self._corrections.counters)
+        if self._delay_tracker is not None:
+            for name, value in self._delay_tracker.counters.items():
+                counters[f"delay_{name}"] = value
         last = self.estimator.last
         delay = self.estimator.delay
         return ServiceStatus(
@@ -365,6 +378,7 @@ class KeoService:
             last_estimate=None if last is None else self.to_message(last),
             messages=list(self.estimator.messages)[-10:],
             delay_tracking=None if self._delay_tracker is None else self._delay_tracker.last_result,
+            delay_se_s=self.delay_se(),
         )
 
     def _resolve_if_quiet(self) -> None:
@@ -386,7 +400,9 @@ class KeoService:
             await asyncio.sleep(STATUS_PERIOD_S)
 
     async def _delay_loop(self) -> None:
-        """Online delay tracking: fit on a bounded window off the loop, then slew to it."""
+        """Online delay tracking: fit each stretch off the loop, fold the result into the
+        running estimate on the loop, and slew the estimator's delay to it (never a step).
+        A fit of data from before a time base started anew is dropped."""
         tracker = self._delay_tracker
         assert tracker is not None
         while not self._stop.is_set():
@@ -394,10 +410,13 @@ class KeoService:
             if not tracker.due():
                 continue
             window = tracker.snapshot()
+            restarts = tracker.counters["restarts"]
             current = self.estimator.delay.offset_s
-            found = await asyncio.to_thread(tracker.fit, window, current)
-            if found is not None:
-                self.estimator.set_delay_target(found)
+            found = await asyncio.to_thread(tracker.measure, window, current)
+            if tracker.counters["restarts"] == restarts:
+                target = tracker.combine(found)
+                if target is not None:
+                    self.estimator.set_delay_target(target)
             log.info("delay tracking: %s", tracker.last_result)
 
     async def _viz_loop(self) -> None:
@@ -431,6 +450,8 @@ class KeoService:
         if {"timing.delay_s", "timing.drift_ppm", "timing.drift_ref_s"} & set(applied):
             timing = new.timing
             self.estimator.set_delay(delay_model(timing))
+            if self._delay_tracker is not None:
+                self._delay_tracker.forget()  # tracking goes on from the delay set by hand
         hot = {k: v for k, v in msgspec.structs.asdict(new).items() if k in ("observer", "timing")}
         self.config = msgspec.structs.replace(self.config, **hot) if applied else self.config
         self._refresh_status()

@@ -60,6 +60,8 @@ class Scenario:
     rotation_noise_rad: float = 50e-6
     drop_probability: float = 0.005
     geometric_errors: bool = True
+    tool_error_only: bool = False  # of the geometric errors only the tool's: a constant error
+    path_speed: float = 1.0  # path: the motion played this many times faster
     error_drift_m_per_s: float = 0.0  # slow drift of the true error (e.g. thermal growth)
     position_only: bool = False
     speed_m_s: float = 0.1  # paper-vertical
@@ -139,7 +141,9 @@ class TrueRobot:
         return self.data.oMf[self.flange_frame_id] * self.T_ns
 
 
-def make_true_robot(cell: Cell, rng: np.random.Generator, geometric_errors: bool) -> TrueRobot:
+def make_true_robot(
+    cell: Cell, rng: np.random.Generator, geometric_errors: bool, tool_only: bool = False
+) -> TrueRobot:
     model = pin.Model(cell.robot.model)
     nq = model.nq
     offsets = np.zeros(nq)
@@ -149,9 +153,12 @@ def make_true_robot(cell: Cell, rng: np.random.Generator, geometric_errors: bool
         for j in range(1, model.njoints):
             dp = rng.uniform(0.1e-3, 1.0e-3, 3) * rng.choice([-1.0, 1.0], 3)
             dr = rng.uniform(0.01, 0.05, 3) * math.pi / 180.0 * rng.choice([-1.0, 1.0], 3)
-            model.jointPlacements[j] = model.jointPlacements[j] * pin.exp6(pin.Motion(dp, dr))
-            params[f"joint{j}_placement_error"] = [*dp.tolist(), *dr.tolist()]
+            if not tool_only:
+                model.jointPlacements[j] = model.jointPlacements[j] * pin.exp6(pin.Motion(dp, dr))
+                params[f"joint{j}_placement_error"] = [*dp.tolist(), *dr.tolist()]
         offsets = rng.uniform(0.01, 0.05, nq) * math.pi / 180.0 * rng.choice([-1.0, 1.0], nq)
+        if tool_only:
+            offsets = np.zeros(nq)
         params["joint_zero_offsets_rad"] = offsets.tolist()
         tool = pin.exp6(pin.Motion(rng.normal(0, 0.2e-3, 3), rng.normal(0, 0.2e-3, 3)))
         T_ns = cell.T_nt * tool
@@ -235,6 +242,7 @@ def motion_for(
     scale = np.minimum(1.0, vmax / np.sum(2 * np.pi * freq * amp, axis=1))
     amp = amp * scale[:, None]
     phase = rng.uniform(0, 2 * np.pi, (robot.nq, k))
+    freq = freq * scenario.path_speed
     return sinusoid_path(home, amp, freq, phase), scenario.duration_s or 60.0
 
 
@@ -278,7 +286,7 @@ def simulate(cell: Cell, scenario: Scenario, seed: int = 0) -> SimulatedRun:
     if scenario.name == "static-poses":
         return simulate_static(cell, scenario, seed)
     rng = np.random.default_rng(seed)
-    true_robot = make_true_robot(cell, rng, scenario.geometric_errors)
+    true_robot = make_true_robot(cell, rng, scenario.geometric_errors, scenario.tool_error_only)
     trajectory, duration = motion_for(scenario, cell, rng)
     nominal_data = cell.robot.create_data()
 
@@ -368,7 +376,7 @@ def angle_ripple(scenario: Scenario, q: np.ndarray) -> np.ndarray:
 def simulate_static(cell: Cell, scenario: Scenario, seed: int = 0) -> SimulatedRun:
     """Stop-and-measure: one encoder row and one tracker row per pose, at the same t."""
     rng = np.random.default_rng(seed)
-    true_robot = make_true_robot(cell, rng, scenario.geometric_errors)
+    true_robot = make_true_robot(cell, rng, scenario.geometric_errors, scenario.tool_error_only)
     q = _static_poses(cell, scenario, rng)
     n = q.shape[0]
     t = np.arange(n, dtype=float) * 10.0

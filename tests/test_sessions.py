@@ -1,0 +1,101 @@
+"""Several recordings of one robot, the tracker at a different station in each: one robot
+model, one registration per recording, held-out blocks from every recording."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from scipy.spatial.transform import Rotation
+
+from keo_service.core.corrections import approach_directions
+from keo_service.fit.analysis import Data, analyze, split_data
+from keo_service.sim.simulate import make_scenario, simulate
+from tests.conftest import keo
+from tests.test_analysis import static_config
+
+SETS = {"poses": "300", "geometric_errors": "false", "compliance_rad_per_nm": "3e-8"}
+
+
+def _station(cell, yaw: float, move: list[float]):
+    """The same cell with its tracker moved and turned about the vertical."""
+    R = Rotation.from_euler("z", yaw).as_matrix()
+    return dataclasses.replace(cell, T_bk=cell.T_bk * pin.SE3(R, np.array(move)))
+
+
+def test_two_stations_one_model_each_registration_recovered(demo_cell):
+    cells = [demo_cell, _station(demo_cell, 0.6, [-1.2, 2.0, 0.3])]
+    parts = []
+    for s, cell in enumerate(cells):
+        run = simulate(cell, make_scenario("static-poses", SETS), seed=3 + s)
+        R = Rotation.from_quat(run.tracker.quat, scalar_first=True).as_matrix()
+        parts.append((run, R))
+    q = np.concatenate([run.encoder.q for run, _R in parts])
+    data = Data(
+        q,
+        np.concatenate([run.tracker.p for run, _R in parts]),
+        np.concatenate([R for _run, R in parts]),
+        np.concatenate([run.tracker.t for run, _R in parts]),
+        {},
+        approach_directions(q),
+        session=np.repeat([0, 1], [run.tracker.p.shape[0] for run, _R in parts]),
+    )
+    train, val = split_data(data)
+    assert set(data.session[val]) == {0, 1}  # held-out blocks from every recording
+    assert np.intersect1d(train, val).size == 0
+    result = analyze(demo_cell.robot, data, False, candidates=("compliance",))
+    report = result.report
+    assert result.model.sessions == 2
+    assert [e["name"] for e in report["effects"]] == ["compliance"]
+    found = report["registration"]["T_bk_sessions"]
+    for cell, listed in zip(cells, found, strict=True):
+        T = np.array(listed)
+        assert np.allclose(T[:3, 3], cell.T_bk.translation, atol=5e-5)
+        assert np.allclose(T[:3, :3], cell.T_bk.rotation, atol=5e-5)
+    values = np.array(report["effects"][0]["parameters"]["values"])
+    assert values[1] == pytest.approx(3e-8, rel=0.1)
+    for entry in report["sessions"]:
+        assert entry["validation"]["n"] > 50
+        assert entry["validation"]["pos_rms_mm"] < 0.05  # the noise: ~0.035 mm
+
+
+@pytest.mark.e2e
+def test_cli_takes_repeated_encoder_tracker_pairs(tmp_path):
+    cfgs = [static_config(tmp_path), static_config(tmp_path, "[3.5, -1.0, 0.2]")]
+    args = []
+    for i, cfg in enumerate(cfgs):
+        out = tmp_path / f"s{i}"
+        sim = ["--scenario", "static-poses", "--seed", str(20 + i), "--out", str(out)]
+        sets = ["--set", "geometric_errors=false", "--set", "poses=200"]
+        assert keo("simulate", "--config", str(cfg), *sim, *sets).returncode == 0
+        args += ["--encoder", str(out / "encoder.csv"), "--tracker", str(out / "tracker.csv")]
+    res = keo(
+        "analyze",
+        "--config",
+        str(cfgs[0]),
+        *args,
+        "--out",
+        str(tmp_path / "an"),
+        "--json",
+        timeout=300,
+    )
+    assert res.returncode == 0, res.stderr
+    report = json.loads(res.stdout)
+    assert len(report["sessions"]) == 2
+    moves = np.array(report["registration"]["T_bk_sessions"])
+    # the configs put the tracker at [4.0, 0.5, 0.0] and [3.5, -1.0, 0.2]
+    assert np.allclose(moves[1][:3, 3] - moves[0][:3, 3], [-0.5, -1.5, 0.2], atol=1e-3)
+    assert "Sessions" in (tmp_path / "an" / "report.md").read_text()
+    res = keo(
+        "analyze",
+        "--config",
+        str(cfgs[0]),
+        *args[:6],
+        "--out",
+        str(tmp_path / "x"),
+    )
+    assert res.returncode != 0
+    assert "come in pairs" in res.stderr
