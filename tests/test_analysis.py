@@ -43,6 +43,7 @@ def effect(report, name):
     return next(e for e in report["effects"] if e["name"] == name)
 
 
+@pytest.mark.slow
 def test_nothing_is_added_when_nothing_is_wrong(demo_cell):
     _run, result = run_analysis(demo_cell, {"geometric_errors": "false"})
     assert result.report["effects"] == []
@@ -51,6 +52,7 @@ def test_nothing_is_added_when_nothing_is_wrong(demo_cell):
     assert result.report["final"]["validation"]["pos_rms_mm"] < 0.05
 
 
+@pytest.mark.slow
 def test_geometry_is_found_with_only_identifiable_combinations(demo_cell):
     _run, result = run_analysis(demo_cell, {})
     names = [e["name"] for e in result.report["effects"]]
@@ -88,6 +90,7 @@ def test_geometry_is_found_with_only_identifiable_combinations(demo_cell):
         ({"geometric_errors": "false", "backlash_rad": "2e-4"}, "backlash", [0, 1, 2], 2e-4),
     ],
 )
+@pytest.mark.slow
 def test_joint_effects_recovered_within_their_uncertainty(demo_cell, sets, name, joints, truth):
     _run, result = run_analysis(demo_cell, sets)
     e = effect(result.report, name)
@@ -272,6 +275,7 @@ def test_real_ur10_data_imports_and_improves(tmp_path):
     assert (tmp_path / "an" / "residual_components_vs_joints.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_time_delay_found_from_motion_data(tmp_path):
     """Motion data with a 28 ms delay analysed with a config that says 0: the analysis finds
     the delay, keeps it for the held-out gain, and writes it into model.toml."""

@@ -72,7 +72,7 @@ def test_host_clock_stepping_forward_is_followed_within_the_window():
     gaps = np.diff(mapped)
     assert np.max(gaps) < 1.0  # no stamp jumps by the whole step at once
     settled = _settled_after(device, mapped, +1.0)
-    assert settled < 20.0 + 1.0  # ClockMapper.window_s (20 s): the old minima leave it (module text)
+    assert settled < 20.0 + 1.0  # ClockMapper.window_s: the old minima leave it (module text)
     assert states[-1].offset_s == pytest.approx(states[k - 1].offset_s + 1.0, abs=2e-3)
     assert states[-1].steps <= 1
     print(

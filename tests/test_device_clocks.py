@@ -93,6 +93,7 @@ def _stamp_errors(samples, t0: float, clock: tuple[float, float]):
     return instant, mapped, receipt
 
 
+@pytest.mark.slow
 def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
     base = load_config(CONFIGS / "ur10_demo.toml")
     timing = msgspec.structs.replace(base.timing, delay_s=0.0)

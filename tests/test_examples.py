@@ -67,6 +67,7 @@ def test_estimate_a_recording(tmp_path):
     assert "tracker_samples=" in out
 
 
+@pytest.mark.slow
 @pytest.mark.e2e
 def test_analyze_a_recording(tmp_path):
     """`keo analyze` on stop-and-measure poses of a robot whose geometry differs from the

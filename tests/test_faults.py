@@ -62,6 +62,7 @@ def first_after(items, t, kind, good_only=False):
     return None
 
 
+@pytest.mark.slow
 def test_faults_end_to_end(demo_config, demo_cell, tmp_path, capsys):
     observer = msgspec.structs.replace(demo_config.observer, gain=[GAIN] * 6)
     config = loopback_config(msgspec.structs.replace(demo_config, observer=observer))

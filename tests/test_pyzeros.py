@@ -218,6 +218,7 @@ def run_case(tmp_path, clock: str | None = None, restarts: int = RESTARTS):
     return config, speed, results, status, ros, tokens
 
 
+@pytest.mark.slow
 @pytest.mark.e2e
 def test_shared_clock_ros2_peer_moving_and_after_restarts(tmp_path):
     config, speed, results, status, ros, tokens = run_case(tmp_path)

@@ -161,6 +161,7 @@ def test_ur_rtde_reads_timestamp_and_actual_q_from_the_mock_controller(tmp_path)
 # ---- the adapter over real TCP ----------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_adapter_maps_a_drifting_bursty_controller_onto_the_host_clock(demo_config):
     """80 ppm fast controller clock, delivery up to 6 ms late in bursts, 22 s over TCP; the
     numbers are judged on the 12 s after the first 10 s (the README prints them)."""

@@ -62,6 +62,7 @@ def test_two_stations_one_model_each_registration_recovered(demo_cell):
         assert entry["validation"]["pos_rms_mm"] < 0.05  # the noise: ~0.035 mm
 
 
+@pytest.mark.slow
 @pytest.mark.e2e
 def test_cli_takes_repeated_encoder_tracker_pairs(tmp_path):
     cfgs = [static_config(tmp_path), static_config(tmp_path, "[3.5, -1.0, 0.2]")]
