@@ -25,7 +25,7 @@ from keo_service.core.rotations import log3_many, transposed_times
 
 ROT_WEIGHT = 0.5  # m per rad: 20 um of position ~ 40 urad of orientation
 RANK_TOL = 1e-3  # relative singular value below which a direction counts as unidentifiable
-LSMR_ROWS = 100_000  # residual rows above which the robust fit's steps are solved by LSMR
+LSMR_ROWS = 80_000  # residual rows above which the robust fit's steps are solved by LSMR
 
 
 class NotIdentifiableError(KeoError):
