@@ -11,6 +11,11 @@ the robot puts the tool at M_i: the error is N(q_i)^-1 M_i. Compensated, `keo co
 from what the model still misses at q_i, carried to the nearby q_c:
 true(q_c) = Model(q_c) Model(q_i)^-1 M_i, so the error is Model(q_i)^-1 M_i. The Newton solve
 runs on every held-out pose and its flags and residuals are reported.
+
+Its "uncompensated" column is measured through the identified model's registration (T_bk,
+T_ns), which absorbs part of what the model's effects explain, so it is not the nominal
+model's own error: the README's uncompensated column is report.json's `baseline.validation`
+(the nominal model with its own registration fitted), as `keo analyze` reports it.
 """
 
 from __future__ import annotations
