@@ -53,6 +53,9 @@ WATCH_PERIOD_S = 0.25
 
 class _Adapter:
     name = "adapter"
+    # set by each adapter when it declares its outputs (`_declare`)
+    _pub: zenoh.Publisher
+    _seq: int = 0
 
     def __init__(self, config: Config, nq: int, session: zenoh.Session | None = None) -> None:
         self.config = config
@@ -156,6 +159,29 @@ class _Adapter:
             "flags": list(stamp.flags),
         }
 
+    def _publish_joints(
+        self,
+        stamp: Stamp,
+        host_ns: int,
+        q: list[float],
+        dq: list[float] | None,
+        device_t: float | None,
+    ) -> None:
+        """One joint sample out on keo/<cell>/encoder: the next `seq`, the stamp and the
+        clock fields (every encoder adapter, whatever its wire format, ends here)."""
+        self._seq += 1
+        sample = JointSample(
+            t=stamp.t,
+            host_ns=host_ns,
+            seq=self._seq,
+            q=q,
+            dq=dq,
+            device_t=device_t,
+            **self._clock_fields(stamp),
+        )
+        self._pub.put(encode(sample))
+        self.counters["published"] += 1
+
     def _on_status_query(self, query: zenoh.Query) -> None:
         doc = {**self.status(), **self.health.summary(time.monotonic())}
         doc["last_error"] = self.device.last_error
@@ -234,26 +260,12 @@ class EncoderAdapter(_Adapter):
         if frame.group != 0:
             self.counters["other_group"] += 1
             return
-        self._seq += 1
         q = list(frame.positions[: self.nq])
         dq = list(frame.velocities[: self.nq]) if frame.velocities is not None else None
         device_t = frame.time if frame.valid_fields & 1 else None
         if stamp is None:
             stamp = self._stamp(device_t, host_ns * 1e-9)
-        self._pub.put(
-            encode(
-                JointSample(
-                    t=stamp.t,
-                    host_ns=host_ns,
-                    seq=self._seq,
-                    q=q,
-                    dq=dq,
-                    device_t=device_t,
-                    **self._clock_fields(stamp),
-                )
-            )
-        )
-        self.counters["published"] += 1
+        self._publish_joints(stamp, host_ns, q, dq, device_t)
 
 
 class TrackerAdapter(_Adapter):
@@ -510,22 +522,7 @@ class RtdeEncoderAdapter(EncoderAdapter):
         if not all(math.isfinite(v) for v in (stamp, *q, *qd)):
             self.rtde_decoder.reject("non_finite", f"data package at controller time {stamp!r}")
             return
-        sample_stamp = self._stamp(stamp, host_ns * 1e-9)
-        self._seq += 1
-        self._pub.put(
-            encode(
-                JointSample(
-                    t=sample_stamp.t,
-                    host_ns=host_ns,
-                    seq=self._seq,
-                    q=list(q),
-                    dq=list(qd),
-                    device_t=stamp,
-                    **self._clock_fields(sample_stamp),
-                )
-            )
-        )
-        self.counters["published"] += 1
+        self._publish_joints(self._stamp(stamp, host_ns * 1e-9), host_ns, list(q), list(qd), stamp)
         self._maybe_publish_status(values, host_ns)
 
     def _maybe_publish_status(self, values: dict[str, Any], host_ns: int) -> None:
@@ -668,22 +665,7 @@ class Ros2JointStateAdapter(_Ros2Adapter):
         if not all(math.isfinite(v) for v in (*q, stamp)):
             self.rejects.reject("non_finite", f"JointState at stamp {stamp!r}")
             return
-        self._seq += 1
-        st = self._stamp(stamp, host_ns * 1e-9)
-        self._pub.put(
-            encode(
-                JointSample(
-                    t=st.t,
-                    host_ns=host_ns,
-                    seq=self._seq,
-                    q=q,
-                    dq=dq,
-                    device_t=stamp,
-                    **self._clock_fields(st),
-                )
-            )
-        )
-        self.counters["published"] += 1
+        self._publish_joints(self._stamp(stamp, host_ns * 1e-9), host_ns, q, dq, stamp)
 
 
 class Ros2PoseAdapter(_Ros2Adapter):

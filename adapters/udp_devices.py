@@ -34,7 +34,6 @@ from keo_service.adapters.realtime import request_realtime
 from keo_service.core.clock import Stamp
 from keo_service.live.messages import (
     CorrectionMessage,
-    JointSample,
     RobotStatus,
     decode,
     encode,
@@ -267,20 +266,7 @@ class UdpEncoderAdapter(EncoderAdapter):
             self.rejects_short(len(q))
             return
         st, device_t = self.stamp(device_ms, host_ns)
-        self._seq += 1
-        self._pub.put(
-            encode(
-                JointSample(
-                    t=st.t,
-                    host_ns=host_ns,
-                    seq=self._seq,
-                    q=q[: self.nq],
-                    device_t=device_t,
-                    **self._clock_fields(st),
-                )
-            )
-        )
-        self.counters["published"] += 1
+        self._publish_joints(st, host_ns, q[: self.nq], None, device_t)
 
     def rejects_short(self, n: int) -> None:
         self.counters["too_few_joints"] += 1
