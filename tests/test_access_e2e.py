@@ -149,14 +149,21 @@ def test_rights_by_certificate(demo_config, demo_cell, tmp_path, hub):
                 if plan.kinds[k] == 0:
                     q = run.encoder.q[i].tolist()
                     enc.put(
-                        encode(JointSample(t=float(run.encoder.t[i]), host_ns=now, seq=i + 1, q=q))
+                        encode(
+                            JointSample(
+                                stamp=float(run.encoder.t[i]), host_ns=now, seq=i + 1, joints=q
+                            )
+                        )
                     )
                     # the client identity puts a sample of its own, and a correction
                     bad = [x + 0.5 for x in q]
                     rogue_enc.put(
                         encode(
                             JointSample(
-                                t=float(run.encoder.t[i]), host_ns=now, seq=ROGUE_SEQ + i, q=bad
+                                stamp=float(run.encoder.t[i]),
+                                host_ns=now,
+                                seq=ROGUE_SEQ + i,
+                                joints=bad,
                             )
                         )
                     )
@@ -183,7 +190,11 @@ def test_rights_by_certificate(demo_config, demo_cell, tmp_path, hub):
                     trk.put(
                         encode(
                             TrackerSample(
-                                t=float(run.tracker.t[i]), host_ns=now, seq=i + 1, p=p, q=quat
+                                stamp=float(run.tracker.t[i]),
+                                host_ns=now,
+                                seq=i + 1,
+                                position=p,
+                                quaternion=quat,
                             )
                         )
                     )

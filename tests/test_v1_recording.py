@@ -8,10 +8,12 @@ and ROS 2 MCAP) and the estimate files its `keo estimate` wrote; its `keo replay
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -20,7 +22,7 @@ from keo_service.bench.procs import process_group
 from keo_service.io.config import config_to_toml
 from keo_service.io.interchange import write_estimate_table
 from keo_service.live.bus import session_for_client
-from keo_service.live.messages import EstimateMessage, decode, topic
+from keo_service.live.messages import SCHEMA_VERSION, EstimateMessage, decode, topic
 from keo_service.offline.estimate import estimate_files, write_estimates
 from tests.conftest import keo, wait_for_status
 
@@ -30,6 +32,19 @@ FILES = {
     "mcap": (V1 / "mcap" / "keo", V1 / "mcap" / "keo"),
 }
 ROWS = 193  # estimates in each expected file
+
+
+def test_schema_1_payloads_are_refused_naming_their_version():
+    """Live payloads of schema 1 (what that code's adapters put on the bus) do not decode as
+    schema 2: the error names the version tag, no wrong numbers come through."""
+    payloads = msgspec.msgpack.decode((V1 / "payloads_v1.msgpack").read_bytes())
+    tags = sorted(msgspec.msgpack.decode(p)["type"] for p in payloads)
+    assert tags == ["keo.estimate/1", "keo.joint/1", "keo.tracker/1"]
+    assert SCHEMA_VERSION == 2
+    for payload in payloads:
+        tag = msgspec.msgpack.decode(payload)["type"]
+        with pytest.raises(msgspec.DecodeError, match=re.escape(f"Invalid value '{tag}'")):
+            decode(payload)
 
 
 @pytest.mark.parametrize("streaming", [False, True], ids=["batch", "streaming"])

@@ -108,7 +108,9 @@ class CorrectionPublisher:
             reason = OUTSIDE_CALIBRATED_RANGE
         values = estimate.estimate_values()
         self._estimate = (time.monotonic(), values, reason)
-        return self._make(estimate.t, values, estimate.joints if joints is None else joints, reason)
+        return self._make(
+            estimate.stamp, values, estimate.joints if joints is None else joints, reason
+        )
 
     def _make(
         self, stamp: float, values: list[float], joints: Any, reason: str

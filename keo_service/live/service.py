@@ -33,6 +33,7 @@ from keo_service.live.messages import (
     TrackerSample,
     decode,
     encode,
+    estimate_message,
     topic,
 )
 from keo_service.live.supervise import supervise
@@ -226,22 +227,31 @@ class KeoService:
             if isinstance(msg, JointSample):
                 self._note_sample("encoder", msg)
                 self._rates["encoder"].tick(now)
-                out = self.estimator.on_encoder(msg.t, msg.q)
+                out = self.estimator.on_encoder(msg.stamp, msg.joints)
                 if self._corrections is not None:  # with a model: feedforward at these joints
-                    self._corrections.on_joints(msg.t, msg.q)
+                    self._corrections.on_joints(msg.stamp, msg.joints)
                 if self._delay_tracker is not None:
                     self._delay_tracker.add_encoder(
-                        msg.t, msg.q, msg.clock_epoch, msg.seq, bool(msg.flags)
+                        msg.stamp, msg.joints, msg.clock_epoch, msg.seq, bool(msg.flags)
                     )
             elif isinstance(msg, TrackerSample):
                 self._note_sample("tracker", msg)
                 self._rates["tracker"].tick(now)
                 out = self.estimator.on_tracker(
-                    msg.t, msg.p, msg.q, ok=msg.status == "ok", tag=msg.device_t
+                    msg.stamp,
+                    msg.position,
+                    msg.quaternion,
+                    ok=msg.status == "ok",
+                    device_stamp=msg.device_stamp,
                 )
-                if self._delay_tracker is not None and msg.p is not None:
+                if self._delay_tracker is not None and msg.position is not None:
                     self._delay_tracker.add_tracker(
-                        msg.t, msg.p, msg.q, msg.clock_epoch, msg.seq, bool(msg.flags)
+                        msg.stamp,
+                        msg.position,
+                        msg.quaternion,
+                        msg.clock_epoch,
+                        msg.seq,
+                        bool(msg.flags),
                     )
             else:
                 self.estimator.counters["unexpected_message"] += 1
@@ -256,8 +266,8 @@ class KeoService:
         newest position too (the covariance's noise floor depends on its distance)."""
         for flag in msg.flags:
             self._clock_flags[f"{stream}_{flag}"] += 1
-        if isinstance(msg, TrackerSample) and msg.p is not None:
-            self._last_tracker_p = msg.p  # for the covariance's noise floor
+        if isinstance(msg, TrackerSample) and msg.position is not None:
+            self._last_tracker_p = msg.position  # for the covariance's noise floor
         if not msg.clock or self._clock_domains.get(stream) == msg.clock:
             return
         self._clock_domains[stream] = msg.clock
@@ -299,7 +309,7 @@ class KeoService:
                 estimate.measured.size,
             )
             noise = covariance_noise(self._noise.std(), floor)
-            self._update_stamps.append(estimate.t)
+            self._update_stamps.append(estimate.stamp)
             self._ros2.publish(msg, noise, gains, self._period())
         self._rates["estimate"].tick(now)
         if self._viz is not None:
@@ -317,16 +327,11 @@ class KeoService:
         return (stamps[-1] - stamps[0]) / (len(stamps) - 1)
 
     def to_message(self, estimate: Estimate) -> EstimateMessage:
-        return EstimateMessage(
-            stamp=estimate.t,
+        return estimate_message(
+            estimate,
             host_ns=time.time_ns(),
-            channels=list(estimate.channels),
-            measured=estimate.measured_values(),
-            estimate=estimate.estimate_values(),
-            flags=list(estimate.flags),
-            delay_s=self.estimator.delay.at(estimate.t),
             seq=self._seq,
-            tracker_device_t=estimate.source if isinstance(estimate.source, float) else None,
+            delay_s=self.estimator.delay.at(estimate.stamp),
             delay_se_s=self.delay_se(),
         )
 
