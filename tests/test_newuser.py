@@ -217,7 +217,7 @@ def test_mocks_started_by_hand_from_an_init_config_give_estimates(tmp_path, robo
         procs.start("adapter-tracker", ["adapter", "tracker", *c])
         estimates = _estimates(cfg, 40, 40.0)
         time.sleep(3.0)  # the adapters' rates are over their last 5 s
-        status = keo("status", "--config", str(cfg), "--timeout", "20", timeout=60)
+        status = keo("status", "--config", str(cfg), "--timeout", "20", "--json", timeout=60)
         logs = {name: procs.log(name) for name in ("service", "mock-robot", "mock-tracker")}
     assert len(estimates) >= 40, logs
     # keo status shows each adapter's state, rate and counters

@@ -448,6 +448,7 @@ def _human(doc: dict[str, Any]) -> str:
 def cmd_status(args: argparse.Namespace) -> int:
     import msgspec
 
+    from keo_service.cli.status_view import adapter_lines, status_table
     from keo_service.live.client import ClientError, SyncClient
 
     config = common.load(args.config)
@@ -459,12 +460,17 @@ def cmd_status(args: argparse.Namespace) -> int:
             status = keo.status(timeout=args.timeout)
     except ClientError as exc:
         print(f"keo status: {exc}", file=sys.stderr)
-        if adapters:
+        if adapters and args.json:
             sys.stdout.write(json.dumps({"adapters": adapters}, indent=2, default=str) + "\n")
+        elif adapters:
+            sys.stdout.write("\n".join(adapter_lines(adapters)) + "\n")
         return 1
     doc = msgspec.to_builtins(status)
     doc["adapters"] = doc.get("adapters") or adapters
-    sys.stdout.write(json.dumps(doc, indent=2, default=str) + "\n")
+    if args.json:
+        sys.stdout.write(json.dumps(doc, indent=2, default=str) + "\n")
+    else:
+        sys.stdout.write(status_table(doc))
     return 0
 
 
@@ -597,8 +603,13 @@ def register(add: common.AddCommand) -> None:
     p.add_argument("--json", action="store_true", help="one JSON document per line")
     p.add_argument("--count", type=int)
 
-    p = add("status", cmd_status, "query a service's status")
+    p = add("status", cmd_status, "query a service's status (a table; --json: the document)")
     p.add_argument("--timeout", type=float, default=5.0)
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print the status document as JSON (ServiceStatus with `adapters`), for scripts",
+    )
 
     _register_recording(add)
 
