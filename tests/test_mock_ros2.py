@@ -22,7 +22,7 @@ import zenoh
 
 from keo_service.bench.procs import free_port, process_group
 from keo_service.io.config import load_config
-from tests.conftest import keo
+from tests.conftest import keo, wait_for_status
 
 pytest.importorskip("pyzeros")
 
@@ -69,6 +69,7 @@ def test_ros2_mocks_from_an_init_config_are_read_by_pyzeros_on_the_wall_clock(tm
         procs.start("mock-robot", ["mock", "robot", *c])
         time.sleep(1.5)  # by hand, at different moments
         procs.start("mock-tracker", ["mock", "tracker", *c])
+        wait_for_status(load_config(cfg), timeout=30.0)  # the bus is up (a loaded machine)
         deadline = time.monotonic() + 30.0
         tokens: list[str] = []
         attachments: list[bytes] = []
