@@ -100,7 +100,8 @@ class MockUdpController:
         self.stopped = asyncio.Event()
         self.stop_reason = ""
         self.cycles = (-1, -1)  # the first and last cycle sent
-        self.late_at: list[int] = []  # scenario ms of the first 50 late answers
+        # ms since t0 (in the first pass: scenario ms) of the first 50 late answers
+        self.late_at: list[int] = []
         self._pending: dict[int, int] = {}  # counter -> send time (perf_counter_ns)
         self._answered: set[int] = set()
         self._consecutive_late = 0
@@ -238,7 +239,7 @@ class MockUdpController:
 
     def _late(self, counter: int) -> None:
         if len(self.late_at) < 50:
-            self.late_at.append(counter - self.clock_offset_ms)  # scenario ms
+            self.late_at.append(counter - self.clock_offset_ms)  # ms since t0
         self._consecutive_late += 1
         if self._consecutive_late >= self.max_late and not self.stopped.is_set():
             self.stop_reason = f"{self._consecutive_late} late answers in a row"
