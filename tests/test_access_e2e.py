@@ -1,11 +1,13 @@
-"""Access control with real certificates and processes: `keo run` (and `keo router`) enforce
-the rights of docs/design.md §6 by mTLS certificate common name. A client identity that puts
-encoder samples or corrections is refused while the legitimate encoder and tracker keep the
-service estimating; the client may still subscribe to estimates and query status; a
-certificate from another CA does not connect at all."""
+"""Access control with real certificates and processes: every keo session (`keo run`,
+`keo router`, the adapters, clients) enforces the rights of docs/design.md §6 by mTLS
+certificate common name. A client identity that puts encoder samples or corrections is
+refused, through a hub or linked straight to another peer, while the legitimate encoder and
+tracker keep the service estimating with rules on every session; the client may still
+subscribe to estimates and query status; a certificate from another CA does not connect."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import time
@@ -15,6 +17,7 @@ import msgspec
 import pytest
 import zenoh
 
+from keo_service.bench.demo import loopback_config
 from keo_service.bench.procs import free_port, process_group
 from keo_service.core.errors import KeoError
 from keo_service.io.config import config_to_toml, load_config
@@ -24,6 +27,7 @@ from keo_service.live.bus import (
     open_session,
     session_for_client,
 )
+from keo_service.live.client import SyncClient
 from keo_service.live.messages import (
     CorrectionMessage,
     EstimateMessage,
@@ -36,6 +40,7 @@ from keo_service.live.messages import (
 )
 from keo_service.live.recorder import replay_plan
 from keo_service.sim.simulate import make_scenario, simulate
+from tests.conftest import keo
 
 pytestmark = pytest.mark.e2e
 
@@ -336,3 +341,42 @@ def test_a_client_peer_linked_directly_cannot_put(demo_config, tmp_path):
         (5000, "keo/demo/encoder"): n,  # no rules on either side: everything gets through
         (5000, "keo/demo/correction"): n,
     }
+
+
+def test_the_real_chain_through_a_router_with_rules_on_every_session(demo_config, tmp_path):
+    """Every process as a user runs it, each under its own certificate with keo's rules:
+    `keo router`, `keo run` behind it, the mocks, both `keo adapter`s. A client identity
+    (the Client API and `keo status`) gets estimates, the service's status and each
+    adapter's own status, which the adapters answer through the router."""
+    pki = tmp_path / "pki"
+    pki.mkdir()
+    make_pki(pki, "keo-ca", list(ROLES))
+    endpoint = f"tls/localhost:{free_port()}"
+    base = loopback_config(demo_config)
+    leaf = {"mode": "client", "listen": [], "connect": [endpoint]}
+    cfg = {name: write_identity(base, tmp_path, pki, "keo-ca", name, **leaf) for name in ROLES}
+    c = {name: ["--config", str(path)] for name, path in cfg.items()}
+    with process_group(tmp_path) as procs:
+        procs.start("router", ["router", "--listen", endpoint, *c["router.demo"]])
+        procs.start("service", ["run", *c["svc.demo"]])
+        procs.start("mock-robot", ["mock", "robot", *c["enc.demo"]])
+        procs.start("mock-tracker", ["mock", "tracker", *c["trk.demo"]])
+        procs.start("adapter-encoder", ["adapter", "encoder", *c["enc.demo"]])
+        procs.start("adapter-tracker", ["adapter", "tracker", *c["trk.demo"]])
+        estimates = []
+        with SyncClient.from_config(cfg["hmi.demo"], connect_timeout_s=30.0) as client:
+            deadline = time.monotonic() + 40.0
+            for est in client.estimates(timeout=20.0):
+                estimates.append(est)
+                if len(estimates) >= 20 or time.monotonic() > deadline:
+                    break
+        status = keo("status", *c["hmi.demo"], "--timeout", "20", timeout=60)
+        logs = {name: procs.log(name) for name in ("router", "service", "adapter-encoder")}
+    assert len(estimates) >= 20, (logs, status.stdout, status.stderr)
+    assert sum(est.measured is not None for est in estimates) >= 10, logs
+    assert status.returncode == 0, (status.stderr, logs)
+    doc = json.loads(status.stdout)
+    assert doc["counters"]["received"] > 100, doc["counters"]
+    assert set(doc["adapters"]) == {"encoder", "tracker"}, doc["adapters"]
+    for name in ("encoder", "tracker"):
+        assert doc["adapters"][name]["counters"]["published"] > 0, doc["adapters"][name]
