@@ -363,20 +363,23 @@ def test_the_real_chain_through_a_router_with_rules_on_every_session(demo_config
         procs.start("mock-tracker", ["mock", "tracker", *c["trk.demo"]])
         procs.start("adapter-encoder", ["adapter", "encoder", *c["enc.demo"]])
         procs.start("adapter-tracker", ["adapter", "tracker", *c["trk.demo"]])
-        estimates = []
+        estimates, measured = [], 0
         with SyncClient.from_config(cfg["hmi.demo"], connect_timeout_s=30.0) as client:
             deadline = time.monotonic() + 40.0
             for est in client.estimates(timeout=20.0):
                 estimates.append(est)
-                if len(estimates) >= 20 or time.monotonic() > deadline:
+                measured += est.measured is not None  # the first come before alignment
+                if measured >= 20 or time.monotonic() > deadline:
                     break
         status = keo("status", *c["hmi.demo"], "--timeout", "20", timeout=60)
         logs = {name: procs.log(name) for name in ("router", "service", "adapter-encoder")}
-    assert len(estimates) >= 20, (logs, status.stdout, status.stderr)
-    assert sum(est.measured is not None for est in estimates) >= 10, logs
+    assert measured >= 20, (len(estimates), logs)
     assert status.returncode == 0, (status.stderr, logs)
     doc = json.loads(status.stdout)
-    assert doc["counters"]["received"] > 100, doc["counters"]
+    # the service has both streams, each from its adapter through the router
+    counters = doc["counters"]
+    assert counters["encoder_samples"] > 0, counters
+    assert counters["tracker_samples"] > 0, counters
     assert set(doc["adapters"]) == {"encoder", "tracker"}, doc["adapters"]
     for name in ("encoder", "tracker"):
         assert doc["adapters"][name]["counters"]["published"] > 0, doc["adapters"][name]
