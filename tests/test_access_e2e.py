@@ -264,10 +264,14 @@ path, endpoint, rules, base, n = sys.argv[1:6]
 config = load_config(path)
 access = leaf_access(config) if rules == "rules" else None
 session = open_session("peer", connect=[endpoint], tls=config.bus, access=access)
-time.sleep(1.0)  # the other side's subscriber reaches us
 block = zenoh.CongestionControl.BLOCK
 enc = session.declare_publisher("keo/demo/encoder", congestion_control=block)
 corr = session.declare_publisher("keo/demo/correction", congestion_control=block)
+# until the other side's subscriber reaches us (never, where its rules hide it from us)
+deadline = time.monotonic() + 3.0
+while not enc.matching_status.matching and time.monotonic() < deadline:
+    time.sleep(0.05)
+time.sleep(0.2)
 zero = [0.0, 0.0, 0.0]
 for i in range(int(base), int(base) + int(n)):
     enc.put(encode(JointSample(t=i * 0.01, host_ns=time.time_ns(), seq=i, q=[0.5] * 6)))
