@@ -260,9 +260,7 @@ def test_a_leaf_takes_its_own_role_from_its_certificate(tmp_path):
     assert leaf is not None
     assert _allowed(leaf, "router", "egress", PUT) == ENCODER_PUT
     # a hub relays: what it sends is judged by the receiver's role only
-    hub = access_control_for(config, hub=True)
-    assert hub is not None
-    assert _allowed(hub, "router", "egress", PUT) == ALL
+    assert _allowed(access_control(config, hub=True), "router", "egress", PUT) == ALL
 
 
 def test_an_unreadable_certificate_is_a_config_error(tmp_path):
@@ -274,3 +272,19 @@ def test_an_unreadable_certificate_is_a_config_error(tmp_path):
     )
     with pytest.raises(ConfigError, match=r"bus\.tls_certificate"):
         access_control_for(config, hub=False)
+
+
+@pytest.mark.parametrize(("cn", "ok"), [("hub.c1", True), ("svc.c1", True), ("hmi.c1", False)])
+def test_a_hub_needs_a_role_the_leaves_take_relayed_samples_from(tmp_path, cn, ok):
+    """With a client's (or no) role on a router's certificate every leaf would refuse all it
+    relays: a config error naming bus.roles, at start."""
+    config = _config(tmp_path)
+    cert = _certificate(tmp_path, cn)
+    config = msgspec.structs.replace(
+        config, bus=msgspec.structs.replace(config.bus, tls_certificate=str(cert))
+    )
+    if ok:
+        assert access_control_for(config, hub=True) is not None
+    else:
+        with pytest.raises(ConfigError, match=r"bus\.roles.*'hmi\.c1' has the role 'client'"):
+            access_control_for(config, hub=True)

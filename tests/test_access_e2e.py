@@ -387,3 +387,25 @@ def test_the_real_chain_through_a_router_with_rules_on_every_session(demo_config
     assert set(doc["adapters"]) == {"encoder", "tracker"}, doc["adapters"]
     for name in ("encoder", "tracker"):
         assert doc["adapters"][name]["counters"]["published"] > 0, doc["adapters"][name]
+
+
+def test_keo_router_under_a_client_certificate_exits_2(demo_config, tmp_path):
+    """The leaves would refuse everything it relays: `keo router` says so and stops."""
+    pki = tmp_path / "pki"
+    pki.mkdir()
+    make_pki(pki, "keo-ca", ["hmi.demo"])
+    endpoint = f"tls/localhost:{free_port()}"
+    cfg = write_identity(
+        demo_config,
+        tmp_path,
+        pki,
+        "keo-ca",
+        "hmi.demo",
+        mode="client",
+        listen=[],
+        connect=[endpoint],
+    )
+    result = keo("router", "--listen", endpoint, "--config", str(cfg), timeout=60)
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    assert "bus.roles" in result.stderr
+    assert "'hmi.demo' has the role 'client'" in result.stderr

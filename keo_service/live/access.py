@@ -43,6 +43,9 @@ from keo_service.core.errors import ConfigError
 
 ROLES = ("encoder", "tracker", "service", "client", "operator", "router")
 
+# the roles a leaf takes everything from: what its hub sends was put by anyone
+RELAYS = ("router", "service", "operator")
+
 # everything, on every key (`**` does not reach the `@`-prefixed ROS 2 liveliness keys)
 EVERYTHING = ["**", "@ros2_lv/**"]
 
@@ -200,5 +203,17 @@ def access_control_for(config: Any, hub: bool = True) -> dict[str, Any] | None:
     from its certificate's common name."""
     if not config.bus.access_control:
         return None
-    own_role = None if hub else config.bus.roles.get(common_name(config))
-    return access_control(config, hub, own_role)
+    cn = common_name(config)
+    own_role = config.bus.roles.get(cn)
+    if hub and own_role not in RELAYS:
+        raise ConfigError(
+            config.source or "<config>",
+            "bus.roles",
+            f"this node relays for the others (a router, or the service listening), but its "
+            f"certificate's common name {cn!r} has "
+            + (f"the role {own_role!r}" if own_role else "no role")
+            + ": the leaves take relayed samples only from "
+            + ", ".join(repr(r) for r in RELAYS)
+            + ' (give a router "router")',
+        )
+    return access_control(config, hub, None if hub else own_role)
