@@ -10,6 +10,12 @@ timeout) and sends no more. Judging starts with the sensor's first answer: befor
 controller waits for the sensor (unanswered datagrams are only counted).
 `drop_probability` loses datagrams on the way (the counter goes on, as the controller's does).
 
+Time base as the other mocks (adapters/mock_devices.py): cycle k of a pass goes out at wall
+time start + k * cycle; with `loop_play` the pass playing now starts on the grid of
+`period_s` from t0 (`_first_pass`), so a controller started by hand agrees with a tracker
+mock of the same scenario; `play_until` ends the play. The controller's clock (IPOC, tm)
+and the sequence number run on from pass to pass.
+
 With `corrector` given, the controller applies the latest correction it received (the tool
 frame transform [x y z (m), rotation vector (rad)]) as RSI's absolute TCP correction or EGM's
 pose correction do: it moves the joints so that the nominal tool pose is the programmed one
@@ -31,7 +37,7 @@ from scipy.spatial.transform import Rotation
 
 from keo_service.adapters import abb_egm, kuka_rsi
 from keo_service.adapters.line_protocol import format_hello, format_pose
-from keo_service.adapters.mock_devices import JointTrack
+from keo_service.adapters.mock_devices import JointTrack, _first_pass
 from keo_service.adapters.realtime import request_realtime
 
 log = logging.getLogger("keo.mock")
@@ -69,8 +75,13 @@ class MockUdpController:
         loop_play: bool = False,
         drop_probability: float = 0.0,
         realtime: bool = False,
+        period_s: float | None = None,
     ) -> None:
         self.realtime = realtime  # ask for real-time scheduling, as a controller has
+        # looping: the track again every period_s (default: its last time + one cycle)
+        self.period_s = period_s or float(track.t[-1]) + cycle_ms * 1e-3
+        self.play_until: float | None = None  # wall time after which nothing more is sent
+        self.seq = 0  # datagrams made so far (EGM's seqno), on from pass to pass
         self.track = track
         self.drop_probability = drop_probability  # datagrams lost on the way to keo
         self.host, self.port, self.t0 = host, port, t0
@@ -89,7 +100,8 @@ class MockUdpController:
         self.stopped = asyncio.Event()
         self.stop_reason = ""
         self.cycles = (-1, -1)  # the first and last cycle sent
-        self.late_at: list[int] = []  # scenario ms of the first 50 late answers
+        # ms since t0 (in the first pass: scenario ms) of the first 50 late answers
+        self.late_at: list[int] = []
         self._pending: dict[int, int] = {}  # counter -> send time (perf_counter_ns)
         self._answered: set[int] = set()
         self._consecutive_late = 0
@@ -163,17 +175,21 @@ class MockUdpController:
         if self.realtime:
             log.info("mock %s controller: %s", self.protocol, request_realtime())
         cycle_s = self.cycle_ms * 1e-3
-        t_end = float(self.track.t[-1])
+        t_end = min(float(self.track.t[-1]), self.period_s - 1e-9)
         start = self.t0
+        if self.loop_play:
+            start = _first_pass(self.t0, self.period_s, time.time())
         k = max(0, math.ceil((time.time() - start) / cycle_s))
         while True:
             t_scn = k * cycle_s
             if t_scn > t_end:
                 if not self.loop_play:
                     return
-                start += t_end + cycle_s
+                start += self.period_s
                 k = 0
                 continue
+            if self.play_until is not None and start + t_scn > self.play_until:
+                return
             jitter = float(self.rng.uniform(0.0, self.jitter_s)) if self.jitter_s else 0.0
             delay = start + t_scn + jitter - time.time()
             if delay > 0:
@@ -181,20 +197,29 @@ class MockUdpController:
             self._judge_previous()
             if self.stopped.is_set():
                 return
-            q = self.joints_at(t_scn)
-            if self.corrector is not None and np.any(self.correction):
-                q = self.corrector(q, self.correction)
-            counter = self.clock_offset_ms + round(k * self.cycle_ms)
-            self._history.append((t_scn, self.correction.copy()))
-            if self.drop_probability and self.rng.uniform() < self.drop_probability:
-                self.counters["dropped"] += 1
-                k += 1
-                continue
-            self._pending[counter] = time.perf_counter_ns()
-            self._transport.sendto(self.datagram(counter, k, q))
-            self.counters["sent"] += 1
-            self.cycles = (self.cycles[0] if self.cycles[0] >= 0 else k, k)
+            # the controller's milliseconds since t0: they run on through the passes
+            self._send(t_scn, round((start - self.t0) * 1e3 + k * self.cycle_ms))
             k += 1
+
+    def _send(self, t_scn: float, since_t0_ms: int) -> None:
+        """One cycle: the joints at scenario time `t_scn` (corrected when a correction is
+        applied), stamped `since_t0_ms` on the controller's clock; lost on the way with
+        `drop_probability`."""
+        assert self._transport is not None
+        q = self.joints_at(t_scn)
+        if self.corrector is not None and np.any(self.correction):
+            q = self.corrector(q, self.correction)
+        counter = self.clock_offset_ms + since_t0_ms
+        self.seq += 1
+        self._history.append((t_scn, self.correction.copy()))
+        if self.drop_probability and self.rng.uniform() < self.drop_probability:
+            self.counters["dropped"] += 1
+            return
+        self._pending[counter] = time.perf_counter_ns()
+        self._transport.sendto(self.datagram(counter, self.seq, q))
+        self.counters["sent"] += 1
+        n = self.seq - 1
+        self.cycles = (self.cycles[0] if self.cycles[0] >= 0 else n, n)
 
     def _judge_previous(self) -> None:
         """Every datagram older than one cycle without its answer is late (counted once);
@@ -214,7 +239,7 @@ class MockUdpController:
 
     def _late(self, counter: int) -> None:
         if len(self.late_at) < 50:
-            self.late_at.append(counter - self.clock_offset_ms)  # scenario ms
+            self.late_at.append(counter - self.clock_offset_ms)  # ms since t0
         self._consecutive_late += 1
         if self._consecutive_late >= self.max_late and not self.stopped.is_set():
             self.stop_reason = f"{self._consecutive_late} late answers in a row"
@@ -246,7 +271,8 @@ class MockUdpController:
 
     # -- per protocol ----------------------------------------------------------------------
 
-    def datagram(self, counter: int, k: int, q: np.ndarray) -> bytes:
+    def datagram(self, counter: int, seq: int, q: np.ndarray) -> bytes:
+        """One datagram: the controller's clock `counter` (ms), its sequence number."""
         raise NotImplementedError
 
     def parse(self, data: bytes) -> tuple[int, np.ndarray | None] | None:
@@ -266,7 +292,7 @@ class MockRsiController(MockUdpController):
         self.external = external
         self.codec = kuka_rsi.RsiCodec()
 
-    def datagram(self, counter: int, k: int, q: np.ndarray) -> bytes:
+    def datagram(self, counter: int, seq: int, q: np.ndarray) -> bytes:
         return kuka_rsi.format_rob(
             counter,
             np.degrees(q).tolist(),
@@ -299,8 +325,8 @@ class MockEgmController(MockUdpController):
         self.codec = abb_egm.EgmCodec()
         self._tm_of_seq: dict[int, int] = {}
 
-    def datagram(self, counter: int, k: int, q: np.ndarray) -> bytes:
-        return abb_egm.format_robot(k, counter, np.degrees(q).tolist(), self.external)
+    def datagram(self, counter: int, seq: int, q: np.ndarray) -> bytes:
+        return abb_egm.format_robot(seq, counter, np.degrees(q).tolist(), self.external)
 
     def parse(self, data: bytes) -> tuple[int, np.ndarray | None] | None:
         sensor = self.codec.parse_sensor(data)

@@ -5,6 +5,7 @@ with real certificates and processes is tests/test_access_e2e.py."""
 from __future__ import annotations
 
 import json
+import subprocess
 
 import msgspec
 import pytest
@@ -12,7 +13,7 @@ import zenoh
 
 from keo_service.core.errors import ConfigError
 from keo_service.io.config import load_config
-from keo_service.live.access import access_control, access_control_for
+from keo_service.live.access import access_control, access_control_for, common_name, within
 from keo_service.live.bus import make_zenoh_config
 from tests.conftest import write_config
 
@@ -23,6 +24,7 @@ ROLES = {
     "hmi.c1": "client",
     "alice": "operator",
     "bob": "client",
+    "hub.c1": "router",
 }
 
 PUT = {"put", "delete", "reply", "declare_queryable", "liveliness_token"}
@@ -63,6 +65,7 @@ EXPECTED = {
     ),
     "client": (set(), {"keo/c1/**"}),
     "operator": ({"**", "@ros2_lv/**"}, {"**", "@ros2_lv/**"}),
+    "router": ({"**", "@ros2_lv/**"}, {"**", "@ros2_lv/**"}),
 }
 
 
@@ -92,6 +95,7 @@ def test_default_deny_and_subjects_by_common_name(tmp_path):
         "service": {"svc.c1"},
         "client": {"hmi.c1", "bob"},
         "operator": {"alice"},
+        "router": {"hub.c1"},
     }
     # nobody but the operator may put an encoder sample or a correction
     for role in ("tracker", "service", "client"):
@@ -175,3 +179,112 @@ def test_an_encoder_that_writes_corrections_may_read_them(tmp_path):
     acl = access_control(_config(tmp_path, 'protocol = "rtde"\ncorrection = "rtde_registers"\n'))
     assert _allowed(acl, "encoder", "ingress", SUB) == {"keo/c1/correction"}
     assert _allowed(acl, "tracker", "ingress", SUB) == set()
+
+
+ALL = {"**", "@ros2_lv/**"}
+ENCODER_PUT = EXPECTED["encoder"][0]
+
+
+def test_on_a_leaf_the_hub_relays_and_direct_peers_are_judged_by_role(tmp_path):
+    """A leaf's only remote in client mode is its hub, which passes on what others put: the
+    router role and (on a leaf) the service role may send it anything. Any other identity
+    linked to it directly is held to the table, as on a hub."""
+    config = _config(tmp_path)
+    leaf, hub = access_control(config, hub=False), access_control(config, hub=True)
+    for role in ("router", "service"):
+        assert _allowed(leaf, role, "ingress", PUT) == ALL
+        assert _allowed(leaf, role, "ingress", SUB) == ALL
+    assert _allowed(hub, "router", "ingress", PUT) == ALL
+    assert _allowed(hub, "service", "ingress", PUT) == EXPECTED["service"][0]
+    for role in ("encoder", "tracker", "client", "operator"):
+        assert _allowed(leaf, role, "ingress", PUT) == EXPECTED[role][0]
+        assert _allowed(leaf, role, "ingress", SUB) == EXPECTED[role][1]
+    assert _allowed(leaf, "client", "ingress", PUT) == set()
+
+
+def test_a_leaf_sends_only_what_its_own_role_may_put(tmp_path):
+    config = _config(tmp_path)
+    client = access_control(config, hub=False, own_role="client")
+    unknown = access_control(config, hub=False, own_role=None)
+    for acl in (client, unknown):
+        for role in EXPECTED:
+            assert _allowed(acl, role, "egress", PUT) == set(), role
+    encoder = access_control(config, hub=False, own_role="encoder")
+    for role in ("router", "service", "client", "operator"):
+        assert _allowed(encoder, role, "egress", PUT) == ENCODER_PUT, role
+    assert _allowed(encoder, "tracker", "egress", PUT) == set()
+    # a service behind a router puts its own keys, not everything its hub may relay
+    service = access_control(config, hub=False, own_role="service")
+    assert _allowed(service, "router", "egress", PUT) == EXPECTED["service"][0]
+    assert _allowed(service, "encoder", "egress", PUT) == set()
+    operator = access_control(config, hub=False, own_role="operator")
+    assert _allowed(operator, "router", "egress", PUT) == ALL
+    assert _allowed(operator, "client", "egress", PUT) == {"keo/c1/**"}
+
+
+def test_a_leaf_sends_corrections_only_to_an_encoder_that_reads_them(tmp_path):
+    extra = 'protocol = "rtde"\ncorrection = "rtde_registers"\n'
+    acl = access_control(_config(tmp_path, extra), hub=False, own_role="service")
+    assert _allowed(acl, "encoder", "egress", PUT) == {"keo/c1/correction"}
+
+
+def test_within_keeps_the_common_part_and_drops_mere_overlaps():
+    assert within(["keo/c1/encoder", "keo/c2/encoder"], ["keo/c1/**"]) == ["keo/c1/encoder"]
+    assert within(["**"], ["keo/c1/**", "@ros2_lv/0/**"]) == ["keo/c1/**"]
+    assert within(["**", "@ros2_lv/**"], ["@ros2_lv/0/**"]) == ["@ros2_lv/0/**"]
+    # they meet at keo/c1/encoder, and neither holds the other: nothing (denied)
+    assert within(["keo/*/encoder"], ["keo/c1/**"]) == []
+    assert within([], ["**"]) == []
+
+
+def _certificate(directory, cn: str):
+    subprocess.run(
+        [
+            "openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1",
+            "-nodes", "-days", "1", "-subj", f"/CN={cn}/O=keo test", "-keyout", "k.pem",
+            "-out", "c.pem",
+        ],
+        check=True, capture_output=True, cwd=directory,
+    )  # fmt: skip
+    return directory / "c.pem"
+
+
+def test_a_leaf_takes_its_own_role_from_its_certificate(tmp_path):
+    config = _config(tmp_path)
+    cert = _certificate(tmp_path, "enc.c1")
+    config = msgspec.structs.replace(
+        config, bus=msgspec.structs.replace(config.bus, tls_certificate=str(cert))
+    )
+    assert common_name(config) == "enc.c1"
+    leaf = access_control_for(config, hub=False)
+    assert leaf is not None
+    assert _allowed(leaf, "router", "egress", PUT) == ENCODER_PUT
+    # a hub relays: what it sends is judged by the receiver's role only
+    assert _allowed(access_control(config, hub=True), "router", "egress", PUT) == ALL
+
+
+def test_an_unreadable_certificate_is_a_config_error(tmp_path):
+    config = _config(tmp_path)
+    bad = tmp_path / "bad.pem"
+    bad.write_text("not a certificate")
+    config = msgspec.structs.replace(
+        config, bus=msgspec.structs.replace(config.bus, tls_certificate=str(bad))
+    )
+    with pytest.raises(ConfigError, match=r"bus\.tls_certificate"):
+        access_control_for(config, hub=False)
+
+
+@pytest.mark.parametrize(("cn", "ok"), [("hub.c1", True), ("svc.c1", True), ("hmi.c1", False)])
+def test_a_hub_needs_a_role_the_leaves_take_relayed_samples_from(tmp_path, cn, ok):
+    """With a client's (or no) role on a router's certificate every leaf would refuse all it
+    relays: a config error naming bus.roles, at start."""
+    config = _config(tmp_path)
+    cert = _certificate(tmp_path, cn)
+    config = msgspec.structs.replace(
+        config, bus=msgspec.structs.replace(config.bus, tls_certificate=str(cert))
+    )
+    if ok:
+        assert access_control_for(config, hub=True) is not None
+    else:
+        with pytest.raises(ConfigError, match=r"bus\.roles.*'hmi\.c1' has the role 'client'"):
+            access_control_for(config, hub=True)

@@ -193,11 +193,20 @@ def _estimates(config_path: Path, count: int, timeout: float) -> list[object]:
 
 
 @pytest.mark.e2e
-@pytest.mark.parametrize(("robot", "protocol"), [("ur10", "rtde"), ("mh180", "motoros")])
+@pytest.mark.parametrize(
+    ("robot", "protocol"),
+    [
+        ("ur10", "rtde"),
+        ("mh180", "motoros"),
+        ("mh180", "kuka_rsi"),
+        ("ur10", "abb_egm"),
+        ("ur10", "ros2"),  # and a ROS 2 tracker: two rmw_zenoh drivers
+    ],
+)
 def test_mocks_started_by_hand_from_an_init_config_give_estimates(tmp_path, robot, protocol):
     """Each process started as a user would, from the one file `keo init` wrote, no other
     flags (no --t0, no --scenario): the mocks agree on their time base by themselves."""
-    cfg = _init(tmp_path, robot, protocol)
+    cfg = _init(tmp_path, robot, protocol, "ros2" if protocol == "ros2" else "line")
     c = ["--config", str(cfg)]
     with process_group(tmp_path) as procs:
         procs.start("service", ["run", *c])
@@ -208,7 +217,7 @@ def test_mocks_started_by_hand_from_an_init_config_give_estimates(tmp_path, robo
         procs.start("adapter-tracker", ["adapter", "tracker", *c])
         estimates = _estimates(cfg, 40, 40.0)
         time.sleep(3.0)  # the adapters' rates are over their last 5 s
-        status = keo("status", "--config", str(cfg), "--timeout", "20", timeout=60)
+        status = keo("status", "--config", str(cfg), "--timeout", "20", "--json", timeout=60)
         logs = {name: procs.log(name) for name in ("service", "mock-robot", "mock-tracker")}
     assert len(estimates) >= 40, logs
     # keo status shows each adapter's state, rate and counters
@@ -216,7 +225,8 @@ def test_mocks_started_by_hand_from_an_init_config_give_estimates(tmp_path, robo
     adapters = json.loads(status.stdout)["adapters"]
     assert set(adapters) == {"encoder", "tracker"}
     for name, expected_hz in (
-        ("encoder", 39.5 if protocol == "motoros" else 500.0),
+        # the scenario's joint rows as they are (MotoROS, ROS 2), RTDE's 500 Hz, RSI/EGM's 4 ms
+        ("encoder", {"motoros": 39.5, "ros2": 39.5, "rtde": 500.0}.get(protocol, 250.0)),
         ("tracker", 99.6),
     ):
         assert adapters[name]["state"] == "receiving", adapters[name]
@@ -241,11 +251,15 @@ def test_mocks_started_by_hand_from_an_init_config_give_estimates(tmp_path, robo
 # ---- mocks that keep going ----------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("protocol", ["motoros", "rtde", "line"])
+@pytest.mark.parametrize("protocol", ["motoros", "rtde", "line", "kuka_rsi", "abb_egm"])
 async def test_loop_plays_the_scenario_again_for_every_mock_protocol(protocol):
     """A 1.2 s track looped: rows keep coming well past its end, and the RTDE controller's
     clock runs on instead of starting over."""
     import numpy as np
+
+    if protocol in ("kuka_rsi", "abb_egm"):
+        await _loop_udp_controller(protocol)
+        return
 
     from keo_service.adapters import rtde
     from keo_service.adapters.line_protocol import LineProtocolParser
@@ -314,6 +328,73 @@ async def test_loop_plays_the_scenario_again_for_every_mock_protocol(protocol):
     else:
         assert stamps[-1] - t0 > 3.0  # still sending in the third pass
         assert len(stamps) > 2.5 * Track.t.size
+
+
+async def _loop_udp_controller(protocol: str) -> None:
+    """The RSI/EGM controller looped (1.2 s track, 1.3 s period, 4 ms cycle), nobody
+    answering (the controller waits for its sensor, as a real one): datagrams keep coming
+    through three passes, the controller's millisecond clock (IPOC, header.tm) runs on with
+    the wall clock from t0 (no step back at a pass), and EGM's seqno counts on."""
+    import numpy as np
+
+    from keo_service.adapters.abb_egm import EgmCodec
+    from keo_service.adapters.kuka_rsi import RsiCodec
+    from keo_service.adapters.mock_udp import MockEgmController, MockRsiController
+
+    class Track:
+        t = np.arange(0.0, 1.2, 0.02)
+        q = np.tile(np.linspace(0, 1, t.size)[:, None], (1, 6))
+
+    got: list[tuple[float, int, int, float]] = []  # arrival, clock ms, seqno, joint 0 (deg)
+    rsi, egm = RsiCodec(), EgmCodec()
+
+    class Sensor(asyncio.DatagramProtocol):
+        def datagram_received(self, data: bytes, addr: object) -> None:
+            now = time.time()
+            if protocol == "kuka_rsi":
+                rob = rsi.parse_rob(data)
+                if rob is not None:
+                    got.append((now, rob.ipoc, len(got) + 1, rob.axes_deg[0]))
+            else:
+                frame = egm.parse_robot(data)
+                if frame is not None:
+                    deg = float(np.degrees(frame.joints_rad[0]))
+                    got.append((now, frame.tm_ms, frame.seqno, deg))
+
+    loop = asyncio.get_running_loop()
+    transport, _ = await loop.create_datagram_endpoint(Sensor, local_addr=("127.0.0.1", 0))
+    port = transport.get_extra_info("sockname")[1]
+    offset_ms = 5_000_000
+    t0 = time.time() + 0.2
+    cls = MockRsiController if protocol == "kuka_rsi" else MockEgmController
+    mock = cls(
+        Track(), "127.0.0.1", port, t0=t0, loop_play=True, period_s=1.3, clock_offset_ms=offset_ms
+    )
+    await mock.start()
+    try:
+        await asyncio.sleep(4.4)  # three passes and more
+    finally:
+        await mock.close()
+        transport.close()
+    assert got, "nothing arrived"
+    arrival = np.array([g[0] for g in got])
+    clock_ms = np.array([g[1] for g in got], dtype=float)
+    assert arrival[-1] - t0 > 3.0  # still sending in the third pass
+    assert len(got) > 2.5 * 1.2 / 0.004
+    assert np.all(np.diff(clock_ms) > 0)  # on through the passes, never back
+    if protocol == "abb_egm":
+        assert all(b[2] > a[2] for a, b in itertools.pairwise(got))
+    # the controller's clock is the wall clock since t0 on the grid of the period: each
+    # datagram goes out at t0 + its milliseconds (a loaded machine sends some late)
+    lag = arrival - (t0 + (clock_ms - offset_ms) * 1e-3)
+    assert np.median(lag) == pytest.approx(0.0, abs=0.01), lag
+    # each pass plays the track from its start: joint 0 is 0 deg at each pass's start
+    # (pass 2 begins at 1300 ms) and rises to 57.3 deg (1 rad) at its end
+    in_pass_ms = (clock_ms - offset_ms) % 1300.0
+    deg = np.array([g[3] for g in got])
+    expected = np.degrees(np.interp(in_pass_ms * 1e-3, Track.t, Track.q[:, 0]))
+    assert np.abs(deg - expected).max() < 1e-6
+    assert (clock_ms - offset_ms).max() > 2 * 1300.0
 
 
 # ---- problems a user can see --------------------------------------------------------------------

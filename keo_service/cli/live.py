@@ -139,7 +139,9 @@ def _pair(text: str | None, option: str) -> tuple[float, float] | None:
     return a, b
 
 
-def _udp_controller(args: argparse.Namespace, config: Any, protocol: str, run: Any) -> Any:
+def _udp_controller(
+    args: argparse.Namespace, config: Any, protocol: str, run: Any, period: float | None = None
+) -> Any:
     """The RSI or EGM controller side, sending to keo's server (the config's robot host and
     port); with `robot.correction` naming the protocol it applies the corrections it gets."""
     from keo_service.adapters.mock_udp import MockEgmController, MockRsiController
@@ -163,6 +165,36 @@ def _udp_controller(args: argparse.Namespace, config: Any, protocol: str, run: A
         seed=args.seed,
         loop_play=args.loop,
         realtime=True,
+        period_s=period,
+    )
+
+
+def _ros2_driver(
+    args: argparse.Namespace, config: Any, run: Any, names: list[str], period: float
+) -> Any:
+    """A ROS 2 robot driver (JointState on robot.joint_states_topic) or tracker driver
+    (PoseStamped on tracker.pose_topic) on the config's bus, stamped with the wall clock."""
+    from keo_service.adapters.mock_ros2 import MockRos2Driver
+
+    if args.device == "robot":
+        return MockRos2Driver(
+            config,
+            config.robot.joint_states_topic,
+            args.t0,
+            joints=run.encoder,
+            names=names,
+            loop_play=args.loop,
+            period_s=period,
+            node_name="keo_mock_robot_driver",
+        )
+    return MockRos2Driver(
+        config,
+        config.tracker.pose_topic,
+        args.t0,
+        poses=run.tracker,
+        loop_play=args.loop,
+        period_s=period,
+        node_name="keo_mock_tracker_driver",
     )
 
 
@@ -187,9 +219,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
         overrides["position_only"] = "true"
     if getattr(args, "follow_corrections", False):
         return _mock_compensated_cell(args, config, overrides)
-    run = simulate(
-        cell_from_config(config), make_scenario(args.scenario, overrides), seed=args.seed
-    )
+    cell = cell_from_config(config)
+    run = simulate(cell, make_scenario(args.scenario, overrides), seed=args.seed)
     # both mocks simulate the same run: one period for both streams, and without --t0 the
     # same start on the wall-clock grid of that period
     period = mock_period(run.encoder.t, run.tracker.t)
@@ -205,16 +236,11 @@ def cmd_mock(args: argparse.Namespace) -> int:
             period,
             "for ever" if until is None else "one period (--loop: for ever)",
         )
-    server: MockRobot | MockTracker | MockRtdeController
+    server: Any
     protocol = args.protocol or config.robot.protocol
-    section = "robot" if args.device == "robot" else "tracker"
-    if (protocol if section == "robot" else config.tracker.protocol) == "ros2":
-        raise ConfigError(
-            config.source,
-            f"{section}.protocol",
-            "ros2: keo has no mock of a ROS 2 node; any node publishing the topic will do",
-        )
-    if args.device == "robot" and protocol == "rtde":
+    if (protocol if args.device == "robot" else config.tracker.protocol) == "ros2":
+        server = _ros2_driver(args, config, run, list(cell.robot.joint_names), period)
+    elif args.device == "robot" and protocol == "rtde":
         server = MockRtdeController(
             run.encoder,
             args.host or config.robot.host,
@@ -230,7 +256,7 @@ def cmd_mock(args: argparse.Namespace) -> int:
             period_s=period,
         )
     elif args.device == "robot" and protocol in ("kuka_rsi", "abb_egm"):
-        server = _udp_controller(args, config, protocol, run)
+        server = _udp_controller(args, config, protocol, run, period)
     elif args.device == "robot":
         server = MockRobot(
             run.encoder,
@@ -422,6 +448,7 @@ def _human(doc: dict[str, Any]) -> str:
 def cmd_status(args: argparse.Namespace) -> int:
     import msgspec
 
+    from keo_service.cli.status_view import adapter_lines, status_table
     from keo_service.live.client import ClientError, SyncClient
 
     config = common.load(args.config)
@@ -433,12 +460,17 @@ def cmd_status(args: argparse.Namespace) -> int:
             status = keo.status(timeout=args.timeout)
     except ClientError as exc:
         print(f"keo status: {exc}", file=sys.stderr)
-        if adapters:
+        if adapters and args.json:
             sys.stdout.write(json.dumps({"adapters": adapters}, indent=2, default=str) + "\n")
+        elif adapters:
+            sys.stdout.write("\n".join(adapter_lines(adapters)) + "\n")
         return 1
     doc = msgspec.to_builtins(status)
     doc["adapters"] = doc.get("adapters") or adapters
-    sys.stdout.write(json.dumps(doc, indent=2, default=str) + "\n")
+    if args.json:
+        sys.stdout.write(json.dumps(doc, indent=2, default=str) + "\n")
+    else:
+        sys.stdout.write(status_table(doc))
     return 0
 
 
@@ -534,8 +566,9 @@ def register(add: common.AddCommand) -> None:
     )
     p.add_argument(
         "--protocol",
-        choices=["motoros", "rtde", "kuka_rsi", "abb_egm"],
-        help="robot: the wire format (default: the config's robot.protocol)",
+        choices=["motoros", "rtde", "kuka_rsi", "abb_egm", "ros2"],
+        help="robot: the wire format (default: the config's robot.protocol); ros2: "
+        "JointState over rmw_zenoh on the config's bus (the tracker's ros2: its protocol)",
     )
     p.add_argument("--max-hz", type=float, default=500.0, help="rtde: 500 e-Series, 125 CB3")
     p.add_argument(
@@ -570,8 +603,13 @@ def register(add: common.AddCommand) -> None:
     p.add_argument("--json", action="store_true", help="one JSON document per line")
     p.add_argument("--count", type=int)
 
-    p = add("status", cmd_status, "query a service's status")
+    p = add("status", cmd_status, "query a service's status (a table; --json: the document)")
     p.add_argument("--timeout", type=float, default=5.0)
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print the status document as JSON (ServiceStatus with `adapters`), for scripts",
+    )
 
     _register_recording(add)
 

@@ -189,7 +189,7 @@ class BusConfig(_Section):
     # per-key rights on the bus (needs tls_mtls): each session and `keo router` enforce them
     access_control: bool = False
     # mTLS certificate common name -> role
-    roles: dict[str, Literal["encoder", "tracker", "service", "client", "operator"]] = (
+    roles: dict[str, Literal["encoder", "tracker", "service", "client", "operator", "router"]] = (
         msgspec.field(default_factory=dict)
     )
 

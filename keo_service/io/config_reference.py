@@ -35,7 +35,8 @@ SECTIONS: dict[str, str] = {
     "timing": "aligning the two streams (docs/design.md §3)",
     "bus": "Zenoh: where `keo run` listens and the other processes connect",
     "bus.roles": "mTLS certificate common name -> role (needs bus.tls_mtls and "
-    "bus.access_control); roles: encoder, tracker, service, client, operator",
+    "bus.access_control); roles: encoder, tracker, service, client, operator, router (a hub: "
+    "`keo router`'s certificate)",
     "model": "effects `keo analyze` identified (it writes them into model.toml); applied live: "
     "joint offsets, placement, compliance, cyclic, joint-angle maps",
     "ros2": "ROS 2 (rmw_zenoh's wire format on keo's own Zenoh sessions)",
@@ -197,7 +198,11 @@ KEYS: dict[str, tuple[str, str]] = {
         "",
         "keo's sessions and `keo router` enforce per-key rights by role (needs tls_mtls)",
     ),
-    "bus.roles": ("", 'certificate common name -> role, e.g. "encoder.cell1" = "encoder"'),
+    "bus.roles": (
+        "",
+        'certificate common name -> role, e.g. "encoder.cell1" = "encoder"; a router\'s '
+        'certificate gets "router" (leaves take what it relays)',
+    ),
     "model.effects": ("", "the effects identified, by name"),
     "model.joint_offsets": ("rad", "per joint: zero offset"),
     "model.compliance": ("rad/(N m)", "per joint: deflection per torque of gravity"),

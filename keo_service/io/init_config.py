@@ -108,12 +108,9 @@ def _cell_values(opts: InitOptions, urdf_name: str, base: str, flange: str) -> d
 def _header(opts: InitOptions, urdf_name: str) -> str:
     robot = opts.robot if opts.robot in ROBOTS else Path(opts.robot).name
     name = opts.out.name
+    # ros2: the mocks are ROS 2 drivers publishing on this config's bus (rmw_zenoh)
     robot_mock = f"keo mock robot --config {name} --loop"
-    if opts.robot_protocol == "ros2":
-        robot_mock = "(no mock controller for ros2: any driver publishing JointState)"
     tracker_mock = f"keo mock tracker --config {name} --loop"
-    if opts.tracker_protocol == "ros2":
-        tracker_mock = "(no mock tracker for ros2: any node publishing PoseStamped)"
     return f"""keo config: {robot} over {opts.robot_protocol}, a {opts.tracker_protocol} tracker
 (written by `keo init`; every key with its meaning [unit], allowed values and default).
 

@@ -15,17 +15,39 @@ that node's ingress and egress. So the rules here describe, for a remote of role
 Anything else is denied (`default_permission = "deny"`), including every certificate common
 name that is not in [bus.roles].
 
-The nodes others connect to enforce it: `keo router` and the service when it listens (peer
-mode). A leaf session (adapter, client, echo, record) has one remote, its hub, which relays
-other identities' samples; on the leaf the sample's origin is no longer visible, so rules
-there could only repeat the hub's decision or wrongly refuse what the hub relays.
+Every keo session applies them. A link only shows Zenoh the certificate at its other end, so a
+sample relayed by a hub (`keo router`, or the service when it listens) arrives at a leaf as the
+hub's: the hub judges each identity, and a leaf judges its hub. Hence the relay roles: the
+`router` role (a router's certificate) may put and subscribe to everything everywhere, and on a
+leaf (`hub=False`: adapters, clients, echo, record, a service behind a router) the `service`
+role is a relay too, since a leaf that reaches the service directly has it as its hub. A hub
+judges a service that connects to it by the table. A direct link to an identity with any other
+role is judged by that role on both sides, so a client-role peer cannot put anything even where
+no hub is in between.
+
+A leaf also knows its own role (its certificate's common name in [bus.roles]) and sends only
+what that role may put: its egress data rules to each remote are the keys both its own role
+may put and the remote may receive. A hub cannot do this (what it sends is mostly relayed).
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
-ROLES = ("encoder", "tracker", "service", "client", "operator")
+import zenoh
+from cryptography import x509
+from cryptography.x509.oid import NameOID
+
+from keo_service.core.errors import ConfigError
+
+ROLES = ("encoder", "tracker", "service", "client", "operator", "router")
+
+# the roles a leaf takes everything from: what its hub sends was put by anyone
+RELAYS = ("router", "service", "operator")
+
+# everything, on every key (`**` does not reach the `@`-prefixed ROS 2 liveliness keys)
+EVERYTHING = ["**", "@ros2_lv/**"]
 
 # what a remote that publishes sends, and what one that subscribes sends
 PUT_SIDE = ["put", "delete", "reply", "declare_queryable", "liveliness_token"]
@@ -79,7 +101,9 @@ def rights(config: Any) -> dict[str, tuple[list[str], list[str]]]:
             [f"{keo}/**"],
         ),
         "client": ([], [f"{keo}/**", *([f"{domain}/**"] if ros_on else []), *ros_tokens]),
-        "operator": (["**", "@ros2_lv/**"], ["**", "@ros2_lv/**"]),
+        "operator": (EVERYTHING, EVERYTHING),
+        # a hub: whatever it passes on was put by an identity it has judged
+        "router": (EVERYTHING, EVERYTHING),
     }
 
 
@@ -94,10 +118,43 @@ def _interest(put_keys: list[str], cell_keys: str) -> list[str]:
     return put_keys if any(k in ("**", cell_keys) for k in put_keys) else [*put_keys, cell_keys]
 
 
-def access_control(config: Any) -> dict[str, Any]:
+def common_name(config: Any) -> str:
+    """The common name of this node's own certificate (bus.tls_certificate, PEM)."""
+    path = config.bus.tls_certificate
+    try:
+        cert = x509.load_pem_x509_certificate(Path(path).read_bytes())
+    except (OSError, ValueError) as exc:
+        raise ConfigError(
+            config.source or "<config>", "bus.tls_certificate", f"cannot read {path}: {exc}"
+        ) from None
+    names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    return str(names[0].value) if names else ""
+
+
+def within(keys: list[str], allowed: list[str]) -> list[str]:
+    """The part of `keys` inside `allowed`, as key expressions: each key an allowed one
+    includes, and each allowed key inside one of `keys`. Two that only overlap give nothing
+    (denied: narrower than the truth, never wider)."""
+    out: list[str] = []
+    for k in keys:
+        for a in allowed:
+            ka, kk = zenoh.KeyExpr(a), zenoh.KeyExpr(k)
+            part = k if ka.includes(kk) else a if kk.includes(ka) else None
+            if part is not None and part not in out:
+                out.append(part)
+    return out
+
+
+def access_control(config: Any, hub: bool = True, own_role: str | None = None) -> dict[str, Any]:
     """Zenoh's `access_control` section (JSON-able) for `config`: default deny, one subject per
-    role holding the common names [bus.roles] gives it, the rules of `rights`."""
+    role holding the common names [bus.roles] gives it, the rules of `rights`. `hub`: the
+    session others connect to and that relays between them (`keo router`, a listening
+    service); False for a leaf, which takes what the `service` role relays to it and sends
+    data only on keys its `own_role` may put (none when it has no role)."""
     table = rights(config)
+    own_put = table[own_role][0] if own_role in table else []
+    if not hub:  # (after own_put: a service behind a router puts only its own keys)
+        table["service"] = (EVERYTHING, EVERYTHING)
     cell_keys = f"keo/{config.cell}/**"
     rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
@@ -107,11 +164,12 @@ def access_control(config: Any) -> dict[str, Any]:
         if not names:
             continue
         put_keys, sub_keys = table[role]
+        sent = sub_keys if hub else within(own_put, sub_keys)
         ids = []
         for flow, messages, keys in (
             ("ingress", PUT_SIDE, put_keys),
             ("ingress", SUBSCRIBE_SIDE, sub_keys),
-            ("egress", PUT_SIDE, sub_keys),
+            ("egress", PUT_SIDE, sent),
             ("egress", SUBSCRIBE_SIDE, _interest(put_keys, cell_keys)),
         ):
             if not keys:
@@ -140,6 +198,22 @@ def access_control(config: Any) -> dict[str, Any]:
     }
 
 
-def access_control_for(config: Any) -> dict[str, Any] | None:
-    """The section when [bus] asks for access control, else None."""
-    return access_control(config) if config.bus.access_control else None
+def access_control_for(config: Any, hub: bool = True) -> dict[str, Any] | None:
+    """The section when [bus] asks for access control, else None. A leaf's own role comes
+    from its certificate's common name."""
+    if not config.bus.access_control:
+        return None
+    cn = common_name(config)
+    own_role = config.bus.roles.get(cn)
+    if hub and own_role not in RELAYS:
+        raise ConfigError(
+            config.source or "<config>",
+            "bus.roles",
+            f"this node relays for the others (a router, or the service listening), but its "
+            f"certificate's common name {cn!r} has "
+            + (f"the role {own_role!r}" if own_role else "no role")
+            + ": the leaves take relayed samples only from "
+            + ", ".join(repr(r) for r in RELAYS)
+            + ' (give a router "router")',
+        )
+    return access_control(config, hub, None if hub else own_role)

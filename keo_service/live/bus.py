@@ -114,14 +114,15 @@ def open_client(
     multicast: bool = False,
     tls: Any = None,
     retry_for: float | None = None,
+    access: dict[str, Any] | None = None,
 ) -> zenoh.Session:
     """A Zenoh client session of `endpoints`, retried with `Backoff` for `retry_for` seconds
     (None: until it succeeds). Blocking: for scripts and threads; async code uses
-    `open_client_async`."""
+    `open_client_async`. `access`: the leaf's access_control section (`leaf_access`)."""
     backoff, started = Backoff(maximum=2.0), time.monotonic()
     while True:
         try:
-            return open_session("client", (), endpoints, multicast, tls)
+            return open_session("client", (), endpoints, multicast, tls, access)
         except zenoh.ZError as exc:
             delay = backoff.next_delay()
             if retry_for is not None and time.monotonic() + delay > started + retry_for:
@@ -135,6 +136,7 @@ async def open_client_async(
     multicast: bool = False,
     tls: Any = None,
     retry_for: float | None = None,
+    access: dict[str, Any] | None = None,
 ) -> zenoh.Session:
     """`open_client` without blocking the event loop: each attempt runs in a thread (Zenoh
     fails an unreachable endpoint within milliseconds) and the waits are `asyncio.sleep`, so
@@ -142,7 +144,9 @@ async def open_client_async(
     backoff, started = Backoff(maximum=2.0), time.monotonic()
     while True:
         try:
-            return await asyncio.to_thread(open_session, "client", (), endpoints, multicast, tls)
+            return await asyncio.to_thread(
+                open_session, "client", (), endpoints, multicast, tls, access
+            )
         except zenoh.ZError as exc:
             delay = backoff.next_delay()
             if retry_for is not None and time.monotonic() + delay > started + retry_for:
@@ -151,29 +155,40 @@ async def open_client_async(
             await asyncio.sleep(delay)
 
 
+def leaf_access(config: Any) -> dict[str, Any] | None:
+    """The access_control section of a leaf session (adapter, client, echo, record, a service
+    behind a router): its hub relays, the rest is judged by role (docs/design.md §6)."""
+    return access_control_for(config, hub=False)
+
+
 def session_for_client(config: Any, retry_for: float | None = None) -> zenoh.Session:
     """A session for leaf processes (adapters, echo, record, clients): a Zenoh client of
     bus.connect (or bus.listen). Leaf processes are clients, not peers: a listening peer (the
     service) or a router forwards between its clients, while two peers that do not listen
-    never meet. Once open, Zenoh itself reconnects when the service or router restarts."""
-    return open_client(config.bus_endpoints(), config.bus.multicast_scouting, config.bus, retry_for)
+    never meet. Once open, Zenoh itself reconnects when the service or router restarts.
+    With bus.access_control the leaf enforces the rights too (`leaf_access`)."""
+    bus = config.bus
+    return open_client(
+        config.bus_endpoints(), bus.multicast_scouting, bus, retry_for, leaf_access(config)
+    )
 
 
 async def session_for_client_async(config: Any, retry_for: float | None = None) -> zenoh.Session:
     """`session_for_client` for async code: never blocks the event loop."""
+    bus = config.bus
     return await open_client_async(
-        config.bus_endpoints(), config.bus.multicast_scouting, config.bus, retry_for
+        config.bus_endpoints(), bus.multicast_scouting, bus, retry_for, leaf_access(config)
     )
 
 
 def session_for_service(config: Any) -> zenoh.Session:
     """The service's session as [bus] says: a listening peer (the embedded default), or a
-    client of a router, which it waits for like any client. A listening service enforces
-    [bus] access control on its links (behind a router, the router does)."""
+    client of a router, which it waits for like any client. Either way it enforces [bus]
+    access control on its links: as a hub when it listens, else as a leaf."""
     bus = config.bus
     if bus.mode == "client":
         return session_for_client(config)  # before the loop runs: blocking is fine here
-    access = access_control_for(config)
+    access = access_control_for(config, hub=bool(bus.listen))
     return open_session(bus.mode, bus.listen, bus.connect, bus.multicast_scouting, bus, access)
 
 

@@ -33,6 +33,7 @@ from keo_service.io.config import Config, load_config
 from keo_service.live.bus import (
     AsyncSubscription,
     BlockingSubscription,
+    leaf_access,
     open_client,
     open_client_async,
 )
@@ -107,6 +108,7 @@ class _Settings(msgspec.Struct, frozen=True):
     connect_timeout_s: float | None
     multicast: bool = False
     tls: Any = None
+    access: dict[str, Any] | None = None  # [bus] access control, as a leaf enforces it
 
     @classmethod
     def from_config(cls, config: Config, **kw: Any) -> _Settings:
@@ -117,6 +119,7 @@ class _Settings(msgspec.Struct, frozen=True):
             connect_timeout_s=kw.pop("connect_timeout_s", 20.0),
             multicast=config.bus.multicast_scouting,
             tls=config.bus,
+            access=leaf_access(config),
         )
 
 
@@ -177,7 +180,7 @@ class Client(_ClientBase):
         s = self._settings
         try:
             self._session = await open_client_async(
-                s.endpoints, s.multicast, s.tls, retry_for=s.connect_timeout_s
+                s.endpoints, s.multicast, s.tls, retry_for=s.connect_timeout_s, access=s.access
             )
         except KeoError as exc:
             raise ClientError(str(exc)) from None
@@ -247,7 +250,7 @@ class SyncClient(_ClientBase):
         s = self._settings
         try:
             self._session = open_client(
-                s.endpoints, s.multicast, s.tls, retry_for=s.connect_timeout_s
+                s.endpoints, s.multicast, s.tls, retry_for=s.connect_timeout_s, access=s.access
             )
         except KeoError as exc:
             raise ClientError(str(exc)) from None
