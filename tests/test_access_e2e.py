@@ -285,7 +285,7 @@ while not enc.matching_status.matching and time.monotonic() < deadline:
 time.sleep(0.2)
 zero = [0.0, 0.0, 0.0]
 for i in range(int(base), int(base) + int(n)):
-    enc.put(encode(JointSample(t=i * 0.01, host_ns=time.time_ns(), seq=i, q=[0.5] * 6)))
+    enc.put(encode(JointSample(stamp=i * 0.01, host_ns=time.time_ns(), seq=i, joints=[0.5] * 6)))
     corr.put(encode(CorrectionMessage(stamp=0.0, host_ns=time.time_ns(), seq=i,
         translation=[0.01, 0.0, 0.0], rotation=zero, feedback_translation=zero,
         feedback_rotation=zero, feedforward_translation=zero, feedforward_rotation=zero,
