@@ -60,6 +60,12 @@ DELAY_SLEW = 0.001  # a new delay is approached at this many s per s of stream t
 class Estimate:
     """One observer output. `measured` is None when the step was held (see `flags`).
 
+    The one estimate record: the wire's `EstimateMessage` is made from it
+    (`live.messages.estimate_message`), the batch path's `BatchResult` holds its fields as
+    columns under the same names, the Rerun pipe carries its fields. `stamp` is stream time,
+    `encoder_stamp` the stream time the joints were taken at, `device_stamp` the tracker's own
+    time of the sample (None when it gives none).
+
     Read-only by convention. The two vectors are kept as they were made (plain floats on the
     hot path: two arrays per tracker sample cost a twelfth of its budget) and become arrays on
     first read; `measured_values` and `estimate_values` give the floats without arrays."""
