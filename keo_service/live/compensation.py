@@ -24,9 +24,9 @@ from keo_service.core.estimator import Estimate
 from keo_service.core.kinematics import error_as_pose
 from keo_service.core.rules import OUTSIDE_CALIBRATED_RANGE
 from keo_service.io.config import CompensationConfig, Config
-from keo_service.live.messages import CorrectionMessage, encode, topic
+from keo_service.live.messages import CorrectionMessage, JointSample, encode, topic
 
-__all__ = ["CorrectionPublisher", "correction_to_send", "limits_of"]
+__all__ = ["CorrectionPublisher", "CorrectionSink", "correction_to_send", "limits_of"]
 
 log = logging.getLogger("keo.compensation")
 MAX_AGE_S = 0.1  # a correction older than this is not applied by the controller interfaces
@@ -172,3 +172,32 @@ class CorrectionPublisher:
 
     def close(self) -> None:
         self._pub.undeclare()
+
+
+class CorrectionSink:
+    """The correction publisher as one of the service's outputs (`keo_service.live.sinks`):
+    a correction for each estimate, and with a model the feedforward at each encoder sample.
+    `estimator`: the service's (its newest joints feed the feedforward)."""
+
+    name = "correction"
+    period_s: float | None = None
+
+    def __init__(self, publisher: CorrectionPublisher, estimator: Any) -> None:
+        self.publisher = publisher
+        self.estimator = estimator
+
+    def on_input(self, sample: Any) -> None:
+        if isinstance(sample, JointSample):  # with a model: feedforward at these joints
+            self.publisher.on_joints(sample.t, sample.q)
+
+    def on_estimate(self, estimate: Estimate, message: Any) -> None:
+        self.publisher.publish(estimate, self.estimator)
+
+    def on_tick(self) -> None:
+        pass
+
+    def counters(self) -> dict[str, int]:
+        return self.publisher.counters
+
+    def close(self) -> None:
+        self.publisher.close()
