@@ -142,7 +142,7 @@ class KeoService:
         self._start(self._status_loop(), "keo.service.status")
         for sink in self.sinks.sinks:  # a sink with a cycle of its own: its own task
             if sink.period_s is not None:
-                self._start(self._sink_loop(sink, sink.period_s), f"keo.service.{sink.name}")
+                self._start(self._sink_loop(sink), f"keo.service.{sink.name}")
         if self._delay_tracker is not None:
             self._start(self._delay_loop(), "keo.service.delay")
         log.info("keo service for cell %s up; listening on %s", self.cell, self.config.bus.listen)
@@ -374,11 +374,12 @@ class KeoService:
                     self.estimator.set_delay_target(target)
             log.info("delay tracking: %s", tracker.last_result)
 
-    async def _sink_loop(self, sink: Sink, period_s: float) -> None:
-        """A sink's own cycle (Rerun's status snapshots); a failure there stops the service
-        like any task's, after it was counted and logged (`Sinks`)."""
+    async def _sink_loop(self, sink: Sink) -> None:
+        """A sink's own cycle (the corrections' validity, Rerun's status snapshots), its
+        period read at every cycle; a failure there stops the service like any task's, after
+        it was counted and logged (`Sinks`)."""
         while not self._stop.is_set():
-            await asyncio.sleep(period_s)
+            await asyncio.sleep(sink.period_s or VIZ_PERIOD_S)
             self.sinks.on_tick(sink)
 
     # ---- reload (SIGHUP) ------------------------------------------------------------------

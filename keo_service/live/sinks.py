@@ -60,7 +60,10 @@ class Sink(Protocol):
     service runs that in a task of its own, named `keo.service.<name>`."""
 
     name: str
-    period_s: float | None
+
+    @property
+    def period_s(self) -> float | None:
+        """The sink's cycle (s), None without one."""
 
     def on_input(self, sample: Sample) -> None:
         """An encoder or tracker sample as it arrived (before the estimator)."""
