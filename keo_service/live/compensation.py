@@ -48,6 +48,10 @@ log = logging.getLogger("keo.compensation")
 MAX_AGE_S = 0.1  # a correction older than this is not applied by the controller interfaces
 DEFAULT_CYCLE_S = 0.01  # the correction's cycle before the observer's period is known
 CYCLE_BOUNDS_S = (0.001, 0.1)  # the observer's period as the cycle, kept within these
+# a quiet cycle renews the newest correction once this many cycles passed without a put (not
+# one: estimates at the cycle's own rate would be doubled by every tick that comes late)
+RENEW_AFTER = 1.5
+WARN_EVERY_S = 1.0  # a correction going stale is a warning at most this often (always counted)
 
 
 def limits_of(compensation: CompensationConfig, max_age_s: float = MAX_AGE_S) -> CompensationLimits:
@@ -121,6 +125,7 @@ class CorrectionPublisher:
         self._encoder_at: float | None = None
         self._tracker_at: float | None = None
         self._stale = ""  # the freshness verdict of the last check ("" fresh)
+        self._warned_at = -WARN_EVERY_S  # monotonic time of the newest warning about it
         self._put_at = 0.0  # monotonic time of the newest put
         self._steps: collections.deque[float] = collections.deque(maxlen=50)
 
@@ -169,15 +174,18 @@ class CorrectionPublisher:
         is logged, one to stale counted."""
         reason = self.freshness(now)
         changed = reason != self._stale
-        if changed and reason:
-            self.stale_events += 1
+        if changed and reason and not self._stale:  # fresh -> stale (not one stale reason
+            self.stale_events += 1  # giving way to another)
             ages = {
                 "encoder_stale": self._encoder_at,
                 "tracker_stale": self._tracker_at,
                 "estimate_stale": None if self._estimate is None else self._estimate[0],
             }
             since = ages.get(reason)
-            log.warning(
+            level = logging.WARNING if now - self._warned_at >= WARN_EVERY_S else logging.DEBUG
+            self._warned_at = now if level == logging.WARNING else self._warned_at
+            log.log(
+                level,
                 "correction invalid: %s (nothing for %.3f s, compensation.stale_after_s = %g; "
                 "%d so far)",
                 reason,
@@ -185,7 +193,7 @@ class CorrectionPublisher:
                 self._stale_after_s,
                 self.stale_events,
             )
-        elif changed:
+        elif changed and not reason:
             log.info("correction inputs fresh again (was %s)", self._stale)
         self._stale = reason
         return reason, changed
@@ -193,7 +201,7 @@ class CorrectionPublisher:
     def tick(self, now: float | None = None) -> CorrectionMessage | None:
         """One cycle of the correction's own clock (see the module): the first cycle where
         the inputs are not fresh publishes a zero, invalid correction with the reason; a
-        cycle without a put since the last renews the newest correction. Returns what it
+        cycle after RENEW_AFTER cycles without a put renews the newest correction. Returns what it
         published. Nothing before the first estimate."""
         now = time.monotonic() if now is None else now
         if self._estimate is None:
@@ -202,7 +210,7 @@ class CorrectionPublisher:
         if reason and changed:
             _at, values, _ = self._estimate
             msg = self._make(self._stamp, values, self._joints, reason)
-        elif self.latest is not None and now - self._put_at >= self.cycle_s:
+        elif self.latest is not None and now - self._put_at >= RENEW_AFTER * self.cycle_s:
             msg = msgspec.structs.replace(self.latest, seq=self.seq + 1, host_ns=time.time_ns())
             self.seq += 1
         else:
