@@ -437,7 +437,8 @@ def cmd_status(args: argparse.Namespace) -> int:
             sys.stdout.write(json.dumps({"adapters": adapters}, indent=2, default=str) + "\n")
         return 1
     doc = msgspec.to_builtins(status)
-    doc["adapters"] = doc.get("adapters") or adapters
+    # the adapters' own answers are newer than what the service kept of their last change
+    doc["adapters"] = adapters or doc.get("adapters") or {}
     sys.stdout.write(json.dumps(doc, indent=2, default=str) + "\n")
     return 0
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import json
 import logging
 import time
 from pathlib import Path
@@ -60,6 +61,9 @@ log = logging.getLogger("keo.service")
 VIZ_PERIOD_S = 0.1  # Rerun gets batches at display rate, never one call per sample
 STATUS_PERIOD_S = 0.1
 STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "stale"
+MAX_ADAPTERS = 16  # adapters whose newest state change the service keeps (bounded)
+# adapter states that are trouble (logged as warnings; the others at info)
+ADAPTER_TROUBLE = frozenset({"silent", "wrong_protocol", "disconnected"})
 
 
 class RateMeter:
@@ -128,6 +132,9 @@ class KeoService:
         self.decode_errors = 0
         self._clock_domains: dict[str, str] = {}
         self._clock_flags: collections.Counter[str] = collections.Counter()
+        # each adapter's newest state change (keo/<cell>/adapter/<name>/status, put on change)
+        self._adapters: dict[str, dict[str, Any]] = {}
+        self.adapters_dropped = 0
 
     async def __aenter__(self) -> KeoService:
         if self._session is None:
@@ -137,9 +144,11 @@ class KeoService:
         self._token = s.liveliness().declare_token(topic(self.cell, "alive/service"))
         self._add_sinks(s)
         self._sub = AsyncSubscription(s, [topic(self.cell, "encoder"), topic(self.cell, "tracker")])
+        self._adapter_sub = AsyncSubscription(s, [topic(self.cell, "adapter/*/status")], maxlen=64)
         self._refresh_status()
         self._start(self._consume(), "keo.service.consume")
         self._start(self._status_loop(), "keo.service.status")
+        self._start(self._adapter_events(), "keo.service.adapters")
         for sink in self.sinks.sinks:  # a sink with a cycle of its own: its own task
             if sink.period_s is not None:
                 self._start(self._sink_loop(sink), f"keo.service.{sink.name}")
@@ -151,6 +160,7 @@ class KeoService:
     async def __aexit__(self, *exc: object) -> None:
         self._stop.set()
         self._sub.close()
+        self._adapter_sub.close()
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -248,6 +258,34 @@ class KeoService:
             for estimate in out:
                 self._publish(estimate, now)
 
+    async def _adapter_events(self) -> None:
+        """The adapters' state changes (silent, back, reconnected, wrong protocol): into the
+        log, the status (`adapters`) and so Rerun's text log. Published by the adapters when
+        their state changes; nothing is polled."""
+        async for key, payload in self._adapter_sub:
+            name = key.split("/")[-2]
+            try:
+                doc = json.loads(payload)
+            except ValueError as exc:
+                doc = None
+                why = f"not JSON: {exc}"
+            else:
+                why = "not a JSON object"
+            if not isinstance(doc, dict):
+                self.decode_errors += 1
+                self.estimator.messages.append(f"undecodable adapter status on {key}: {why}")
+                continue
+            name = str(doc.get("adapter", name))
+            if name not in self._adapters and len(self._adapters) >= MAX_ADAPTERS:
+                self.adapters_dropped += 1  # bounded: a 17th name is counted, not kept
+                continue
+            self._adapters[name] = doc
+            event = doc.get("event")
+            if event:
+                state = doc.get("state")
+                level = logging.WARNING if state in ADAPTER_TROUBLE else logging.INFO
+                log.log(level, "adapter %s: %s", name, event)
+
     def _note_sample(self, stream: str, msg: JointSample | TrackerSample) -> None:
         """Record the clock domain a stream's samples declare and count their stamp flags;
         warn once per change when the domain is not the configured one (a delay calibrated
@@ -311,6 +349,8 @@ class KeoService:
         counters["received"] = self.received
         counters["decode_errors"] = self.decode_errors
         counters["queue_dropped"] = self._sub.dropped
+        if self.adapters_dropped:
+            counters["adapter_status_dropped"] = self.adapters_dropped
         counters.update(self._clock_flags)
         counters.update(self.sinks.counters())
         if self._delay_tracker is not None:
@@ -334,6 +374,7 @@ class KeoService:
             messages=list(self.estimator.messages)[-10:],
             delay_tracking=None if self._delay_tracker is None else self._delay_tracker.last_result,
             delay_se_s=self.delay_se(),
+            adapters=dict(self._adapters),
         )
 
     def _resolve_if_quiet(self) -> None:
