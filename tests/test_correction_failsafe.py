@@ -224,6 +224,7 @@ async def _stall_run(demo_cell, config) -> dict:
                     p, quat = run.tracker.p[i].tolist(), run.tracker.quat[i].tolist()
                     sample = TrackerSample(t=t, host_ns=host_ns, seq=n, p=p, q=quat)
                     client.put(trk_key, encode(sample))
+            last_input = time.monotonic()
             await asyncio.sleep(0.3)
             status = service.status()
         finally:
@@ -233,6 +234,7 @@ async def _stall_run(demo_cell, config) -> dict:
         "got": got,
         "last_encoder": last_encoder,
         "stall_end": mono0 + STALL[1],
+        "last_input": last_input,
         "status": status,
     }
 
@@ -271,6 +273,10 @@ async def test_an_encoder_stall_invalidates_the_correction_within_one_cycle(demo
     assert all(not m.valid and m.translation == [0.0] * 3 for _, m in during)
     assert any(m.valid for w, m in got if w > out["stall_end"] + 0.3)  # and it comes back
     assert out["status"].counters["corrections_stale"] >= 1
+    # once every input is quiet the stream rests (an idle cell's bus is quiet): at most the
+    # invalid correction that says so, within the limit and a cycle
+    late = [m for w, m in got if w > out["last_input"] + limit + cycle + 0.08]
+    assert late == []
     # the controller interfaces follow the same validity: zero from the first invalid one
     last_valid = next(m for w, m in reversed(got) if w < stalled and m.valid)
     p, _ = compensation.correction_to_send(last_valid, config.compensation, last_valid.host_ns)

@@ -13,8 +13,9 @@ rate_hz`, else the observer's period): a correction is valid only while the newe
 sample, the newest tracker pose and the newest estimate arrived within `[compensation]
 stale_after_s` (host time), besides the estimate's own verdict (held, outside the calibrated
 range). The first cycle where one of them fails publishes a zero, invalid correction with the
-reason (counted in `corrections_stale`, logged); while nothing new comes, every cycle renews
-the newest correction, so the stream is never silent for longer than a cycle once it began.
+reason (counted in `corrections_stale`, logged); while nothing new comes, a cycle renews the
+newest correction (an invalid one only while some input still arrives), so a stalled stream
+is never silent for much longer than a cycle and an idle cell's is.
 """
 
 from __future__ import annotations
@@ -198,10 +199,25 @@ class CorrectionPublisher:
         self._stale = reason
         return reason, changed
 
+    def _renew_due(self, now: float) -> bool:
+        """RENEW_AFTER cycles without a put, and either the newest correction is valid or an
+        input still arrives (a stall of one stream: its reason stays on the wire). Once every
+        input is quiet, the invalid correction said it once and the stream rests (the
+        controller interfaces zero a correction that is not renewed; an idle cell is quiet)."""
+        latest = self.latest
+        if latest is None or now - self._put_at < RENEW_AFTER * self.cycle_s:
+            return False
+        limit = self._stale_after_s
+        flowing = any(
+            at is not None and now - at <= limit for at in (self._encoder_at, self._tracker_at)
+        )
+        return latest.valid or flowing
+
     def tick(self, now: float | None = None) -> CorrectionMessage | None:
         """One cycle of the correction's own clock (see the module): the first cycle where
         the inputs are not fresh publishes a zero, invalid correction with the reason; a
-        cycle after RENEW_AFTER cycles without a put renews the newest correction. Returns what it
+        cycle after RENEW_AFTER cycles without a put renews the newest correction (an invalid one
+        only while an input still arrives). Returns what it
         published. Nothing before the first estimate."""
         now = time.monotonic() if now is None else now
         if self._estimate is None:
@@ -210,7 +226,7 @@ class CorrectionPublisher:
         if reason and changed:
             _at, values, _ = self._estimate
             msg = self._make(self._stamp, values, self._joints, reason)
-        elif self.latest is not None and now - self._put_at >= RENEW_AFTER * self.cycle_s:
+        elif self.latest is not None and self._renew_due(now):
             msg = msgspec.structs.replace(self.latest, seq=self.seq + 1, host_ns=time.time_ns())
             self.seq += 1
         else:
