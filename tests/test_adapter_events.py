@@ -23,7 +23,7 @@ from keo_service.live.messages import ServiceStatus, decode, topic
 from tests.test_rerun_view import _log_entries
 
 SILENT_AFTER_S = 0.5
-SEND_S, QUIET_S = 1.0, 2.0  # the device sends, goes quiet (connection open), sends again
+SEND_S, QUIET_S = 1.0, 2.5  # the device sends, goes quiet (connection open), sends again
 
 
 class _SilentTracker:
@@ -127,12 +127,13 @@ def test_a_silent_tracker_reaches_the_service_log_status_and_rerun_text_log(demo
     assert f"adapter tracker: {said}" in service_log, service_log
     assert f"adapter tracker: data again from {endpoint}" in service_log
     # in the service's status: silent during the quiet stretch, found within the adapter's
-    # watch period (0.25 s) and a status query's margin of the configured limit
+    # watch period (0.25 s) of the configured limit, and a loaded machine's margin (the last
+    # pose may have been seen up to one send period before the device noted its quiet)
     silent = [at for at, state in states if state == "silent"]
     assert silent, states
     found = silent[0] - device.quiet_from
     print(f"silent in the service's status {1e3 * found:.0f} ms after the device went quiet")
-    assert SILENT_AFTER_S <= found <= SILENT_AFTER_S + 0.25 + 0.5
+    assert SILENT_AFTER_S - 0.02 <= found <= SILENT_AFTER_S + 0.25 + 1.0
     assert states[-1][1] == "receiving"
     # and in Rerun's text log, read back from the recording
     entries = _log_entries(rrd)
