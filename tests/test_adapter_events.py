@@ -141,3 +141,40 @@ def test_a_silent_tracker_reaches_the_service_log_status_and_rerun_text_log(demo
     assert warn, entries
     assert f"(tracker.silent_after_s = {SILENT_AFTER_S:g})" in warn[0]
     assert ("INFO", f"tracker: data again from {endpoint} (receiving)") in entries
+
+
+def test_each_adapter_event_is_one_text_log_entry(demo_cell, tmp_path):
+    """The service's status carries each adapter's newest event; the Rerun sink writes it once
+    per `event_seq`, a warning for trouble, in the adapter's words (not also as a bare state
+    change), and an adapter that publishes no events still gets its state changes."""
+    from keo_service.live.rerun_sink import RerunSink
+    from tests.test_rerun_view import _pose_estimate, _status
+
+    rrd = tmp_path / "e.rrd"
+    sink = RerunSink(demo_cell, rrd=rrd)
+    sink.add(_pose_estimate(10.0))
+    now = time.time()
+
+    def tracker(seq: int, state: str, event: str) -> dict[str, object]:
+        return {"tracker": {"state": state, "event": event, "event_seq": seq}}
+
+    silent = "the device at h:1 went silent: nothing for 0.5 s (tracker.silent_after_s = 0.5)"
+    steps = [
+        {"adapters": tracker(1, "receiving", "connecting -> receiving (h:1)")},
+        {"adapters": tracker(2, "silent", silent)},
+        {"adapters": tracker(2, "silent", silent)},  # the same event again: not repeated
+        {"adapters": tracker(3, "receiving", "data again from h:1 (receiving)")},
+        {"adapters": {"encoder": {"state": "connected"}}},  # no events of its own
+        {"adapters": {"encoder": {"state": "disconnected"}}},
+    ]
+    for k, extra in enumerate(steps):
+        sink.add_status(_status(now + 1.0 + k, {}) | extra)
+    sink.close()
+    entries = _log_entries(rrd)
+    tracker_entries = [e for e in entries if e[1].startswith("tracker:")]
+    assert tracker_entries == [
+        ("INFO", "tracker: connecting -> receiving (h:1)"),
+        ("WARN", f"tracker: {silent}"),
+        ("INFO", "tracker: data again from h:1 (receiving)"),
+    ]
+    assert ("WARN", "encoder: state connected -> disconnected") in entries

@@ -291,3 +291,60 @@ async def test_an_encoder_stall_invalidates_the_correction_within_one_cycle(demo
     rsi.on_payload(encode(first[1]))
     rsi.next(0.0)
     assert rsi.reason == "invalid: encoder_stale"
+
+
+def test_the_correction_cycle_step_by_step(demo_config):
+    """`CorrectionPublisher.tick` with the clock given: renewals while fresh, the first cycle
+    past the limit invalid with the reason, renewals of it while the tracker still sends, and
+    rest once nothing arrives."""
+    import time
+
+    from keo_service.core.estimator import Estimate
+    from keo_service.live.messages import JointSample, TrackerSample
+
+    session = open_session("peer")
+    pub = compensation.CorrectionPublisher(demo_config, session)
+    limit = demo_config.compensation.stale_after_s
+    channels = ("px", "py", "pz", "rx", "ry", "rz")
+    enc = JointSample(t=0.0, host_ns=0, seq=1, q=[0.0] * 6)
+    trk = TrackerSample(t=0.0, host_ns=0, seq=1, p=[1.0, 0.0, 0.0], q=[1.0, 0, 0, 0])
+    try:
+        assert pub.tick(time.monotonic()) is None  # nothing before the first estimate
+        enc_at = time.monotonic()  # the encoder's last sample
+        pub.note_input(enc, enc_at)
+        pub.note_input(trk, enc_at)
+        first = pub.publish(Estimate(1.0, [0.0] * 6, [1e-4] * 6, (), None, channels))
+        assert first.valid
+        now = time.monotonic()  # from here on the test's clock
+        cycle = pub.cycle_s
+        assert cycle == pytest.approx(0.01)  # the default before the observer's period is known
+        assert pub.tick(now + 0.5 * cycle) is None  # a put half a cycle ago: nothing to renew
+        renewed = pub.tick(now + 1.6 * cycle)
+        assert renewed is not None
+        assert renewed.valid
+        assert renewed.seq == first.seq + 1
+        assert renewed.translation == first.translation
+        # the encoder stops; the tracker goes on (and the estimate is renewed by arrivals)
+        t = now
+        out = []
+        while t < now + limit + 3 * cycle:
+            t += cycle / 2
+            pub.note_input(trk, t)
+            out.append((t, pub.tick(t)))
+        invalid = [(at, m) for at, m in out if m is not None and not m.valid]
+        assert invalid
+        at, msg = invalid[0]
+        assert msg.reason == "encoder_stale"
+        assert msg.translation == [0.0] * 3
+        assert enc_at + limit < at <= enc_at + limit + cycle  # the first cycle past the limit
+        assert pub.counters["corrections_stale"] == 1
+        assert all(m.valid for a, m in out if m is not None and a < at)
+        # still invalid and renewed while the tracker sends; once nothing arrives, rest
+        later = [pub.tick(t + k * cycle) for k in range(1, 4)]
+        assert any(m is not None and not m.valid for m in later)
+        quiet = [pub.tick(t + limit + k * cycle) for k in range(2, 10)]
+        assert quiet == [None] * 8
+        assert pub.counters["corrections_stale"] == 1  # one stale stretch, counted once
+    finally:
+        pub.close()
+        session.close()
