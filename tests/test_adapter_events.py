@@ -7,6 +7,7 @@ open, then sends again; the recording is read back."""
 
 from __future__ import annotations
 
+import json
 import socket
 import threading
 import time
@@ -101,6 +102,11 @@ def test_a_silent_tracker_reaches_the_service_log_status_and_rerun_text_log(demo
             try:
                 while _service_status(session, config) is None:
                     time.sleep(0.1)
+                # what any client sees on the bus: the adapter's events as JSON lines
+                events_key = f"keo/{config.cell}/adapter/*/status"
+                echo = ["echo", events_key, "--config", str(cfg), "--json"]
+                procs.start("echo", echo)
+                time.sleep(1.0)  # the echo's session up before the adapter's first change
                 procs.start("adapter-tracker", ["adapter", "tracker", "--config", str(cfg)])
                 deadline = time.monotonic() + 30
                 while time.monotonic() < deadline:
@@ -116,6 +122,7 @@ def test_a_silent_tracker_reaches_the_service_log_status_and_rerun_text_log(demo
             codes = procs.close()
             service_log = (tmp_path / "service.log").read_text()
             adapter_log = (tmp_path / "adapter-tracker.log").read_text()
+            echo_log = (tmp_path / "echo.log").read_text()
     finally:
         device.close()
     assert codes["service"] == 0, service_log
@@ -141,6 +148,11 @@ def test_a_silent_tracker_reaches_the_service_log_status_and_rerun_text_log(demo
     assert warn, entries
     assert f"(tracker.silent_after_s = {SILENT_AFTER_S:g})" in warn[0]
     assert ("INFO", f"tracker: data again from {endpoint} (receiving)") in entries
+    # and `keo echo` shows them as the JSON objects they are
+    echoed = [json.loads(line) for line in echo_log.splitlines() if line.startswith("{")]
+    events = [(d.get("state"), d.get("event")) for d in echoed if d.get("adapter") == "tracker"]
+    assert any(state == "silent" and said in str(event) for state, event in events), echo_log
+    assert all(d["key"] == f"keo/{config.cell}/adapter/tracker/status" for d in echoed)
 
 
 def test_each_adapter_event_is_one_text_log_entry(demo_cell, tmp_path):
