@@ -85,6 +85,13 @@ class _Adapter:
         self._status_q = self._session.declare_queryable(
             topic(self.config.cell, f"adapter/{self.name}/status"), self._on_status_query
         )
+        # the same document put on the same key at each change of state (silent, back,
+        # reconnected, wrong protocol): the service subscribes, nobody polls
+        self._event_pub = self._session.declare_publisher(
+            topic(self.config.cell, f"adapter/{self.name}/status")
+        )
+        self._events = 0
+        self._reported: tuple[str, int] = ("", 0)
         task = asyncio.create_task(self._run(), name=f"keo.adapter.{self.name}")
         self._task = supervise(task, self._stop.is_set, self._fail)
         watcher = asyncio.create_task(self._watch(), name=f"keo.adapter.{self.name}.watch")
@@ -109,7 +116,53 @@ class _Adapter:
             self.health.tick(self.status(), time.monotonic())
             if self.health.state == "receiving":
                 self.device.last_error = ""  # the newest problem is over once data flows
+            self._publish_change()
             await asyncio.sleep(WATCH_PERIOD_S)
+
+    def _status_doc(self) -> dict[str, Any]:
+        doc = {**self.status(), **self.health.summary(time.monotonic())}
+        doc["last_error"] = self.device.last_error
+        return doc
+
+    def _publish_change(self) -> None:
+        """A change of state or a new connection since the last look: the status document
+        with `event` (what happened, in words) and `event_seq` put on the status key."""
+        state = self.health.state
+        connections = int(self.counters.get("connections", 0))
+        before, seen = self._reported
+        if (state, connections) == self._reported:
+            return
+        self._reported = (state, connections)
+        doc = self._status_doc()
+        self._events += 1
+        doc["event_seq"] = self._events
+        doc["event"] = self._event_text(before, state, connections > seen > 0, doc)
+        try:
+            self._event_pub.put(json.dumps(doc).encode())
+        except zenoh.ZError as exc:  # counted; the state is still in the status query
+            self.counters["event_publish_failed"] += 1
+            log.warning("%s: publishing a state change failed: %s", self.name, exc)
+
+    def _event_text(self, before: str, state: str, reconnected: bool, doc: dict[str, Any]) -> str:
+        health = self.health
+        endpoint = health.endpoint
+        if state == "silent":
+            age = doc.get("last_data_age_s")
+            quiet = "nothing arrived" if age is None else f"nothing for {age:.1f} s"
+            return (
+                f"the device at {endpoint} went silent: {quiet} "
+                f"({health.section}.silent_after_s = {health.silent_after_s:g})"
+            )
+        if state == "wrong_protocol":
+            return health.mismatch
+        if state == "disconnected":
+            last = doc.get("last_error") or ""
+            return f"disconnected from {endpoint}" + (f": {last}" if last else "")
+        if before == "silent":
+            return f"data again from {endpoint} ({state})"
+        if reconnected:
+            return f"reconnected to {endpoint} ({state})"
+        return f"{state} ({endpoint})" if not before else f"{before} -> {state} ({endpoint})"
 
     async def __aexit__(self, *exc: object) -> None:
         self._stop.set()
@@ -118,6 +171,7 @@ class _Adapter:
             self._task.cancel()
             self._watcher.cancel()
         self._status_q.undeclare()
+        self._event_pub.undeclare()
         if self._own_session and self._session is not None:
             self._session.close()
 
@@ -183,8 +237,7 @@ class _Adapter:
         self.counters["published"] += 1
 
     def _on_status_query(self, query: zenoh.Query) -> None:
-        doc = {**self.status(), **self.health.summary(time.monotonic())}
-        doc["last_error"] = self.device.last_error
+        doc = self._status_doc()
         key = topic(self.config.cell, f"adapter/{self.name}/status")  # not the query's wildcard
         query.reply(key, json.dumps(doc).encode())
 

@@ -6,6 +6,7 @@ peers). Needs the live correction (keo_service.live.compensation); skipped where
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -174,3 +175,182 @@ def test_a_nan_from_a_decoder_never_reaches_the_correction(demo_cell, demo_confi
     c = f.step(0.0, [math.nan, 0, 0, 0, 0, 0], None)
     assert not c.valid
     assert c.reason == "non_finite_estimate"
+
+
+# ---- timer-driven validity: the service's correction cycle in real time --------------------
+
+STALL = (1.2, 2.2)  # s of scenario time: the encoder sends nothing
+
+
+async def _stall_run(demo_cell, config) -> dict:
+    """The service in this process, fed over a real Zenoh session in real time (encoder at
+    40 Hz, tracker at 100 Hz, as simulated), the encoder stalled during STALL; every
+    correction gathered with its arrival (monotonic)."""
+    import asyncio
+    import time
+
+    from keo_service.live.bus import session_for_client
+    from keo_service.live.messages import JointSample, TrackerSample, decode, encode, topic
+    from keo_service.live.service import KeoService
+
+    run = simulate(demo_cell, make_scenario("paper-step", {"duration_s": "3"}), seed=11)
+    plan = replay_plan(run.encoder.t, run.tracker.t)
+    got: list[tuple[float, object]] = []
+    async with KeoService(config) as service:
+        client = session_for_client(config)
+        sub = client.declare_subscriber(
+            topic(config.cell, "correction"),
+            lambda s: got.append((time.monotonic(), decode(s.payload.to_bytes()))),
+        )
+        enc_key, trk_key = topic(config.cell, "encoder"), topic(config.cell, "tracker")
+        try:
+            await asyncio.sleep(0.5)
+            wall0, mono0 = time.time() + 0.2, time.monotonic() + 0.2
+            last_encoder = 0.0
+            for n, (kind, i) in enumerate(zip(plan.kinds, plan.index, strict=True)):
+                t_run = float((run.encoder.t if kind == 0 else run.tracker.t)[i])
+                if kind == 0 and STALL[0] <= t_run < STALL[1]:
+                    continue
+                delay = mono0 + t_run - time.monotonic()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                t, host_ns = wall0 + t_run, time.time_ns()
+                if kind == 0:
+                    q = run.encoder.q[i].tolist()
+                    client.put(
+                        enc_key, encode(JointSample(stamp=t, host_ns=host_ns, seq=n, joints=q))
+                    )
+                    if t_run < STALL[0]:
+                        last_encoder = time.monotonic()
+                else:
+                    p, quat = run.tracker.p[i].tolist(), run.tracker.quat[i].tolist()
+                    sample = TrackerSample(
+                        stamp=t, host_ns=host_ns, seq=n, position=p, quaternion=quat
+                    )
+                    client.put(trk_key, encode(sample))
+            last_input = time.monotonic()
+            await asyncio.sleep(0.3)
+            status = service.status()
+        finally:
+            sub.undeclare()
+            client.close()
+    return {
+        "got": got,
+        "last_encoder": last_encoder,
+        "stall_end": mono0 + STALL[1],
+        "last_input": last_input,
+        "status": status,
+    }
+
+
+@pytest.mark.e2e
+async def test_an_encoder_stall_invalidates_the_correction_within_one_cycle(demo_cell, demo_config):
+    """Timer-driven validity: the correction's own cycle (the observer's period, 10 ms here)
+    renews the newest correction while the inputs are fresh and publishes a zero, invalid one
+    at the first cycle after the newest encoder sample is `compensation.stale_after_s` old;
+    the stream is never silent in between. The controller interfaces (RTDE registers through
+    `correction_to_send`, RSI/EGM through `CorrectionOutput`) send zero from that message on."""
+    from keo_service.adapters.udp_devices import CorrectionOutput
+    from keo_service.bench.demo import loopback_config
+    from keo_service.live.messages import encode
+
+    config = loopback_config(demo_config)
+    limit = config.compensation.stale_after_s
+    cycle = 0.01  # the tracker's period: the observer's
+    out = await _stall_run(demo_cell, config)
+    got, stalled = out["got"], out["last_encoder"]
+    assert [m for w, m in got if w < stalled and m.valid], "valid corrections before the stall"
+    first = next((w, m) for w, m in got if w > stalled and not m.valid)
+    gap = first[0] - stalled
+    around = [w for w, _ in got if stalled <= w <= first[0]]
+    silence = max(b - a for a, b in itertools.pairwise(around))
+    during = [(w, m) for w, m in got if first[0] <= w < out["stall_end"] - 0.05]
+    print(
+        f"encoder stall -> first invalid correction {1e3 * gap:.1f} ms (stale limit "
+        f"{1e3 * limit:.0f} ms, cycle {1e3 * cycle:.0f} ms); longest silence before it "
+        f"{1e3 * silence:.1f} ms; {len(during)} corrections during the rest of the stall"
+    )
+    assert first[1].reason == "encoder_stale"
+    assert limit <= gap <= limit + cycle + 0.08  # one cycle, and a loaded machine's margin
+    assert silence < 0.1  # renewed every cycle, never the estimator's 0.5 s of silence
+    assert len(during) > 0.5 * (out["stall_end"] - first[0]) / cycle  # the cycle goes on
+    assert all(not m.valid and m.translation == [0.0] * 3 for _, m in during)
+    assert any(m.valid for w, m in got if w > out["stall_end"] + 0.3)  # and it comes back
+    assert out["status"].counters["corrections_stale"] >= 1
+    # once every input is quiet the stream rests (an idle cell's bus is quiet): at most the
+    # invalid correction that says so, within the limit and a cycle
+    late = [m for w, m in got if w > out["last_input"] + limit + cycle + 0.08]
+    assert late == []
+    # the controller interfaces follow the same validity: zero from the first invalid one
+    last_valid = next(m for w, m in reversed(got) if w < stalled and m.valid)
+    p, _ = compensation.correction_to_send(last_valid, config.compensation, last_valid.host_ns)
+    assert any(p)
+    p, r = compensation.correction_to_send(first[1], config.compensation, first[1].host_ns)
+    assert p == [0.0] * 3
+    assert r == [0.0] * 3
+    rsi = CorrectionOutput(config.compensation)
+    rsi.on_payload(encode(last_valid))
+    rsi.next(0.0)
+    assert rsi.reason == ""
+    rsi.on_payload(encode(first[1]))
+    rsi.next(0.0)
+    assert rsi.reason == "invalid: encoder_stale"
+
+
+def test_the_correction_cycle_step_by_step(demo_config):
+    """`CorrectionPublisher.tick` with the clock given: renewals while fresh, the first cycle
+    past the limit invalid with the reason, renewals of it while the tracker still sends, and
+    rest once nothing arrives."""
+    import time
+
+    from keo_service.core.estimator import Estimate
+    from keo_service.live.messages import JointSample, TrackerSample
+
+    session = open_session("peer")
+    pub = compensation.CorrectionPublisher(demo_config, session)
+    limit = demo_config.compensation.stale_after_s
+    channels = ("px", "py", "pz", "rx", "ry", "rz")
+    enc = JointSample(stamp=0.0, host_ns=0, seq=1, joints=[0.0] * 6)
+    trk = TrackerSample(
+        stamp=0.0, host_ns=0, seq=1, position=[1.0, 0.0, 0.0], quaternion=[1.0, 0, 0, 0]
+    )
+    try:
+        assert pub.tick(time.monotonic()) is None  # nothing before the first estimate
+        enc_at = time.monotonic()  # the encoder's last sample
+        pub.note_input(enc, enc_at)
+        pub.note_input(trk, enc_at)
+        first = pub.publish(Estimate(1.0, [0.0] * 6, [1e-4] * 6, (), None, channels))
+        assert first.valid
+        now = time.monotonic()  # from here on the test's clock
+        cycle = pub.cycle_s
+        assert cycle == pytest.approx(0.01)  # the default before the observer's period is known
+        assert pub.tick(now + 0.5 * cycle) is None  # a put half a cycle ago: nothing to renew
+        renewed = pub.tick(now + 1.6 * cycle)
+        assert renewed is not None
+        assert renewed.valid
+        assert renewed.seq == first.seq + 1
+        assert renewed.translation == first.translation
+        # the encoder stops; the tracker goes on (and the estimate is renewed by arrivals)
+        t = now
+        out = []
+        while t < now + limit + 3 * cycle:
+            t += cycle / 2
+            pub.note_input(trk, t)
+            out.append((t, pub.tick(t)))
+        invalid = [(at, m) for at, m in out if m is not None and not m.valid]
+        assert invalid
+        at, msg = invalid[0]
+        assert msg.reason == "encoder_stale"
+        assert msg.translation == [0.0] * 3
+        assert enc_at + limit < at <= enc_at + limit + cycle  # the first cycle past the limit
+        assert pub.counters["corrections_stale"] == 1
+        assert all(m.valid for a, m in out if m is not None and a < at)
+        # still invalid and renewed while the tracker sends; once nothing arrives, rest
+        later = [pub.tick(t + k * cycle) for k in range(1, 4)]
+        assert any(m is not None and not m.valid for m in later)
+        quiet = [pub.tick(t + limit + k * cycle) for k in range(2, 10)]
+        assert quiet == [None] * 8
+        assert pub.counters["corrections_stale"] == 1  # one stale stretch, counted once
+    finally:
+        pub.close()
+        session.close()

@@ -416,7 +416,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
                     msg: Any = decode(payload)
                     doc = msgspec.to_builtins(msg)
                 except msgspec.DecodeError as exc:
-                    doc = {
+                    doc = _json_object(key, payload) or {
                         "key": key,
                         "error": f"undecodable payload: {exc}",
                         "bytes": len(payload),
@@ -466,12 +466,23 @@ def cmd_status(args: argparse.Namespace) -> int:
             sys.stdout.write("\n".join(adapter_lines(adapters)) + "\n")
         return 1
     doc = msgspec.to_builtins(status)
-    doc["adapters"] = doc.get("adapters") or adapters
+    # the adapters' own answers are newer than what the service kept of their last change
+    doc["adapters"] = adapters or doc.get("adapters") or {}
     if args.json:
         sys.stdout.write(json.dumps(doc, indent=2, default=str) + "\n")
     else:
         sys.stdout.write(status_table(doc))
     return 0
+
+
+def _json_object(key: str, payload: bytes) -> dict[str, Any] | None:
+    """A JSON object payload (an adapter's status put on a change of state) with its key, or
+    None for anything else."""
+    try:
+        doc = json.loads(payload)
+    except ValueError:
+        return None
+    return {"key": key, **doc} if isinstance(doc, dict) else None
 
 
 def cmd_router(args: argparse.Namespace) -> int:

@@ -173,6 +173,12 @@ class CompensationConfig(_Section):
     max_mm: Annotated[float, msgspec.Meta(gt=0.0, le=1e3)] = 5.0
     max_mrad: Annotated[float, msgspec.Meta(gt=0.0, le=1e3)] = 5.0
     max_rate_mm_s: Annotated[float, msgspec.Meta(gt=0.0, le=1e4)] = 50.0
+    # the correction's own cycle (Hz): validity checked, a correction renewed or invalidated
+    # at least this often; 0: the observer's period (the estimates' mean step)
+    rate_hz: Annotated[float, msgspec.Meta(ge=0.0, le=1000.0)] = 0.0
+    # valid only while the newest encoder sample, the newest tracker pose and the newest
+    # estimate arrived within this (host time); the controller interfaces' 0.1 s age limit
+    stale_after_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 0.1
 
 
 class BusConfig(_Section):

@@ -236,6 +236,16 @@ KEYS: dict[str, tuple[str, str]] = {
     "compensation.max_mm": ("mm", "a live correction larger than this is clamped (and counted)"),
     "compensation.max_mrad": ("mrad", "and one turning more than this"),
     "compensation.max_rate_mm_s": ("mm/s", "and one changing faster than this"),
+    "compensation.rate_hz": (
+        "Hz",
+        "the correction's own cycle: validity checked and the correction renewed or "
+        "invalidated at least this often; 0: the observer's period",
+    ),
+    "compensation.stale_after_s": (
+        "s",
+        "a correction is valid only while the newest encoder sample, tracker pose and "
+        "estimate arrived within this (host time); else it goes to zero within one cycle",
+    ),
 }
 
 

@@ -75,6 +75,8 @@ THROUGHPUT = frozenset(
 )
 THROUGHPUT_WORDS = ("samples", "frames", "published", "received", "sent", "bytes", "packets")
 EVENT_WORDS = ("connect", "clock", "epoch")  # counters whose increase goes to the text log
+# adapter states that are trouble: their events are warnings, the others information
+ADAPTER_TROUBLE = frozenset({"silent", "wrong_protocol", "disconnected"})
 
 ERROR_ROOT = "keo/error"
 SPEED = "keo/tool_speed"
@@ -273,14 +275,12 @@ class StatusEvents:
         if prev is None:
             self._health, self._health_at = now["health"], t
             out.append(("INFO", f"health {now['health']}"))
+            for name, state in now["adapters"].items():
+                out += _adapter_event(name, state, {})
             return out
         out += self._health_event(now["health"], prev["health"], t)
         for name, state in now["adapters"].items():
-            before = prev["adapters"].get(name, {})
-            for key, value in state.items():
-                if before.get(key) != value and key in before:
-                    level = "WARN" if key != "state" or value not in ("connected", "ok") else "INFO"
-                    out.append((level, f"{name}: {key} {before.get(key)} -> {value}"))
+            out += _adapter_changes(name, state, prev["adapters"].get(name, {}))
         for stream, domain in now["clock_domains"].items():
             old = prev["clock_domains"].get(stream)
             if old is not None and old != domain:
@@ -299,10 +299,38 @@ class StatusEvents:
         return out
 
 
+def _adapter_event(
+    name: str, state: Mapping[str, Any], before: Mapping[str, Any]
+) -> list[tuple[str, str]]:
+    """An adapter's own state change (silent, back, reconnected, wrong protocol), as it put
+    it on its status key: once per `event_seq`."""
+    event = state.get("event")
+    if not event or state.get("event_seq") == before.get("event_seq"):
+        return []
+    level = "WARN" if state.get("state") in ADAPTER_TROUBLE else "INFO"
+    return [(level, f"{name}: {event}")]
+
+
+def _adapter_changes(
+    name: str, state: Mapping[str, Any], before: Mapping[str, Any]
+) -> list[tuple[str, str]]:
+    """What changed in one adapter's state between two snapshots: its own event, else
+    (an adapter that publishes none) the state as compared here; its clock."""
+    out = _adapter_event(name, state, before)
+    for key, value in state.items():
+        if key in ("event", "event_seq") or (key == "state" and "event" in state):
+            continue  # said by the adapter's event, in its own words
+        if before.get(key) != value and key in before:
+            level = "WARN" if key != "state" or value not in ("connected", "ok") else "INFO"
+            out.append((level, f"{name}: {key} {before.get(key)} -> {value}"))
+    return out
+
+
 def _adapter_state(doc: Mapping[str, Any]) -> dict[str, Any]:
-    """The parts of an adapter's status whose change is an event."""
+    """The parts of an adapter's status whose change is an event (`event`, `event_seq`:
+    the adapter's own words for a change of state, when it published one)."""
     out: dict[str, Any] = {}
-    for key in ("state", "connected"):
+    for key in ("state", "connected", "event", "event_seq"):
         if key in doc:
             out[key] = doc[key]
     clock = doc.get("clock")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import json
 import logging
 import time
 from pathlib import Path
@@ -22,7 +23,6 @@ import zenoh
 
 from keo_service.core.errors import KeoError
 from keo_service.core.estimator import Estimate, Estimator
-from keo_service.core.observer import NoiseMeter, covariance_noise, tracker_noise_floor
 from keo_service.io.cell import cell_from_config, delay_model, estimator_settings
 from keo_service.io.config import Config
 from keo_service.live.bus import AsyncSubscription, session_for_service
@@ -36,6 +36,7 @@ from keo_service.live.messages import (
     estimate_message,
     topic,
 )
+from keo_service.live.sinks import EstimateBusSink, RerunOutput, Sinks
 from keo_service.live.supervise import supervise
 
 # keys a SIGHUP applies without a restart
@@ -55,14 +56,15 @@ def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 if TYPE_CHECKING:
     from keo_service.fit.delay import OnlineDelayTracker
-    from keo_service.live.compensation import CorrectionPublisher
-    from keo_service.live.rerun_process import RerunWorker
-    from keo_service.live.ros2_bridge import EstimateBridge
+    from keo_service.live.sinks import Sink
 
 log = logging.getLogger("keo.service")
 VIZ_PERIOD_S = 0.1  # Rerun gets batches at display rate, never one call per sample
 STATUS_PERIOD_S = 0.1
 STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "stale"
+MAX_ADAPTERS = 16  # adapters whose newest state change the service keeps (bounded)
+# adapter states that are trouble (logged as warnings; the others at info)
+ADAPTER_TROUBLE = frozenset({"silent", "wrong_protocol", "disconnected"})
 
 
 class RateMeter:
@@ -105,63 +107,52 @@ class KeoService:
             from keo_service.fit.delay import OnlineDelayTracker
 
             self._delay_tracker = OnlineDelayTracker(cell, max_gap_s=config.timing.max_gap_s)
-        self._viz: RerunWorker | None = None
+        # the outputs, in order: bus, corrections, ROS 2, Rerun (`keo_service.live.sinks`)
+        self.sinks = Sinks()
+        self._viz: RerunOutput | None = None
         if rrd is not None or viewer is not None:
             from keo_service.live.rerun_process import RerunWorker
 
-            self._viz = RerunWorker(
+            worker = RerunWorker(
                 cell, rrd=rrd, viewer=viewer, urdf=config.robot.urdf, window_s=viewer_window_s
             )
-        self._noise = NoiseMeter()
-        self._ros2: EstimateBridge | None = None
-        self._corrections: CorrectionPublisher | None = None
+            self._viz = RerunOutput(worker, VIZ_PERIOD_S, self.status)
         self._own_session = session is None
         self._session = session
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
         self.failure: BaseException | None = None
-        self.publish_failures = 0
         self._progress_at = time.monotonic()
         self._started = time.monotonic()
         self._rates = {"encoder": RateMeter(), "tracker": RateMeter(), "estimate": RateMeter()}
         self._status_bytes = b""
-        self._latest_bytes = b""
         self._last_estimate_wall = 0.0
         self._seq = 0
-        self.published = 0
         self.received = 0
         self._last_arrival = time.monotonic()
         self.decode_errors = 0
         self._clock_domains: dict[str, str] = {}
         self._clock_flags: collections.Counter[str] = collections.Counter()
-        self._last_tracker_p: list[float] | None = None  # for the covariance's noise floor
-        self._update_stamps: collections.deque[float] = collections.deque(maxlen=50)
+        # each adapter's newest state change (keo/<cell>/adapter/<name>/status, put on change)
+        self._adapters: dict[str, dict[str, Any]] = {}
+        self.adapters_dropped = 0
 
     async def __aenter__(self) -> KeoService:
         if self._session is None:
             self._session = session_for_service(self.config)
         s = self._session
-        self._estimate_pub = s.declare_publisher(topic(self.cell, "estimate"), express=True)
         self._status_q = s.declare_queryable(topic(self.cell, "status"), self._on_status_query)
-        # a client that joins late asks keo/<cell>/estimate (or keo/*/estimate) for the latest
-        self._latest_q = s.declare_queryable(topic(self.cell, "estimate"), self._on_latest_query)
         self._token = s.liveliness().declare_token(topic(self.cell, "alive/service"))
-        if self.config.ros2.enabled:
-            from keo_service.live.ros2_bridge import EstimateBridge
-
-            self._ros2 = EstimateBridge(s, self.config)
-        from keo_service.live.compensation import CorrectionPublisher
-
-        self._corrections = CorrectionPublisher(
-            self.config, s, None if self._ros2 is None else self._ros2.node
-        )
+        self._add_sinks(s)
         self._sub = AsyncSubscription(s, [topic(self.cell, "encoder"), topic(self.cell, "tracker")])
+        self._adapter_sub = AsyncSubscription(s, [topic(self.cell, "adapter/*/status")], maxlen=64)
         self._refresh_status()
         self._start(self._consume(), "keo.service.consume")
         self._start(self._status_loop(), "keo.service.status")
-        if self._viz is not None:
-            self._viz.start()
-            self._start(self._viz_loop(), "keo.service.viz")
+        self._start(self._adapter_events(), "keo.service.adapters")
+        for sink in self.sinks.sinks:  # a sink with a cycle of its own: its own task
+            if sink.period_s is not None:
+                self._start(self._sink_loop(sink), f"keo.service.{sink.name}")
         if self._delay_tracker is not None:
             self._start(self._delay_loop(), "keo.service.delay")
         log.info("keo service for cell %s up; listening on %s", self.cell, self.config.bus.listen)
@@ -170,24 +161,42 @@ class KeoService:
     async def __aexit__(self, *exc: object) -> None:
         self._stop.set()
         self._sub.close()
+        self._adapter_sub.close()
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._token.undeclare()
         self._status_q.undeclare()
-        self._latest_q.undeclare()
-        self._estimate_pub.undeclare()
-        if self._corrections is not None:
-            self._corrections.close()
-        if self._ros2 is not None:
-            self._ros2.close()
-        if self._viz is not None:
-            self._viz.close()
+        self.sinks.close()
         if self._own_session and self._session is not None:
             self._session.close()
 
     def stop(self) -> None:
         self._stop.set()
+
+    def _add_sinks(self, session: zenoh.Session) -> None:
+        """The configured outputs: the bus (with the latest estimate for a client that joins
+        late), the corrections (also on ROS 2 when enabled), ROS 2's estimate, Rerun when asked.
+        The ROS 2 node closes after the corrections that use it (sinks close in reverse)."""
+        from keo_service.live.compensation import CorrectionPublisher, CorrectionSink
+
+        self.sinks.add(EstimateBusSink(session, self.cell))
+        ros2 = None
+        if self.config.ros2.enabled:
+            from keo_service.live.ros2_bridge import EstimateBridge
+            from keo_service.live.sinks import Ros2EstimateSink
+
+            bridge = EstimateBridge(session, self.config)
+            ros2 = Ros2EstimateSink(bridge, self.config, lambda: self.config.observer.gain)
+        node = None if ros2 is None else ros2.bridge.node
+        self.sinks.add(
+            CorrectionSink(CorrectionPublisher(self.config, session, node), self.estimator)
+        )
+        if ros2 is not None:
+            self.sinks.add(ros2)
+        if self._viz is not None:
+            self._viz.start()
+            self.sinks.add(self._viz)
 
     # ---- supervision ----------------------------------------------------------------------
 
@@ -228,8 +237,7 @@ class KeoService:
                 self._note_sample("encoder", msg)
                 self._rates["encoder"].tick(now)
                 out = self.estimator.on_encoder(msg.stamp, msg.joints)
-                if self._corrections is not None:  # with a model: feedforward at these joints
-                    self._corrections.on_joints(msg.stamp, msg.joints)
+                self.sinks.on_input(msg)
                 if self._delay_tracker is not None:
                     self._delay_tracker.add_encoder(
                         msg.stamp, msg.joints, msg.clock_epoch, msg.seq, bool(msg.flags)
@@ -237,6 +245,7 @@ class KeoService:
             elif isinstance(msg, TrackerSample):
                 self._note_sample("tracker", msg)
                 self._rates["tracker"].tick(now)
+                self.sinks.on_input(msg)  # before the estimates it may cause
                 out = self.estimator.on_tracker(
                     msg.stamp,
                     msg.position,
@@ -259,15 +268,40 @@ class KeoService:
             for estimate in out:
                 self._publish(estimate, now)
 
+    async def _adapter_events(self) -> None:
+        """The adapters' state changes (silent, back, reconnected, wrong protocol): into the
+        log, the status (`adapters`) and so Rerun's text log. Published by the adapters when
+        their state changes; nothing is polled."""
+        async for key, payload in self._adapter_sub:
+            name = key.split("/")[-2]
+            try:
+                doc = json.loads(payload)
+            except ValueError as exc:
+                doc = None
+                why = f"not JSON: {exc}"
+            else:
+                why = "not a JSON object"
+            if not isinstance(doc, dict):
+                self.decode_errors += 1
+                self.estimator.messages.append(f"undecodable adapter status on {key}: {why}")
+                continue
+            name = str(doc.get("adapter", name))
+            if name not in self._adapters and len(self._adapters) >= MAX_ADAPTERS:
+                self.adapters_dropped += 1  # bounded: a 17th name is counted, not kept
+                continue
+            self._adapters[name] = doc
+            event = doc.get("event")
+            if event:
+                state = doc.get("state")
+                level = logging.WARNING if state in ADAPTER_TROUBLE else logging.INFO
+                log.log(level, "adapter %s: %s", name, event)
+
     def _note_sample(self, stream: str, msg: JointSample | TrackerSample) -> None:
         """Record the clock domain a stream's samples declare and count their stamp flags;
         warn once per change when the domain is not the configured one (a delay calibrated
-        under the config's domains need not hold for these stamps). Keeps the tracker's
-        newest position too (the covariance's noise floor depends on its distance)."""
+        under the config's domains need not hold for these stamps)."""
         for flag in msg.flags:
             self._clock_flags[f"{stream}_{flag}"] += 1
-        if isinstance(msg, TrackerSample) and msg.position is not None:
-            self._last_tracker_p = msg.position  # for the covariance's noise floor
         if not msg.clock or self._clock_domains.get(stream) == msg.clock:
             return
         self._clock_domains[stream] = msg.clock
@@ -283,48 +317,12 @@ class KeoService:
             self.estimator.messages.append(text)
 
     def _publish(self, estimate: Estimate, now: float) -> None:
+        """One estimate out to every configured sink (`keo_service.live.sinks`)."""
         self._seq += 1
-        msg = self.to_message(estimate)
-        payload = encode(msg)
-        try:
-            self._estimate_pub.put(payload)
-        except zenoh.ZError as exc:  # the bus refused one sample: counted, the next may pass
-            self.publish_failures += 1
-            if self.publish_failures == 1 or self.publish_failures % 1000 == 0:
-                log.warning(
-                    "publishing an estimate failed (%d so far): %s", self.publish_failures, exc
-                )
-        self._latest_bytes = payload
-        self.published += 1
-        if self._corrections is not None:
-            self._corrections.publish(estimate, self.estimator)
-        if self._ros2 is not None and estimate.measured is not None:
-            self._noise.add(estimate.measured)
-            gains = self.config.observer.gain
-            tracker = self.config.tracker
-            floor = tracker_noise_floor(
-                tracker.uncertainty_um,
-                tracker.uncertainty_um_per_m,
-                self._last_tracker_p,
-                estimate.measured.size,
-            )
-            noise = covariance_noise(self._noise.std(), floor)
-            self._update_stamps.append(estimate.stamp)
-            self._ros2.publish(msg, noise, gains, self._period())
         self._rates["estimate"].tick(now)
-        if self._viz is not None:
-            self._viz.submit(estimate)
         if not estimate.held:
             self._last_estimate_wall = now
-
-    def _period(self) -> float:
-        """The observer's mean step [s] over its last updates, in stream time (its nominal
-        10 ms before two). Not the arrival rate: arrivals bunch when samples wait for encoder
-        data, and a step that looks short would shrink the covariance."""
-        stamps = self._update_stamps
-        if len(stamps) < 2 or stamps[-1] <= stamps[0]:
-            return 0.01
-        return (stamps[-1] - stamps[0]) / (len(stamps) - 1)
+        self.sinks.on_estimate(estimate, self.to_message(estimate))
 
     def to_message(self, estimate: Estimate) -> EstimateMessage:
         return estimate_message(
@@ -353,16 +351,13 @@ class KeoService:
     def status(self) -> ServiceStatus:
         now = time.monotonic()
         counters = dict(self.estimator.counters)
-        counters["published"] = self.published
         counters["received"] = self.received
         counters["decode_errors"] = self.decode_errors
         counters["queue_dropped"] = self._sub.dropped
-        counters["publish_failed"] = self.publish_failures
+        if self.adapters_dropped:
+            counters["adapter_status_dropped"] = self.adapters_dropped
         counters.update(self._clock_flags)
-        if self._viz is not None:
-            counters["rerun_dropped"] = self._viz.dropped
-        if self._corrections is not None:
-            counters.update(self._corrections.counters)
+        counters.update(self.sinks.counters())
         if self._delay_tracker is not None:
             for name, value in self._delay_tracker.counters.items():
                 counters[f"delay_{name}"] = value
@@ -384,6 +379,7 @@ class KeoService:
             messages=list(self.estimator.messages)[-10:],
             delay_tracking=None if self._delay_tracker is None else self._delay_tracker.last_result,
             delay_se_s=self.delay_se(),
+            adapters=dict(self._adapters),
         )
 
     def _resolve_if_quiet(self) -> None:
@@ -424,18 +420,13 @@ class KeoService:
                     self.estimator.set_delay_target(target)
             log.info("delay tracking: %s", tracker.last_result)
 
-    async def _viz_loop(self) -> None:
-        assert self._viz is not None
+    async def _sink_loop(self, sink: Sink) -> None:
+        """A sink's own cycle (the corrections' validity, Rerun's status snapshots), its
+        period read at every cycle; a failure there stops the service like any task's, after
+        it was counted and logged (`Sinks`)."""
         while not self._stop.is_set():
-            await asyncio.sleep(VIZ_PERIOD_S)
-            if self._viz.failure is not None:  # the Rerun process died: fail like any task
-                raise RuntimeError("Rerun logging failed") from self._viz.failure
-            self._viz.submit(msgspec.to_builtins(self.status()))
-
-    def _on_latest_query(self, query: zenoh.Query) -> None:  # zenoh thread
-        latest = self._latest_bytes
-        if latest:  # answer with our own key, so a wildcard query tells the cells apart
-            query.reply(topic(self.cell, "estimate"), latest)
+            await asyncio.sleep(sink.period_s or VIZ_PERIOD_S)
+            self.sinks.on_tick(sink)
 
     # ---- reload (SIGHUP) ------------------------------------------------------------------
 

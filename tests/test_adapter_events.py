@@ -1,0 +1,192 @@
+"""An adapter's state changes reach the service without polling: the adapter puts its status
+document on keo/<cell>/adapter/<name>/status when its state changes (silent, back,
+reconnected, wrong protocol); the service logs it, keeps it in its status (`adapters`) and so
+in Rerun's text log. Real processes: `keo run --rrd`, `keo adapter tracker`, and a tracker
+device in this test that speaks the line protocol, then goes silent with the connection
+open, then sends again; the recording is read back."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+
+import msgspec
+import pytest
+
+from keo_service.adapters.line_protocol import format_hello, format_pose
+from keo_service.bench.demo import loopback_config
+from keo_service.bench.procs import process_group
+from keo_service.io.config import config_to_toml
+from keo_service.live.bus import session_for_client
+from keo_service.live.messages import ServiceStatus, decode, topic
+from tests.test_rerun_view import _log_entries
+
+SILENT_AFTER_S = 0.5
+SEND_S, QUIET_S = 1.0, 2.5  # the device sends, goes quiet (connection open), sends again
+
+
+class _SilentTracker:
+    """A line-protocol tracker on `port`: hello, poses at 100 Hz for SEND_S, nothing for
+    QUIET_S, poses again until closed."""
+
+    def __init__(self, port: int) -> None:
+        self._server = socket.create_server(("127.0.0.1", port))
+        self._server.settimeout(0.2)
+        self._stop = threading.Event()
+        self.quiet_from: float | None = None  # monotonic
+        self.quiet_until: float | None = None
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        conn = None
+        while conn is None and not self._stop.is_set():
+            try:
+                conn, _ = self._server.accept()
+            except TimeoutError:
+                continue
+        if conn is None:
+            return
+        with conn:
+            conn.sendall(format_hello("m", "test"))
+            seq = 0
+
+            def send_for(seconds: float) -> None:
+                nonlocal seq
+                end = time.monotonic() + seconds
+                while time.monotonic() < end and not self._stop.is_set():
+                    seq += 1
+                    conn.sendall(format_pose(seq, time.time(), [1.0, 0.5, 0.2], [1, 0, 0, 0]))
+                    time.sleep(0.01)
+
+            try:
+                send_for(SEND_S)
+                self.quiet_from = time.monotonic()
+                self._stop.wait(QUIET_S)
+                self.quiet_until = time.monotonic()
+                send_for(3600.0)
+            except OSError:  # the adapter stopped at the end of the test
+                return
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self._server.close()
+
+
+def _service_status(session, config) -> ServiceStatus | None:
+    for reply in session.get(topic(config.cell, "status"), timeout=2.0):
+        if reply.ok is not None:
+            status = decode(reply.ok.payload.to_bytes())
+            assert isinstance(status, ServiceStatus)
+            return status
+    return None
+
+
+@pytest.mark.e2e
+def test_a_silent_tracker_reaches_the_service_log_status_and_rerun_text_log(demo_config, tmp_path):
+    config = loopback_config(demo_config)
+    tracker_section = msgspec.structs.replace(config.tracker, silent_after_s=SILENT_AFTER_S)
+    config = msgspec.structs.replace(config, tracker=tracker_section)
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text(config_to_toml(config), encoding="utf-8")
+    rrd = tmp_path / "run.rrd"
+    device = _SilentTracker(config.tracker.port)
+    states: list[tuple[float, str]] = []  # (monotonic, tracker state in the service's status)
+    try:
+        with process_group(tmp_path) as procs:
+            procs.start("service", ["run", "--config", str(cfg), "--rrd", str(rrd)])
+            session = session_for_client(config, retry_for=20)
+            try:
+                while _service_status(session, config) is None:
+                    time.sleep(0.1)
+                # what any client sees on the bus: the adapter's events as JSON lines
+                events_key = f"keo/{config.cell}/adapter/*/status"
+                echo = ["echo", events_key, "--config", str(cfg), "--json"]
+                procs.start("echo", echo)
+                time.sleep(1.0)  # the echo's session up before the adapter's first change
+                procs.start("adapter-tracker", ["adapter", "tracker", "--config", str(cfg)])
+                deadline = time.monotonic() + 30
+                while time.monotonic() < deadline:
+                    status = _service_status(session, config)
+                    doc = (status.adapters if status else {}).get("tracker", {})
+                    states.append((time.monotonic(), str(doc.get("state"))))
+                    if device.quiet_until and time.monotonic() > device.quiet_until + 1.0:
+                        break
+                    time.sleep(0.05)
+            finally:
+                session.close()
+            time.sleep(1.2)  # Rerun writes its file once a second
+            codes = procs.close()
+            service_log = (tmp_path / "service.log").read_text()
+            adapter_log = (tmp_path / "adapter-tracker.log").read_text()
+            echo_log = (tmp_path / "echo.log").read_text()
+    finally:
+        device.close()
+    assert codes["service"] == 0, service_log
+    assert device.quiet_from is not None
+    endpoint = f"127.0.0.1:{config.tracker.port}"
+    said = f"the device at {endpoint} went silent"
+    # the adapter says it, and the service says it, each in its log
+    assert said in adapter_log
+    assert f"adapter tracker: {said}" in service_log, service_log
+    assert f"adapter tracker: data again from {endpoint}" in service_log
+    # in the service's status: silent during the quiet stretch, found within the adapter's
+    # watch period (0.25 s) of the configured limit, and a loaded machine's margin (the last
+    # pose may have been seen up to one send period before the device noted its quiet)
+    silent = [at for at, state in states if state == "silent"]
+    assert silent, states
+    found = silent[0] - device.quiet_from
+    print(f"silent in the service's status {1e3 * found:.0f} ms after the device went quiet")
+    assert SILENT_AFTER_S - 0.02 <= found <= SILENT_AFTER_S + 0.25 + 1.0
+    assert states[-1][1] == "receiving"
+    # and in Rerun's text log, read back from the recording
+    entries = _log_entries(rrd)
+    warn = [text for level, text in entries if level == "WARN" and said in text]
+    assert warn, entries
+    assert f"(tracker.silent_after_s = {SILENT_AFTER_S:g})" in warn[0]
+    assert ("INFO", f"tracker: data again from {endpoint} (receiving)") in entries
+    # and `keo echo` shows them as the JSON objects they are
+    echoed = [json.loads(line) for line in echo_log.splitlines() if line.startswith("{")]
+    events = [(d.get("state"), d.get("event")) for d in echoed if d.get("adapter") == "tracker"]
+    assert any(state == "silent" and said in str(event) for state, event in events), echo_log
+    assert all(d["key"] == f"keo/{config.cell}/adapter/tracker/status" for d in echoed)
+
+
+def test_each_adapter_event_is_one_text_log_entry(demo_cell, tmp_path):
+    """The service's status carries each adapter's newest event; the Rerun sink writes it once
+    per `event_seq`, a warning for trouble, in the adapter's words (not also as a bare state
+    change), and an adapter that publishes no events still gets its state changes."""
+    from keo_service.live.rerun_sink import RerunSink
+    from tests.test_rerun_view import _pose_estimate, _status
+
+    rrd = tmp_path / "e.rrd"
+    sink = RerunSink(demo_cell, rrd=rrd)
+    sink.add(_pose_estimate(10.0))
+    now = time.time()
+
+    def tracker(seq: int, state: str, event: str) -> dict[str, object]:
+        return {"tracker": {"state": state, "event": event, "event_seq": seq}}
+
+    silent = "the device at h:1 went silent: nothing for 0.5 s (tracker.silent_after_s = 0.5)"
+    steps = [
+        {"adapters": tracker(1, "receiving", "connecting -> receiving (h:1)")},
+        {"adapters": tracker(2, "silent", silent)},
+        {"adapters": tracker(2, "silent", silent)},  # the same event again: not repeated
+        {"adapters": tracker(3, "receiving", "data again from h:1 (receiving)")},
+        {"adapters": {"encoder": {"state": "connected"}}},  # no events of its own
+        {"adapters": {"encoder": {"state": "disconnected"}}},
+    ]
+    for k, extra in enumerate(steps):
+        sink.add_status(_status(now + 1.0 + k, {}) | extra)
+    sink.close()
+    entries = _log_entries(rrd)
+    tracker_entries = [e for e in entries if e[1].startswith("tracker:")]
+    assert tracker_entries == [
+        ("INFO", "tracker: connecting -> receiving (h:1)"),
+        ("WARN", f"tracker: {silent}"),
+        ("INFO", "tracker: data again from h:1 (receiving)"),
+    ]
+    assert ("WARN", "encoder: state connected -> disconnected") in entries
