@@ -96,7 +96,9 @@ def _stamp_errors(samples, t0: float, clock: tuple[float, float]):
 @pytest.mark.slow
 def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
     base = load_config(CONFIGS / "ur10_demo.toml")
-    timing = msgspec.structs.replace(base.timing, delay_s=0.0)
+    timing = msgspec.structs.replace(
+        base.timing, delay_s=0.0, clock_state_dir=str(tmp_path / "clocks")
+    )
     config = loopback_config(msgspec.structs.replace(base, timing=timing))
     assert config.timing.track_delay  # on by default
     cfg = tmp_path / "c.toml"

@@ -513,7 +513,8 @@ class OnlineDelayTracker:
 
     Samples a source flagged (its clock re-learning, a stamp ahead of its receipt or too
     old) are left out. When either stream's time base starts anew (its `clock_epoch`
-    changes, or its `seq` goes back: an adapter restarted), the data before it is dropped,
+    changes, or its `seq` goes back while it gives no epoch: an adapter restarted; one that
+    went on on its saved clock mapping keeps its epoch), the data before it is dropped,
     the first `settle_s` seconds after it too (the new mapping learns its drift), and so are
     the fits before it (a new mapping carries a new transport floor): the next accepted fit
     decides the delay; until then the delay in use stays as it was, its standard error grown
@@ -605,7 +606,10 @@ class OnlineDelayTracker:
     def _source(self, stream: str, t: float, epoch: int, seq: int) -> None:
         known = self._sources.get(stream)
         self._sources[stream] = (epoch, seq)
-        if known is not None and (epoch != known[0] or seq < known[1]):
+        # a seq going back is a restarted publisher: a new time base unless the publisher
+        # says otherwise by its epoch (an adapter that went on on its saved clock mapping
+        # keeps it); one that gives no epoch (0) says nothing
+        if known is not None and (epoch != known[0] or (seq < known[1] and epoch == 0)):
             self.restart(t, f"the {stream} time base started anew")
 
     def restart(self, t: float, why: str) -> None:
