@@ -501,15 +501,18 @@ class OnlineDelayTracker:
     - it agrees with the running estimate (within `outlier_sigmas` combined standard
       errors), unless the next fit agrees with it too (then the delay really moved).
 
-    The running estimate is the inverse-variance weighted mean of the last `keep` accepted
-    fits, each weighted by 1 / (se^2 + tau^2), where tau^2 is the scatter of successive fits
-    beyond their own standard errors (the stamps' transport times wander with the host's
-    load, a fit's standard error cannot know that), at least `min_wander_s`^2. Its standard
-    error is 1 / sqrt(sum of the weights). The service slews the estimator's delay to it,
-    never jumps, when it is known to `max_apply_m` at the tool's speed or is more than three
-    standard errors away from the delay in use; otherwise (fits scattering widely, as when
-    the robot's geometry makes an error the stretches' model does not hold) it is shown but
-    not applied.
+    The running estimate is the inverse-variance weighted mean of the last `keep` accepted fits,
+    each weighted by 1 / (se^2 + tau^2 + wander_rate * age), where tau^2 is the scatter of
+    successive fits beyond their own standard errors (the stamps' transport times wander with
+    the host's load, a fit's standard error cannot know that), at least `min_wander_s`^2, and
+    age the stream seconds since the fit: the delay the stamps need walks as the mapped clocks'
+    floors move with the load (measured on a loaded 2-core host: 20-40 us over 15-20 s, about (5
+    us)^2 per second), so an older fit says less about it now. (An equal-weight mean of the last
+    8 fits lagged the walk by 20 s: 40-60 us behind.) Its standard error is 1 / sqrt(sum of the
+    weights). The service slews the estimator's delay to it, never jumps, when it is known to
+    `max_apply_m` at the tool's speed or is more than three standard errors away from the delay
+    in use; otherwise (fits scattering widely, as when the robot's geometry makes an error the
+    stretches' model does not hold) it is shown but not applied.
 
     Samples a source flagged (its clock re-learning, a stamp ahead of its receipt or too
     old) are left out. When either stream's time base starts anew (its `clock_epoch`
@@ -535,6 +538,7 @@ class OnlineDelayTracker:
         min_wander_s: float = 2e-6,
         restart_sigma_s: float = 50e-6,
         max_apply_m: float = 10e-6,
+        wander_rate: float = 25e-12,
     ) -> None:
         # fits run off the event loop: give them their own scratch data for gravity torques
         self.cell = (
@@ -559,11 +563,15 @@ class OnlineDelayTracker:
         )
         self._start = -math.inf  # stream time from which samples count
         self._sources: dict[str, tuple[int, int]] = {}  # stream -> (epoch, last seq)
-        self._fits: collections.deque[tuple[float, float]] = collections.deque(maxlen=keep)
+        self.wander_rate = wander_rate
+        # accepted fits (value, se, stream time)
+        self._fits: collections.deque[tuple[float, float, float]] = collections.deque(maxlen=keep)
         # accepted fits (value, se, segment): a segment ends when a time base starts anew
-        self._history: collections.deque[tuple[float, float, int]] = collections.deque(maxlen=32)
+        self._history: collections.deque[tuple[float, float, int, float]] = collections.deque(
+            maxlen=32
+        )
         self._segment = 0
-        self._suspect: tuple[float, float] | None = None  # an outlier fit, kept to compare
+        self._suspect: tuple[float, float, float] | None = None  # an outlier fit, to compare
         self.estimate: float | None = None  # the running estimate of the delay (s)
         self.se: float | None = None  # its standard error (s)
         self.applied_se: float | None = None  # that of the estimate last applied (s)
@@ -730,7 +738,7 @@ class OnlineDelayTracker:
             spread = math.sqrt(self.se**2 + se * se + tau2)
             if abs(gap) > self.outlier_sigmas * spread:
                 suspect = self._suspect
-                self._suspect = (value, se)
+                self._suspect = (value, se, found.t)
                 agrees = suspect is not None and abs(value - suspect[0]) <= (
                     self.outlier_sigmas * math.sqrt(se * se + suspect[1] ** 2 + tau2)
                 )
@@ -745,12 +753,17 @@ class OnlineDelayTracker:
                 assert suspect is not None
                 self._fits.append(suspect)
         self._suspect = None
-        self._fits.append((value, se))
-        self._history.append((value, se, self._segment))
+        self._fits.append((value, se, found.t))
+        self._history.append((value, se, self._segment, found.t))
         tau2 = self._wander2()
-        weights = [1.0 / (s * s + tau2) for _v, s in self._fits]
+        # an older fit says less about the delay now: the stamps' floors walk with the load
+        weights = [
+            1.0 / (s * s + tau2 + self.wander_rate * max(0.0, found.t - t))
+            for _v, s, t in self._fits
+        ]
         total = sum(weights)
-        self.estimate = sum(w * v for w, (v, _s) in zip(weights, self._fits, strict=True)) / total
+        values = [v for v, _s, _t in self._fits]
+        self.estimate = sum(w * v for w, v in zip(weights, values, strict=True)) / total
         self.se = 1.0 / math.sqrt(total)
         self.counters["fits_accepted"] += 1
         self.last_result = (
@@ -770,24 +783,27 @@ class OnlineDelayTracker:
         return self.estimate
 
     def _wander2(self) -> float:
-        """tau^2: the variance of the accepted fits beyond their standard errors, by
-        DerSimonian and Laird's moment estimator over the recent history, each segment
-        (between restarts) about its own mean (the wander is the host's, not one
-        mapping's); at least min_wander_s^2, and (10 min_wander_s)^2 until 3 fits say."""
+        """tau^2: the scatter of successive accepted fits beyond their standard errors and
+        the walk `wander_rate` allows between them, from the differences of successive fits
+        within each segment (between restarts): the median of the squared differences over
+        0.4549 (a normal variable's), so that one wild fit does not make every fit look
+        wild, and a slow walk of the delay is not taken for scatter. At least
+        min_wander_s^2, and (10 min_wander_s)^2 until 2 differences say."""
         floor = self.min_wander_s**2
-        q = dof = denom = 0.0
-        for segment in {h[2] for h in self._history}:
-            vals = np.array([h[0] for h in self._history if h[2] == segment])
-            w = np.array([1.0 / h[1] ** 2 for h in self._history if h[2] == segment])
-            if vals.size < 2:
-                continue
-            mean = float(w @ vals / w.sum())
-            q += float(w @ (vals - mean) ** 2)
-            dof += vals.size - 1
-            denom += float(w.sum() - (w @ w) / w.sum())
-        if dof < 2 or denom <= 0:
+        d2: list[float] = []
+        se2: list[float] = []
+        dt: list[float] = []
+        hist = list(self._history)
+        for a, b in itertools.pairwise(hist):
+            if a[2] == b[2]:
+                d2.append((b[0] - a[0]) ** 2)
+                se2.append(a[1] ** 2 + b[1] ** 2)
+                dt.append(max(0.0, b[3] - a[3]))
+        if len(d2) < 2:
             return max(floor, (10 * self.min_wander_s) ** 2)  # unknown yet: be modest
-        return max(floor, (q - dof) / denom)
+        spread = float(np.median(d2)) / 0.4549 - float(np.median(se2))
+        walk = self.wander_rate * float(np.median(dt))
+        return max(floor, (spread - walk) / 2.0)
 
     def forget(self) -> None:
         """The delay was set by hand (a reload): start the running estimate afresh."""
