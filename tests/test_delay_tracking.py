@@ -277,3 +277,21 @@ print(time.perf_counter() - start, "scipy.stats" in sys.modules, type(found).__n
     assert kind == "DelayMeasurement"
     assert stats_loaded == "False"
     assert seconds < 1.0  # measured 0.04-0.07 s
+
+
+def test_fits_of_young_mappings_are_provisional(demo_cell):
+    """The first stretches come from clock mappings still converging: their fits are applied
+    (better than no delay) but the first fit of settled stamps replaces them, neither
+    averaged with them nor refused as an outlier against them."""
+    tracker = OnlineDelayTracker(demo_cell, young_s=10.0)
+    _samples(tracker, np.arange(0.0, 1.0, 0.01))  # the first samples, at stream time 0
+    young = tracker.combine(DelayMeasurement(450e-6, 3e-6, SPEED, 5.0, current_s=0.0))
+    assert young == pytest.approx(450e-6)  # applied
+    assert "provisional" in tracker.last_result
+    settled = tracker.combine(DelayMeasurement(540e-6, 3e-6, SPEED, 11.0, current_s=450e-6))
+    assert settled == pytest.approx(540e-6)  # replaces it: not the mean, not an outlier
+    assert tracker.counters["fits_refused_outlier"] == 0
+    # from then on, fits are combined as usual
+    after = tracker.combine(DelayMeasurement(550e-6, 3e-6, SPEED, 16.0, current_s=540e-6))
+    assert after is not None
+    assert 540e-6 < after < 550e-6

@@ -514,6 +514,12 @@ class OnlineDelayTracker:
     in use; otherwise (fits scattering widely, as when the robot's geometry makes an error the
     stretches' model does not hold) it is shown but not applied.
 
+    Fits of stretches that end within `young_s` of the first samples or of a restart are
+    provisional: taken and applied as any (better than no delay), but the first fit of later
+    stretches replaces them instead of being averaged with them: a young clock mapping's
+    stamps move while its drift converges (in the device-clock test the first 5 s fit lay
+    60-160 us below the delay the stamps needed from 10 s on).
+
     Samples a source flagged (its clock re-learning, a stamp ahead of its receipt or too
     old) are left out. When either stream's time base starts anew (its `clock_epoch`
     changes, or its `seq` goes back while it gives no epoch: an adapter restarted; one that
@@ -539,6 +545,7 @@ class OnlineDelayTracker:
         restart_sigma_s: float = 50e-6,
         max_apply_m: float = 10e-6,
         wander_rate: float = 25e-12,
+        young_s: float = 10.0,
     ) -> None:
         # fits run off the event loop: give them their own scratch data for gravity torques
         self.cell = (
@@ -562,6 +569,9 @@ class OnlineDelayTracker:
             collections.deque(maxlen=max_samples)
         )
         self._start = -math.inf  # stream time from which samples count
+        self.young_s = young_s
+        self._young_until = math.nan  # fits of stretches ending before this are provisional
+        self._provisional = 0  # how many of the fits kept are provisional
         self._sources: dict[str, tuple[int, int]] = {}  # stream -> (epoch, last seq)
         self.wander_rate = wander_rate
         # accepted fits (value, se, stream time)
@@ -613,6 +623,8 @@ class OnlineDelayTracker:
 
     def _source(self, stream: str, t: float, epoch: int, seq: int) -> None:
         known = self._sources.get(stream)
+        if math.isnan(self._young_until) and math.isfinite(t):
+            self._young_until = t + self.young_s  # the first samples: young clock mappings
         self._sources[stream] = (epoch, seq)
         # a seq going back is a restarted publisher: a new time base unless the publisher
         # says otherwise by its epoch (an adapter that went on on its saved clock mapping
@@ -625,6 +637,7 @@ class OnlineDelayTracker:
         self._enc.clear()
         self._trk.clear()
         self._fits.clear()
+        self._provisional = 0
         self._suspect = None
         self._segment += 1
         if self.se is not None:  # the delay in use is less sure under the new mapping
@@ -633,6 +646,7 @@ class OnlineDelayTracker:
             self.applied_se = math.hypot(self.applied_se, self.restart_sigma_s)
         if math.isfinite(t):
             self._start = t + self.settle_s
+            self._young_until = t + self.young_s
         self.counters["restarts"] += 1
         self.last_result = f"restarted: {why}; fitting again after {self.settle_s:g} s"
 
@@ -733,6 +747,12 @@ class OnlineDelayTracker:
             )
             return None
         tau2 = self._wander2()
+        provisional = found.t < self._young_until
+        if not provisional and self._provisional:
+            # the first fit of stamps from mappings no longer young: the provisional fits
+            # before it described stamps that have moved since; it is not held against them
+            self._fits.clear()
+            self._provisional = 0
         if self.estimate is not None and self.se is not None and self._fits:
             gap = value - self.estimate
             spread = math.sqrt(self.se**2 + se * se + tau2)
@@ -752,9 +772,13 @@ class OnlineDelayTracker:
                 self._fits.clear()  # two in a row: the delay moved
                 assert suspect is not None
                 self._fits.append(suspect)
+                self._provisional = int(provisional)
         self._suspect = None
         self._fits.append((value, se, found.t))
-        self._history.append((value, se, self._segment, found.t))
+        if provisional:
+            self._provisional += 1
+        else:  # the scatter of fits is judged from settled mappings' only
+            self._history.append((value, se, self._segment, found.t))
         tau2 = self._wander2()
         # an older fit says less about the delay now: the stamps' floors walk with the load
         weights = [
@@ -768,7 +792,8 @@ class OnlineDelayTracker:
         self.counters["fits_accepted"] += 1
         self.last_result = (
             f"fit {said}; delay {self.estimate * 1e6:.1f} +/- {self.se * 1e6:.1f} us "
-            f"({len(self._fits)} fits, wander {math.sqrt(tau2) * 1e6:.1f} us)"
+            f"({len(self._fits)} fits, wander {math.sqrt(tau2) * 1e6:.1f} us"
+            f"{', provisional' if provisional else ''})"
         )
         # applied when known well enough at this speed, or clearly better than the delay in
         # use; otherwise the fits scatter too much (an error the short stretches' model does
@@ -808,6 +833,7 @@ class OnlineDelayTracker:
     def forget(self) -> None:
         """The delay was set by hand (a reload): start the running estimate afresh."""
         self._fits.clear()
+        self._provisional = 0
         self._suspect = None
         self.estimate = self.se = self.applied_se = None
 
