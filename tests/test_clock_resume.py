@@ -8,11 +8,14 @@ from __future__ import annotations
 
 import json
 
+import msgspec
 import numpy as np
 import pytest
 
 from keo_service.adapters.clock_state import load_into, save, state_path
 from keo_service.core.clock import RESUME_MAX_AGE_S, ClockMapper, Stamper
+from keo_service.io.config import config_to_toml, load_config
+from tests.conftest import CONFIGS
 from tests.test_clock import FLOOR_S, Stream, connection_start, mapped_errors, stream
 
 
@@ -148,3 +151,12 @@ def test_the_mapping_file_round_trips_and_a_bad_one_is_learned_anew(tmp_path):
     path.write_text("{not json")
     assert "unreadable" in load_into(Stamper("device"), path, "rtde://10.0.0.2:30004")
     assert "no saved" in load_into(Stamper("device"), tmp_path / "none.json", "x")
+
+
+def test_a_relative_clock_state_dir_is_relative_to_the_config_file(tmp_path):
+    base = load_config(CONFIGS / "ur10_demo.toml")
+    assert base.timing.clock_state_dir == ""  # not kept unless asked for
+    timing = msgspec.structs.replace(base.timing, clock_state_dir="clocks")
+    path = tmp_path / "c.toml"
+    path.write_text(config_to_toml(msgspec.structs.replace(base, timing=timing)))
+    assert load_config(path).timing.clock_state_dir == str(tmp_path / "clocks")
