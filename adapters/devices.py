@@ -14,12 +14,14 @@ import logging
 import math
 import time
 from collections import Counter
+from pathlib import Path
 from typing import Any
 
 import msgspec
 import zenoh
 
 from keo_service.adapters import rtde
+from keo_service.adapters.clock_state import SAVE_PERIOD_S, load_into, save, state_path
 from keo_service.adapters.connection import DEVICE, Device, run_tcp_client
 from keo_service.adapters.health import AdapterHealth
 from keo_service.adapters.line_protocol import MAX_LINE, LineProtocolParser
@@ -74,6 +76,36 @@ class _Adapter:
         self.stamper = Stamper(
             section.clock, config.timing.max_stamp_age_s, epoch=time.time_ns() // 1_000_000
         )
+        self._clock_file: Path | None = None  # where the mapping is kept (timing.clock_state_dir)
+        self._clock_saved_at = 0.0
+        if config.timing.clock_state_dir and section.clock == "device":
+            self._clock_file, self._clock_device = self._clock_state_file(config)
+            said = load_into(self.stamper, self._clock_file, self._clock_device)
+            log.info("%s: device clock: %s", self.name, said)
+
+    def _clock_state_file(self, config: Config) -> tuple[Path, str]:
+        """The file that keeps this device's clock mapping, and the device's identity."""
+        section = config.tracker if self.name == "tracker" else config.robot
+        port = config.robot.endpoint_port if self.name != "tracker" else config.tracker.port
+        device = f"{section.protocol}://{section.host}:{port}"
+        return state_path(config.timing.clock_state_dir, config.cell, self.name, device), device
+
+    async def _save_clock(self, now: float) -> None:
+        """Keep the clock mapping on disk about once a second (off the loop)."""
+        if self._clock_file is None or now - self._clock_saved_at < SAVE_PERIOD_S:
+            return
+        self._clock_saved_at = now
+        state = self.stamper.export()
+        if state is None:
+            return
+        try:
+            await asyncio.to_thread(save, state, self._clock_file, self._clock_device)
+        except OSError as exc:
+            self.counters["clock_state_not_saved"] += 1
+            if self.counters["clock_state_not_saved"] == 1:
+                log.warning(
+                    "%s: cannot keep the clock mapping in %s: %s", self.name, self._clock_file, exc
+                )
 
     async def __aenter__(self) -> _Adapter:
         if self._session is None:
@@ -117,6 +149,7 @@ class _Adapter:
             if self.health.state == "receiving":
                 self.device.last_error = ""  # the newest problem is over once data flows
             self._publish_change()
+            await self._save_clock(time.monotonic())
             await asyncio.sleep(WATCH_PERIOD_S)
 
     def _status_doc(self) -> dict[str, Any]:

@@ -236,7 +236,7 @@ class UdpEncoderAdapter(EncoderAdapter):
 
     def new_session(self) -> None:
         """The controller restarted or another one took over: a new time base."""
-        self.stamper.restart()
+        self.stamper.restart(fresh=True)
         self._last_device_ms = None
         self.counters["sessions"] += 1
 

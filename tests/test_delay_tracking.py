@@ -95,7 +95,7 @@ def _samples(tracker: OnlineDelayTracker, t: np.ndarray, epoch: int = 0, seq0: i
         tracker.add_tracker(float(ti) + 1e-3, [1.0, 0.0, 0.0], None, epoch, seq0 + i)
 
 
-def test_a_new_clock_epoch_or_a_seq_going_back_starts_the_fits_anew(demo_cell):
+def test_a_new_clock_epoch_or_a_seq_going_back_without_one_starts_the_fits_anew(demo_cell):
     tracker = OnlineDelayTracker(demo_cell, settle_s=4.0)
     feed(tracker, [(50e-6, 5e-6)] * 3)
     se_before = tracker.se
@@ -108,8 +108,15 @@ def test_a_new_clock_epoch_or_a_seq_going_back_starts_the_fits_anew(demo_cell):
     assert tracker.se is not None
     assert se_before is not None
     assert tracker.se > se_before  # ... less sure
-    _samples(tracker, np.arange(10.0, 12.0, 0.01), epoch=1, seq0=1)  # seq back: restarted
-    assert tracker.counters["restarts"] == 2
+    # seq back under the same epoch: the adapter restarted but went on on its saved clock
+    # mapping (it says so by keeping the epoch): not a new time base
+    _samples(tracker, np.arange(10.0, 12.0, 0.01), epoch=1, seq0=1)
+    assert tracker.counters["restarts"] == 1
+    # a publisher that gives no epoch (0) and whose seq goes back: restarted
+    quiet = OnlineDelayTracker(demo_cell, settle_s=4.0)
+    _samples(quiet, np.arange(0.0, 1.0, 0.01), seq0=500)
+    _samples(quiet, np.arange(1.0, 2.0, 0.01), seq0=1)
+    assert quiet.counters["restarts"] == 1
     # the first fit after a restart is not held against the fits of the old mapping
     assert tracker.combine(DelayMeasurement(300e-6, 5e-6, SPEED, 20.0)) == pytest.approx(300e-6)
 
@@ -273,3 +280,21 @@ print(time.perf_counter() - start, "scipy.stats" in sys.modules, type(found).__n
     assert kind == "DelayMeasurement"
     assert stats_loaded == "False"
     assert seconds < 1.0  # measured 0.04-0.07 s
+
+
+def test_fits_of_young_mappings_are_provisional(demo_cell):
+    """The first stretches come from clock mappings still converging: their fits are applied
+    (better than no delay) but the first fit of settled stamps replaces them, neither
+    averaged with them nor refused as an outlier against them."""
+    tracker = OnlineDelayTracker(demo_cell, young_s=10.0)
+    _samples(tracker, np.arange(0.0, 1.0, 0.01))  # the first samples, at stream time 0
+    young = tracker.combine(DelayMeasurement(450e-6, 3e-6, SPEED, 5.0, current_s=0.0))
+    assert young == pytest.approx(450e-6)  # applied
+    assert "provisional" in tracker.last_result
+    settled = tracker.combine(DelayMeasurement(540e-6, 3e-6, SPEED, 11.0, current_s=450e-6))
+    assert settled == pytest.approx(540e-6)  # replaces it: not the mean, not an outlier
+    assert tracker.counters["fits_refused_outlier"] == 0
+    # from then on, fits are combined as usual
+    after = tracker.combine(DelayMeasurement(550e-6, 3e-6, SPEED, 16.0, current_s=540e-6))
+    assert after is not None
+    assert 540e-6 < after < 550e-6

@@ -2,6 +2,8 @@
 (+80 ppm, delivery late in bursts) and the line-protocol mock tracker on its own (-40 ppm, late
 in bursts too), each adapter killed and restarted three times, the service starting from
 `delay_s = 0` with the online delay fit on (the default). keo must find the delay itself.
+The adapters keep their clock mappings in `timing.clock_state_dir`, so that a restarted
+adapter goes on on the line it had instead of learning its device's drift anew.
 
 The truth is established from the mocks, not from keo: each mock stamps a sample with its own
 clock at the instant the sample describes (`offset + scenario time * (1 + drift)`, offsets and
@@ -96,7 +98,9 @@ def _stamp_errors(samples, t0: float, clock: tuple[float, float]):
 @pytest.mark.slow
 def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
     base = load_config(CONFIGS / "ur10_demo.toml")
-    timing = msgspec.structs.replace(base.timing, delay_s=0.0)
+    timing = msgspec.structs.replace(
+        base.timing, delay_s=0.0, clock_state_dir=str(tmp_path / "clocks")
+    )
     config = loopback_config(msgspec.structs.replace(base, timing=timing))
     assert config.timing.track_delay  # on by default
     cfg = tmp_path / "c.toml"
@@ -190,6 +194,30 @@ def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
                 out.append(round(float(np.ptp(meds)) * 1e6, 1))
         return out
 
+    def across_restarts(inst: np.ndarray, e: np.ndarray) -> list[float]:
+        """How far the stream's per-second median stamp error moved in the 10 s after each
+        restart from its median over the 3 s before the kill (us): a mapping learned anew
+        swings here, one that goes on does not."""
+        out = []
+        for kill, back in zip(KILLS, restarts, strict=True):
+            before = (inst > t0 + kill - 3.0) & (inst < t0 + kill)
+            after = (inst > back) & (inst < back + 10.0)
+            sec = np.floor(inst[after] - back)
+            meds = np.array([np.median(e[after][sec == k]) for k in np.unique(sec)])
+            out.append(round(float(np.max(np.abs(meds - np.median(e[before])))) * 1e6, 1))
+        return out
+
+    def phase(a: float, b: float) -> dict[str, float]:
+        """The judged estimates' error in one mapping's life [um, urad]."""
+        w = (g_stamps > a) & (g_stamps < b)
+        pos, rot = np.abs(err[w, :3]).max(axis=1) * 1e6, np.abs(err[w, 3:]).max(axis=1) * 1e6
+        return {
+            "max_um": round(float(pos.max()), 1),
+            "p95_um": round(float(np.percentile(pos, 95)), 1),
+            "max_urad": round(float(rot.max()), 1),
+            "p95_urad": round(float(np.percentile(rot, 95)), 1),
+        }
+
     report = {
         "delay_needed_end_us": truth_end * 1e6,
         "delay_floors_end_us": floor_end * 1e6,
@@ -197,6 +225,15 @@ def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
         "delay_error_end_us": (delay_end - truth_end) * 1e6,
         "delay_se_end_us": se_end[-1] * 1e6 if se_end and se_end[-1] is not None else None,
         "stamp_wander_us": {"encoder": wander(e_inst, e_err), "tracker": wander(k_inst, k_err)},
+        "stamp_change_after_restarts_us": {
+            "encoder": across_restarts(e_inst, e_err),
+            "tracker": across_restarts(k_inst, k_err),
+        },
+        "clock_epochs": {
+            "encoder": len({m.clock_epoch for m in enc}),
+            "tracker": len({m.clock_epoch for m in trk}),
+        },
+        "judged_by_phase": [phase(a, b) for a, b in zip(starts, ends, strict=True)],
         "judged_max_err_pos_um": float(np.abs(err[judged, :3]).max() * 1e6),
         "judged_max_err_rot_urad": float(np.abs(err[judged, 3:]).max() * 1e6),
         "judged_p95_err_pos_um": float(
@@ -228,20 +265,40 @@ def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
         flagged=np.array([bool(m.flags) for m in est]),
     )
     assert judged.sum() > 0.5 * 100 * (PLAY_S - 4 * SETTLE_S)
-    # Issue 31 asks for the delay within 10 us and the estimate within 20 um / 20 urad. On
-    # this shared 2-core machine (load average 5-20 while measuring) the mapped stamps
-    # themselves wander: the delay the estimate needs (from the mocks' clocks, per second)
-    # moves by 40-240 us within one mapping's life, faster than 5 s fits can follow. Measured
-    # over five runs of this test (and one of 90 s without restarts): the delay in use at the
-    # end -3.7, -3.8, -9.6, -12.9, -97.6 us (-11.4) from the delay needed over the last 8 s
-    # (in the fifth the needed delay rose 180 us in the last 10 s); judged estimates at most
-    # 13-39 (21.8) um and 29-72 (32.6) urad off, 95th percentile 10.5-35 (13.3) um and 22-57
-    # (21.7)
-    # urad. The code before this change on this same test: -78 us, 182 um / 230 urad, 95th
-    # percentile 125 um / 68 urad. Asserted: what held in every run, with a margin for a
-    # loaded CI machine; the targets of the issue are not met here (see the notes).
-    assert abs(delay_end - truth_end) < 150e-6, report  # from 0: 500-630 us to find
+    # Each adapter restart goes on on the clock mapping the adapter saved
+    # (timing.clock_state_dir): one clock epoch per stream over the whole run (learned anew, as
+    # before, every restart was a new epoch), and the mapped stamps do not swing after a
+    # restart. Measured over 17 runs: within 10 s of a restart the encoder's stamps moved 2-32
+    # us and the tracker's 8-130 us from before the kill (the largest when the tracker's
+    # transport floor itself moved then); learning the drift anew: 29-57 and 87-323 us.
+    assert report["clock_epochs"] == {"encoder": 1, "tracker": 1}, report
+    assert max(report["stamp_change_after_restarts_us"]["encoder"]) < 60.0, report
+    assert max(report["stamp_change_after_restarts_us"]["tracker"]) < 250.0, report
+    # Issue 31 asks for the delay within 10 us and the estimate within 20 um / 20 urad from 10 s
+    # after the start and after each restart. Measured with this code in 10 runs (load average
+    # 4-10 on the shared 2-core machine): after each restart the estimate stayed within 6.0-30.0
+    # um (29 of the 30 restart phases within 20 um; the one above at load 9.7) and 13.6-49.2
+    # urad; from 10 s after the start 6.1-45.6 um and 15.5-74.6 urad (the mappings are young
+    # there: their stamps still move while the drift is learned); 15 of the 40 phases within 20
+    # urad; 95th percentile over all judged at most 34.9 um and 42.4 urad; the delay in use at
+    # the end +9.1, +11.9, +18.7, +21.1, +7.8, +24.9, -19.4, +20.6, +3.8, -12.5 us from the one
+    # needed over the last 8 s. Why 10 us and 20 urad do not hold here. The delay: the device
+    # mocks run on the same loaded cores as the adapters, so when each sample leaves (each
+    # stream's transport floor) moves with the load, by up to 130 us within 10 s, and the mapped
+    # stamps follow it over their 20 s window (a receiver cannot tell a floor that moved from a
+    # clock that did): the delay the estimate needs walks by 20-135 us within one mapping's
+    # life, and the 5 s fits follow it a stretch late (~0.3 um and ~0.6 urad per us at this tool
+    # speed). The rotation: with the delay within 17 us of the need two phases still peaked at
+    # 16.0 and 19.5 urad (95th percentile 14.5, 15.8): the estimate's own noise. Before this
+    # change (the drift learned anew at each restart), 7 runs: delay -3.7, -3.8, -9.6, -12.9,
+    # -97.6, +4.4, +8.2 us; at most 13-39 um and 29-72 urad, 95th percentile 10.5-35 um and
+    # 22-57 urad; one run per phase: restarts 9.9-26.2 um. With an earlier version of the delay
+    # combination at load 6-10, two runs saw a stream's floor move by 100-130 us late in the
+    # run: restart 3 at 31.9 and 38.0 um, 47.7 and 51.9 urad, the delay -64 and +66 us off at
+    # the end. Asserted: what held in every run of every version, with a margin for a loaded CI
+    # machine.
+    assert abs(delay_end - truth_end) < 120e-6, report  # from 0: 400-600 us to find
     assert report["judged_p95_err_pos_um"] < 50.0, report
-    assert report["judged_p95_err_rot_urad"] < 90.0, report
-    assert report["judged_max_err_pos_um"] < 80.0, report
-    assert report["judged_max_err_rot_urad"] < 140.0, report
+    assert report["judged_p95_err_rot_urad"] < 75.0, report
+    assert report["judged_max_err_pos_um"] < 70.0, report
+    assert report["judged_max_err_rot_urad"] < 110.0, report

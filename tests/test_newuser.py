@@ -69,6 +69,9 @@ def test_init_writes_every_key_commented_and_loadable(tmp_path, protocol, tracke
     assert doc["robot"]["urdf"] == f"{robot}.urdf"
     assert (out.parent / f"{robot}.urdf").is_file()
     assert Path(config.robot.urdf) == (out.parent / f"{robot}.urdf").resolve()
+    # restarted adapters keep their device-clock mapping in a folder beside the config
+    assert doc["timing"]["clock_state_dir"] == "clock-state"
+    assert Path(config.timing.clock_state_dir) == (out.parent / "clock-state").resolve()
 
 
 def _section_of(lines: list[str], index: int) -> str:

@@ -43,11 +43,21 @@ offset at once, the drift held at the previous one until the span supports a new
 samples never count as a step: a stalled host delays them, and their mapped stamps are what
 removes the stall. (A host clock stepping forward looks like lateness: the line follows it once
 the old minima leave the window.)
+
+A device's oscillator does not change when its connection does: a new connection (or a
+restarted adapter, from the mapping it saved: `export` / `resume`) continues the mapping it
+had, block minima and all, so the stamps go on on the same line and the drift is not learned
+again from a few seconds of blocks (which left it 15 ppm off and swung the stamps by up to
+200 us while it converged). The continued line is checked: until a whole block of the new
+data has come, a sample late beyond `step_threshold_s` counts like an early one, and a first
+block whose least lag is more than `step_threshold_s` off the line either way is a step (the
+device restarted, or another device answers at that address): the mapping starts anew.
 """
 
 from __future__ import annotations
 
 import collections
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -68,6 +78,7 @@ class ClockState:
     held_back: int  # stamps moved just after the previous one so that none goes back
     drift_held: bool = False  # the span does not support a drift yet: the prior is used
     span_s: float = 0.0  # device seconds the drift fit spans
+    continued: int = 0  # times a mapping was continued (a reconnect, a restarted adapter)
 
 
 def pairwise_median_slope(d: np.ndarray, y: np.ndarray, min_dd: float) -> float:
@@ -100,6 +111,7 @@ class ClockMapper:
         self.window_s = window_s
         self.step_threshold_s = step_threshold_s
         self.step_confirm = step_confirm
+        self.drift_window_s = max(drift_window_s, window_s)
         self.min_drift_span_s = min_drift_span_s
         self.min_drift_blocks = min_drift_blocks
         self.hold_s = hold_s
@@ -112,6 +124,8 @@ class ClockMapper:
         )
         self.steps = 0
         self.held_back = 0
+        self.continued = 0
+        self._checking = False  # a continued line not yet confirmed by a block of new data
         self._last_out = -math.inf  # the host clock does not step with the device's
         self._reset()
 
@@ -127,11 +141,70 @@ class ClockMapper:
         self._residual = 0.0
         self._last_device = -math.inf
         self._outliers = 0
+        self._checking = False
 
     @property
     def learning(self) -> bool:
         """True while the drift is held (a new or re-learned clock): stamps are less sure."""
         return self._held
+
+    @property
+    def checking(self) -> bool:
+        """True while a continued line waits for the first block of new data to confirm it."""
+        return self._checking
+
+    def export(self) -> dict[str, object]:
+        """What a later mapper of the same device clock needs to continue this one (JSON
+        numbers only): the block minima, the drift (and whether it was held), the newest
+        device time."""
+        blocks = [[d, y] for d, y in self._blocks]
+        return {
+            "blocks": blocks,
+            "drift": self._drift,
+            "held": self._held,
+            "last_device": self._last_device if math.isfinite(self._last_device) else None,
+        }
+
+    def reconnect(self) -> None:
+        """A new connection to the same device: continue the line, to be confirmed by the
+        first block of the new data (see the module's docstring)."""
+        if self._offset is None:
+            return
+        self._block_index = None
+        self._block_min = (math.inf, math.inf)
+        self._outliers = 0
+        if not self._checking:
+            self.continued += 1
+        self._checking = True
+
+    def resume(self, saved: dict[str, object]) -> bool:
+        """Continue the mapping `export` gave (a restarted adapter, the same device): the
+        line goes on from those blocks, to be confirmed by the first block of new data.
+        False (and nothing changed) when `saved` is not such a mapping."""
+        try:
+            raw = saved["blocks"]
+            assert isinstance(raw, list)
+            blocks = [(float(d), float(y)) for d, y in raw]
+            drift = float(saved["drift"])  # type: ignore[arg-type]
+            held = bool(saved["held"])
+            last = saved.get("last_device")
+            last_device = -math.inf if last is None else float(last)  # type: ignore[arg-type]
+        except (KeyError, TypeError, ValueError, AssertionError):
+            return False
+        finite = all(math.isfinite(d) and math.isfinite(y) for d, y in blocks)
+        ordered = all(b[0] > a[0] for a, b in itertools.pairwise(blocks))
+        if not (blocks and finite and ordered and math.isfinite(drift)):
+            return False
+        if abs(drift) > self.max_drift:
+            return False
+        self._reset()
+        if not held:
+            self.prior_drift = drift
+        self._blocks.extend(blocks)
+        self._last_device = max(last_device, blocks[-1][0])
+        self._fit()
+        self.reconnect()
+        return True
 
     def predict(self, device_t: float) -> float:
         """Host time of a device stamp under the current fit (device time itself if none)."""
@@ -156,6 +229,8 @@ class ClockMapper:
         if self._block_index is None:
             self._block_index = index
         if index != self._block_index:
+            if self._checking and not self._confirm(*self._block_min):
+                return self.map(device_t, host_t)  # the line did not hold: learn anew
             self._blocks.append((self._block_min[1], self._block_min[0]))
             self._block_index = index
             self._block_min = (lag, device_t)
@@ -165,6 +240,18 @@ class ClockMapper:
             if not self._blocks:
                 self._fit()  # the first block: the least-late sample so far gives the offset
         return self._monotonic(self.predict(device_t))
+
+    def _confirm(self, lag: float, device_t: float) -> bool:
+        """The first block of new data under a continued line: is its least lag on the
+        line? If not, a step: the mapping starts anew (its drift is kept as the prior)."""
+        self._checking = False
+        if abs(device_t + lag - self.predict(device_t)) <= self.step_threshold_s:
+            return True
+        self.steps += 1
+        if not self._held:
+            self.prior_drift = self._drift
+        self._reset()
+        return False
 
     def _monotonic(self, t: float) -> float:
         """Stamps never go back: while the fit learns (the first samples of a connection
@@ -183,7 +270,9 @@ class ClockMapper:
         # early beyond the threshold is impossible without a step (latency is never negative);
         # late is only a stalled host or network, which the mapping is there to remove
         early = host_t < self.predict(device_t) - self.step_threshold_s
-        if not (gone_back or early):
+        # a continued line is not trusted yet: far late is as suspect as far early
+        late = self._checking and host_t > self.predict(device_t) + self.step_threshold_s
+        if not (gone_back or early or late):
             self._outliers = 0
             return False
         self._outliers += 1
@@ -195,6 +284,9 @@ class ClockMapper:
             lag, device_t = self._block_min
             self._ref, self._offset, self._drift, self._held = device_t, lag, self.prior_drift, True
             return
+        while n > 2 and self._blocks[0][0] < self._blocks[-1][0] - self.drift_window_s:
+            self._blocks.popleft()  # after a gap (a continued mapping): device seconds count
+            n -= 1
         d = np.fromiter((b[0] for b in self._blocks), float, n)
         y = np.fromiter((b[1] for b in self._blocks), float, n)
         ref = float(d[-1])
@@ -223,6 +315,7 @@ class ClockMapper:
             held_back=self.held_back,
             drift_held=self._held,
             span_s=self._span,
+            continued=self.continued,
         )
 
 
@@ -258,7 +351,7 @@ class ReceiptStamps:
 # (the stream's [robot] / [tracker] clock: `Stamper` is the one rule every adapter stamps
 # through; docs/timing.md tells the user's side)
 
-__all__ += ["DOMAINS", "Stamp", "Stamper"]
+__all__ += ["DOMAINS", "DRIFT_PRIOR_MAX_AGE_S", "RESUME_MAX_AGE_S", "Stamp", "Stamper"]
 
 DOMAINS = ("shared", "device", "receipt")
 # A "shared" stamp may lead its receipt by this much before it is flagged. On one host the
@@ -270,6 +363,12 @@ DOMAINS = ("shared", "device", "receipt")
 SHARED_AHEAD_TOLERANCE_S = 1e-3
 # What a user whose stamps are not on the cell's clock after all should do.
 _NOT_SHARED = 'stamps not on the cell\'s clock: set this input\'s clock to "device" or "receipt"'
+# A saved mapping (a restarted adapter's) goes on within this age: its blocks are within the
+# drift window (60 s of device time), so they still count; older, a new mapping learns anew,
+# from the saved drift within DRIFT_PRIOR_MAX_AGE_S (a crystal's drift moves with its
+# temperature by about a ppm per kelvin: a day-old drift is a better prior than zero).
+RESUME_MAX_AGE_S = 60.0
+DRIFT_PRIOR_MAX_AGE_S = 86400.0
 # How many messages a Stamper keeps (the counters count every case).
 _KEEP_MESSAGES = 8
 
@@ -321,11 +420,54 @@ class Stamper:
         self.receipt = ReceiptStamps()
         self._last_shared = -math.inf
 
-    def restart(self) -> None:
-        """A new connection: the device's time base may start anew (a new mapping)."""
-        self.epoch += 1
-        self.mapper = ClockMapper()
+    def restart(self, fresh: bool = False) -> None:
+        """A new connection. A mapped device clock that has a line goes on on it (the same
+        oscillator; its first block of new data confirms the line, else a step starts a new
+        epoch) and keeps its epoch; otherwise, or when the caller knows that the device's
+        time base starts anew (`fresh`: a controller that restarted), a new epoch."""
         self._last_shared = -math.inf
+        if self.domain == "device" and self.mapper.state().blocks > 0 and not fresh:
+            self.mapper.reconnect()
+            return
+        self.epoch += 1
+        old = self.mapper
+        prior = old.prior_drift if old.learning else old.state().drift_ppm * 1e-6
+        self.mapper = ClockMapper(prior_drift=prior)  # the same oscillator: its drift
+
+    def export(self) -> dict[str, object] | None:
+        """The mapping for a later adapter of the same device to continue (`resume`), with
+        the epoch it runs under; None when there is nothing to continue (not a mapped clock,
+        or no line yet)."""
+        if self.domain != "device" or self.mapper.state().blocks == 0:
+            return None
+        return {"domain": self.domain, "epoch": self.epoch, "mapping": self.mapper.export()}
+
+    def resume(self, saved: object, age_s: float) -> str:
+        """Continue the mapping a previous adapter of this device saved `age_s` seconds ago
+        (`export`): within `RESUME_MAX_AGE_S` the line and its epoch go on (the next
+        `restart` keeps them); within `DRIFT_PRIOR_MAX_AGE_S` only its drift is the prior of
+        a new mapping. What was done, in words (for the log)."""
+        if self.domain != "device" or not isinstance(saved, dict):
+            return "nothing to continue"
+        mapping, epoch = saved.get("mapping"), saved.get("epoch")
+        if saved.get("domain") != "device" or not isinstance(mapping, dict):
+            return "not a device clock's mapping: ignored"
+        if not (math.isfinite(age_s) and age_s >= 0.0):
+            return "saved at an unknown time: ignored"
+        fresh = age_s <= RESUME_MAX_AGE_S and isinstance(epoch, int)
+        if fresh and isinstance(epoch, int) and self.mapper.resume(mapping):
+            self.epoch = epoch
+            st = self.mapper.state()
+            return (
+                f"the mapping saved {age_s:.1f} s ago goes on (drift {st.drift_ppm:+.2f} "
+                f"ppm, epoch {epoch}), if the device's first block agrees"
+            )
+        drift, held = mapping.get("drift"), mapping.get("held")
+        usable = isinstance(drift, float) and held is False and age_s <= DRIFT_PRIOR_MAX_AGE_S
+        if usable and isinstance(drift, float) and abs(drift) <= self.mapper.max_drift:
+            self.mapper.prior_drift = drift
+            return f"drift {drift * 1e6:+.2f} ppm (saved {age_s:.0f} s ago) as the prior"
+        return f"saved {age_s:.0f} s ago: too old, or not usable; learning anew"
 
     def stamp(self, device_t: float | None, receipt_t: float) -> Stamp:
         """The stamp of one sample the device stamped `device_t` (None: it gives none) and
@@ -359,7 +501,8 @@ class Stamper:
                 f"the device clock stepped at device time {device_t:.6f}: the mapping starts anew",
             )
             flags = ("clock_step",)
-        if self.mapper.state().blocks < 2:  # no line yet: an offset from one block
+        # no line yet (an offset from one block), or a continued line not yet confirmed
+        if self.mapper.state().blocks < 2 or self.mapper.checking:
             flags = (*flags, "clock_relearning")
         return Stamp(t, flags)
 
@@ -411,6 +554,8 @@ class Stamper:
                 blocks=st.blocks,
                 steps=st.steps,
                 held_back=st.held_back,
+                drift_held=st.drift_held,
+                continued=st.continued,
             )
         else:
             out["held_back"] = self.receipt.held_back

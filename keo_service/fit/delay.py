@@ -501,19 +501,29 @@ class OnlineDelayTracker:
     - it agrees with the running estimate (within `outlier_sigmas` combined standard
       errors), unless the next fit agrees with it too (then the delay really moved).
 
-    The running estimate is the inverse-variance weighted mean of the last `keep` accepted
-    fits, each weighted by 1 / (se^2 + tau^2), where tau^2 is the scatter of successive fits
-    beyond their own standard errors (the stamps' transport times wander with the host's
-    load, a fit's standard error cannot know that), at least `min_wander_s`^2. Its standard
-    error is 1 / sqrt(sum of the weights). The service slews the estimator's delay to it,
-    never jumps, when it is known to `max_apply_m` at the tool's speed or is more than three
-    standard errors away from the delay in use; otherwise (fits scattering widely, as when
-    the robot's geometry makes an error the stretches' model does not hold) it is shown but
-    not applied.
+    The running estimate is the inverse-variance weighted mean of the last `keep` accepted fits,
+    each weighted by 1 / (se^2 + tau^2 + wander_rate * age), where tau^2 is the scatter of
+    successive fits beyond their own standard errors (the stamps' transport times wander with
+    the host's load, a fit's standard error cannot know that), at least `min_wander_s`^2, and
+    age the stream seconds since the fit: the delay the stamps need walks as the mapped clocks'
+    floors move with the load (measured on a loaded 2-core host: 20-40 us over 15-20 s, about (5
+    us)^2 per second), so an older fit says less about it now. (An equal-weight mean of the last
+    8 fits lagged the walk by 20 s: 40-60 us behind.) Its standard error is 1 / sqrt(sum of the
+    weights). The service slews the estimator's delay to it, never jumps, when it is known to
+    `max_apply_m` at the tool's speed or is more than three standard errors away from the delay
+    in use; otherwise (fits scattering widely, as when the robot's geometry makes an error the
+    stretches' model does not hold) it is shown but not applied.
+
+    Fits of stretches that end within `young_s` of the first samples or of a restart are
+    provisional: taken and applied as any (better than no delay), but the first fit of later
+    stretches replaces them instead of being averaged with them: a young clock mapping's
+    stamps move while its drift converges (in the device-clock test the first 5 s fit lay
+    60-160 us below the delay the stamps needed from 10 s on).
 
     Samples a source flagged (its clock re-learning, a stamp ahead of its receipt or too
     old) are left out. When either stream's time base starts anew (its `clock_epoch`
-    changes, or its `seq` goes back: an adapter restarted), the data before it is dropped,
+    changes, or its `seq` goes back while it gives no epoch: an adapter restarted; one that
+    went on on its saved clock mapping keeps its epoch), the data before it is dropped,
     the first `settle_s` seconds after it too (the new mapping learns its drift), and so are
     the fits before it (a new mapping carries a new transport floor): the next accepted fit
     decides the delay; until then the delay in use stays as it was, its standard error grown
@@ -534,6 +544,8 @@ class OnlineDelayTracker:
         min_wander_s: float = 2e-6,
         restart_sigma_s: float = 50e-6,
         max_apply_m: float = 10e-6,
+        wander_rate: float = 25e-12,
+        young_s: float = 10.0,
     ) -> None:
         # fits run off the event loop: give them their own scratch data for gravity torques
         self.cell = (
@@ -557,12 +569,19 @@ class OnlineDelayTracker:
             collections.deque(maxlen=max_samples)
         )
         self._start = -math.inf  # stream time from which samples count
+        self.young_s = young_s
+        self._young_until = math.nan  # fits of stretches ending before this are provisional
+        self._provisional = 0  # how many of the fits kept are provisional
         self._sources: dict[str, tuple[int, int]] = {}  # stream -> (epoch, last seq)
-        self._fits: collections.deque[tuple[float, float]] = collections.deque(maxlen=keep)
+        self.wander_rate = wander_rate
+        # accepted fits (value, se, stream time)
+        self._fits: collections.deque[tuple[float, float, float]] = collections.deque(maxlen=keep)
         # accepted fits (value, se, segment): a segment ends when a time base starts anew
-        self._history: collections.deque[tuple[float, float, int]] = collections.deque(maxlen=32)
+        self._history: collections.deque[tuple[float, float, int, float]] = collections.deque(
+            maxlen=32
+        )
         self._segment = 0
-        self._suspect: tuple[float, float] | None = None  # an outlier fit, kept to compare
+        self._suspect: tuple[float, float, float] | None = None  # an outlier fit, to compare
         self.estimate: float | None = None  # the running estimate of the delay (s)
         self.se: float | None = None  # its standard error (s)
         self.applied_se: float | None = None  # that of the estimate last applied (s)
@@ -604,8 +623,13 @@ class OnlineDelayTracker:
 
     def _source(self, stream: str, t: float, epoch: int, seq: int) -> None:
         known = self._sources.get(stream)
+        if math.isnan(self._young_until) and math.isfinite(t):
+            self._young_until = t + self.young_s  # the first samples: young clock mappings
         self._sources[stream] = (epoch, seq)
-        if known is not None and (epoch != known[0] or seq < known[1]):
+        # a seq going back is a restarted publisher: a new time base unless the publisher
+        # says otherwise by its epoch (an adapter that went on on its saved clock mapping
+        # keeps it); one that gives no epoch (0) says nothing
+        if known is not None and (epoch != known[0] or (seq < known[1] and epoch == 0)):
             self.restart(t, f"the {stream} time base started anew")
 
     def restart(self, t: float, why: str) -> None:
@@ -613,6 +637,7 @@ class OnlineDelayTracker:
         self._enc.clear()
         self._trk.clear()
         self._fits.clear()
+        self._provisional = 0
         self._suspect = None
         self._segment += 1
         if self.se is not None:  # the delay in use is less sure under the new mapping
@@ -621,6 +646,7 @@ class OnlineDelayTracker:
             self.applied_se = math.hypot(self.applied_se, self.restart_sigma_s)
         if math.isfinite(t):
             self._start = t + self.settle_s
+            self._young_until = t + self.young_s
         self.counters["restarts"] += 1
         self.last_result = f"restarted: {why}; fitting again after {self.settle_s:g} s"
 
@@ -721,12 +747,18 @@ class OnlineDelayTracker:
             )
             return None
         tau2 = self._wander2()
+        provisional = found.t < self._young_until
+        if not provisional and self._provisional:
+            # the first fit of stamps from mappings no longer young: the provisional fits
+            # before it described stamps that have moved since; it is not held against them
+            self._fits.clear()
+            self._provisional = 0
         if self.estimate is not None and self.se is not None and self._fits:
             gap = value - self.estimate
             spread = math.sqrt(self.se**2 + se * se + tau2)
             if abs(gap) > self.outlier_sigmas * spread:
                 suspect = self._suspect
-                self._suspect = (value, se)
+                self._suspect = (value, se, found.t)
                 agrees = suspect is not None and abs(value - suspect[0]) <= (
                     self.outlier_sigmas * math.sqrt(se * se + suspect[1] ** 2 + tau2)
                 )
@@ -740,18 +772,28 @@ class OnlineDelayTracker:
                 self._fits.clear()  # two in a row: the delay moved
                 assert suspect is not None
                 self._fits.append(suspect)
+                self._provisional = int(provisional)
         self._suspect = None
-        self._fits.append((value, se))
-        self._history.append((value, se, self._segment))
+        self._fits.append((value, se, found.t))
+        if provisional:
+            self._provisional += 1
+        else:  # the scatter of fits is judged from settled mappings' only
+            self._history.append((value, se, self._segment, found.t))
         tau2 = self._wander2()
-        weights = [1.0 / (s * s + tau2) for _v, s in self._fits]
+        # an older fit says less about the delay now: the stamps' floors walk with the load
+        weights = [
+            1.0 / (s * s + tau2 + self.wander_rate * max(0.0, found.t - t))
+            for _v, s, t in self._fits
+        ]
         total = sum(weights)
-        self.estimate = sum(w * v for w, (v, _s) in zip(weights, self._fits, strict=True)) / total
+        values = [v for v, _s, _t in self._fits]
+        self.estimate = sum(w * v for w, v in zip(weights, values, strict=True)) / total
         self.se = 1.0 / math.sqrt(total)
         self.counters["fits_accepted"] += 1
         self.last_result = (
             f"fit {said}; delay {self.estimate * 1e6:.1f} +/- {self.se * 1e6:.1f} us "
-            f"({len(self._fits)} fits, wander {math.sqrt(tau2) * 1e6:.1f} us)"
+            f"({len(self._fits)} fits, wander {math.sqrt(tau2) * 1e6:.1f} us"
+            f"{', provisional' if provisional else ''})"
         )
         # applied when known well enough at this speed, or clearly better than the delay in
         # use; otherwise the fits scatter too much (an error the short stretches' model does
@@ -766,28 +808,32 @@ class OnlineDelayTracker:
         return self.estimate
 
     def _wander2(self) -> float:
-        """tau^2: the variance of the accepted fits beyond their standard errors, by
-        DerSimonian and Laird's moment estimator over the recent history, each segment
-        (between restarts) about its own mean (the wander is the host's, not one
-        mapping's); at least min_wander_s^2, and (10 min_wander_s)^2 until 3 fits say."""
+        """tau^2: the scatter of successive accepted fits beyond their standard errors and
+        the walk `wander_rate` allows between them, from the differences of successive fits
+        within each segment (between restarts): the median of the squared differences over
+        0.4549 (a normal variable's), so that one wild fit does not make every fit look
+        wild, and a slow walk of the delay is not taken for scatter. At least
+        min_wander_s^2, and (10 min_wander_s)^2 until 2 differences say."""
         floor = self.min_wander_s**2
-        q = dof = denom = 0.0
-        for segment in {h[2] for h in self._history}:
-            vals = np.array([h[0] for h in self._history if h[2] == segment])
-            w = np.array([1.0 / h[1] ** 2 for h in self._history if h[2] == segment])
-            if vals.size < 2:
-                continue
-            mean = float(w @ vals / w.sum())
-            q += float(w @ (vals - mean) ** 2)
-            dof += vals.size - 1
-            denom += float(w.sum() - (w @ w) / w.sum())
-        if dof < 2 or denom <= 0:
+        d2: list[float] = []
+        se2: list[float] = []
+        dt: list[float] = []
+        hist = list(self._history)
+        for a, b in itertools.pairwise(hist):
+            if a[2] == b[2]:
+                d2.append((b[0] - a[0]) ** 2)
+                se2.append(a[1] ** 2 + b[1] ** 2)
+                dt.append(max(0.0, b[3] - a[3]))
+        if len(d2) < 2:
             return max(floor, (10 * self.min_wander_s) ** 2)  # unknown yet: be modest
-        return max(floor, (q - dof) / denom)
+        spread = float(np.median(d2)) / 0.4549 - float(np.median(se2))
+        walk = self.wander_rate * float(np.median(dt))
+        return max(floor, (spread - walk) / 2.0)
 
     def forget(self) -> None:
         """The delay was set by hand (a reload): start the running estimate afresh."""
         self._fits.clear()
+        self._provisional = 0
         self._suspect = None
         self.estimate = self.se = self.applied_se = None
 

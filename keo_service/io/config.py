@@ -164,6 +164,9 @@ class TimingConfig(_Section):
     stale_after_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = _DEFAULTS.stale_after_s
     # a "shared"-clock stamp older than this at receipt (or ahead of it) is counted and flagged
     max_stamp_age_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 0.5
+    # where adapters keep their device-clock mappings, so that a restarted adapter goes on
+    # on the same line ("" = not kept; relative to the config file)
+    clock_state_dir: str = ""
 
 
 class CompensationConfig(_Section):
@@ -326,6 +329,12 @@ def parse_config(
     if not urdf.is_file():
         raise ConfigError(source, "robot.urdf", f"file not found: {urdf}")
     robot = msgspec.structs.replace(config.robot, urdf=str(urdf))
+    state_dir = config.timing.clock_state_dir
+    if state_dir and not Path(state_dir).is_absolute() and base_dir is not None:
+        timing = msgspec.structs.replace(
+            config.timing, clock_state_dir=str((base_dir / state_dir).resolve())
+        )
+        config = msgspec.structs.replace(config, timing=timing)
     bus = config.bus
     tls_paths = {}
     for key in ("tls_root_ca", "tls_certificate", "tls_private_key"):

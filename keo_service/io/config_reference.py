@@ -176,6 +176,12 @@ KEYS: dict[str, tuple[str, str]] = {
         "s",
         "a shared-clock stamp older than this at receipt (or ahead of it) is counted and flagged",
     ),
+    "timing.clock_state_dir": (
+        "",
+        "where adapters keep their device-clock mappings (offset, drift), so that a "
+        "restarted adapter goes on on the same line instead of learning the drift anew; "
+        '"" = not kept (docs/timing.md)',
+    ),
     "bus.mode": ("", "peer (keo run listens itself) or client (through a router)"),
     "bus.listen": ("", "Zenoh endpoints `keo run` listens on"),
     "bus.connect": (

@@ -42,6 +42,9 @@ class InitOptions:
     force: bool = False
 
 
+CLOCK_STATE_DIR = "clock-state"  # beside the config
+
+
 def _urdf_source(robot: str) -> Path:
     if robot in ROBOTS:
         return configs_dir() / "robots" / f"{robot}.urdf"
@@ -102,6 +105,8 @@ def _cell_values(opts: InitOptions, urdf_name: str, base: str, flange: str) -> d
             "port": opts.tracker_port,
         },
         "bus": {"mode": "peer", "listen": [opts.listen], "connect": []},
+        # a restarted adapter goes on with its device clock's mapping (docs/timing.md)
+        "timing": {"clock_state_dir": CLOCK_STATE_DIR},
     }
 
 
@@ -150,8 +155,10 @@ def write_init_config(opts: InitOptions) -> Config:
         shutil.copyfile(source, target)
     values = _cell_values(opts, source.name, base, flange)
     config = parse_config(values, source=str(out), base_dir=out.parent)
-    config = msgspec.structs.replace(
-        config, robot=msgspec.structs.replace(config.robot, urdf=source.name)
+    config = msgspec.structs.replace(  # written relative to the config, as given
+        config,
+        robot=msgspec.structs.replace(config.robot, urdf=source.name),
+        timing=msgspec.structs.replace(config.timing, clock_state_dir=CLOCK_STATE_DIR),
     )
     text = commented_toml(config, _header(opts, source.name))
     out.write_text(text, encoding="utf-8")
