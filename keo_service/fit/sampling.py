@@ -3,11 +3,17 @@
 At 1 kHz a robot moving at 1 rad/s changes each joint by a milliradian between samples:
 neighbouring samples measure nearly the same configuration, and what the analysis can learn
 from ten minutes is bounded by how many distinct configurations the robot passed through, not
-by the sample count. So samples are binned by joint configuration (a grid of CELL_RAD on every
-joint, plus the direction of motion of each joint, which backlash depends on) and one sample
-per occupied cell is kept, the first in time; if more cells than `max_rows` are occupied, every
-k-th kept sample in time order. Time order is preserved, so the held-out blocks still follow
-time (drift).
+by the sample count. So the kept rows are two sets, in time order:
+
+- one sample per occupied configuration cell (a grid of CELL_RAD on every joint, plus the
+  direction of motion of each joint, which backlash depends on), the first in time, thinned
+  evenly to at most half of `max_rows`: every distinct configuration is seen;
+- the rest of `max_rows` evenly spaced in time: the recording as it was, slow stretches and
+  rests as often as they occur. One sample per cell alone over-weights fast motion (more cells
+  a second), where timing errors are largest: on a 60 s simulated recording it gave 4.22 mm
+  held out against 2.43 mm from all samples.
+
+Time order is preserved, so the held-out blocks still follow time (drift).
 """
 
 from __future__ import annotations
@@ -26,8 +32,8 @@ def informative_rows(
     max_rows: int = MAX_ROWS,
     cell_rad: float = CELL_RAD,
 ) -> np.ndarray:
-    """Indices (increasing) of one sample per occupied configuration cell, thinned evenly in
-    time to at most `max_rows`."""
+    """Indices (increasing, at most `max_rows`) of one sample per occupied configuration cell
+    (at most half of them) and samples evenly spaced in time (the rest)."""
     n = q.shape[0]
     if n <= max_rows:
         return np.arange(n)
@@ -35,9 +41,11 @@ def informative_rows(
     if direction is not None:
         keys = np.hstack([keys, np.sign(direction).astype(np.int64)])
     _cells, first = np.unique(keys, axis=0, return_index=True)
-    rows = np.sort(first)
-    if rows.size > max_rows:
-        rows = rows[np.linspace(0, rows.size - 1, max_rows).round().astype(int)]
+    cells = np.sort(first)
+    if cells.size > max_rows // 2:
+        cells = cells[np.linspace(0, cells.size - 1, max_rows // 2).round().astype(int)]
+    even = np.linspace(0, n - 1, max_rows - cells.size).round().astype(int)
+    rows: np.ndarray = np.union1d(cells, even)  # at most max_rows
     return rows
 
 
@@ -47,7 +55,8 @@ def selection_report(recorded: int, rows: np.ndarray, cell_rad: float = CELL_RAD
         "used": int(rows.size),
         "how": (
             f"one sample per {cell_rad:g} rad cell of the joint configuration (and direction of "
-            "motion), the first in time; thinned evenly in time if more"
+            "motion), the first in time, for at most half the rows; the rest evenly spaced in "
+            "time"
             if rows.size < recorded
             else "all samples"
         ),
