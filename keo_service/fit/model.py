@@ -96,6 +96,9 @@ class Data:
     sigma: np.ndarray | None = None
     # (N,) the recording (session) each row comes from, 0..S-1; None: one session
     session: np.ndarray | None = None
+    # (N,) how much each row counts in the fit and in the held-out judgement (e.g. each
+    # session's rows weighted so that the sessions count equally); None: all rows alike
+    weight: np.ndarray | None = None
 
     def subset(self, idx: np.ndarray) -> Data:
         return Data(
@@ -108,7 +111,14 @@ class Data:
             None if self.velocity is None else self.velocity[idx],
             None if self.sigma is None else self.sigma[idx],
             None if self.session is None else self.session[idx],
+            None if self.weight is None else self.weight[idx],
         )
+
+    def row_weights(self, width: int) -> np.ndarray | None:
+        """sqrt(weight) per residual row (pose-major, `width` rows a pose), None: unweighted."""
+        if self.weight is None:
+            return None
+        return np.repeat(np.sqrt(self.weight), width)
 
     def session_rows(self, sessions: int) -> list[np.ndarray]:
         """Each session's rows (all rows for one session)."""
@@ -127,6 +137,9 @@ class Stats:
     pos_rms_mm: float
     pos_max_mm: float
     rot_rms_mrad: float | None
+    # the position RMS with the data's row weights (what effects are judged by; equal to
+    # pos_rms_mm without weights); not in the report
+    judged_mm: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -148,6 +161,8 @@ class Model:
     time_ref: float = 0.0
     # recordings with their own tracker registration (T_bk each), one robot and one tool
     sessions: int = 1
+    # sensor mounts: 1 (one tool for every session) or `sessions` (each session its own)
+    tools: int = 1
     # the newest chain evaluation: (data, tau, corrections' key, R_bn, p_bn)
     _frames: tuple[Any, ...] | None = field(default=None, repr=False, compare=False)
 
@@ -155,7 +170,7 @@ class Model:
     def n_reg(self) -> int:
         """Registration parameters: T_bk per session (translation, rotation vector), then the
         sensor mount T_ns (translation and rotation vector, or the reflector offset)."""
-        return 6 * self.sessions + (3 if self.position_only else 6)
+        return 6 * self.sessions + self.tools * (3 if self.position_only else 6)
 
     @property
     def names(self) -> list[str]:
@@ -201,9 +216,12 @@ class Model:
             out.append(T_bk)
         return out
 
-    def mount(self, x: np.ndarray) -> np.ndarray:
-        """T_ns (4x4): the sensor in the flange frame."""
-        reg = x[6 * self.sessions : self.n_reg]
+    def mount(self, x: np.ndarray, tool: int = 0) -> np.ndarray:
+        """T_ns (4x4): the sensor in the flange frame (of session `tool` when each session
+        has its own)."""
+        size = 3 if self.position_only else 6
+        start = 6 * self.sessions + tool * size
+        reg = x[start : start + size]
         T_ns = np.eye(4)
         T_ns[:3, 3] = reg[:3]
         if not self.position_only:
@@ -216,7 +234,13 @@ class Model:
         T_bk, T_ns, corr = self.unpack(x)
         # the sensor frame for every pose, component-major: (3, 3, N) and (3, N)
         R_bs, p_bs = self.flange_frames(corr, data, tau)
-        times_constant_frames(R_bs, p_bs, T_ns)
+        if self.tools == 1:
+            times_constant_frames(R_bs, p_bs, T_ns)
+        else:  # each session's rows through its own mount
+            for tool, rows in enumerate(data.session_rows(self.sessions)):
+                R_sub, p_sub = R_bs[:, :, rows], p_bs[:, rows]
+                times_constant_frames(R_sub, p_sub, self.mount(x, tool))
+                R_bs[:, :, rows], p_bs[:, rows] = R_sub, p_sub
         if self.sessions > 1:
             return self._session_residuals(x, data, R_bs, p_bs)
         p_meas = data.p_ks @ T_bk[:3, :3].T + T_bk[:3, 3]
@@ -299,7 +323,11 @@ def stats(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> Stats:
         if width == 3
         else float(np.sqrt(np.mean(np.sum((r[:, 3:] / ROT_WEIGHT) ** 2, axis=1))) * 1e3)
     )
-    return Stats(int(data.n), float(np.sqrt(np.mean(pos**2))), float(pos.max()), rot)
+    rms = float(np.sqrt(np.mean(pos**2)))
+    judged = rms
+    if data.weight is not None:
+        judged = float(np.sqrt(np.sum(data.weight * pos**2) / np.sum(data.weight)))
+    return Stats(int(data.n), rms, float(pos.max()), rot, judged)
 
 
 # ---- registration --------------------------------------------------------------------------
@@ -347,9 +375,10 @@ def initial_registration(
 
 
 def initial_registration_sessions(
-    chain: Chain, data: Data, position_only: bool, sessions: int
+    chain: Chain, data: Data, position_only: bool, sessions: int, tools: int = 1
 ) -> np.ndarray:
-    """initial_registration per session; T_bk of each, the mount averaged over them."""
+    """initial_registration per session; T_bk of each, the mount averaged over them (or each
+    session's own with `tools` = sessions)."""
     if sessions == 1:
         return initial_registration(chain, data, None, position_only)
     regs = [
@@ -357,6 +386,8 @@ def initial_registration_sessions(
         for rows in data.session_rows(sessions)
     ]
     out = [r[:6] for r in regs]
+    if tools > 1:
+        return np.concatenate(out + [r[6:] for r in regs])
     out.append(np.mean([r[6:9] for r in regs], axis=0))
     if not position_only:
         out.append(Rotation.from_rotvec(np.array([r[9:12] for r in regs])).mean().as_rotvec())
@@ -401,13 +432,16 @@ def fit(
     free = np.ones(x0.size, dtype=bool) if fixed is None else ~fixed
     x = x0.copy()
 
+    width = 3 if model.position_only or data.R_ks is None else 6
+    row_w = data.row_weights(width)
+
     def fun(z: np.ndarray) -> np.ndarray:
         xx = x.copy()
         xx[free] = z
         return model.residuals(xx, data, tau)
 
     k_huber = 3.0 * noise_m
-    rows = data.n * (3 if model.position_only or data.R_ks is None else 6)
+    rows = data.n * width
     result = least_squares(
         fun,
         x[free],
@@ -415,7 +449,7 @@ def fit(
         # the exact trust-region step takes an SVD of the whole Jacobian at every iteration
         # (most of the time on long recordings); LSMR solves it iteratively
         tr_solver="lsmr" if rows > LSMR_ROWS else "exact",
-        loss="huber",
+        loss="huber" if row_w is None else _weighted_huber(row_w**2),
         f_scale=k_huber,
         x_scale="jac",
         diff_step=1e-7 / np.maximum(1.0, np.abs(x[free])),
@@ -428,6 +462,8 @@ def fit(
     r = result.fun
     J = numeric_jacobian(fun, result.x, r)
     w = np.sqrt(np.minimum(1.0, k_huber / np.maximum(np.abs(r), 1e-300)))
+    if row_w is not None:
+        w = w * row_w
     Jw = J * w[:, None]
     dof = max(1, r.size - J.shape[1])
     s2 = float(np.sum((r * w) ** 2)) / dof
@@ -435,6 +471,23 @@ def fit(
     se = np.zeros(x0.size)
     se[free] = np.sqrt(np.clip(np.diag(cov), 0, None))
     return FitResult(x, se, float(np.sum(r * r)))
+
+
+def _weighted_huber(weight: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """scipy's Huber loss with each residual's term times its row's weight (a callable loss:
+    rho, rho', rho'' of z = (r / f_scale)^2), so every row keeps its own outlier threshold."""
+
+    def loss(z: np.ndarray) -> np.ndarray:
+        out = np.empty((3, z.size))
+        inlier = z <= 1
+        root = np.sqrt(np.maximum(z, 1e-300))
+        out[0] = np.where(inlier, z, 2 * root - 1)
+        out[1] = np.where(inlier, 1.0, 1 / root)
+        out[2] = np.where(inlier, 0.0, -0.5 / (root * np.maximum(z, 1e-300)))
+        out *= weight
+        return out
+
+    return loss
 
 
 def identifiable_basis(
@@ -455,6 +508,7 @@ def identifiable_basis(
         model.temperature_ref,
         model.time_ref,
         model.sessions,
+        model.tools,
     )
     x_t = trial.x
     base = trial.residuals(x_t, data, tau)

@@ -150,7 +150,15 @@ def pooled(parts: list[Data]) -> Data:
         stack([d.velocity for d in parts]),
         stack([d.sigma for d in parts]),
         np.concatenate([np.full(d.n, s) for s, d in enumerate(parts)]),
+        session_weights([d.n for d in parts]),
     )
+
+
+def session_weights(rows: list[int]) -> np.ndarray:
+    """Per row, total / (sessions x its session's rows): each session counts equally in the
+    fit and the held-out judgement (mean weight 1), however many poses it has."""
+    total = sum(rows)
+    return np.concatenate([np.full(n, total / (len(rows) * n)) for n in rows])
 
 
 def time_delay_effect(
@@ -257,16 +265,16 @@ def run_analysis(
         train_idx, val_idx = split_data(data)
         try_maps(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
         try_couplings(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
-    sessions = result.model.sessions
+    sessions, tools = result.model.sessions, result.model.tools
     baseline = Model(
-        chain, position_only, [], result.x[: result.model.n_reg], {}, 0.0, 0.0, sessions
+        chain, position_only, [], result.x[: result.model.n_reg], {}, 0.0, 0.0, sessions, tools
     )
     tau = chain.gravity_torques(data.q)
     base_x = fit(
         baseline,
         data,
         tau,
-        initial_registration_sessions(chain, data, position_only, sessions),
+        initial_registration_sessions(chain, data, position_only, sessions, tools),
         result.report["registration"]["noise_estimate_mm"] * 1e-3,
     ).x
     report = result.report
