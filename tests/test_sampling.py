@@ -4,6 +4,7 @@ max_rows."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from keo_service.fit.sampling import informative_rows, selection_report
 
@@ -56,3 +57,44 @@ def test_repeatability_of_motion_standing_still_is_bounded():
     assert rep.poses == 5
     assert rep.measurements == 40_000
     assert abs(rep.rms_mm - 0.020 * np.sqrt(3)) < 0.002  # 20 um per coordinate
+
+
+def test_the_fit_for_many_rows_reaches_the_exact_solvers_minimum(demo_cell, monkeypatch):
+    """Above LARGE_ROWS the robust fit steps on the normal equations. On a problem scipy's
+    exact trust-region solver also solves (registration and joint offsets of a robot whose
+    geometry differs from the nominal by millimetres, a few 2 mm outliers), it reaches the same
+    minimum where the Huber threshold is wide (1 mm noise: the cost to 1e-8) and one
+    at least as low where most rows lie beyond it (20 um: the robust cost, which scipy's
+    solver stops above)."""
+    from scipy.spatial.transform import Rotation
+
+    from keo_service.core.chain import Chain
+    from keo_service.core.corrections import approach_directions
+    from keo_service.fit import model as fit_model
+    from keo_service.fit.effects import EFFECTS
+    from keo_service.fit.model import Data, Model, fit, initial_registration
+    from keo_service.sim.simulate import make_scenario, simulate
+
+    run = simulate(demo_cell, make_scenario("static-poses", {"poses": "300"}), seed=11)
+    p = run.tracker.p.copy()
+    p[::50] += 0.002
+    R = Rotation.from_quat(run.tracker.quat, scalar_first=True).as_matrix()
+    data = Data(run.encoder.q, p, R, run.tracker.t, {}, approach_directions(run.encoder.q))
+    chain = Chain(demo_cell.robot)
+    tau = chain.gravity_torques(data.q)
+    effect = EFFECTS["joint_offsets"]
+    reg = initial_registration(chain, data, None, False)
+    x0 = np.concatenate([reg, np.zeros(effect.size(chain.nq))])
+    for noise in (1e-3, 20e-6):
+        residuals, costs = [], []
+        for large_rows in (10**9, 100):  # scipy's exact solver, then the normal equations
+            monkeypatch.setattr(fit_model, "LARGE_ROWS", large_rows)
+            model = Model(chain, False, [effect], x0.copy())
+            x = fit(model, data, tau, x0, noise).x
+            assert np.abs(x - x0).max() > 1e-4  # the fit moved
+            residuals.append(model.residuals(x, data, tau))
+            costs.append(fit_model._robust_cost(residuals[-1], 3 * noise, None))
+        if noise == 1e-3:  # the same minimum (up to weakly determined directions)
+            assert costs[1] == pytest.approx(costs[0], rel=1e-8)
+            assert np.sqrt(np.mean((residuals[1] - residuals[0]) ** 2)) < 1e-5
+        assert costs[1] <= costs[0] * (1 + 1e-8)
