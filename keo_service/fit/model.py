@@ -26,7 +26,8 @@ from keo_service.core.rotations import log3_many, transposed_times
 ROT_WEIGHT = 0.5  # m per rad: 20 um of position ~ 40 urad of orientation
 RANK_TOL = 1e-3  # relative singular value below which a direction counts as unidentifiable
 # residual rows above which the robust fit solves its steps from the normal equations
-# (P x P) instead of an SVD of the whole Jacobian (rows x P) at every step
+# (P x P) instead of an SVD of the whole Jacobian (rows x P) at every step (motion data
+# always: their rows are many and the SVD's time grows with them)
 LARGE_ROWS = 80_000
 
 
@@ -443,7 +444,7 @@ def fit(
         return model.residuals(xx, data, tau)
 
     k_huber = 3.0 * noise_m
-    if data.n * width > LARGE_ROWS:
+    if data.n * width > LARGE_ROWS or data.velocity is not None:  # many rows, or motion
         x[free], r = _robust_gauss_newton(fun, x[free], k_huber, row_w, iterations)
     else:
         result = least_squares(

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 CELL_RAD = 0.01  # rad: configurations closer than this on every joint count as one
-MAX_ROWS = 20_000  # rows the analysis keeps of a long motion recording
+MAX_ROWS = 10_000  # rows the analysis keeps of a long motion recording
 
 
 def informative_rows(
