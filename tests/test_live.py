@@ -10,8 +10,6 @@ import asyncio
 import contextlib
 import json
 import re
-import subprocess
-import sys
 import time
 
 import msgspec
@@ -29,7 +27,7 @@ from keo_service.live.client import Client
 from keo_service.live.messages import EstimateMessage, ServiceStatus, decode, topic
 from keo_service.live.service import KeoService
 from keo_service.sim.simulate import make_scenario, simulate
-from tests.conftest import REPO, wait_for_status
+from tests.conftest import REPO, wait_for_status, wait_until
 
 GAIN = 5.0  # time constant 0.2 s
 POSITION_NOISE = 20e-6
@@ -160,43 +158,48 @@ def test_chain_as_processes(live_config, demo_cell, tmp_path):
 
 
 def test_echo_prints_estimates_as_json(live_config, demo_cell, tmp_path):
+    """The clients first, then the devices, which play until every client has had what it
+    needs: nothing assumes when a process is up (they start late on a loaded machine)."""
     cfg = tmp_path / "live.toml"
     cfg.write_text(config_to_toml(live_config))
-    t0 = time.time() + 4.0
-    play = ["--scenario", "paper-step", "--seed", "3", "--t0", repr(t0), "--duration", "3"]
+    args = ["--config", str(cfg)]
     with process_group(tmp_path) as procs:
-        procs.start_cell(cfg, play)
-        echo = procs.start(
-            "echo",
-            [
-                "echo",
-                f"keo/{live_config.cell}/estimate",
-                "--config",
-                str(cfg),
-                "--json",
-                "--count",
-                "20",
-            ],
-        )
-        wait_for_status(live_config)
+        procs.start("service", ["run", *args])
+        echo_args = [f"keo/{live_config.cell}/estimate", *args, "--json", "--count", "20"]
+        echo = procs.start("echo", ["echo", *echo_args])
         snippets = readme_snippets(live_config.bus.listen[0], live_config.cell)
         assert len(snippets) == 2
         examples = [
-            subprocess.Popen(
-                [sys.executable, "-c", snippet],
-                stdout=subprocess.PIPE,
-                stderr=subprocess.PIPE,
-                text=True,
-            )
-            for snippet in snippets
+            procs.start(f"example-{i}", ["-c", snippet], module=None)
+            for i, snippet in enumerate(snippets)
         ]
-        echo.wait(timeout=30)
-        outputs = [example.communicate(timeout=30) for example in examples]
-    for example, (example_out, example_err) in zip(examples, outputs, strict=True):
-        assert example.returncode == 0, example_err
-        example_lines = [ln for ln in example_out.splitlines() if ln.strip()]
+        wait_for_status(live_config)
+        # the async example prints the status first, then subscribes (it stops at seq 200)
+        wait_until(lambda: procs.log("example-0").strip(), 60, "the async example connected")
+        play = ["--scenario", "paper-step", "--seed", "3", "--duration", "60"]
+        play += ["--t0", repr(time.time() + 1.0)]
+        for device, adapter in (("robot", "encoder"), ("tracker", "tracker")):
+            procs.start(f"mock-{device}", ["mock", device, *args, *play])
+            procs.start(f"adapter-{adapter}", ["adapter", adapter, *args])
+        wait_until(
+            lambda: (
+                echo.poll() is not None
+                and examples[0].poll() is not None
+                and procs.log("example-1").count(" ok ") > 50
+            ),
+            60,
+            "echo and the examples have their estimates",
+        )
+        for mock in ("mock-robot", "mock-tracker"):
+            procs.stop(mock)
+        examples[1].wait(timeout=30)  # it ends 10 s after the last estimate
+    for i, example in enumerate(examples):
+        log = procs.log(f"example-{i}")
+        assert example.returncode == 0, log
+        example_lines = [ln for ln in log.splitlines() if ln.strip()]
         assert len(example_lines) > 50
         assert sum(" ok " in line for line in example_lines) > 50
+    assert echo.returncode == 0, procs.log("echo")
     lines = [ln for ln in procs.log("echo").splitlines() if ln.startswith("{")]
     assert len(lines) == 20
     docs = [json.loads(line) for line in lines]
