@@ -27,7 +27,7 @@ from keo_service.live.client import Client
 from keo_service.live.messages import EstimateMessage, ServiceStatus, decode, topic
 from keo_service.live.service import KeoService
 from keo_service.sim.simulate import make_scenario, simulate
-from tests.conftest import REPO, wait_for_status, wait_until
+from tests.conftest import REPO, wait_for_adapters, wait_for_status, wait_until
 
 GAIN = 5.0  # time constant 0.2 s
 POSITION_NOISE = 20e-6
@@ -176,11 +176,14 @@ def test_echo_prints_estimates_as_json(live_config, demo_cell, tmp_path):
         wait_for_status(live_config)
         # the async example prints the status first, then subscribes (it stops at seq 200)
         wait_until(lambda: procs.log("example-0").strip(), 60, "the async example connected")
+        # the tracker (each of its samples makes an estimate) once joint angles flow
         play = ["--scenario", "paper-step", "--seed", "3", "--duration", "60"]
         play += ["--t0", repr(time.time() + 1.0)]
         for device, adapter in (("robot", "encoder"), ("tracker", "tracker")):
             procs.start(f"mock-{device}", ["mock", device, *args, *play])
             procs.start(f"adapter-{adapter}", ["adapter", adapter, *args])
+            if adapter == "encoder":
+                wait_for_adapters(live_config, ("encoder",), ("receiving",), timeout=60)
         wait_until(
             lambda: (
                 echo.poll() is not None
