@@ -163,18 +163,16 @@ def test_echo_prints_estimates_as_json(live_config, demo_cell, tmp_path):
     cfg = tmp_path / "live.toml"
     cfg.write_text(config_to_toml(live_config))
     args = ["--config", str(cfg)]
+    snippets = readme_snippets(live_config.bus.listen[0], live_config.cell)
+    assert len(snippets) == 2
     with process_group(tmp_path) as procs:
         procs.start("service", ["run", *args])
         echo_args = [f"keo/{live_config.cell}/estimate", *args, "--json", "--count", "20"]
         echo = procs.start("echo", ["echo", *echo_args])
-        snippets = readme_snippets(live_config.bus.listen[0], live_config.cell)
-        assert len(snippets) == 2
-        examples = [
-            procs.start(f"example-{i}", ["-c", snippet], module=None)
-            for i, snippet in enumerate(snippets)
-        ]
+        # the async example stops at seq 200: it listens from the first estimate on; it
+        # prints the service's status first, then subscribes
+        examples = [procs.start("example-0", ["-c", snippets[0]], module=None)]
         wait_for_status(live_config)
-        # the async example prints the status first, then subscribes (it stops at seq 200)
         wait_until(lambda: procs.log("example-0").strip(), 60, "the async example connected")
         # the tracker (each of its samples makes an estimate) once joint angles flow
         play = ["--scenario", "paper-step", "--seed", "3", "--duration", "60"]
@@ -184,14 +182,13 @@ def test_echo_prints_estimates_as_json(live_config, demo_cell, tmp_path):
             procs.start(f"adapter-{adapter}", ["adapter", adapter, *args])
             if adapter == "encoder":
                 wait_for_adapters(live_config, ("encoder",), ("receiving",), timeout=60)
+        # the sync example ends after 10 s without an estimate: started once they flow
+        wait_until(lambda: echo.poll() is not None, 60, "echo printed its estimates")
+        examples.append(procs.start("example-1", ["-c", snippets[1]], module=None))
         wait_until(
-            lambda: (
-                echo.poll() is not None
-                and examples[0].poll() is not None
-                and procs.log("example-1").count(" ok ") > 50
-            ),
+            lambda: examples[0].poll() is not None and procs.log("example-1").count(" ok ") > 50,
             60,
-            "echo and the examples have their estimates",
+            "the examples have their estimates",
         )
         for mock in ("mock-robot", "mock-tracker"):
             procs.stop(mock)
@@ -221,7 +218,9 @@ def test_position_only_tracker_live(live_config, demo_cell, tmp_path):
     cfg = tmp_path / "live.toml"
     cfg.write_text(config_to_toml(live_config))
     t0 = time.time() + 4.0
-    play = ["--scenario", "paper-step", "--seed", "3", "--t0", repr(t0), "--duration", "4"]
+    # played longer than echo needs (stopped once it has its estimates): the adapters may
+    # connect seconds after t0 on a loaded machine
+    play = ["--scenario", "paper-step", "--seed", "3", "--t0", repr(t0), "--duration", "30"]
     rrd = tmp_path / "po.rrd"
     with process_group(tmp_path) as procs:
         procs.start_cell(cfg, play, service=["--rrd", str(rrd)], tracker=["--position-only"])
