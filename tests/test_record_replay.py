@@ -201,8 +201,8 @@ def test_record_writes_what_the_devices_sent_and_survives_a_kill(demo_config, de
     enc = read_encoder(tmp_path / "full/encoder.csv", nq=6)
     trk = read_tracker(tmp_path / "full/tracker.csv")
     # every row the devices sent, none more, none less
-    assert enc.t.size == n_enc, sent_enc
-    assert trk.t.size == n_trk, sent_trk
+    recorded = {"encoder": int(enc.t.size), "tracker": int(trk.t.size)}
+    assert recorded == {"encoder": n_enc, "tracker": n_trk}, (sent_enc, sent_trk)
     assert n_enc >= 100, sent_enc  # the 3.5 s played at 40 Hz
     assert n_trk >= 250, sent_trk  # and at 100 Hz
     # joints went through float32 on the MotoROS wire; positions through millimetres in JSON
