@@ -39,9 +39,9 @@ def _interrupt(signum: int, frame: object) -> None:
 
 @pytest.fixture(autouse=True)
 def _sigterm_unwinds_the_test() -> Iterator[None]:
-    """SIGTERM (an outer `timeout`, a cancelled CI job) ends the run as Ctrl-C does: the running
-    test unwinds, so its `finally` blocks stop the processes it started instead of orphaning
-    them."""
+    """SIGTERM to pytest alone (`kill`, a cancelled CI job) ends the run as Ctrl-C does: the
+    running test unwinds, so its `finally` blocks stop the processes it started instead of
+    orphaning them."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
