@@ -83,7 +83,7 @@ def test_recorder_on_a_full_disk_stops_and_says_so_while_the_service_estimates(
     config = loopback_config(demo_config)
     cfg = tmp_path / "c.toml"
     cfg.write_text(config_to_toml(config))
-    duration = 12.0
+    duration = 30.0  # the stream outlasts late adapters on a loaded machine (stopped at the end)
     t0 = time.time() + 4.0
     with full_disk(tmp_path) as (out, how), process_group(tmp_path) as procs:
         procs.start_cell(cfg, _play(t0, duration))
