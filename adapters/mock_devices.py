@@ -143,18 +143,30 @@ class _MockServer:
             self.pass_offset_s = start - self.t0
             send = times if self.send_offsets is None else self.send_offsets
             i = first
-            while i < times.size:
-                if self.play_until is not None and start + float(times[i]) > self.play_until:
-                    return
-                await _sleep_until(start + float(send[i]))
-                due = time.time() - start
-                chunk = [frame(i)]
-                i += 1
-                while i < times.size and send[i] <= due and send[i] > times[i]:
-                    chunk.append(frame(i))  # held up by a stall: out together
+            client = self.clients
+            try:
+                while i < times.size:
+                    if self.play_until is not None and start + float(times[i]) > self.play_until:
+                        return
+                    await _sleep_until(start + float(send[i]))
+                    due = time.time() - start
+                    chunk = [frame(i)]
                     i += 1
-                writer.write(b"".join(chunk))
-                await writer.drain()
+                    while i < times.size and send[i] <= due and send[i] > times[i]:
+                        chunk.append(frame(i))  # held up by a stall: out together
+                        i += 1
+                    writer.write(b"".join(chunk))
+                    await writer.drain()
+            finally:
+                # what the client got of this pass: a late client misses the rows before it
+                # came, a stop or a lost connection ends the pass early
+                log.info(
+                    "client %d: sent %d rows, from row %d of %d",
+                    client,
+                    i - first,
+                    first,
+                    len(times),
+                )
             if not self.loop_play:
                 return
             start += duration

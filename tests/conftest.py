@@ -1,7 +1,11 @@
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -27,6 +31,25 @@ UR10_DATA = next(
     ),
     REPO / "data" / "ur10_lasertracker",
 )
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+@pytest.fixture(autouse=True)
+def _sigterm_unwinds_the_test() -> Iterator[None]:
+    """SIGTERM to pytest alone (`kill`, a cancelled CI job) ends the run as Ctrl-C does: the
+    running test unwinds, so its `finally` blocks stop the processes it started instead of
+    orphaning them."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 @pytest.fixture(scope="session")
@@ -60,3 +83,26 @@ def wait_for_status(config, timeout: float = 20.0) -> None:
     """Until the service answers a status query, through the client API."""
     with SyncClient.from_config(config, connect_timeout_s=timeout) as keo:
         keo.status(timeout=timeout)
+
+
+def wait_until(condition: Callable[[], object], timeout: float, what: str) -> None:
+    """Poll `condition` until it is true; AssertionError naming `what` after `timeout` s."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not within {timeout:g} s: {what}")
+        time.sleep(0.05)
+
+
+def wait_for_adapters(
+    config, names: tuple[str, ...], states: tuple[str, ...], timeout: float = 30.0
+) -> None:
+    """Until every adapter in `names` says (its own status query) that it is in one of
+    `states` ("connected": it has its device; "receiving": data flows)."""
+    with SyncClient.from_config(config, connect_timeout_s=timeout) as keo:
+
+        def ready() -> bool:
+            now = keo.adapters(timeout=1.0)
+            return all(now.get(name, {}).get("state") in states for name in names)
+
+        wait_until(ready, timeout, f"adapters {', '.join(names)} {' or '.join(states)}")

@@ -228,7 +228,6 @@ def test_registration_only_on_a_moved_tracker(tmp_path):
     assert np.allclose(move[:3, :3], np.eye(3), atol=2e-3)
 
 
-@pytest.mark.skipif(not UR10_B.exists(), reason="the shared data folder is not beside the repo")
 def test_real_ur10_data_imports_and_improves(tmp_path):
     res = keo("import", "ur10-lasertracker", str(UR10_B), "--out", str(tmp_path))
     assert res.returncode == 0, res.stderr

@@ -100,6 +100,14 @@ def _table_report() -> dict:
                 "seconds": 10.0,
                 "poses": 9986,
             },
+            "analyze_long": {
+                "wall_s": 58.2,
+                "cpu_s": 75.0,
+                "peak_rss_mb": 790.0,
+                "over_floor": 29.1,
+                "samples": {"recorded": 599_000, "used": 20_000, "how": "h"},
+                "held_out_pos_rms_mm": 1.17,
+            },
         },
         "capacity": {"highest_rate_without_drops_hz": 4000.0, "steps": []},
         "accuracy": {
@@ -129,6 +137,8 @@ def test_bench_table_states_the_ratio_over_the_floor():
     assert "6.50 s wall, 7.90 s CPU, peak RSS 820 MB" in table
     assert "keo analyze, the first 10 s of the same files (9,986 poses" in table
     assert "41.7 s wall, 70.2 s CPU, peak RSS 310 MB" in table
+    assert "20,000 informative ones used; held out 1.170 mm" in table
+    assert "58.2 s wall, 75.0 s CPU, peak RSS 790 MB; command / floor = 29 (wall)" in table
 
 
 def test_a_commands_peak_memory_is_its_own_not_the_benchs(tmp_path):

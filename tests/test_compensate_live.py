@@ -155,7 +155,8 @@ def _port_free(port: int) -> bool:
 def test_ur_rtde_register_writes_decode_right_in_the_mock_controller(tmp_path):
     """ur_rtde's RTDEIOInterface (C++, Universal Robots' community client) sets up its input
     recipes and writes two double registers; the mock controller logs what it decoded."""
-    rtde_io = pytest.importorskip("rtde_io", reason="ur-rtde is in the test extra")
+    import rtde_io  # ur-rtde, a test dependency
+
     if not _port_free(rtde.DEFAULT_PORT):
         pytest.skip("port 30004 is taken on this machine; ur_rtde cannot use another port")
     log_path = tmp_path / "mock.log"

@@ -2,7 +2,7 @@
 stall, a step in the estimate and a NaN from a decoder. The service's own path runs here in
 one process: the estimator fed sample by sample as the service feeds it, each estimate turned
 into a correction by the service's CorrectionPublisher (published on a Zenoh session with no
-peers). Needs the live correction (keo_service.live.compensation); skipped where it is not."""
+peers)."""
 
 from __future__ import annotations
 
@@ -12,16 +12,13 @@ import math
 import numpy as np
 import pytest
 
+from keo_service.core.correction import CompensationLimits, CorrectionFilter
 from keo_service.core.estimator import Estimator
 from keo_service.io.cell import estimator_settings
+from keo_service.live import compensation
 from keo_service.live.bus import open_session
 from keo_service.live.recorder import replay_plan
 from keo_service.sim.simulate import make_scenario, simulate
-
-# the live correction (issue 33's branch): these tests run where it is
-compensation = pytest.importorskip("keo_service.live.compensation")
-correction = pytest.importorskip("keo_service.core.correction")
-CompensationLimits, CorrectionFilter = correction.CompensationLimits, correction.CorrectionFilter
 
 BREAK = (1.5, 2.0)  # s of stream time
 

@@ -231,8 +231,7 @@ def test_dwelling_robot_sampled_densely_is_refused(demo_cell):
 
 def test_real_ur10_static_data_is_refused(tmp_path):
     source = UR10_DATA / "Series_B"
-    if not source.is_dir():
-        pytest.skip("the UR10 data is neither in data/ nor beside this checkout")
+    assert source.is_dir(), f"the UR10 data ships in data/: {source}"
     res = keo(
         "import",
         "ur10-lasertracker",

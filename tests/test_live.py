@@ -10,8 +10,6 @@ import asyncio
 import contextlib
 import json
 import re
-import subprocess
-import sys
 import time
 
 import msgspec
@@ -29,7 +27,7 @@ from keo_service.live.client import Client
 from keo_service.live.messages import EstimateMessage, ServiceStatus, decode, topic
 from keo_service.live.service import KeoService
 from keo_service.sim.simulate import make_scenario, simulate
-from tests.conftest import REPO, wait_for_status
+from tests.conftest import REPO, wait_for_adapters, wait_for_status, wait_until
 
 GAIN = 5.0  # time constant 0.2 s
 POSITION_NOISE = 20e-6
@@ -69,14 +67,17 @@ def readme_snippets(endpoint: str, cell: str) -> list[str]:
     ]
 
 
-async def collect(config, until: float) -> list[EstimateMessage]:
-    """Estimates until `until` (wall clock), through the client API."""
+async def collect(config, until: float, span: float | None = None) -> list[EstimateMessage]:
+    """Estimates until `until` (wall clock), or with `span` until `span` s of stamps from the
+    first one, through the client API."""
     out: list[EstimateMessage] = []
     async with Client.from_config(config, connect_timeout_s=20) as keo:
 
         async def gather() -> None:
             async for est in keo.estimates():
                 out.append(est)
+                if span is not None and est.stamp > out[0].stamp + span:
+                    return
 
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(gather(), timeout=until - time.time())
@@ -111,7 +112,9 @@ async def test_chain_in_one_process(live_config, demo_cell):
 
 
 def test_chain_as_processes(live_config, demo_cell, tmp_path):
-    duration = 6.0
+    # played longer than needed: 6 s of estimates from the first one, whenever the adapters
+    # connect (seconds after t0 on a loaded machine); the devices are stopped then
+    duration = 30.0
     run = simulate(demo_cell, make_scenario("paper-step", {"duration_s": repr(duration)}), seed=2)
     truth = run.truth.mean(axis=0)
     cfg = tmp_path / "live.toml"
@@ -134,10 +137,22 @@ def test_chain_as_processes(live_config, demo_cell, tmp_path):
             alive = client.liveliness().declare_subscriber(
                 f"keo/{live_config.cell}/alive/**", history=True
             )
-            estimates = asyncio.run(collect(live_config, t0 + duration + 0.3))
-            replies = [
-                r.ok for r in client.get(topic(live_config.cell, "status"), timeout=3.0) if r.ok
-            ]
+            estimates = asyncio.run(collect(live_config, t0 + duration, span=6.0))
+            for mock in ("mock-robot", "mock-tracker"):
+                procs.stop(mock)
+            # the status is a snapshot the service renews every 0.1 s (later under load)
+            deadline = time.monotonic() + 10.0
+            while True:
+                replies = [
+                    r.ok for r in client.get(topic(live_config.cell, "status"), timeout=3.0) if r.ok
+                ]
+                status = decode(replies[0].payload.to_bytes())
+                assert isinstance(status, ServiceStatus)
+                if status.counters["tracker_samples"] >= len(estimates) or (
+                    time.monotonic() > deadline
+                ):
+                    break
+                time.sleep(0.2)
             tokens = [s.key_expr for s in iter(alive.try_recv, None)]
         finally:
             client.close()
@@ -148,8 +163,6 @@ def test_chain_as_processes(live_config, demo_cell, tmp_path):
     assert code == 0, logs["service"]
     assert stop_time < 2.0
     check_converged(estimates, truth, t0)
-    status = decode(replies[0].payload.to_bytes())
-    assert isinstance(status, ServiceStatus)
     assert status.cell == live_config.cell
     assert status.delay_s == pytest.approx(0.028)
     assert status.gains == [GAIN] * 6
@@ -160,43 +173,48 @@ def test_chain_as_processes(live_config, demo_cell, tmp_path):
 
 
 def test_echo_prints_estimates_as_json(live_config, demo_cell, tmp_path):
+    """The clients first, then the devices, which play until every client has had what it
+    needs: nothing assumes when a process is up (they start late on a loaded machine)."""
     cfg = tmp_path / "live.toml"
     cfg.write_text(config_to_toml(live_config))
-    t0 = time.time() + 4.0
-    play = ["--scenario", "paper-step", "--seed", "3", "--t0", repr(t0), "--duration", "3"]
+    args = ["--config", str(cfg)]
+    snippets = readme_snippets(live_config.bus.listen[0], live_config.cell)
+    assert len(snippets) == 2
     with process_group(tmp_path) as procs:
-        procs.start_cell(cfg, play)
-        echo = procs.start(
-            "echo",
-            [
-                "echo",
-                f"keo/{live_config.cell}/estimate",
-                "--config",
-                str(cfg),
-                "--json",
-                "--count",
-                "20",
-            ],
-        )
+        procs.start("service", ["run", *args])
+        echo_args = [f"keo/{live_config.cell}/estimate", *args, "--json", "--count", "20"]
+        echo = procs.start("echo", ["echo", *echo_args])
+        # the async example stops at seq 200: it listens from the first estimate on; it
+        # prints the service's status first, then subscribes
+        examples = [procs.start("example-0", ["-c", snippets[0]], module=None)]
         wait_for_status(live_config)
-        snippets = readme_snippets(live_config.bus.listen[0], live_config.cell)
-        assert len(snippets) == 2
-        examples = [
-            subprocess.Popen(
-                [sys.executable, "-c", snippet],
-                stdout=subprocess.PIPE,
-                stderr=subprocess.PIPE,
-                text=True,
-            )
-            for snippet in snippets
-        ]
-        echo.wait(timeout=30)
-        outputs = [example.communicate(timeout=30) for example in examples]
-    for example, (example_out, example_err) in zip(examples, outputs, strict=True):
-        assert example.returncode == 0, example_err
-        example_lines = [ln for ln in example_out.splitlines() if ln.strip()]
+        wait_until(lambda: procs.log("example-0").strip(), 60, "the async example connected")
+        # the tracker (each of its samples makes an estimate) once joint angles flow
+        play = ["--scenario", "paper-step", "--seed", "3", "--duration", "60"]
+        play += ["--t0", repr(time.time() + 1.0)]
+        for device, adapter in (("robot", "encoder"), ("tracker", "tracker")):
+            procs.start(f"mock-{device}", ["mock", device, *args, *play])
+            procs.start(f"adapter-{adapter}", ["adapter", adapter, *args])
+            if adapter == "encoder":
+                wait_for_adapters(live_config, ("encoder",), ("receiving",), timeout=60)
+        # the sync example ends after 10 s without an estimate: started once they flow
+        wait_until(lambda: echo.poll() is not None, 60, "echo printed its estimates")
+        examples.append(procs.start("example-1", ["-c", snippets[1]], module=None))
+        wait_until(
+            lambda: examples[0].poll() is not None and procs.log("example-1").count(" ok ") > 50,
+            60,
+            "the examples have their estimates",
+        )
+        for mock in ("mock-robot", "mock-tracker"):
+            procs.stop(mock)
+        examples[1].wait(timeout=30)  # it ends 10 s after the last estimate
+    for i, example in enumerate(examples):
+        log = procs.log(f"example-{i}")
+        assert example.returncode == 0, log
+        example_lines = [ln for ln in log.splitlines() if ln.strip()]
         assert len(example_lines) > 50
         assert sum(" ok " in line for line in example_lines) > 50
+    assert echo.returncode == 0, procs.log("echo")
     lines = [ln for ln in procs.log("echo").splitlines() if ln.startswith("{")]
     assert len(lines) == 20
     docs = [json.loads(line) for line in lines]
@@ -215,7 +233,9 @@ def test_position_only_tracker_live(live_config, demo_cell, tmp_path):
     cfg = tmp_path / "live.toml"
     cfg.write_text(config_to_toml(live_config))
     t0 = time.time() + 4.0
-    play = ["--scenario", "paper-step", "--seed", "3", "--t0", repr(t0), "--duration", "4"]
+    # played longer than echo needs (stopped once it has its estimates): the adapters may
+    # connect seconds after t0 on a loaded machine
+    play = ["--scenario", "paper-step", "--seed", "3", "--t0", repr(t0), "--duration", "30"]
     rrd = tmp_path / "po.rrd"
     with process_group(tmp_path) as procs:
         procs.start_cell(cfg, play, service=["--rrd", str(rrd)], tracker=["--position-only"])

@@ -18,13 +18,12 @@ from types import SimpleNamespace
 import msgspec
 import numpy as np
 import pytest
+import pyzeros  # noqa: F401  (a test dependency: fail loudly when it is missing)
 import zenoh
 
 from keo_service.bench.procs import free_port, process_group
 from keo_service.io.config import load_config
 from tests.conftest import keo, wait_for_status
-
-pytest.importorskip("pyzeros")
 
 REPO = Path(__file__).resolve().parent.parent
 # UR10 joints as universal_robot's URDF names them (written here, not read from keo)

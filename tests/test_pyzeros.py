@@ -21,6 +21,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import pytest
+import pyzeros  # noqa: F401  (a test dependency: fail loudly when it is missing)
 
 from keo_service.bench.demo import loopback_config
 from keo_service.bench.procs import process_group
@@ -29,8 +30,6 @@ from keo_service.io.config import config_to_toml, load_config
 from keo_service.live.client import SyncClient
 from tests import pyzeros_peer
 from tests.conftest import CONFIGS, wait_for_status
-
-pytest.importorskip("pyzeros")
 
 
 @pytest.fixture(scope="module", autouse=True)

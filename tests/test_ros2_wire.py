@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+import pyzeros.utils as pyzeros_utils
 
 from keo_service.core.observer import (
     MIN_NOISE_M,
@@ -15,8 +16,6 @@ from keo_service.core.observer import (
     tracker_noise_floor,
 )
 from keo_service.live.ros2 import entity_gid
-
-pyzeros_utils = pytest.importorskip("pyzeros.utils")
 
 
 @pytest.mark.parametrize(

@@ -125,7 +125,8 @@ def _port_free(port: int) -> bool:
 
 
 def test_ur_rtde_reads_timestamp_and_actual_q_from_the_mock_controller(tmp_path):
-    rtde_receive = pytest.importorskip("rtde_receive", reason="ur-rtde is in the test extra")
+    import rtde_receive  # ur-rtde, a test dependency
+
     if not _port_free(rtde.DEFAULT_PORT):
         pytest.skip("port 30004 is taken on this machine; ur_rtde cannot use another port")
     cfg = CONFIGS / "ur10_demo.toml"

@@ -100,3 +100,52 @@ def test_cli_takes_repeated_encoder_tracker_pairs(tmp_path):
     )
     assert res.returncode != 0
     assert "come in pairs" in res.stderr
+
+
+def test_a_session_with_its_own_tool_and_few_poses(demo_cell):
+    """The probe remounted between two sessions (5 mm and 10 mrad apart) and the second with
+    a fifth of the poses: each session gets its own tool because that is better held out,
+    the rows weighted so both sessions count equally; both tools and stations recovered and
+    the small session's held-out error at the noise, not left to the large one's fit."""
+    from keo_service.offline.analyze import session_weights
+
+    T_moved = demo_cell.T_nt * pin.SE3(
+        Rotation.from_euler("x", 0.01).as_matrix(), np.array([0.005, -0.003, 0.002])
+    )
+    cells = [
+        demo_cell,
+        dataclasses.replace(_station(demo_cell, 0.6, [-1.2, 2.0, 0.3]), T_nt=T_moved),
+    ]
+    parts = []
+    for s, (cell, poses) in enumerate(zip(cells, ("300", "60"), strict=True)):
+        run = simulate(cell, make_scenario("static-poses", {**SETS, "poses": poses}), seed=5 + s)
+        parts.append(run)
+    q = np.concatenate([run.encoder.q for run in parts])
+    sizes = [run.tracker.p.shape[0] for run in parts]
+    data = Data(
+        q,
+        np.concatenate([run.tracker.p for run in parts]),
+        np.concatenate(
+            [Rotation.from_quat(r.tracker.quat, scalar_first=True).as_matrix() for r in parts]
+        ),
+        np.concatenate([run.tracker.t for run in parts]),
+        {},
+        approach_directions(q),
+        session=np.repeat([0, 1], sizes),
+        weight=session_weights(sizes),
+    )
+    assert data.weight is not None
+    assert np.allclose([data.weight[0] * sizes[0], data.weight[-1] * sizes[1]], sum(sizes) / 2)
+    result = analyze(demo_cell.robot, data, False, candidates=("compliance",))
+    registration = result.report["registration"]
+    assert registration["tools"]["per_session"]
+    assert result.model.tools == 2
+    for cell, T_ns, T_bk in zip(
+        cells, registration["T_ns_sessions"], registration["T_bk_sessions"], strict=True
+    ):
+        # the probe in the flange frame: the simulator's T_nt (its tool is the sensor)
+        assert np.allclose(np.array(T_ns)[:3, 3], cell.T_nt.translation, atol=1e-4)
+        assert np.allclose(np.array(T_ns)[:3, :3], cell.T_nt.rotation, atol=1e-4)
+        assert np.allclose(np.array(T_bk)[:3, 3], cell.T_bk.translation, atol=1e-4)
+    for entry in result.report["sessions"]:
+        assert entry["validation"]["pos_rms_mm"] < 0.05  # the noise: ~0.035 mm

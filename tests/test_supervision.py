@@ -258,7 +258,9 @@ def test_every_process_stops_within_2_s_of_sigterm_while_its_peer_is_absent(
 async def test_client_against_a_live_chain(demo_config, tmp_path):
     config, cfg = _config_file(demo_config, tmp_path)
     t0 = time.time() + 4.0
-    play = ["--scenario", "paper-step", "--seed", "2", "--t0", repr(t0), "--duration", "4"]
+    # played longer than the clients need (stopped when they have it): the adapters may
+    # connect seconds after t0 on a loaded machine
+    play = ["--scenario", "paper-step", "--seed", "2", "--t0", repr(t0), "--duration", "30"]
     with process_group(tmp_path) as procs:
         procs.start_cell(cfg, play)
         endpoint = config.bus.listen[0]

@@ -81,6 +81,7 @@ def run_bench(config: Config, quick: bool, rounds: int | None = None) -> dict[st
         # five pairs in a full run: one busy minute on the VM then moves the median less
         repeats=3 if quick else 5,
         analyze_seconds=None if quick else 10.0,
+        analyze_whole=not quick,
     )
     done = end_to_end_rounds(config, e2e_seconds, rounds, with_rerun=not quick)
     for kind in E2E_KINDS:  # the first round's runs in full, as before rounds

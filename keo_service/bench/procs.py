@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -26,16 +27,14 @@ class ProcessGroup:
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
 
     def start(
-        self, name: str, args: Sequence[str], module: str = "keo_service.cli"
+        self, name: str, args: Sequence[str], module: str | None = "keo_service.cli"
     ) -> subprocess.Popen[bytes]:
-        log = (self.log_dir / f"{name}.log").open("wb")
+        """`python -m module args` (module None: `python args`, e.g. ["-c", code]), its output
+        in <log_dir>/<name>.log, unbuffered so that it can be read while it runs."""
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        proc = subprocess.Popen(
-            [sys.executable, "-m", module, *args],
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            env=env,
-        )
+        command = [sys.executable, *(["-m", module] if module else []), *args]
+        with (self.log_dir / f"{name}.log").open("wb") as log:
+            proc = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
         self.procs[name] = proc
         return proc
 
@@ -72,10 +71,22 @@ class ProcessGroup:
                 proc.wait()
         return proc.returncode
 
-    def close(self) -> dict[str, int | None]:
+    def close(self, timeout: float = 3.0) -> dict[str, int | None]:
+        """Stop every process still in the group: SIGTERM to all at once, SIGKILL to any still
+        running `timeout` s later."""
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + timeout
         codes = {}
-        for name in list(self.procs):
-            codes[name] = self.stop(name)
+        for name, proc in self.procs.items():
+            try:
+                proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            codes[name] = proc.returncode
+        self.procs.clear()
         return codes
 
     def log(self, name: str) -> str:

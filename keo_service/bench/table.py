@@ -164,6 +164,16 @@ def bench_table(r: dict[str, Any]) -> str:
                 f"judged on held-out poses) | {an['wall_s']:.1f} s wall, {an['cpu_s']:.1f} s CPU, "
                 f"peak RSS {an['peak_rss_mb']:.0f} MB |"
             )
+        if "analyze_long" in rec:
+            al = rec["analyze_long"]
+            used = al["samples"].get("used", rec["tracker_samples"])
+            lines.append(
+                f"| keo analyze, the whole {rec['seconds']:.0f} s ({rec['tracker_samples']:,} "
+                f"tracker samples, {used:,} informative ones used; held out "
+                f"{al['held_out_pos_rms_mm']:.3f} mm) | {al['wall_s']:.1f} s wall, "
+                f"{al['cpu_s']:.1f} s CPU, peak RSS {al['peak_rss_mb']:.0f} MB; command / floor "
+                f"= {al['over_floor']:.0f} (wall) |"
+            )
 
     def ms(d: dict[str, float | None]) -> str:
         return ", ".join(f"{k} {v:.2f} ms" for k, v in d.items() if v is not None)

@@ -199,7 +199,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
-    from keo_service.io.analysis_report import run_analysis
+    from keo_service.offline.analyze import run_analysis
 
     report = run_analysis(
         common.load(args.config), args.encoder, args.tracker, args.out, args.registration_only

@@ -200,24 +200,30 @@ def analyze(
     t_ref = TimeDrift.reference(data)
     temp_ref = Temperature.reference(data)
 
-    reg0 = initial_registration_sessions(chain, train, position_only, sessions)
-    base = Model(chain, position_only, [], reg0, {}, temp_ref, t_ref, sessions)
-    _check_registration(base, train, tau_tr)
-    noise = 50e-6
-    fitted = fit(base, train, tau_tr, reg0, noise)
-    r = base.residuals(fitted.x, train, tau_tr)
-    noise = max(1e-6, float(median_abs_deviation(r, scale="normal")))
-    fitted = fit(base, train, tau_tr, fitted.x, noise)
+    refs = (temp_ref, t_ref)
+    base, x, noise = _registered(chain, train, tau_tr, position_only, sessions, 1, refs)
+    tools = None
+    if sessions > 1 and fixed_model is None:  # each session its own tool, judged held out
+        own = _registered(chain, train, tau_tr, position_only, sessions, sessions, refs)
+        shared_mm = stats(base, x, val, tau_va).judged_mm
+        own_mm = stats(own[0], own[1], val, tau_va).judged_mm
+        tools = {
+            "held_out_judged_mm_shared": shared_mm,
+            "held_out_judged_mm_per_session": own_mm,
+            "per_session": bool(1 - own_mm / shared_mm >= KEEP_MARGIN),
+        }
+        if tools["per_session"]:
+            base, x, noise = own
     say("registered the tracker and the sensor mount")
     report: dict[str, Any] = {
         "baseline": {
-            "train": stats(base, fitted.x, train, tau_tr).as_dict(),
-            "validation": stats(base, fitted.x, val, tau_va).as_dict(),
+            "train": stats(base, x, train, tau_tr).as_dict(),
+            "validation": stats(base, x, val, tau_va).as_dict(),
         },
         "effects": [],
         "rejected": [],
     }
-    model, x = base, fitted.x
+    model = base
 
     if fixed_model is not None:  # --registration-only: the saved robot model, new registration
         model = Model(
@@ -237,7 +243,7 @@ def analyze(
             model, x = _judge_carried_maps(model, x, data, train, val, noise, report)
             kept = model.find(JointMaps) is not None
             say(f"carried joint maps {'kept' if kept else 'dropped'}")
-    current_val = stats(model, x, val, tau_va).pos_rms_mm
+    current_val = stats(model, x, val, tau_va).judged_mm
     for name in candidates:
         effect = EFFECTS[name]
         if not effect.usable(data):
@@ -262,6 +268,7 @@ def analyze(
             temp_ref,
             t_ref,
             sessions,
+            model.tools,
         )
         size = trial.sizes(chain.nq)[-1]
         x0 = np.concatenate([x, np.zeros(size)])
@@ -288,11 +295,11 @@ def analyze(
             for rec in entry["parameters"].get("records", []):
                 if f"{rec['joint']} {rec['parameter']}" in held:
                     rec["held"] = True
-        gain = 1 - val_stats.pos_rms_mm / current_val
+        gain = 1 - val_stats.judged_mm / current_val
         entry["held_out_improvement_pct"] = 100 * gain
         if gain >= KEEP_MARGIN:
             model, x = trial, res.x
-            current_val = val_stats.pos_rms_mm
+            current_val = val_stats.judged_mm
             report["effects"].append(entry)
             say(f"kept {name}: held-out position RMS {val_stats.pos_rms_mm:.4f} mm")
         else:
@@ -313,7 +320,35 @@ def analyze(
     }
     if sessions > 1:
         report["registration"]["T_bk_sessions"] = [T.tolist() for T in model.registrations(x)]
+        if tools is not None:
+            report["registration"]["tools"] = tools
+        if model.tools > 1:
+            report["registration"]["T_ns_sessions"] = [
+                model.mount(x, s).tolist() for s in range(model.tools)
+            ]
     return Analysis(report, model, x)
+
+
+def _registered(
+    chain: Chain,
+    train: Data,
+    tau_tr: np.ndarray,
+    position_only: bool,
+    sessions: int,
+    tools: int,
+    refs: tuple[float, float],
+) -> tuple[Model, np.ndarray, float]:
+    """The nominal model registered on the training rows (tracker per session, `tools`
+    sensor mounts), robustly, with the noise its residuals show."""
+    reg0 = initial_registration_sessions(chain, train, position_only, sessions, tools)
+    base = Model(chain, position_only, [], reg0, {}, refs[0], refs[1], sessions, tools)
+    _check_registration(base, train, tau_tr)
+    noise = 50e-6
+    fitted = fit(base, train, tau_tr, reg0, noise)
+    r = base.residuals(fitted.x, train, tau_tr)
+    noise = max(1e-6, float(median_abs_deviation(r, scale="normal")))
+    fitted = fit(base, train, tau_tr, fitted.x, noise)
+    return base, fitted.x, noise
 
 
 def session_report(report: dict[str, Any], model: Model, x: np.ndarray, data: Data) -> None:
@@ -376,14 +411,15 @@ def _judge_carried_maps(
         model.temperature_ref,
         model.time_ref,
         model.sessions,
+        model.tools,
     )
     fixed = np.zeros(without.x.size, dtype=bool)
     fixed[without.n_reg :] = True
     tau_tr = without.chain.gravity_torques(train.q)
     tau_va = without.chain.gravity_torques(val.q)
     x_without = fit(without, train, tau_tr, without.x, noise, fixed=fixed).x
-    with_maps = stats(model, x, val, tau_va).pos_rms_mm
-    without_maps = stats(without, x_without, val, tau_va).pos_rms_mm
+    with_maps = stats(model, x, val, tau_va).judged_mm
+    without_maps = stats(without, x_without, val, tau_va).judged_mm
     lo, hi = maps.ranges()
     outside = np.any((data.q < lo) | (data.q > hi), axis=1)
     kept = 1 - with_maps / without_maps >= KEEP_MARGIN

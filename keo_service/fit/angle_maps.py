@@ -102,6 +102,10 @@ def linearize(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> _Line
         shifted = dataclasses.replace(data, q=q)
         grads.append(((model.residuals(x, shifted, tau) - r0) / h).reshape(data.n, width))
     J = numeric_jacobian(lambda z: model.residuals(z, data, tau), x, r0)
+    row_w = data.row_weights(width)
+    if row_w is not None:  # weighted rows: the linear system and its errors weighted alike
+        r0, J = r0 * row_w, J * row_w[:, None]
+        grads = [g * row_w.reshape(data.n, width) for g in grads]
     return _Linearized(r0.reshape(data.n, width), grads, J)
 
 
@@ -338,7 +342,7 @@ def try_maps(
         return
     before = stats(model, x, val, tau_va)
     after = stats(fit.model, fit.x, val, tau_va)
-    gain = 1 - after.pos_rms_mm / before.pos_rms_mm
+    gain = 1 - after.judged_mm / before.judged_mm
     # second split: a band of joint 1's angle held out (a region of the workspace)
     lin = linearize(model, x, data, chain.gravity_torques(data.q))
     keep_band, band = held_out_band(data)

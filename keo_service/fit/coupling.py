@@ -65,6 +65,11 @@ class _Lin:
             return model.residuals(xx, data, tau)
 
         self.J_reg = numeric_jacobian(reg_only, x[:n_reg].copy(), r0)
+        row_w = data.row_weights(self.width)
+        if row_w is not None:  # weighted rows: the linear system and its errors weighted alike
+            self.r0 = r0 * row_w
+            self.J_reg = self.J_reg * row_w[:, None]
+            self.grad = [g * row_w.reshape(data.n, -1) for g in self.grad]
 
 
 def _design(lin: _Lin, q: np.ndarray, j: int, k: int, knots: np.ndarray) -> _Design:
@@ -169,6 +174,7 @@ def _with_coupling(
         model.temperature_ref,
         model.time_ref,
         model.sessions,
+        model.tools,
     )
     return trial, x_new
 
@@ -196,7 +202,7 @@ def try_couplings(
     train = data.subset(train_idx)
     tau_va = model.chain.gravity_torques(val.q)
     tau_tr = model.chain.gravity_torques(train.q)
-    current = stats(model, x, val, tau_va).pos_rms_mm
+    current = stats(model, x, val, tau_va).judged_mm
 
     def name(j: int) -> str:
         return joint_names[j] if j < len(joint_names) else f"joint_{j + 1}"
@@ -217,7 +223,7 @@ def try_couplings(
             x_reg[:n_reg] += step[:n_reg]
             trial, x_new = _with_coupling(model, x_reg, (j, k, knots), values)
             held = stats(trial, x_new, val, tau_va)
-            tried.append((held.pos_rms_mm, j, trial, x_new, smoothing, se))
+            tried.append((held.judged_mm, j, trial, x_new, smoothing, se))
         held_rms, j, trial, x_new, smoothing, se = min(tried, key=lambda t: t[0])
         gain = 1 - held_rms / current
         keep_band, band = held_out_band(data, joint=k)

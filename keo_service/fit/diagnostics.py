@@ -12,6 +12,7 @@ import numpy as np
 SAME_POSE_RAD = 2e-4  # joint vectors this close on every joint: one pose measured again
 MIN_REPEATED_POSES = 5  # fewer repeated poses say little about a repeatability
 OUTLIER_FACTOR = 5.0  # a repeated pose this far above the median pose's scatter is no repeat
+MAX_PAIRS = 2_000_000  # neighbour pairs searched at most; beyond, poses are grouped by cells
 COUPLING_SHARE = 0.2  # a parameter takes part in a combination above this share of its largest
 
 
@@ -50,10 +51,27 @@ def repeatability(
     from scipy.spatial import cKDTree
 
     q = np.asarray(q, dtype=float)
-    pairs = cKDTree(q).query_pairs(tol_rad, p=np.inf, output_type="ndarray")
-    n = q.shape[0]
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _count, group = connected_components(graph, directed=False)
+    # equal joint vectors are one group before any search: motion data standing still hold
+    # tens of thousands of equal rows, whose pairs (n^2 / 2 of them) took 24 GB at 60k rows
+    distinct, first_of = np.unique(q, axis=0, return_inverse=True)
+    first_of = first_of.ravel()
+    m = distinct.shape[0]
+    tree = cKDTree(distinct)
+    if tree.count_neighbors(tree, tol_rad, p=np.inf) - m > 2 * MAX_PAIRS:
+        # still too many neighbours (slow motion at a high rate): cells of tol_rad instead
+        cells = np.floor(distinct / tol_rad).astype(np.int64)
+        _cells, cell_group = np.unique(cells, axis=0, return_inverse=True)
+        group = cell_group.ravel()[first_of]
+    else:
+        pairs = tree.query_pairs(tol_rad, p=np.inf, output_type="ndarray")
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
+        _count, distinct_group = connected_components(graph, directed=False)
+        group = distinct_group[first_of]
+    # labels in order of each group's first row (as a search over all rows numbers them)
+    _labels, first_row, dense = np.unique(group, return_index=True, return_inverse=True)
+    rank = np.empty(first_row.size, dtype=np.int64)
+    rank[np.argsort(first_row)] = np.arange(first_row.size)
+    group = rank[dense.ravel()]
     counts = np.bincount(group)
     if not np.any(counts > 1):
         return None

@@ -1,13 +1,19 @@
 """Long motion recordings: which samples carry information for `keo analyze`. No I/O.
 
-At 1 kHz a robot moving at 1 rad/s changes each joint by a milliradian between samples:
-neighbouring samples measure nearly the same configuration, and what the analysis can learn
-from ten minutes is bounded by how many distinct configurations the robot passed through, not
-by the sample count. So samples are binned by joint configuration (a grid of CELL_RAD on every
-joint, plus the direction of motion of each joint, which backlash depends on) and one sample
-per occupied cell is kept, the first in time; if more cells than `max_rows` are occupied, every
-k-th kept sample in time order. Time order is preserved, so the held-out blocks still follow
-time (drift).
+At 1 kHz neighbouring samples measure nearly the same configuration, so a long recording is
+thinned to `max_rows` samples evenly spaced in time: the recording as it was, fast motion,
+slow stretches and rests each as often as they occur, so the fit and its held-out error weigh
+them as all samples would. Thinning can step over configurations the robot passed quickly;
+those are added back: the first sample of every occupied configuration cell (a grid of
+CELL_RAD on every joint, plus each joint's direction of motion, which backlash depends on)
+that no evenly spaced sample falls in, for at most MISSED_SHARE of the rows (thinned evenly
+if more: those samples are fast motion, and a larger share would weigh it above its time
+again; at a quarter, the 60 s recording's held-out RMS was 2.857 mm against 2.431 mm from all
+samples). Selecting one sample per cell alone over-weighted fast motion (more cells a second),
+where timing errors are largest: on a 60 s simulated recording it gave 4.22 mm held out
+against 2.43 mm from all samples.
+
+Time order is preserved, so the held-out blocks still follow time (drift).
 """
 
 from __future__ import annotations
@@ -17,7 +23,8 @@ from typing import Any
 import numpy as np
 
 CELL_RAD = 0.01  # rad: configurations closer than this on every joint count as one
-MAX_ROWS = 20_000  # rows the analysis keeps of a long motion recording
+MAX_ROWS = 10_000  # rows the analysis keeps of a long motion recording
+MISSED_SHARE = 0.05  # of those rows at most, the configurations the even spacing misses
 
 
 def informative_rows(
@@ -26,19 +33,30 @@ def informative_rows(
     max_rows: int = MAX_ROWS,
     cell_rad: float = CELL_RAD,
 ) -> np.ndarray:
-    """Indices (increasing) of one sample per occupied configuration cell, thinned evenly in
-    time to at most `max_rows`."""
+    """Indices (increasing, at most `max_rows`) of samples evenly spaced in time, plus the
+    first sample of each configuration cell none of them falls in (at most MISSED_SHARE)."""
     n = q.shape[0]
     if n <= max_rows:
         return np.arange(n)
     keys = np.floor(q / cell_rad).astype(np.int64)
     if direction is not None:
         keys = np.hstack([keys, np.sign(direction).astype(np.int64)])
-    _cells, first = np.unique(keys, axis=0, return_index=True)
-    rows = np.sort(first)
-    if rows.size > max_rows:
-        rows = rows[np.linspace(0, rows.size - 1, max_rows).round().astype(int)]
+    _cells, first, cell_of = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    cell_of = cell_of.ravel()
+    covered = np.zeros(first.size, dtype=bool)
+    covered[cell_of[_even(n, max_rows)]] = True
+    missed = np.sort(first[~covered])
+    most = int(MISSED_SHARE * max_rows)
+    if missed.size > most:
+        missed = missed[_even(missed.size, most)]
+    rows: np.ndarray = np.union1d(_even(n, max_rows - missed.size), missed)  # <= max_rows
     return rows
+
+
+def _even(n: int, k: int) -> np.ndarray:
+    """k indices of 0..n-1 evenly spaced (both ends included)."""
+    out: np.ndarray = np.linspace(0, n - 1, k).round().astype(int)
+    return out
 
 
 def selection_report(recorded: int, rows: np.ndarray, cell_rad: float = CELL_RAD) -> dict[str, Any]:
@@ -46,8 +64,9 @@ def selection_report(recorded: int, rows: np.ndarray, cell_rad: float = CELL_RAD
         "recorded": int(recorded),
         "used": int(rows.size),
         "how": (
-            f"one sample per {cell_rad:g} rad cell of the joint configuration (and direction of "
-            "motion), the first in time; thinned evenly in time if more"
+            "evenly spaced in time, plus the first sample of each "
+            f"{cell_rad:g} rad cell of the joint configuration (and direction of motion) that "
+            f"none of them falls in (at most {100 * MISSED_SHARE:g} % of the rows)"
             if rows.size < recorded
             else "all samples"
         ),
