@@ -386,7 +386,7 @@ def test_the_real_chain_through_a_router_with_rules_on_every_session(demo_config
                 measured += est.measured is not None  # the first come before alignment
                 if measured >= 20 or time.monotonic() > deadline:
                     break
-        status = keo("status", *c["hmi.demo"], "--timeout", "20", timeout=60)
+        status = keo("status", *c["hmi.demo"], "--json", "--timeout", "20", timeout=60)
         logs = {name: procs.log(name) for name in ("router", "service", "adapter-encoder")}
     assert measured >= 20, (len(estimates), logs)
     assert status.returncode == 0, (status.stderr, logs)
