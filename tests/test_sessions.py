@@ -149,3 +149,31 @@ def test_a_session_with_its_own_tool_and_few_poses(demo_cell):
         assert np.allclose(np.array(T_bk)[:3, 3], cell.T_bk.translation, atol=1e-4)
     for entry in result.report["sessions"]:
         assert entry["validation"]["pos_rms_mm"] < 0.05  # the noise: ~0.035 mm
+
+
+def test_cross_validation_folds_interleave_within_each_session():
+    """The maps' cross-validation folds: one recording in blocks of 1/40 of its poses, folds
+    cycling 0..3 (as before sessions); pooled recordings each blocked on their own, so a
+    small recording ordered by configuration is spread over every fold in short blocks, not
+    held out in one or two long stretches (an extrapolation, UR10 A+B)."""
+    from keo_service.fit.angle_maps import FOLDS, cv_folds
+
+    alone = cv_folds(400)
+    assert alone.tolist() == [(i // 10) % 4 for i in range(400)]  # 10-pose blocks
+
+    session = np.repeat([0, 1], [4000, 400])
+    folds = cv_folds(session.size, session)
+    assert folds[:4000].tolist() == [(i // 100) % 4 for i in range(4000)]
+    small = folds[4000:]
+    assert small.tolist() == alone.tolist()  # as if it were alone
+    for f in range(FOLDS):
+        rows = np.flatnonzero(small == f)
+        assert rows.size == 100
+        stretches = 1 + int(np.sum(np.diff(rows) > 1))
+        assert stretches == 10  # ten 10-pose blocks spread over the recording
+    # blocking the pooled count instead (110-pose blocks) holds the small recording out in
+    # at most two stretches per fold
+    pooled_blocks = ((np.arange(session.size) // 110) % 4)[4000:]
+    assert (
+        max(1 + int(np.sum(np.diff(np.flatnonzero(pooled_blocks == f)) > 1)) for f in range(4)) <= 2
+    )

@@ -217,6 +217,24 @@ def _pos_rms_mm(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(r[:, :3] ** 2, axis=1))) * 1e3)
 
 
+def cv_folds(n: int, session: np.ndarray | None = None) -> np.ndarray:
+    """The cross-validation fold (0..FOLDS-1) of each training pose: interleaved blocks, like
+    the held-out split (analysis.split_data). Contiguous quarters would make each fold an
+    extrapolation where poses are ordered by configuration (UR10 Series B) and choose the
+    settings for the wrong task. Pooled sessions are blocked each on its own (1/40 of its
+    poses a block, as one recording alone): blocks of the pooled count would span a small
+    session in a few large chunks, again an extrapolation (UR10 A+B: 252-pose blocks over
+    B's 1145 chose 0.075 rad knots, where B alone and A alone choose 0.03 and 0.02).
+    `session`: each pose's recording (None: one)."""
+    if session is None:
+        return (np.arange(n) // max(2, n // 40)) % FOLDS
+    fold = np.empty(session.size, dtype=int)
+    for s in np.unique(session):
+        rows = np.flatnonzero(session == s)
+        fold[rows] = (np.arange(rows.size) // max(2, rows.size // 40)) % FOLDS
+    return fold
+
+
 def fit_maps(
     model: Model,
     x: np.ndarray,
@@ -230,11 +248,7 @@ def fit_maps(
     cross-validation over blocks of the training poses; None when no joint can carry one."""
     lin = linearize(model, x, train, tau)
     width = lin.r0.shape[1]
-    # folds of interleaved blocks, like the held-out split (analysis.split): contiguous
-    # quarters would make each fold an extrapolation where poses are ordered by
-    # configuration (UR10 Series B), and choose the settings for the wrong task
-    block = max(2, train.n // 40)
-    fold = (np.arange(train.n) // block) % FOLDS
+    fold = cv_folds(train.n, train.session)
     best: tuple[float, float, float, tuple[np.ndarray, ...]] | None = None
     for spacing in spacings:
         knots = knots_for(train.q, spacing)
