@@ -222,6 +222,7 @@ def test_a_small_remount_is_found_with_the_maps(demo_cell):
     session needs on the nominal model, so it is judged again with the maps (at the noise),
     where it matters: kept, both mounts recovered, each session held out near the noise."""
     from keo_service.fit.angle_maps import try_maps
+    from keo_service.io.analysis_report import markdown
     from keo_service.offline.analyze import session_weights
 
     shift = np.array([0.00008, 0.0, 0.0])
@@ -263,3 +264,4 @@ def test_a_small_remount_is_found_with_the_maps(demo_cell):
     assert np.allclose(moved, T_moved.translation - demo_cell.T_nt.translation, atol=2e-5)
     for entry in result.report["sessions"]:
         assert entry["validation"]["pos_rms_mm"] < 0.05  # the noise: ~0.035 mm
+    assert "- sensor mount: each session its own" in markdown(result.report, [])
