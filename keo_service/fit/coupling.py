@@ -30,6 +30,7 @@ from keo_service.fit.angle_maps import (
     _penalty,
     _pos_rms_mm,
     _solve,
+    cv_folds,
     hat_basis,
     held_out_band,
     knots_for,
@@ -65,6 +66,7 @@ class _Lin:
             return model.residuals(xx, data, tau)
 
         self.J_reg = numeric_jacobian(reg_only, x[:n_reg].copy(), r0)
+        self.session = data.session  # pooled recordings: each blocked alone for the folds
         row_w = data.row_weights(self.width)
         if row_w is not None:  # weighted rows: the linear system and its errors weighted alike
             self.r0 = r0 * row_w
@@ -91,8 +93,7 @@ def _fit(
     sub = design.rows(idx, lin.width)
     P = _penalty(n_reg + 1, (knots,))
     PtP = P.T @ P
-    block = max(2, idx.size // 40)
-    fold = (np.arange(idx.size) // block) % FOLDS
+    fold = cv_folds(idx.size, None if lin.session is None else lin.session[idx])
     parts = [sub.rows(np.flatnonzero(fold == f), lin.width) for f in range(FOLDS)]
     normals = [part.normal() for part in parts]
     M_all = sum(m for m, _g in normals)

@@ -219,6 +219,7 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
                 f"- session {entry['session'] + 1}: held out {_stats_line(entry['validation'])}"
                 f"; tracker at [{t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}] m in the base frame"
             )
+        lines += _mounts_markdown(report["registration"])
     if report["rejected"]:
         lines += ["", "Tried and not kept (held-out change below 5 %):", ""]
         for e in report["rejected"]:
@@ -433,3 +434,30 @@ def write_analysis(
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False, default=float))
     (out / "report.md").write_text(markdown(report, plots))
     (out / "model.toml").write_text(config_to_toml(improved))
+
+
+def _mounts_markdown(registration: dict[str, Any]) -> list[str]:
+    """Several sessions: one sensor mount or one each, and the held-out numbers that chose."""
+    judged = registration.get("tools", {}).get("with_effects_and_maps")
+    if judged is None:
+        return []
+    pair = ", ".join(
+        f"{a:.4f} -> {b:.4f}"
+        for a, b in zip(
+            judged["held_out_pos_rms_mm_shared"],
+            judged["held_out_pos_rms_mm_per_session"],
+            strict=True,
+        )
+    )
+    if not judged["per_session"]:
+        return [f"- sensor mount: one for all sessions (one each: held out {pair} mm, not kept)"]
+    mounts = [np.array(T)[:3, 3] * 1e3 for T in registration["T_ns_sessions"]]
+    moved = "; ".join(
+        f"session {s + 1} [{m[0] - mounts[0][0]:+.3f}, {m[1] - mounts[0][1]:+.3f}, "
+        f"{m[2] - mounts[0][2]:+.3f}] mm"
+        for s, m in enumerate(mounts[1:], start=1)
+    )
+    return [
+        f"- sensor mount: each session its own (held out {pair} mm with the effects and maps); "
+        f"from session 1's: {moved}"
+    ]
