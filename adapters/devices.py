@@ -225,10 +225,10 @@ class _Adapter:
             "clock": self.stamper.state(),
         }
 
-    def _stamp(self, device_t: float | None, receipt_t: float) -> Stamp:
+    def _stamp(self, device_stamp: float | None, receipt_t: float) -> Stamp:
         """The sample's stamp under this adapter's clock domain; what it flags is logged
         (the first time and then at every power of ten) besides being counted."""
-        stamp = self.stamper.stamp(device_t, receipt_t)
+        stamp = self.stamper.stamp(device_stamp, receipt_t)
         for flag in stamp.flags:
             self._log_flag(flag)
         return stamp
@@ -250,20 +250,20 @@ class _Adapter:
         self,
         stamp: Stamp,
         host_ns: int,
-        q: list[float],
-        dq: list[float] | None,
-        device_t: float | None,
+        joints: list[float],
+        velocities: list[float] | None,
+        device_stamp: float | None,
     ) -> None:
         """One joint sample out on keo/<cell>/encoder: the next `seq`, the stamp and the
         clock fields (every encoder adapter, whatever its wire format, ends here)."""
         self._seq += 1
         sample = JointSample(
-            t=stamp.t,
+            stamp=stamp.t,
             host_ns=host_ns,
             seq=self._seq,
-            q=q,
-            dq=dq,
-            device_t=device_t,
+            joints=joints,
+            velocities=velocities,
+            device_stamp=device_stamp,
             **self._clock_fields(stamp),
         )
         self._pub.put(encode(sample))
@@ -348,10 +348,10 @@ class EncoderAdapter(_Adapter):
             return
         q = list(frame.positions[: self.nq])
         dq = list(frame.velocities[: self.nq]) if frame.velocities is not None else None
-        device_t = frame.time if frame.valid_fields & 1 else None
+        device_stamp = frame.time if frame.valid_fields & 1 else None
         if stamp is None:
-            stamp = self._stamp(device_t, host_ns * 1e-9)
-        self._publish_joints(stamp, host_ns, q, dq, device_t)
+            stamp = self._stamp(device_stamp, host_ns * 1e-9)
+        self._publish_joints(stamp, host_ns, q, dq, device_stamp)
 
 
 class TrackerAdapter(_Adapter):
@@ -402,15 +402,15 @@ class TrackerAdapter(_Adapter):
                 continue
             # the tracker's own stamps ("device": mapped onto the host clock, which carries
             # less jitter than the receipt time; "shared": used as they are)
-            stamp = self._stamp(pose.device_t, host_ns * 1e-9)
+            stamp = self._stamp(pose.device_stamp, host_ns * 1e-9)
             sample = TrackerSample(
-                t=stamp.t,
+                stamp=stamp.t,
                 host_ns=host_ns,
                 seq=pose.seq,
                 status=pose.status,
-                p=list(pose.p) if pose.p is not None else None,
-                q=list(pose.q) if pose.q is not None else None,
-                device_t=pose.device_t,
+                position=list(pose.position) if pose.position is not None else None,
+                quaternion=list(pose.quaternion) if pose.quaternion is not None else None,
+                device_stamp=pose.device_stamp,
                 **self._clock_fields(stamp),
             )
             self._pub.put(encode(sample))
@@ -430,7 +430,7 @@ ROBOT_STATUS_PERIOD_S = 0.5
 class RtdeEncoderAdapter(EncoderAdapter):
     """Universal Robots RTDE (protocol 2) -> keo/<cell>/encoder and keo/<cell>/robot_status.
 
-    Each joint sample keeps the controller's `timestamp` as `device_t` and gets `t` on the
+    Each joint sample keeps the controller's `timestamp` as `device_stamp` and gets `stamp` on the
     host clock from the clock mapping (not the receipt time, which carries TCP and
     scheduling jitter)."""
 
@@ -793,12 +793,12 @@ class Ros2PoseAdapter(_Ros2Adapter):
         self._seq += 1
         st = self._stamp(stamp, host_ns * 1e-9)
         sample = TrackerSample(
-            t=st.t,
+            stamp=st.t,
             host_ns=host_ns,
             seq=self._seq,
-            p=p,
-            q=q,
-            device_t=stamp,
+            position=p,
+            quaternion=q,
+            device_stamp=stamp,
             **self._clock_fields(st),
         )
         self._pub.put(encode(sample))

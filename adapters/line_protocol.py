@@ -30,11 +30,14 @@ MAX_LINE = 65536
 
 @dataclass(frozen=True)
 class Pose:
+    """One parsed pose line: the line's `t` is `device_stamp`, `p` and `q` are `position`
+    and `quaternion` (the wire messages' names)."""
+
     seq: int
-    device_t: float
+    device_stamp: float
     status: str
-    p: tuple[float, float, float] | None  # metres
-    q: tuple[float, float, float, float] | None  # scalar first; None: single reflector
+    position: tuple[float, float, float] | None  # metres
+    quaternion: tuple[float, float, float, float] | None  # scalar first; None: one reflector
 
 
 def format_hello(length_unit: str = "m", source: str = "keo") -> bytes:

@@ -258,15 +258,15 @@ class UdpEncoderAdapter(EncoderAdapter):
         """(the sample's stamp under the configured clock domain, device time in s): the
         adapters' one rule (core.clock.Stamper)."""
         self._track_cycle(device_ms)
-        device_t = device_ms * 1e-3
-        return self._stamp(device_t, host_ns * 1e-9), device_t
+        device_stamp = device_ms * 1e-3
+        return self._stamp(device_stamp, host_ns * 1e-9), device_stamp
 
     def put_joints(self, q: list[float], device_ms: float, host_ns: int) -> None:
         if len(q) < self.nq:
             self.rejects_short(len(q))
             return
-        st, device_t = self.stamp(device_ms, host_ns)
-        self._publish_joints(st, host_ns, q[: self.nq], None, device_t)
+        st, device_stamp = self.stamp(device_ms, host_ns)
+        self._publish_joints(st, host_ns, q[: self.nq], None, device_stamp)
 
     def rejects_short(self, n: int) -> None:
         self.counters["too_few_joints"] += 1

@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{name} {value * 1e3:+.3f}"
         for name, value in zip(last.channels, last.estimate_values(), strict=True)
     )
-    print(f"final estimate at t={last.t:.3f} s (mm, mrad): {channels}")
+    print(f"final estimate at t={last.stamp:.3f} s (mm, mrad): {channels}")
     counters = dict(estimator.counters)
     print("counters: " + ", ".join(f"{k}={v}" for k, v in sorted(counters.items())))
     return 0

@@ -161,14 +161,21 @@ def test_rights_by_certificate(demo_config, demo_cell, tmp_path, hub):
                 if plan.kinds[k] == 0:
                     q = run.encoder.q[i].tolist()
                     enc.put(
-                        encode(JointSample(t=float(run.encoder.t[i]), host_ns=now, seq=i + 1, q=q))
+                        encode(
+                            JointSample(
+                                stamp=float(run.encoder.t[i]), host_ns=now, seq=i + 1, joints=q
+                            )
+                        )
                     )
                     # the client identity puts a sample of its own, and a correction
                     bad = [x + 0.5 for x in q]
                     rogue_enc.put(
                         encode(
                             JointSample(
-                                t=float(run.encoder.t[i]), host_ns=now, seq=ROGUE_SEQ + i, q=bad
+                                stamp=float(run.encoder.t[i]),
+                                host_ns=now,
+                                seq=ROGUE_SEQ + i,
+                                joints=bad,
                             )
                         )
                     )
@@ -195,7 +202,11 @@ def test_rights_by_certificate(demo_config, demo_cell, tmp_path, hub):
                     trk.put(
                         encode(
                             TrackerSample(
-                                t=float(run.tracker.t[i]), host_ns=now, seq=i + 1, p=p, q=quat
+                                stamp=float(run.tracker.t[i]),
+                                host_ns=now,
+                                seq=i + 1,
+                                position=p,
+                                quaternion=quat,
                             )
                         )
                     )
@@ -274,7 +285,7 @@ while not enc.matching_status.matching and time.monotonic() < deadline:
 time.sleep(0.2)
 zero = [0.0, 0.0, 0.0]
 for i in range(int(base), int(base) + int(n)):
-    enc.put(encode(JointSample(t=i * 0.01, host_ns=time.time_ns(), seq=i, q=[0.5] * 6)))
+    enc.put(encode(JointSample(stamp=i * 0.01, host_ns=time.time_ns(), seq=i, joints=[0.5] * 6)))
     corr.put(encode(CorrectionMessage(stamp=0.0, host_ns=time.time_ns(), seq=i,
         translation=[0.01, 0.0, 0.0], rotation=zero, feedback_translation=zero,
         feedback_rotation=zero, feedforward_translation=zero, feedforward_rotation=zero,
@@ -375,7 +386,7 @@ def test_the_real_chain_through_a_router_with_rules_on_every_session(demo_config
                 measured += est.measured is not None  # the first come before alignment
                 if measured >= 20 or time.monotonic() > deadline:
                     break
-        status = keo("status", *c["hmi.demo"], "--timeout", "20", timeout=60)
+        status = keo("status", *c["hmi.demo"], "--json", "--timeout", "20", timeout=60)
         logs = {name: procs.log(name) for name in ("router", "service", "adapter-encoder")}
     assert measured >= 20, (len(estimates), logs)
     assert status.returncode == 0, (status.stderr, logs)

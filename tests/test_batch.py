@@ -45,14 +45,14 @@ def compare(cell, settings, enc_t, enc_q, trk_t, trk_p, trk_quat):
     got = batch.to_estimates()
     assert len(got) == len(reference)
     for g, r in zip(got, reference, strict=True):
-        assert g.t == r.t
-        assert g.flags == r.flags, (g.t, g.flags, r.flags)
-        assert (g.measured is None) == (r.measured is None), g.t
+        assert g.stamp == r.stamp
+        assert g.flags == r.flags, (g.stamp, g.flags, r.flags)
+        assert (g.measured is None) == (r.measured is None), g.stamp
         if r.measured is not None:
             assert np.max(np.abs(g.measured - r.measured)) < TOL
             assert np.max(np.abs(g.joints - r.joints)) < TOL
         assert np.max(np.abs(g.estimate - r.estimate), initial=0.0) < TOL
-        assert g.encoder_t == pytest.approx(r.encoder_t, abs=0.0)
+        assert g.encoder_stamp == pytest.approx(r.encoder_stamp, abs=0.0)
     assert batch.counters == dict(streaming.counters)
     assert batch.messages == list(streaming.messages)
     # and back: the streaming rows as arrays (what `keo estimate --streaming` writes)
@@ -60,7 +60,7 @@ def compare(cell, settings, enc_t, enc_q, trk_t, trk_p, trk_quat):
         reference, batch.channels, cell.robot.nq, batch.counters, batch.messages
     )
     assert back.flags == batch.flags
-    for name in ("t", "measured", "estimate", "encoder_t", "joints"):
+    for name in ("stamp", "measured", "estimate", "encoder_stamp", "joints"):
         np.testing.assert_allclose(getattr(back, name), getattr(batch, name), rtol=0, atol=TOL)
     return batch, reference
 
@@ -208,7 +208,7 @@ def test_a_sample_on_the_first_encoder_stamp_after_a_gap(demo_cell, demo_config)
     trk_t[k_after], trk_t[k_inside] = after, inside
     settings = dataclasses.replace(estimator_settings(demo_config), delay=DelayModel(0.0))
     _batch, reference = compare(demo_cell, settings, enc_t, enc_q, trk_t, trk_p, quat)
-    by_t = {e.t: e for e in reference}
+    by_t = {e.stamp: e for e in reference}
     assert by_t[after].flags == ()  # on the sample: joints, no gap
     assert by_t[inside].flags == ("encoder_gap",)
 
@@ -401,4 +401,4 @@ def test_keo_estimate_reports_the_encoder_files_error_first(demo_config, demo_ce
         estimate_files(demo_config, good_encoder, bad_tracker)
     result = estimate_files(demo_config, good_encoder, good_tracker)
     assert result.path == "batch"
-    assert result.table.t.size == run.tracker.t.size
+    assert result.table.stamp.size == run.tracker.t.size

@@ -216,7 +216,7 @@ async def test_line_tracker_under_each_domain(demo_config):
     shared = await _tracker_samples(
         demo_config, "shared", [_line(k, t) for k, t in enumerate(shared_stamps)]
     )
-    assert [s.t for s in shared] == shared_stamps  # used as they are
+    assert [s.stamp for s in shared] == shared_stamps  # used as they are
     assert {s.clock for s in shared} == {"shared"}
     assert len({s.clock_epoch for s in shared}) == 1
     # stamps from a clock 10 s behind: old, flagged, kept
@@ -225,13 +225,13 @@ async def test_line_tracker_under_each_domain(demo_config):
     )
     assert all("stamp_old" in s.flags for s in stale)
     receipt = await _tracker_samples(demo_config, "receipt", [_line(k, 5.0 + k) for k in range(3)])
-    assert [s.device_t for s in receipt] == [5.0, 6.0, 7.0]
-    assert all(abs(s.t - s.host_ns * 1e-9) < 1e-6 for s in receipt)
+    assert [s.device_stamp for s in receipt] == [5.0, 6.0, 7.0]
+    assert all(abs(s.stamp - s.host_ns * 1e-9) < 1e-6 for s in receipt)
     device = await _tracker_samples(
         demo_config, "device", [_line(k, 5.0 + 0.01 * k) for k in range(3)]
     )
     assert all(s.clock == "device" for s in device)
-    assert all(abs(s.t - s.host_ns * 1e-9) < 0.1 for s in device)  # mapped onto the host clock
+    assert all(abs(s.stamp - s.host_ns * 1e-9) < 0.1 for s in device)  # mapped onto the host clock
 
 
 # ---- the service: which domain each stream declares ------------------------------------------
@@ -248,13 +248,15 @@ async def test_the_service_records_declared_domains_and_warns_on_a_mismatch(demo
         client = session_for_client(config)
         try:
             await asyncio.sleep(0.3)
-            enc = JointSample(t=1.0, host_ns=1, seq=1, q=[0.0] * 6, clock="device", clock_epoch=5)
+            enc = JointSample(
+                stamp=1.0, host_ns=1, seq=1, joints=[0.0] * 6, clock="device", clock_epoch=5
+            )
             trk = TrackerSample(
-                t=1.0,
+                stamp=1.0,
                 host_ns=1,
                 seq=1,
-                p=[1.0, 0.0, 0.0],
-                q=[1.0, 0, 0, 0],
+                position=[1.0, 0.0, 0.0],
+                quaternion=[1.0, 0, 0, 0],
                 clock="device",
                 flags=["stamp_old"],
             )

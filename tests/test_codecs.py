@@ -94,7 +94,7 @@ def test_line_protocol_converts_units_and_refuses_bad_poses():
     p.parse(format_hello("mm"))
     pose = p.parse(format_pose(2, 0.1, [1000.0, 2000.0, -500.0], [1, 0, 0, 0]))
     assert pose is not None
-    assert pose.p == pytest.approx((1.0, 2.0, -0.5))
+    assert pose.position == pytest.approx((1.0, 2.0, -0.5))
     assert p.parse(format_pose(3, 0.2, [1.0, 2.0, 3.0], [0.9, 0, 0, 0])) is None
     assert p.counters["not_unit_quaternion"] == 1
     assert (
@@ -108,10 +108,10 @@ def test_line_protocol_converts_units_and_refuses_bad_poses():
     gap = p.parse(format_pose(6, 0.5, None, None, status="beam_broken"))
     assert gap is not None
     assert gap.status == "beam_broken"
-    assert gap.p is None
+    assert gap.position is None
     reflector = p.parse(format_pose(7, 0.6, [1.0, 0.0, 0.0], None))
     assert reflector is not None
-    assert reflector.q is None
+    assert reflector.quaternion is None
     assert p.parse(b"{not json") is None
     assert p.counters["malformed"] == 1
     assert p.parse(json.dumps({"type": "hello", "length_unit": "inch"}).encode()) is None
@@ -119,9 +119,9 @@ def test_line_protocol_converts_units_and_refuses_bad_poses():
 
 
 def test_messages_roundtrip_and_refuse_other_versions():
-    js = JointSample(t=1.5, host_ns=1_500_000_000, seq=3, q=Q)
+    js = JointSample(stamp=1.5, host_ns=1_500_000_000, seq=3, joints=Q)
     assert decode(encode(js)) == js
-    ts = TrackerSample(t=1.6, host_ns=1, seq=1, status="beam_broken")
+    ts = TrackerSample(stamp=1.6, host_ns=1, seq=1, status="beam_broken")
     assert decode(encode(ts)) == ts
     est = EstimateMessage(
         stamp=1.0,
@@ -134,6 +134,6 @@ def test_messages_roundtrip_and_refuse_other_versions():
         seq=1,
     )
     assert decode(encode(est)) == est
-    foreign = msgspec.msgpack.encode({"type": "keo.joint/2", "t": 1.0})
-    with pytest.raises(msgspec.DecodeError, match=r"keo\.joint/2"):
+    foreign = msgspec.msgpack.encode({"type": "keo.joint/3", "stamp": 1.0})  # a later version
+    with pytest.raises(msgspec.DecodeError, match=r"keo\.joint/3"):
         decode(foreign)

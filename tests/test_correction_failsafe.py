@@ -214,12 +214,16 @@ async def _stall_run(demo_cell, config) -> dict:
                 t, host_ns = wall0 + t_run, time.time_ns()
                 if kind == 0:
                     q = run.encoder.q[i].tolist()
-                    client.put(enc_key, encode(JointSample(t=t, host_ns=host_ns, seq=n, q=q)))
+                    client.put(
+                        enc_key, encode(JointSample(stamp=t, host_ns=host_ns, seq=n, joints=q))
+                    )
                     if t_run < STALL[0]:
                         last_encoder = time.monotonic()
                 else:
                     p, quat = run.tracker.p[i].tolist(), run.tracker.quat[i].tolist()
-                    sample = TrackerSample(t=t, host_ns=host_ns, seq=n, p=p, q=quat)
+                    sample = TrackerSample(
+                        stamp=t, host_ns=host_ns, seq=n, position=p, quaternion=quat
+                    )
                     client.put(trk_key, encode(sample))
             last_input = time.monotonic()
             await asyncio.sleep(0.3)
@@ -303,8 +307,10 @@ def test_the_correction_cycle_step_by_step(demo_config):
     pub = compensation.CorrectionPublisher(demo_config, session)
     limit = demo_config.compensation.stale_after_s
     channels = ("px", "py", "pz", "rx", "ry", "rz")
-    enc = JointSample(t=0.0, host_ns=0, seq=1, q=[0.0] * 6)
-    trk = TrackerSample(t=0.0, host_ns=0, seq=1, p=[1.0, 0.0, 0.0], q=[1.0, 0, 0, 0])
+    enc = JointSample(stamp=0.0, host_ns=0, seq=1, joints=[0.0] * 6)
+    trk = TrackerSample(
+        stamp=0.0, host_ns=0, seq=1, position=[1.0, 0.0, 0.0], quaternion=[1.0, 0, 0, 0]
+    )
     try:
         assert pub.tick(time.monotonic()) is None  # nothing before the first estimate
         enc_at = time.monotonic()  # the encoder's last sample

@@ -185,7 +185,10 @@ async def test_service_reconverges_after_a_clock_epoch_change(demo_config):
                     enc_pub.put(
                         encode(
                             JointSample(
-                                t=float(enc_t[i]), host_ns=0, seq=i + 1, q=run.encoder.q[i].tolist()
+                                stamp=float(enc_t[i]),
+                                host_ns=0,
+                                seq=i + 1,
+                                joints=run.encoder.q[i].tolist(),
                             )
                         )
                     )
@@ -194,11 +197,11 @@ async def test_service_reconverges_after_a_clock_epoch_change(demo_config):
                 trk_pub.put(
                     encode(
                         TrackerSample(
-                            t=float(trk_t[j]) + (shift if late else 0.0),
+                            stamp=float(trk_t[j]) + (shift if late else 0.0),
                             host_ns=0,
                             seq=j + 1,
-                            p=run.tracker.p[j].tolist(),
-                            q=run.tracker.quat[j].tolist(),
+                            position=run.tracker.p[j].tolist(),
+                            quaternion=run.tracker.quat[j].tolist(),
                             clock_epoch=1 if late else 0,
                         )
                     )

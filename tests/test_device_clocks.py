@@ -88,9 +88,9 @@ class BusLog:
 
 def _stamp_errors(samples, t0: float, clock: tuple[float, float]):
     """(instant described, mapped stamp - instant, receipt - instant) per sample [wall s]."""
-    device = np.array([s.device_t for s in samples])
+    device = np.array([s.device_stamp for s in samples])
     instant = t0 + (device - clock[0]) / (1.0 + clock[1] * 1e-6)
-    mapped = np.array([s.t for s in samples]) - instant
+    mapped = np.array([s.stamp for s in samples]) - instant
     receipt = np.array([s.host_ns for s in samples]) * 1e-9 - instant
     return instant, mapped, receipt
 
@@ -158,7 +158,7 @@ def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
     assert code == 0, service_log
 
     enc = [m for m in items if isinstance(m, JointSample)]
-    trk = [m for m in items if isinstance(m, TrackerSample) and m.device_t is not None]
+    trk = [m for m in items if isinstance(m, TrackerSample) and m.device_stamp is not None]
     est = [m for m in items if isinstance(m, EstimateMessage)]
     e_inst, e_err, e_rcv = _stamp_errors(enc, t0, ROBOT_CLOCK)
     k_inst, k_err, k_rcv = _stamp_errors(trk, t0, TRACKER_CLOCK)

@@ -119,11 +119,11 @@ def test_line_protocol_survives_anything_and_keeps_parsing(lines):
     parser.parse(format_hello("mm"))
     for line in lines:
         pose = parser.parse(line)
-        if pose is not None and pose.p is not None:
-            assert all(math.isfinite(v) for v in pose.p)
+        if pose is not None and pose.position is not None:
+            assert all(math.isfinite(v) for v in pose.position)
     good = parser.parse(format_pose(10**9, 1e9, [1000.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]))
     assert good is not None
-    assert good.p == (1.0, 0.0, 0.0)
+    assert good.position == (1.0, 0.0, 0.0)
 
 
 @settings(max_examples=200, deadline=None)
@@ -144,8 +144,8 @@ def test_bad_poses_are_refused_with_a_count(samples):
         line = json.dumps({"type": "pose", "seq": seq, "t": t, "p": [0.1, 0.2, 0.3], "q": q})
         pose = parser.parse(line.encode())
         if pose is not None:
-            assert math.isfinite(pose.device_t)
-            norm = math.sqrt(sum(v * v for v in pose.q))
+            assert math.isfinite(pose.device_stamp)
+            norm = math.sqrt(sum(v * v for v in pose.quaternion))
             assert abs(norm - 1) < 1e-9
     assert parser.counters["poses"] + parser.counters["rejected"] == len(samples)
 
@@ -185,7 +185,7 @@ def test_estimator_never_lets_a_bad_value_through(demo_cell, events, alignment):
         assert np.all(np.isfinite(e.estimate))
         assert e.measured is None or np.all(np.isfinite(e.measured))
         assert e.held == bool(e.flags)
-    times = [e.t for e in out]
+    times = [e.stamp for e in out]
     assert times == sorted(times)  # never re-issued, never out of order
 
 

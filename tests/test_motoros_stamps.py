@@ -81,8 +81,8 @@ async def test_adapter_stamps_coalesced_frames_apart_over_tcp(demo_config):
         sub.undeclare()
         service_side.close()
         server.close()
-    assert [round(s.q[0], 3) for s in samples] == [0.01 * k for k in range(8)]
-    stamps = [s.t for s in samples]
+    assert [round(s.joints[0], 3) for s in samples] == [0.01 * k for k in range(8)]
+    stamps = [s.stamp for s in samples]
     assert all(b > a for a, b in itertools.pairwise(stamps)), stamps
     assert status["counters"]["coalesced_frames"] >= 2
     assert status["stamps_held_back"] == 0

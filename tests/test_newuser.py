@@ -566,8 +566,10 @@ def test_record_warns_and_counts_when_one_stream_stops(caplog):
             return True
 
     rec = Counting(6)
-    joint = encode(JointSample(t=0.0, host_ns=0, seq=1, q=[0.0] * 6))
-    pose = encode(TrackerSample(t=0.0, host_ns=0, seq=1, p=[0.0] * 3, q=[1.0, 0, 0, 0]))
+    joint = encode(JointSample(stamp=0.0, host_ns=0, seq=1, joints=[0.0] * 6))
+    pose = encode(
+        TrackerSample(stamp=0.0, host_ns=0, seq=1, position=[0.0] * 3, quaternion=[1.0, 0, 0, 0])
+    )
     rec.on_payload(joint)
     rec.on_payload(pose)
     now = time.monotonic()

@@ -47,7 +47,7 @@ def test_keo_estimate_reads_each_file_once(demo_config, recorded, reads):
     result = estimate_files(demo_config, encoder, tracker)
     assert sorted(reads) == ["encoder.csv", "tracker.csv"]
     assert result.path == "batch"
-    assert result.table.t.size == run.tracker.t.size
+    assert result.table.stamp.size == run.tracker.t.size
 
 
 def test_keo_calibrate_delay_reads_each_file_once(demo_config, recorded, reads):

@@ -49,7 +49,7 @@ def test_delivery_order_does_not_change_estimates(demo_cell, run):
     bursty += est.flush()
     assert len(bursty) == len(ordered)
     for a, b in zip(ordered, bursty, strict=True):
-        assert a.t == b.t
+        assert a.stamp == b.stamp
         assert a.flags == b.flags
         assert np.array_equal(a.estimate, b.estimate)
 
@@ -65,7 +65,9 @@ def test_missing_encoder_holds_and_flags(demo_cell, run):
         run.tracker.quat,
     )
     good = [e for e in out if not e.held]
-    held = [e for e in out if e.held and e.t > good[0].t]  # before any encoder data: too_old
+    held = [
+        e for e in out if e.held and e.stamp > good[0].stamp
+    ]  # before any encoder data: too_old
     assert good
     assert held
     assert all(e.flags == ("encoder_stale",) for e in held)
@@ -88,8 +90,8 @@ def test_encoder_gap_is_not_interpolated_across(demo_cell, run):
     )
     gap = [e for e in out if "encoder_gap" in e.flags]
     assert gap
-    assert all(3.0 - 0.05 < e.t - 0.028 < 3.5 + 0.05 for e in gap)
-    assert not any(e.held for e in out if e.t > 3.7)  # back to normal after the gap
+    assert all(3.0 - 0.05 < e.stamp - 0.028 < 3.5 + 0.05 for e in gap)
+    assert not any(e.held for e in out if e.stamp > 3.7)  # back to normal after the gap
 
 
 def test_tracker_gap_and_bad_samples(demo_cell):
@@ -175,7 +177,7 @@ def test_latest_alignment_runs_at_the_fixed_rate(demo_cell, run):
         run.tracker.p,
         run.tracker.quat,
     )
-    t = np.array([e.t for e in out])
+    t = np.array([e.stamp for e in out])
     assert np.allclose(np.diff(t), 0.025)
 
 

@@ -197,15 +197,15 @@ async def test_mcap_recording_reads_back_with_mcap_and_rosbags_and_estimates_ali
         )
         for k, (t, kind, i) in enumerate(events):
             if kind == 0:
-                msg = JointSample(t=t, host_ns=0, seq=k, q=run.encoder.q[i].tolist())
+                msg = JointSample(stamp=t, host_ns=0, seq=k, joints=run.encoder.q[i].tolist())
                 session.put(topic(demo_config.cell, "encoder"), encode(msg))
             else:
                 pose = TrackerSample(
-                    t=t,
+                    stamp=t,
                     host_ns=0,
                     seq=k,
-                    p=run.tracker.p[i].tolist(),
-                    q=run.tracker.quat[i].tolist(),
+                    position=run.tracker.p[i].tolist(),
+                    quaternion=run.tracker.quat[i].tolist(),
                 )
                 session.put(topic(demo_config.cell, "tracker"), encode(pose))
             if k % 100 == 0:
@@ -249,5 +249,5 @@ async def test_mcap_recording_reads_back_with_mcap_and_rosbags_and_estimates_ali
         demo_config, tmp_path / "csv/encoder.csv", tmp_path / "csv/tracker.csv"
     )
     from_mcap = estimate_files(demo_config, out, out)
-    assert from_csv.table.t.size == from_mcap.table.t.size > 0
+    assert from_csv.table.stamp.size == from_mcap.table.stamp.size > 0
     assert float(np.max(np.abs(from_csv.table.estimate - from_mcap.table.estimate))) < 1e-9

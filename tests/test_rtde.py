@@ -201,9 +201,9 @@ async def test_adapter_maps_a_drifting_bursty_controller_onto_the_host_clock(dem
         service_side.close()
         await mock.close()
     assert len(samples) > 0.95 * 500 * seconds
-    device_t = np.array([s.device_t for s in samples])
-    true = t0 + (device_t - offset) / (1 + drift_ppm * 1e-6)  # the true sampling instants
-    mapped = np.array([s.t for s in samples]) - true
+    device_stamp = np.array([s.device_stamp for s in samples])
+    true = t0 + (device_stamp - offset) / (1 + drift_ppm * 1e-6)  # the true sampling instants
+    mapped = np.array([s.stamp for s in samples]) - true
     receipt = np.array([s.host_ns for s in samples]) * 1e-9 - true
     after = true - t0 > 10.0
     jitter = np.percentile(np.abs(mapped[after] - np.median(mapped[after])), 99)

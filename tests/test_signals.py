@@ -85,7 +85,7 @@ def test_echo_and_mocks_exit_0_on_sigint_and_sigterm(demo_config, tmp_path):
         procs, ports = _start_all(str(cfg), play)
         _signal_while_starting(play, early)
         # running: echo prints what it receives, the mocks listen
-        sample = encode(JointSample(t=1.0, host_ns=1, seq=1, q=[0.0] * 6))
+        sample = encode(JointSample(stamp=1.0, host_ns=1, seq=1, joints=[0.0] * 6))
 
         def echoed() -> bool:
             peer.put(topic(config.cell, "encoder"), sample)

@@ -91,8 +91,8 @@ def test_delay_in_the_files_is_what_was_asked(demo_config, demo_cell):
                 run.tracker.quat,
             )
         )
-        moving = np.interp(series.t, run.truth_t, run.moving.astype(float)) > 0.5
-        dev = series.measured[moving] - truth_at(series.t[moving], run.truth_t, run.truth)
+        moving = np.interp(series.stamp, run.truth_t, run.moving.astype(float)) > 0.5
+        dev = series.measured[moving] - truth_at(series.stamp[moving], run.truth_t, run.truth)
         # motion is along the tool's z axis (flange down, moving vertically)
         assert np.nanmean(dev[:, 2]) == pytest.approx(expected, abs=0.1e-3)
 
@@ -154,7 +154,7 @@ def test_zero_noise_in_motion_limited_by_interpolation(demo_config, demo_cell):
         )
     )
     ok = np.all(np.isfinite(series.measured), axis=1)
-    dev = series.measured[ok] - truth_at(series.t[ok], run.truth_t, run.truth)
+    dev = series.measured[ok] - truth_at(series.stamp[ok], run.truth_t, run.truth)
     assert np.max(np.abs(dev[:, :3])) < 1e-6  # linear interpolation over 1 ms of joint motion
 
 
@@ -170,8 +170,8 @@ def test_realistic_noise_stays_in_the_predicted_band(demo_config, demo_cell):
             run.tracker.quat,
         )
     )
-    late = series.t > series.t[0] + 5.0
-    err = series.estimate[late] - truth_at(series.t[late], run.truth_t, run.truth)
+    late = series.stamp > series.stamp[0] + 5.0
+    err = series.estimate[late] - truth_at(series.stamp[late], run.truth_t, run.truth)
     period = float(np.mean(np.diff(run.tracker.t)))
     band = noise_gain(demo_config.observer.gain[0], period)
     for k, sigma in ((0, 20e-6), (1, 20e-6), (2, 20e-6), (3, 50e-6), (4, 50e-6), (5, 50e-6)):

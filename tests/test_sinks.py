@@ -26,7 +26,7 @@ class _Recorder:
         pass
 
     def on_estimate(self, estimate: Estimate, message: EstimateMessage) -> None:
-        self.got.append(estimate.t)
+        self.got.append(estimate.stamp)
         if self.fail:
             raise ValueError("disk on fire")
 

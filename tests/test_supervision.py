@@ -85,7 +85,11 @@ def _tracker_samples(config: Config, n: int) -> None:
         for i in range(n):
             t = time.time()
             msg = TrackerSample(
-                t=t, host_ns=time.time_ns(), seq=i, p=[1.0, 0.0, 1.0], q=[1.0, 0.0, 0.0, 0.0]
+                stamp=t,
+                host_ns=time.time_ns(),
+                seq=i,
+                position=[1.0, 0.0, 1.0],
+                quaternion=[1.0, 0.0, 0.0, 0.0],
             )
             pub.put(encode(msg))
             time.sleep(0.01)

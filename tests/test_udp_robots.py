@@ -364,15 +364,15 @@ async def test_adapter_answers_every_cycle_and_stamps_from_the_controller_clock(
         assert status["robot_state"]["motors_on"] is True
     else:
         assert status["external_axes"] == [1250.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-    assert all(len(s.q) == 6 for s in samples)  # the external axis is not a joint
-    device_ms = np.array([s.device_t for s in samples]) * 1e3
+    assert all(len(s.joints) == 6 for s in samples)  # the external axis is not a joint
+    device_ms = np.array([s.device_stamp for s in samples]) * 1e3
     scenario_t = (device_ms - offset_ms) * 1e-3
     assert np.allclose(scenario_t / 0.004, np.round(scenario_t / 0.004), atol=1e-6)
     expected_q = np.column_stack([np.interp(scenario_t, track.t, c) for c in track.q.T])
-    assert np.abs(np.array([s.q for s in samples]) - expected_q).max() < 1e-9
+    assert np.abs(np.array([s.joints for s in samples]) - expected_q).max() < 1e-9
     assert {s.clock for s in samples} == {"device"}
     # the mapped stamps: the scenario instants on the host clock plus a small transport floor
-    lag = np.array([s.t for s in samples]) - (t0 + scenario_t)
+    lag = np.array([s.stamp for s in samples]) - (t0 + scenario_t)
     late_part = lag[scenario_t > 1.0]
     jitter = np.percentile(np.abs(late_part - np.median(late_part)), 99)
     receipt = (np.array([s.host_ns for s in samples]) * 1e-9 - (t0 + scenario_t))[scenario_t > 1.0]
@@ -762,8 +762,8 @@ async def test_a_restarted_controller_starts_a_new_clock_epoch(demo_config, prot
         sub.undeclare()
         service_side.close()
     epochs = [s.clock_epoch for s in samples]
-    first = [s for s in samples if s.device_t > 1000.0]
-    second = [s for s in samples if s.device_t < 1000.0]
+    first = [s for s in samples if s.device_stamp > 1000.0]
+    second = [s for s in samples if s.device_stamp < 1000.0]
     assert len(first) > 100
     assert len(second) > 100
     (epoch,) = {s.clock_epoch for s in first}  # the adapter's start (ms), one epoch

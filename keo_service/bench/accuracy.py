@@ -22,7 +22,7 @@ def accuracy(config: Config, seed: int = 1) -> dict[str, Any]:
     def rms_for(**changes: Any) -> tuple[float, float]:
         settings = dataclasses.replace(base, **changes)
         series = estimate_run(cell, settings, run)
-        mask = series.t > series.t[0] + 5.0
+        mask = series.stamp > series.stamp[0] + 5.0
         return estimate_error_rms(series, run.truth_t, run.truth, mask)
 
     configured = base.gains[0]

@@ -180,11 +180,11 @@ def _end_to_end(
     in_window = [
         (a, m)
         for a, m in items
-        if m.tracker_device_t is not None and m.tracker_device_t > t0 + 0.5 and not m.flags
+        if m.device_stamp is not None and m.device_stamp > t0 + 0.5 and not m.flags
     ]
-    device_t = np.array([m.tracker_device_t for _a, m in in_window], dtype=float)
-    lat = (np.array([a for a, _m in in_window]) - device_t) * 1e3
-    to_publish = (np.array([m.host_ns * 1e-9 for _a, m in in_window]) - device_t) * 1e3
+    device_stamp = np.array([m.device_stamp for _a, m in in_window], dtype=float)
+    lat = (np.array([a for a, _m in in_window]) - device_stamp) * 1e3
+    to_publish = (np.array([m.host_ns * 1e-9 for _a, m in in_window]) - device_stamp) * 1e3
     to_subscriber = np.array([a - m.host_ns * 1e-9 for a, m in in_window]) * 1e3
     held = sum(1 for _a, m in items if m.measured is None)
     procs_out = {

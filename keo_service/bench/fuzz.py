@@ -257,7 +257,7 @@ class _Line:
         _merge(self.counters, {"hello": 1}, dict(parser.counters))
         if pose is None:
             return parser.counters["hello"] - 1  # a hello is a frame too
-        values = [*(pose.p or ()), *(pose.q or ()), pose.device_t]
+        values = [*(pose.position or ()), *(pose.quaternion or ()), pose.device_stamp]
         if not all(math.isfinite(v) for v in values):
             raise AssertionError(f"a decoded pose carries a non-finite value: {pose}")
         return 1

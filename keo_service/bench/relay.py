@@ -33,11 +33,11 @@ async def relay(config: Config) -> None:
     seq = 0
     async for _key, payload in sub:
         msg = decode(payload)
-        if not isinstance(msg, TrackerSample) or msg.p is None:
+        if not isinstance(msg, TrackerSample) or msg.position is None:
             continue
         seq += 1
         out = EstimateMessage(
-            stamp=msg.t,
+            stamp=msg.stamp,
             host_ns=time.time_ns(),
             channels=channels,
             measured=zeros,
@@ -45,7 +45,7 @@ async def relay(config: Config) -> None:
             flags=[],
             delay_s=0.0,
             seq=seq,
-            tracker_device_t=msg.device_t,
+            device_stamp=msg.device_stamp,
         )
         pub.put(encode(out))
     session.close()

@@ -115,7 +115,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     summary = {
         "out": str(args.out),
         "path": result.path,
-        "estimates": int(table.t.size),
+        "estimates": int(table.stamp.size),
         "held": held,
         "channels": list(table.channels),
         "counters": table.counters,
@@ -124,7 +124,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     if args.json:
         common.print_json(summary)
     else:
-        print(f"wrote {table.t.size} estimates ({held} held) to {args.out} [{result.path}]")
+        print(f"wrote {table.stamp.size} estimates ({held} held) to {args.out} [{result.path}]")
         skipped = {
             k: v
             for k, v in table.counters.items()

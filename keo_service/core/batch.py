@@ -73,13 +73,15 @@ class BatchUnsupportedError(KeoError):
 
 @dataclass(frozen=True)
 class BatchResult:
-    """One row per estimate, in output order."""
+    """One row per estimate, in output order: `Estimate`'s fields as columns (the same
+    names; `to_estimates` and `from_estimates` convert). No `device_stamp` column: recordings
+    hold no device stamps."""
 
-    t: np.ndarray  # (n,)
+    stamp: np.ndarray  # (n,)
     measured: np.ndarray  # (n, C); NaN where held
     estimate: np.ndarray  # (n, C)
     flags: list[str]  # "" or the flags joined by "|"
-    encoder_t: np.ndarray  # (n,) the encoder time evaluated
+    encoder_stamp: np.ndarray  # (n,) the encoder time evaluated
     joints: np.ndarray | None  # (n, nq); NaN where held; None when not asked for
     channels: tuple[str, ...]
     counters: dict[str, int]
@@ -90,7 +92,7 @@ class BatchResult:
         held: np.ndarray = (
             np.isnan(self.measured).any(axis=1)
             if self.measured.size
-            else (np.zeros(self.t.size, dtype=bool))
+            else (np.zeros(self.stamp.size, dtype=bool))
         )
         return held
 
@@ -106,13 +108,13 @@ class BatchResult:
         """The same rows from `Estimate` objects (what `run_offline` returns)."""
         nan_c, nan_q = np.full(len(channels), np.nan), np.full(nq, np.nan)
         return cls(
-            np.array([e.t for e in estimates], dtype=float),
+            np.array([e.stamp for e in estimates], dtype=float),
             np.array([nan_c if e.measured is None else e.measured for e in estimates]).reshape(
                 -1, len(channels)
             ),
             np.array([e.estimate for e in estimates]).reshape(-1, len(channels)),
             ["|".join(e.flags) for e in estimates],
-            np.array([np.nan if e.encoder_t is None else e.encoder_t for e in estimates]),
+            np.array([np.nan if e.encoder_stamp is None else e.encoder_stamp for e in estimates]),
             np.array([nan_q if e.joints is None else e.joints for e in estimates]).reshape(-1, nq),
             channels,
             counters,
@@ -123,27 +125,27 @@ class BatchResult:
         """The same rows as `Estimate` objects (what `run_offline` returns)."""
         out = []
         held = self.held
-        for k in range(self.t.size):
+        for k in range(self.stamp.size):
             flags = tuple(self.flags[k].split("|")) if self.flags[k] else ()
             if held[k]:
                 out.append(
                     Estimate(
-                        float(self.t[k]),
+                        float(self.stamp[k]),
                         None,
                         self.estimate[k].copy(),
                         flags,
-                        float(self.encoder_t[k]),
+                        float(self.encoder_stamp[k]),
                         self.channels,
                     )
                 )
             else:
                 out.append(
                     Estimate(
-                        float(self.t[k]),
+                        float(self.stamp[k]),
                         self.measured[k].copy(),
                         self.estimate[k].copy(),
                         flags,
-                        float(self.encoder_t[k]),
+                        float(self.encoder_stamp[k]),
                         self.channels,
                         None if self.joints is None else self.joints[k].copy(),
                     )
@@ -659,11 +661,11 @@ def estimate_batch(
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
     return BatchResult(
-        t=streams.T,
+        stamp=streams.T,
         measured=out.measured,
         estimate=out.estimate,
         flags=verdicts.flags.tolist(),
-        encoder_t=where.target,
+        encoder_stamp=where.target,
         joints=out.joints,
         channels=channels,
         counters=streams.counters,

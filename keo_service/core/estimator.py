@@ -60,6 +60,12 @@ DELAY_SLEW = 0.001  # a new delay is approached at this many s per s of stream t
 class Estimate:
     """One observer output. `measured` is None when the step was held (see `flags`).
 
+    The one estimate record: the wire's `EstimateMessage` is made from it
+    (`live.messages.estimate_message`), the batch path's `BatchResult` holds its fields as
+    columns under the same names, the Rerun pipe carries its fields. `stamp` is stream time,
+    `encoder_stamp` the stream time the joints were taken at, `device_stamp` the tracker's own
+    time of the sample (None when it gives none).
+
     Read-only by convention. The two vectors are kept as they were made (plain floats on the
     hot path: two arrays per tracker sample cost a twelfth of its budget) and become arrays on
     first read; `measured_values` and `estimate_values` give the floats without arrays."""
@@ -68,32 +74,32 @@ class Estimate:
         "_estimate",
         "_measured",
         "channels",
-        "encoder_t",
+        "device_stamp",
+        "encoder_stamp",
         "flags",
         "joints",
-        "source",
-        "t",
+        "stamp",
     )
 
     def __init__(
         self,
-        t: float,
+        stamp: float,  # the tracker sample's stream time (or the tick's, for "latest")
         measured: np.ndarray | list[float] | None,
         estimate: np.ndarray | list[float],
         flags: tuple[str, ...],
-        encoder_t: float | None,  # stream time at which the joints were evaluated
+        encoder_stamp: float | None,  # stream time at which the joints were evaluated
         channels: tuple[str, ...],
         joints: np.ndarray | None = None,  # the joints the measured error was computed with
-        source: object = None,  # passed through from on_tracker(tag=...), e.g. the device time
+        device_stamp: float | None = None,  # the tracker's own stamp, from on_tracker()
     ) -> None:
-        self.t = t
+        self.stamp = stamp
         self._measured = measured
         self._estimate = estimate
         self.flags = flags
-        self.encoder_t = encoder_t
+        self.encoder_stamp = encoder_stamp
         self.channels = channels
         self.joints = joints
-        self.source = source
+        self.device_stamp = device_stamp
 
     @property
     def measured(self) -> np.ndarray | None:
@@ -125,18 +131,18 @@ class Estimate:
 
     def __repr__(self) -> str:
         return (
-            f"Estimate(t={self.t!r}, measured={self.measured_values()!r}, "
+            f"Estimate(stamp={self.stamp!r}, measured={self.measured_values()!r}, "
             f"estimate={self.estimate_values()!r}, flags={self.flags!r})"
         )
 
 
 @dataclass(slots=True)
 class _TrackerSample:
-    t: float
+    stamp: float
     # [x, y, z, qx, qy, qz, qw] (Pinocchio's order, unit quaternion) or [x, y, z] for a
     # single reflector; None: a gap reported by the tracker
     sensor: list[float] | None
-    tag: object = None
+    device_stamp: float | None = None
 
 
 class Estimator:
@@ -246,9 +252,11 @@ class Estimator:
         p: Sequence[float] | np.ndarray | None,
         quat: Sequence[float] | np.ndarray | None = None,
         ok: bool = True,
-        tag: object = None,
+        device_stamp: float | None = None,
     ) -> list[Estimate]:
-        """A tracker sample; `ok=False` (or p None) is a gap the tracker reported."""
+        """A tracker sample; `ok=False` (or p None) is a gap the tracker reported. Its
+        `device_stamp` (the tracker's own time, when it gives one) goes through to the
+        estimate it makes."""
         last = self._last_tracker_t
         if not last < t < math.inf:  # one comparison for a good stamp
             return self._reject(*tracker_stamp_problem(t, last))
@@ -257,7 +265,7 @@ class Estimator:
         if not ok or p is None:
             self._last_tracker_t = t
             self.counters["tracker_gaps"] += 1
-            return self._enqueue(_TrackerSample(t, None, tag))
+            return self._enqueue(_TrackerSample(t, None, device_stamp))
         sensor = sensor_values(p, quat)
         if isinstance(sensor, tuple):
             return self._reject(*tracker_value_problem(t, sensor))
@@ -281,8 +289,8 @@ class Estimator:
         if self._interpolating and not self._pending:
             target = self._delay.encoder_time(t)
             if self.encoder.newest_t >= target:  # the steady state: nothing waits
-                return [self._resolve_at(t, target, sensor, tag)]
-        return self._enqueue(_TrackerSample(t, sensor, tag))
+                return [self._resolve_at(t, target, sensor, device_stamp)]
+        return self._enqueue(_TrackerSample(t, sensor, device_stamp))
 
     @property
     def has_pending(self) -> bool:
@@ -292,7 +300,7 @@ class Estimator:
         return (
             self._next_tick is not None
             and bool(self._recent_tracker)
-            and self._next_tick <= self._recent_tracker[-1].t
+            and self._next_tick <= self._recent_tracker[-1].stamp
         )
 
     def flush(self) -> list[Estimate]:
@@ -328,16 +336,18 @@ class Estimator:
         if self.settings.alignment == "latest":
             self._recent_tracker.append(sample)
             if self._next_tick is None:
-                self._next_tick = sample.t
+                self._next_tick = sample.stamp
             return self._run_ticks(final=False)
         if not self._pending and (
-            sample.sensor is None or self.encoder.newest_t >= self._delay.encoder_time(sample.t)
+            sample.sensor is None or self.encoder.newest_t >= self._delay.encoder_time(sample.stamp)
         ):
             return [self._resolve(sample)]  # the steady state: nothing waits, no queueing
         if len(self._pending) >= MAX_PENDING:
             dropped = self._pending.popleft()
             self.counters["pending_overflow"] += 1
-            self.messages.append(f"tracker sample at t={dropped.t!r} dropped: no encoder data came")
+            self.messages.append(
+                f"tracker sample at t={dropped.stamp!r} dropped: no encoder data came"
+            )
         self._pending.append(sample)
         return self._advance()
 
@@ -348,8 +358,8 @@ class Estimator:
         while self._pending:
             head = self._pending[0]
             if head.sensor is not None:
-                target = self._delay.encoder_time(head.t)
-                waited = self._last_tracker_t - head.t
+                target = self._delay.encoder_time(head.stamp)
+                waited = self._last_tracker_t - head.stamp
                 if waits_for_encoder(
                     self.encoder.newest_t, target, waited, self.settings.stale_after_s
                 ):
@@ -360,21 +370,23 @@ class Estimator:
 
     def _resolve(self, sample: _TrackerSample) -> Estimate:
         if sample.sensor is None:
-            return self._held(sample.t, TRACKER_GAP, None, sample.tag)
-        target = self._delay.encoder_time(sample.t)
-        return self._resolve_at(sample.t, target, sample.sensor, sample.tag)
+            return self._held(sample.stamp, TRACKER_GAP, None, sample.device_stamp)
+        target = self._delay.encoder_time(sample.stamp)
+        return self._resolve_at(sample.stamp, target, sample.sensor, sample.device_stamp)
 
-    def _resolve_at(self, t: float, target: float, sensor: list[float], tag: object) -> Estimate:
+    def _resolve_at(
+        self, t: float, target: float, sensor: list[float], device_stamp: float | None
+    ) -> Estimate:
         q = self.encoder.interpolate(target, self._max_gap_s)
         reason = held_reason(q, target, self.encoder.newest_t, self._buffer_s)
         if reason is not None:
-            return self._held(t, reason, target, tag)
+            return self._held(t, reason, target, device_stamp)
         assert isinstance(q, np.ndarray)
         if self._folded_only is not None:
             measured = measured_error_folded(self._folded_only, self._folded_data, q, sensor)
         else:
             measured = self._measure(q, sensor)
-        return self._update(t, measured, target, q, tag)
+        return self._update(t, measured, target, q, device_stamp)
 
     def _measure(self, q: np.ndarray, sensor: list[float]) -> list[float]:
         if self._folded is None or self._folded_data is None:
@@ -391,9 +403,9 @@ class Estimator:
         self,
         t: float,
         measured: list[float],
-        encoder_t: float,
+        encoder_stamp: float,
         joints: np.ndarray,
-        tag: object = None,
+        device_stamp: float | None = None,
     ) -> Estimate:
         assert self.observer is not None
         assert self.channels is not None
@@ -411,7 +423,7 @@ class Estimator:
             dt = t - self._last_update_t
             if not self.observer.update(measured, cap if dt > cap else dt):
                 self.counters[OBSERVER_REJECTED] += 1
-                return self._held(t, OBSERVER_REJECTED, encoder_t, tag)
+                return self._held(t, OBSERVER_REJECTED, encoder_stamp, device_stamp)
         self._last_update_t = t
         self.counters["estimates"] += 1
         flags: tuple[str, ...] = ()
@@ -423,19 +435,25 @@ class Estimator:
             measured,
             self.observer.values,
             flags,
-            encoder_t,
+            encoder_stamp,
             self.channels,
             joints,
-            tag,
+            device_stamp,
         )
         self.last = est
         return est
 
-    def _held(self, t: float, reason: str, encoder_t: float | None, tag: object = None) -> Estimate:
+    def _held(
+        self,
+        t: float,
+        reason: str,
+        encoder_stamp: float | None,
+        device_stamp: float | None = None,
+    ) -> Estimate:
         self.counters[f"held_{reason}"] += 1
         channels = self.channels or ()
         state = self.observer.values if self.observer is not None else [0.0] * len(channels)
-        est = Estimate(t, None, state, (reason,), encoder_t, channels, None, tag)
+        est = Estimate(t, None, state, (reason,), encoder_stamp, channels, None, device_stamp)
         self.last = est
         return est
 
@@ -445,7 +463,7 @@ class Estimator:
         if self._next_tick is None or not self._recent_tracker:
             return out
         period = 1.0 / self.settings.sample_rate_hz
-        newest_tracker = self._recent_tracker[-1].t
+        newest_tracker = self._recent_tracker[-1].stamp
         while True:
             tau = self._next_tick
             if tau > newest_tracker:
@@ -462,7 +480,7 @@ class Estimator:
     def _tick(self, tau: float, target: float) -> Estimate:
         trk = None
         for s in reversed(self._recent_tracker):
-            if s.t <= tau:
+            if s.stamp <= tau:
                 trk = s
                 break
         enc = self.encoder.latest_at_or_before(target)
@@ -471,11 +489,11 @@ class Estimator:
             return self._held(tau, TRACKER_GAP, target)
         if enc is None or target - enc[0] > stale:
             return self._held(tau, "encoder_stale", target)
-        if tau - trk.t > stale:
+        if tau - trk.stamp > stale:
             return self._held(tau, "tracker_stale", target)
         est = self._update(tau, self._measure(enc[1], trk.sensor), enc[0], enc[1])
-        if trk.tag is not None and not est.held:
-            est.source = trk.tag
+        if trk.device_stamp is not None and not est.held:
+            est.device_stamp = trk.device_stamp
         return est
 
 

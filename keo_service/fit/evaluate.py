@@ -15,7 +15,9 @@ from keo_service.core.settings import EstimatorSettings
 
 @dataclass(frozen=True)
 class Series:
-    t: np.ndarray
+    """`Estimate`s' `stamp`, `measured` and `estimate` as columns (what the studies score)."""
+
+    stamp: np.ndarray
     measured: np.ndarray  # NaN rows where held
     estimate: np.ndarray
 
@@ -28,7 +30,7 @@ def as_series(estimates: Sequence[Estimate]) -> Series:
         if e.measured is not None:
             meas[i] = e.measured
     return Series(
-        np.array([e.t for e in estimates]),
+        np.array([e.stamp for e in estimates]),
         meas,
         np.array([e.estimate for e in estimates]).reshape(n, k),
     )
@@ -58,7 +60,7 @@ def estimate_error_rms(
     series: Series, truth_t: np.ndarray, truth: np.ndarray, mask: np.ndarray
 ) -> tuple[float, float]:
     """RMS norm of (estimate - truth) over the rows in `mask`: (position m, orientation rad)."""
-    err = series.estimate - truth_at(series.t, truth_t, truth)
+    err = series.estimate - truth_at(series.stamp, truth_t, truth)
     pos = rms(err[mask, :3])
     rot = rms(err[mask, 3:6]) if err.shape[1] >= 6 else float("nan")
     return pos, rot

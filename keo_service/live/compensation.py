@@ -156,7 +156,7 @@ class CorrectionPublisher:
         now = time.monotonic() if now is None else now
         if isinstance(sample, JointSample):
             self._encoder_at = now
-        elif sample.status == "ok" and sample.p is not None:
+        elif sample.status == "ok" and sample.position is not None:
             self._tracker_at = now
 
     def freshness(self, now: float) -> str:
@@ -245,12 +245,12 @@ class CorrectionPublisher:
         values = estimate.estimate_values()
         now = time.monotonic()
         if not estimate.held:
-            self._steps.append(estimate.t)
+            self._steps.append(estimate.stamp)
         self._estimate = (now, values, reason)
-        self._stamp = estimate.t
+        self._stamp = estimate.stamp
         stale, _ = self._verdict(now)
         joints = estimate.joints if joints is None else joints
-        return self._make(estimate.t, values, joints, reason or stale)
+        return self._make(estimate.stamp, values, joints, reason or stale)
 
     def _make(
         self, stamp: float, values: list[float], joints: Any, reason: str
@@ -340,7 +340,7 @@ class CorrectionSink:
     def on_input(self, sample: Any) -> None:
         self.publisher.note_input(sample)
         if isinstance(sample, JointSample):  # with a model: feedforward at these joints
-            self.publisher.on_joints(sample.t, sample.q)
+            self.publisher.on_joints(sample.stamp, sample.joints)
 
     def on_estimate(self, estimate: Estimate, message: Any) -> None:
         self.publisher.publish(estimate, self.estimator)

@@ -1,19 +1,28 @@
 """Wire messages: msgspec Structs encoded as MessagePack, shared by adapters, service, clients.
 
-The schema version is part of each message's tag ("keo.joint/1"), so a client that meets a
+The schema version is part of each message's tag ("keo.joint/2"), so a client that meets a
 payload from an incompatible version gets a clear decode error instead of wrong numbers.
-Units are SI. `host_ns` is the host time (ns since the epoch) at which the sample was received;
-`t` (seconds, same clock) is the stream time used for alignment, kept as its own float so a
-replay reproduces the exact numbers.
+Units are SI. One name per thing in every message: `host_ns` is the host time (ns since the
+epoch) at which the sample was received; `stamp` (seconds, same clock) is the stream time used
+for alignment, kept as its own float so a replay reproduces the exact numbers; `device_stamp`
+is the device's own time of the sample (s, the device's clock), where it gives one.
+
+Schema 2 (this one) renamed schema 1's fields: `t` -> `stamp`, `device_t` and the estimate's
+`tracker_device_t` -> `device_stamp`, the joint sample's `q`/`dq` -> `joints`/`velocities`,
+the tracker sample's `p`/`q` -> `position`/`quaternion`. Recordings (interchange CSV, ROS 2
+MCAP) never held these messages and read the same under both.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 
-SCHEMA_VERSION = 1
+if TYPE_CHECKING:
+    from keo_service.core.estimator import Estimate
+
+SCHEMA_VERSION = 2
 
 
 def _tag(name: str) -> str:
@@ -25,13 +34,13 @@ class _Message(msgspec.Struct, frozen=True, kw_only=True, tag_field="type"):
 
 
 class JointSample(_Message, frozen=True, tag=_tag("joint")):
-    t: float
+    stamp: float
     host_ns: int
     seq: int
-    q: list[float]
-    dq: list[float] | None = None
-    device_t: float | None = None
-    # the clock domain `t` is on ("shared", "device", "receipt"), a counter the adapter bumps
+    joints: list[float]  # rad (m for a prismatic joint), the URDF's joint order
+    velocities: list[float] | None = None  # the joints' velocities, rad/s
+    device_stamp: float | None = None
+    # the clock domain `stamp` is on ("shared", "device", "receipt"), a counter the adapter bumps
     # whenever its time base starts anew (reconnect, device clock step) and per-sample notes
     # on the stamp (e.g. "stamp_ahead", "stamp_old", "clock_relearning")
     clock: str = ""
@@ -51,15 +60,16 @@ class RobotStatus(_Message, frozen=True, tag=_tag("robot_status")):
 
 
 class TrackerSample(_Message, frozen=True, tag=_tag("tracker")):
-    """A pose (p, and q scalar first for a 6-DoF probe), or a gap when status != "ok"."""
+    """A pose (position, and quaternion scalar first for a 6-DoF probe), or a gap when
+    status != "ok"."""
 
-    t: float
+    stamp: float
     host_ns: int
     seq: int
     status: str = "ok"
-    p: list[float] | None = None
-    q: list[float] | None = None
-    device_t: float | None = None
+    position: list[float] | None = None  # m, the sensor frame's origin in the tracker frame
+    quaternion: list[float] | None = None  # [w, x, y, z]; None for a single reflector
+    device_stamp: float | None = None
     clock: str = ""  # as in JointSample
     clock_epoch: int = 0
     flags: list[str] = msgspec.field(default_factory=list)
@@ -74,12 +84,39 @@ class EstimateMessage(_Message, frozen=True, tag=_tag("estimate")):
     flags: list[str]
     delay_s: float
     seq: int
-    # device time of the tracker sample behind this estimate, when the tracker gives one
-    tracker_device_t: float | None = None
+    # the device stamp of the tracker sample behind this estimate, when the tracker gives one
+    device_stamp: float | None = None
     # standard error of the delay in use (s), when it is known (calibrated or tracked)
     delay_se_s: float | None = None
     # tool speed at this estimate (m/s), from the joint velocities
     tool_speed_m_s: float | None = None
+
+
+def estimate_message(
+    estimate: Estimate,
+    *,
+    host_ns: int,
+    seq: int,
+    delay_s: float,
+    delay_se_s: float | None = None,
+    tool_speed_m_s: float | None = None,
+) -> EstimateMessage:
+    """The wire form of the estimator's record (`core.estimator.Estimate`): its fields under
+    the same names, with what the publisher adds (receipt clock, sequence, the delay in use).
+    The one place an `EstimateMessage` is made from an estimate."""
+    return EstimateMessage(
+        stamp=estimate.stamp,
+        host_ns=host_ns,
+        channels=list(estimate.channels),
+        measured=estimate.measured_values(),
+        estimate=estimate.estimate_values(),
+        flags=list(estimate.flags),
+        delay_s=delay_s,
+        seq=seq,
+        device_stamp=estimate.device_stamp,
+        delay_se_s=delay_se_s,
+        tool_speed_m_s=tool_speed_m_s,
+    )
 
 
 class ServiceStatus(_Message, frozen=True, tag=_tag("status")):

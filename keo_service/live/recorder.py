@@ -140,15 +140,15 @@ class _StreamRecorder:
                 time.monotonic()
             )
         if isinstance(msg, JointSample):
-            if len(msg.q) != self.nq:
+            if len(msg.joints) != self.nq:
                 self._note(
-                    f"joint sample seq {msg.seq} with {len(msg.q)} joints, expected {self.nq}"
+                    f"joint sample seq {msg.seq} with {len(msg.joints)} joints, expected {self.nq}"
                 )
                 return
             self._joints(msg)
             self.stats.encoder_rows += 1
         elif isinstance(msg, TrackerSample):
-            if msg.status != "ok" or msg.p is None:
+            if msg.status != "ok" or msg.position is None:
                 self.stats.tracker_gaps += 1
                 return
             if self._pose(msg):
@@ -188,11 +188,11 @@ class Recorder(_StreamRecorder):
         self._last_flush = time.monotonic()
 
     def _joints(self, msg: JointSample) -> None:
-        self._enc.write(",".join(repr(float(v)) for v in (msg.t, *msg.q)) + "\n")
+        self._enc.write(",".join(repr(float(v)) for v in (msg.stamp, *msg.joints)) + "\n")
 
     def _pose(self, msg: TrackerSample) -> bool:
-        assert msg.p is not None
-        has_q = msg.q is not None
+        assert msg.position is not None
+        has_q = msg.quaternion is not None
         if self._trk is None:
             self._trk = (self.out_dir / "tracker.csv").open("w", encoding="utf-8")
             cols = TRACKER_POSE_COLUMNS if has_q else TRACKER_POSITION_COLUMNS
@@ -201,7 +201,7 @@ class Recorder(_StreamRecorder):
         if has_q != self._trk_has_q:
             self._note(f"tracker sample seq {msg.seq}: orientation presence changed mid-stream")
             return False
-        values = (msg.t, *msg.p, *(msg.q or ()))
+        values = (msg.stamp, *msg.position, *(msg.quaternion or ()))
         self._trk.write(",".join(repr(float(v)) for v in values) + "\n")
         return True
 
@@ -241,11 +241,11 @@ class McapRecorder(_StreamRecorder):
         self.writer = writer
 
     def _joints(self, msg: JointSample) -> None:
-        self.writer.joints(msg.t, msg.q, msg.dq)
+        self.writer.joints(msg.stamp, msg.joints, msg.velocities)
 
     def _pose(self, msg: TrackerSample) -> bool:
-        assert msg.p is not None
-        self.writer.pose(msg.t, msg.p, msg.q)
+        assert msg.position is not None
+        self.writer.pose(msg.stamp, msg.position, msg.quaternion)
         return True
 
     def _estimate(self, msg: EstimateMessage) -> None:
@@ -389,7 +389,9 @@ async def replay(
         if plan.kinds[k] == 0:
             enc_pub.put(
                 encode(
-                    JointSample(t=float(enc.t[i]), host_ns=now_ns, seq=i + 1, q=enc.q[i].tolist())
+                    JointSample(
+                        stamp=float(enc.t[i]), host_ns=now_ns, seq=i + 1, joints=enc.q[i].tolist()
+                    )
                 )
             )
         else:
@@ -397,7 +399,11 @@ async def replay(
             trk_pub.put(
                 encode(
                     TrackerSample(
-                        t=float(trk.t[i]), host_ns=now_ns, seq=i + 1, p=trk.p[i].tolist(), q=quat
+                        stamp=float(trk.t[i]),
+                        host_ns=now_ns,
+                        seq=i + 1,
+                        position=trk.p[i].tolist(),
+                        quaternion=quat,
                     )
                 )
             )

@@ -9,11 +9,12 @@ as `python -m keo_service.live.rerun_process`, reads the pipe and runs the `Reru
 
 The pipe carries frames: a 4-byte little-endian length, then the payload. The first payload
 is the pickled `(cell, rrd, viewer, options)` from the parent (options: the URDF for its
-meshes, the plots' time window); then msgpack arrays, an estimate as
-`["e", t, measured | None, estimate, flags, joints | None, channels]`, a status snapshot as
-`["s", {...}]`. End of file is the only stop: the child ignores SIGINT and SIGTERM (a
-supervisor that signals the whole group stops the service, and the service closes the pipe),
-drains what is left, closes the recording and exits 0. A dead parent closes the pipe too.
+meshes, the plots' time window); then msgpack arrays, an estimate as `_PipedEstimate` (the
+fields of `Estimate`, named as there, in one array after its tag "e"), a status snapshot as
+`_PipedStatus` (`["s", {...}]`). End of file is the only stop: the child ignores SIGINT and
+SIGTERM (a supervisor that signals the whole group stops the service, and the service closes
+the pipe), drains what is left, closes the recording and exits 0. A dead parent closes the
+pipe too.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import time
 import urllib.parse
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
@@ -60,6 +62,49 @@ WEB_SERVER_MEMORY = "512MiB"  # what the web viewer's server keeps for late brow
 
 def _frame(payload: bytes) -> bytes:
     return len(payload).to_bytes(HEADER, "little") + payload
+
+
+class _PipedEstimate(msgspec.Struct, array_like=True, tag="e", frozen=True):
+    """An `Estimate` on the pipe to the child: its fields, under its names."""
+
+    stamp: float
+    measured: list[float] | None
+    estimate: list[float]
+    flags: tuple[str, ...]
+    joints: list[float] | None
+    channels: tuple[str, ...]
+    encoder_stamp: float | None = None
+    device_stamp: float | None = None
+
+    @classmethod
+    def of(cls, est: Estimate) -> _PipedEstimate:
+        joints = est.joints
+        return cls(
+            est.stamp,
+            est.measured_values(),
+            est.estimate_values(),
+            est.flags,
+            joints.tolist() if isinstance(joints, np.ndarray) else joints,
+            est.channels,
+            est.encoder_stamp,
+            est.device_stamp,
+        )
+
+    def to_estimate(self) -> Estimate:
+        return Estimate(
+            self.stamp,
+            self.measured,
+            self.estimate,
+            self.flags,
+            self.encoder_stamp,
+            self.channels,
+            None if self.joints is None else np.asarray(self.joints, dtype=float),
+            self.device_stamp,
+        )
+
+
+class _PipedStatus(msgspec.Struct, array_like=True, tag="s", frozen=True):
+    snapshot: dict[str, Any]
 
 
 class RerunWorker:
@@ -107,20 +152,9 @@ class RerunWorker:
     def submit(self, item: Estimate | dict[str, object]) -> None:
         """An estimate, or a status snapshot (plain dict). Never blocks."""
         if isinstance(item, dict):
-            payload = self._encode(("s", item))
+            payload = self._encode(_PipedStatus(item))
         else:
-            joints = item.joints
-            payload = self._encode(
-                (
-                    "e",
-                    item.t,
-                    item.measured_values(),
-                    item.estimate_values(),
-                    item.flags,
-                    joints.tolist() if isinstance(joints, np.ndarray) else joints,
-                    item.channels,
-                )
-            )
+            payload = self._encode(_PipedEstimate.of(item))
         if len(self._buffer) + HEADER + len(payload) > self._max_buffer:
             self.dropped += 1
             return
@@ -343,27 +377,16 @@ def _serve(fd: int) -> None:
         urdf=options.get("urdf"),
         window_s=WINDOW_S if window_s is None else window_s,
     )
-    decode = msgspec.msgpack.Decoder().decode
+    decode = msgspec.msgpack.Decoder(_PipedEstimate | _PipedStatus).decode
     period = FLUSH_PERIOD_S if viewer is not None else FILE_FLUSH_PERIOD_S
     next_flush = time.monotonic() + period
     while True:
         for payload in pending:
             item = decode(payload)
-            if item[0] == "s":  # every snapshot: rates and events at the status period
-                sink.add_status(item[1])
+            if isinstance(item, _PipedStatus):  # every snapshot: rates, events at its period
+                sink.add_status(item.snapshot)
                 continue
-            _kind, t, measured, estimate, flags, joints, channels = item
-            sink.add(
-                Estimate(
-                    t,
-                    measured,
-                    estimate,
-                    tuple(flags),
-                    None,
-                    tuple(channels),
-                    None if joints is None else np.asarray(joints, dtype=float),
-                )
-            )
+            sink.add(item.to_estimate())
         if time.monotonic() >= next_flush:
             sink.flush()
             next_flush = time.monotonic() + period

@@ -494,18 +494,18 @@ class RerunSink:
                 self._rec.send_blueprint(self.blueprint(estimate.channels))
                 self._blueprint_channels = tuple(estimate.channels)
         n = len(estimate.channels)
-        self._last_t = estimate.t
+        self._last_t = estimate.stamp
         self._last_host_s = time.time()
-        self._t.append(estimate.t)
+        self._t.append(estimate.stamp)
         self._meas.append(
             estimate.measured if estimate.measured is not None else np.full(n, np.nan)
         )
         self._est.append(estimate.estimate)
         if not estimate.held:
             self._speed_sample(estimate)
-            if estimate.joints is not None and estimate.t - self._scene_t >= SCENE_PERIOD_S:
+            if estimate.joints is not None and estimate.stamp - self._scene_t >= SCENE_PERIOD_S:
                 self._scene.append(estimate)
-                self._scene_t = estimate.t
+                self._scene_t = estimate.stamp
         if len(self._t) >= MAX_BATCH:
             self.flush()
 
@@ -516,19 +516,19 @@ class RerunSink:
         old, new = self._flags, estimate.flags
         if old and self._flag_listed:
             self._events.append(
-                (estimate.t, "INFO", f"{', '.join(old)} ended after {self._flag_run} steps")
+                (estimate.stamp, "INFO", f"{', '.join(old)} ended after {self._flag_run} steps")
             )
         self._flag_listed = False
         if new:
             last = self._flag_last.get(new)
-            if last is None or estimate.t - last >= EVENT_GAP_S:
+            if last is None or estimate.stamp - last >= EVENT_GAP_S:
                 level = "INFO" if new == ("outside_calibrated_range",) else "WARN"
                 text = f"flag: {', '.join(new)}"
                 skipped = self._flag_skipped.pop(new, 0)
                 if skipped:
                     text += f" ({skipped} shorter runs since the last entry not listed)"
-                self._events.append((estimate.t, level, text))
-                self._flag_last[new] = estimate.t
+                self._events.append((estimate.stamp, level, text))
+                self._flag_last[new] = estimate.stamp
                 self._flag_listed = True
             else:
                 self._flag_skipped[new] = self._flag_skipped.get(new, 0) + 1
@@ -539,11 +539,11 @@ class RerunSink:
         if estimate.joints is None:
             return
         last = self._speed_last
-        if last is not None and estimate.t - last[0] < SPEED_PERIOD_S:
+        if last is not None and estimate.stamp - last[0] < SPEED_PERIOD_S:
             return
         p = np.asarray(tool_pose(self.cell, self._data, estimate.joints).translation, dtype=float)
-        self._speed_last = (estimate.t, p.copy())
-        self._speed_t.append(estimate.t)
+        self._speed_last = (estimate.stamp, p.copy())
+        self._speed_t.append(estimate.stamp)
         self._speed_p.append(p.copy())
 
     # ---- data out --------------------------------------------------------------------------
@@ -674,7 +674,7 @@ class RerunSink:
         if latest.joints is None or latest.measured is None:
             return
         rec = self._rec
-        rec.set_time(TIMELINE, timestamp=latest.t)
+        rec.set_time(TIMELINE, timestamp=latest.stamp)
         T_bt = tool_pose(self.cell, self._data, latest.joints)
         caps = robot_capsules(self.cell, self._data, latest.joints, T_bt)
         keep = [i for i, k in enumerate(caps.kinds) if not self._meshes or k == "tool"]

@@ -33,6 +33,7 @@ from keo_service.live.messages import (
     TrackerSample,
     decode,
     encode,
+    estimate_message,
     topic,
 )
 from keo_service.live.sinks import EstimateBusSink, RerunOutput, Sinks
@@ -235,22 +236,31 @@ class KeoService:
             if isinstance(msg, JointSample):
                 self._note_sample("encoder", msg)
                 self._rates["encoder"].tick(now)
-                out = self.estimator.on_encoder(msg.t, msg.q)
+                out = self.estimator.on_encoder(msg.stamp, msg.joints)
                 self.sinks.on_input(msg)
                 if self._delay_tracker is not None:
                     self._delay_tracker.add_encoder(
-                        msg.t, msg.q, msg.clock_epoch, msg.seq, bool(msg.flags)
+                        msg.stamp, msg.joints, msg.clock_epoch, msg.seq, bool(msg.flags)
                     )
             elif isinstance(msg, TrackerSample):
                 self._note_sample("tracker", msg)
                 self._rates["tracker"].tick(now)
                 self.sinks.on_input(msg)  # before the estimates it may cause
                 out = self.estimator.on_tracker(
-                    msg.t, msg.p, msg.q, ok=msg.status == "ok", tag=msg.device_t
+                    msg.stamp,
+                    msg.position,
+                    msg.quaternion,
+                    ok=msg.status == "ok",
+                    device_stamp=msg.device_stamp,
                 )
-                if self._delay_tracker is not None and msg.p is not None:
+                if self._delay_tracker is not None and msg.position is not None:
                     self._delay_tracker.add_tracker(
-                        msg.t, msg.p, msg.q, msg.clock_epoch, msg.seq, bool(msg.flags)
+                        msg.stamp,
+                        msg.position,
+                        msg.quaternion,
+                        msg.clock_epoch,
+                        msg.seq,
+                        bool(msg.flags),
                     )
             else:
                 self.estimator.counters["unexpected_message"] += 1
@@ -315,16 +325,11 @@ class KeoService:
         self.sinks.on_estimate(estimate, self.to_message(estimate))
 
     def to_message(self, estimate: Estimate) -> EstimateMessage:
-        return EstimateMessage(
-            stamp=estimate.t,
+        return estimate_message(
+            estimate,
             host_ns=time.time_ns(),
-            channels=list(estimate.channels),
-            measured=estimate.measured_values(),
-            estimate=estimate.estimate_values(),
-            flags=list(estimate.flags),
-            delay_s=self.estimator.delay.at(estimate.t),
             seq=self._seq,
-            tracker_device_t=estimate.source if isinstance(estimate.source, float) else None,
+            delay_s=self.estimator.delay.at(estimate.stamp),
             delay_se_s=self.delay_se(),
         )
 

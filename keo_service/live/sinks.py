@@ -218,8 +218,8 @@ class Ros2EstimateSink(_Base):
         self._update_stamps: collections.deque[float] = collections.deque(maxlen=50)
 
     def on_input(self, sample: Sample) -> None:
-        if isinstance(sample, TrackerSample) and sample.p is not None:
-            self._last_tracker_p = sample.p
+        if isinstance(sample, TrackerSample) and sample.position is not None:
+            self._last_tracker_p = sample.position
 
     def on_estimate(self, estimate: Estimate, message: EstimateMessage) -> None:
         if estimate.measured is None:
@@ -233,7 +233,7 @@ class Ros2EstimateSink(_Base):
             estimate.measured.size,
         )
         noise = covariance_noise(self._noise.std(), floor)
-        self._update_stamps.append(estimate.t)
+        self._update_stamps.append(estimate.stamp)
         self.bridge.publish(message, noise, self._gains(), self.period())
 
     def period(self) -> float:

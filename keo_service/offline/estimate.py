@@ -80,4 +80,4 @@ def _load_estimators() -> None:
 
 def write_estimates(path: str | Path, result: OfflineResult) -> None:
     t = result.table
-    write_estimate_table(path, t.t, t.measured, t.estimate, t.flags, t.channels)
+    write_estimate_table(path, t.stamp, t.measured, t.estimate, t.flags, t.channels)

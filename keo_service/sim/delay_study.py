@@ -74,7 +74,7 @@ def delay_study(config: Config, seed: int = 1) -> list[dict[str, Any]]:
         ):
             settings = dataclasses.replace(base, delay=delay)
             series = estimate_run(cell, settings, run)
-            mask = series.t > series.t[0] + 5.0
+            mask = series.stamp > series.stamp[0] + 5.0
             pos, _rot = estimate_error_rms(series, run.truth_t, run.truth, mask)
             row[f"estimate_error_{label}_mm"] = pos * 1e3
         rows.append(row)

@@ -52,12 +52,12 @@ def settling_experiment(config: Config, seed: int) -> list[dict[str, float]]:
             sample_rate_hz=REFERENCE_RATE_HZ,
             delay=dataclasses.replace(EstimatorSettings().delay, offset_s=run.scenario.delay_s),
         )
-        truth = truth_at(series.t, run.truth_t, run.truth)
+        truth = truth_at(series.stamp, run.truth_t, run.truth)
         k = int(np.argmax(np.abs(truth[-1, :3])))  # the largest position channel
         final = truth[:, k]
         outside = np.abs(series.estimate[:, k] - final) > 0.02 * np.abs(final)
         last_out = int(np.flatnonzero(outside)[-1]) if outside.any() else -1
-        settle = float(series.t[last_out + 1] - series.t[0]) + 1.0 / REFERENCE_RATE_HZ
+        settle = float(series.stamp[last_out + 1] - series.stamp[0]) + 1.0 / REFERENCE_RATE_HZ
         theory = settling_time(gain)
         rows.append(
             {
@@ -91,8 +91,8 @@ def vertical_experiment(config: Config, seed: int) -> dict[str, Any]:
     axis = 2  # z: the motion is along the tool's z axis
 
     def deviation(series: Any, w: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-        m = window_mask(series.t, [w])
-        return m, series.measured[m] - truth_at(series.t[m], run.truth_t, run.truth)
+        m = window_mask(series.stamp, [w])
+        return m, series.measured[m] - truth_at(series.stamp[m], run.truth_t, run.truth)
 
     before = _run(config, run, gains=(1.0,) * 6, delay=delay0, **common)
     offsets = [float(np.nanmean(deviation(before, w)[1][:, axis])) for w in windows]
@@ -109,9 +109,9 @@ def vertical_experiment(config: Config, seed: int) -> dict[str, Any]:
         m, dev = deviation(after, w)
         offset_after = float(np.nanmean(dev[:, axis]))
         meas_noise = float(np.nanstd(dev[:, axis]))
-        est_dev = after.estimate[m] - truth_at(after.t[m], run.truth_t, run.truth)
+        est_dev = after.estimate[m] - truth_at(after.stamp[m], run.truth_t, run.truth)
         # the estimate lags the slowly changing truth: judge its noise about a linear trend
-        tt = after.t[m] - after.t[m][0]
+        tt = after.stamp[m] - after.stamp[m][0]
         resid = est_dev[:, axis] - np.polyval(np.polyfit(tt, est_dev[:, axis], 1), tt)
         rows.append(
             {
@@ -148,8 +148,8 @@ def alignment_comparison(
             alignment=mode,
             sample_rate_hz=REFERENCE_RATE_HZ,
         )
-        moving = np.interp(series.t, run.truth_t, run.moving.astype(float)) > 0.5
-        settled = series.t > series.t[0] + 5.0  # past five time constants at L = 1
+        moving = np.interp(series.stamp, run.truth_t, run.moving.astype(float)) > 0.5
+        settled = series.stamp > series.stamp[0] + 5.0  # past five time constants at L = 1
         for label, mask in (("motion", moving & settled), ("rest", ~moving & settled)):
             if not mask.any():
                 out[f"{mode}_{label}_pos_mm"] = out[f"{mode}_{label}_rot_mrad"] = float("nan")
