@@ -258,7 +258,7 @@ class _Adapter:
         clock fields (every encoder adapter, whatever its wire format, ends here)."""
         self._seq += 1
         sample = JointSample(
-            stamp=stamp.t,
+            stamp=stamp.stamp,
             host_ns=host_ns,
             seq=self._seq,
             joints=joints,
@@ -404,7 +404,7 @@ class TrackerAdapter(_Adapter):
             # less jitter than the receipt time; "shared": used as they are)
             stamp = self._stamp(pose.device_stamp, host_ns * 1e-9)
             sample = TrackerSample(
-                stamp=stamp.t,
+                stamp=stamp.stamp,
                 host_ns=host_ns,
                 seq=pose.seq,
                 status=pose.status,
@@ -793,7 +793,7 @@ class Ros2PoseAdapter(_Ros2Adapter):
         self._seq += 1
         st = self._stamp(stamp, host_ns * 1e-9)
         sample = TrackerSample(
-            stamp=st.t,
+            stamp=st.stamp,
             host_ns=host_ns,
             seq=self._seq,
             position=p,

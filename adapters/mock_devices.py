@@ -261,28 +261,28 @@ class MockTracker(_MockServer):
             t = float(self.tracker.t[i])
             if self.device_clock is not None:
                 offset, ppm = self.device_clock
-                device_t = round(offset + (t + self.pass_offset_s) * (1.0 + ppm * 1e-6), 7)
+                device_stamp = round(offset + (t + self.pass_offset_s) * (1.0 + ppm * 1e-6), 7)
             elif self.wall_clock:
-                device_t = time.time()
+                device_stamp = time.time()
             else:
-                device_t = round(time.monotonic() - device_t0, 6)
+                device_stamp = round(time.monotonic() - device_t0, 6)
             if self.clock_step is not None and t >= self.clock_step[0]:
-                device_t += self.clock_step[1]
+                device_stamp += self.clock_step[1]
             if self.beam_break is not None and 0 <= t - self.beam_break[0] < self.beam_break[1]:
-                return format_pose(seq[0], device_t, None, None, status="beam_broken")
+                return format_pose(seq[0], device_stamp, None, None, status="beam_broken")
             if self.pose_at is not None:
                 # measured now (the device time above is now): the row's time as it went out,
                 # not as planned (a late wake-up would otherwise skew the stamps by its lag)
                 assert self.t0 is not None
                 measured = self.pose_at(time.time() - self.t0)
                 if measured is None:
-                    return format_pose(seq[0], device_t, None, None, status="no_target")
+                    return format_pose(seq[0], device_stamp, None, None, status="no_target")
                 return format_pose(
-                    seq[0], device_t, (measured[0] * self.scale).tolist(), measured[1].tolist()
+                    seq[0], device_stamp, (measured[0] * self.scale).tolist(), measured[1].tolist()
                 )
             p = (self.tracker.p[i] * self.scale).tolist()
             q = None if self.tracker.quat is None else self.tracker.quat[i].tolist()
-            return format_pose(seq[0], device_t, p, q)
+            return format_pose(seq[0], device_stamp, p, q)
 
         await self._play_rows(writer, self.tracker.t, frame)
 

@@ -88,7 +88,7 @@ def test_a_device_whose_stamps_come_late_against_the_saved_line_gets_a_new_mappi
     assert stamper.epoch == 4  # the line did not hold: a new time base
     assert stamper.mapper.state().steps == 1
     since = after.h - after.h[0]
-    err = np.array([st.t for st in stamps]) - (after.h + FLOOR_S)
+    err = np.array([st.stamp for st in stamps]) - (after.h + FLOOR_S)
     assert np.max(np.abs(err[since > 1.0])) < 100e-6
 
 

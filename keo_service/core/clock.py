@@ -206,46 +206,46 @@ class ClockMapper:
         self.reconnect()
         return True
 
-    def predict(self, device_t: float) -> float:
+    def predict(self, device_stamp: float) -> float:
         """Host time of a device stamp under the current fit (device time itself if none)."""
         if self._offset is None:
-            return device_t
-        return device_t + self._offset + self._drift * (device_t - self._ref)
+            return device_stamp
+        return device_stamp + self._offset + self._drift * (device_stamp - self._ref)
 
-    def map(self, device_t: float, host_t: float) -> float:
+    def map(self, device_stamp: float, host_t: float) -> float:
         """Learn from one sample and return its stamp on the host clock. A sample far off the
         line (a step not yet confirmed, or one glitch) is not learned from and keeps its
         receipt time."""
-        if self._is_step(device_t, host_t):
+        if self._is_step(device_stamp, host_t):
             self.steps += 1
             if not self._held:
                 self.prior_drift = self._drift  # the same oscillator after a restart
             self._reset()
         elif self._outliers:
             return self._monotonic(host_t)
-        self._last_device = max(self._last_device, device_t)
-        lag = host_t - device_t
-        index = math.floor(device_t / self.block_s)
+        self._last_device = max(self._last_device, device_stamp)
+        lag = host_t - device_stamp
+        index = math.floor(device_stamp / self.block_s)
         if self._block_index is None:
             self._block_index = index
         if index != self._block_index:
             if self._checking and not self._confirm(*self._block_min):
-                return self.map(device_t, host_t)  # the line did not hold: learn anew
+                return self.map(device_stamp, host_t)  # the line did not hold: learn anew
             self._blocks.append((self._block_min[1], self._block_min[0]))
             self._block_index = index
-            self._block_min = (lag, device_t)
+            self._block_min = (lag, device_stamp)
             self._fit()
         elif lag < self._block_min[0]:
-            self._block_min = (lag, device_t)
+            self._block_min = (lag, device_stamp)
             if not self._blocks:
                 self._fit()  # the first block: the least-late sample so far gives the offset
-        return self._monotonic(self.predict(device_t))
+        return self._monotonic(self.predict(device_stamp))
 
-    def _confirm(self, lag: float, device_t: float) -> bool:
+    def _confirm(self, lag: float, device_stamp: float) -> bool:
         """The first block of new data under a continued line: is its least lag on the
         line? If not, a step: the mapping starts anew (its drift is kept as the prior)."""
         self._checking = False
-        if abs(device_t + lag - self.predict(device_t)) <= self.step_threshold_s:
+        if abs(device_stamp + lag - self.predict(device_stamp)) <= self.step_threshold_s:
             return True
         self.steps += 1
         if not self._held:
@@ -263,15 +263,15 @@ class ClockMapper:
         self._last_out = t
         return t
 
-    def _is_step(self, device_t: float, host_t: float) -> bool:
+    def _is_step(self, device_stamp: float, host_t: float) -> bool:
         if self._offset is None:
             return False
-        gone_back = device_t < self._last_device - self.step_threshold_s
+        gone_back = device_stamp < self._last_device - self.step_threshold_s
         # early beyond the threshold is impossible without a step (latency is never negative);
         # late is only a stalled host or network, which the mapping is there to remove
-        early = host_t < self.predict(device_t) - self.step_threshold_s
+        early = host_t < self.predict(device_stamp) - self.step_threshold_s
         # a continued line is not trusted yet: far late is as suspect as far early
-        late = self._checking and host_t > self.predict(device_t) + self.step_threshold_s
+        late = self._checking and host_t > self.predict(device_stamp) + self.step_threshold_s
         if not (gone_back or early or late):
             self._outliers = 0
             return False
@@ -281,8 +281,9 @@ class ClockMapper:
     def _fit(self) -> None:
         n = len(self._blocks)
         if n == 0:  # the first block: its least-late sample so far
-            lag, device_t = self._block_min
-            self._ref, self._offset, self._drift, self._held = device_t, lag, self.prior_drift, True
+            lag, device_stamp = self._block_min
+            self._ref, self._offset = device_stamp, lag
+            self._drift, self._held = self.prior_drift, True
             return
         while n > 2 and self._blocks[0][0] < self._blocks[-1][0] - self.drift_window_s:
             self._blocks.popleft()  # after a gap (a continued mapping): device seconds count
@@ -375,7 +376,7 @@ _KEEP_MESSAGES = 8
 
 @dataclass(frozen=True)
 class Stamp:
-    t: float  # the sample's stream time (host clock, or the shared clock that is the host's)
+    stamp: float  # the sample's stream time (host clock, or the shared clock that is the host's)
     flags: tuple[str, ...] = ()
 
 
@@ -391,7 +392,7 @@ class Stamper:
       clock step the mapper detects starts a new epoch; samples stamped while the mapping has
       no line yet (its first block) are flagged "clock_relearning".
     - "receipt": no device time: the receipt time (ReceiptStamps spreads frames that arrive
-      in one read); the device's time, if any, stays in the sample's device_t.
+      in one read); the device's time, if any, stays in the sample's device_stamp.
 
     A sample without a device time in the "shared" or "device" domain is stamped on receipt,
     counted ("no_device_time") and flagged. `epoch` grows whenever the time base starts anew
@@ -469,12 +470,12 @@ class Stamper:
             return f"drift {drift * 1e6:+.2f} ppm (saved {age_s:.0f} s ago) as the prior"
         return f"saved {age_s:.0f} s ago: too old, or not usable; learning anew"
 
-    def stamp(self, device_t: float | None, receipt_t: float) -> Stamp:
-        """The stamp of one sample the device stamped `device_t` (None: it gives none) and
+    def stamp(self, device_stamp: float | None, receipt_t: float) -> Stamp:
+        """The stamp of one sample the device stamped `device_stamp` (None: it gives none) and
         the host received at `receipt_t`."""
         if self.domain == "receipt":
             return Stamp(self.receipt.place(receipt_t, 1)[0])
-        if device_t is None:
+        if device_stamp is None:
             self._note(
                 "no_device_time",
                 f"a sample without device time in the {self.domain!r} "
@@ -482,23 +483,24 @@ class Stamper:
             )
             return Stamp(self.receipt.place(receipt_t, 1)[0], ("no_device_time",))
         if self.domain == "device":
-            return self._mapped(device_t, receipt_t)
-        return self._shared(device_t, receipt_t)
+            return self._mapped(device_stamp, receipt_t)
+        return self._shared(device_stamp, receipt_t)
 
     def stamp_received_together(self, count: int, receipt_t: float) -> list[Stamp]:
         """Stamps for `count` samples without device time that arrived in one read (receipt
         domain only): spread between the previous stamp and this receipt."""
         return [Stamp(t) for t in self.receipt.place(receipt_t, count)]
 
-    def _mapped(self, device_t: float, receipt_t: float) -> Stamp:
+    def _mapped(self, device_stamp: float, receipt_t: float) -> Stamp:
         steps = self.mapper.steps
-        t = self.mapper.map(device_t, receipt_t)
+        t = self.mapper.map(device_stamp, receipt_t)
         flags: tuple[str, ...] = ()
         if self.mapper.steps != steps:
             self.epoch += 1
             self._note(
                 "clock_step",
-                f"the device clock stepped at device time {device_t:.6f}: the mapping starts anew",
+                f"the device clock stepped at device time {device_stamp:.6f}: "
+                "the mapping starts anew",
             )
             flags = ("clock_step",)
         # no line yet (an offset from one block), or a continued line not yet confirmed
@@ -506,20 +508,20 @@ class Stamper:
             flags = (*flags, "clock_relearning")
         return Stamp(t, flags)
 
-    def _shared(self, device_t: float, receipt_t: float) -> Stamp:
+    def _shared(self, device_stamp: float, receipt_t: float) -> Stamp:
         flags: list[str] = []
         tol = self.ahead_tolerance_s
-        if device_t < self._last_shared - tol:
+        if device_stamp < self._last_shared - tol:
             self.epoch += 1
-            back = self._last_shared - device_t
+            back = self._last_shared - device_stamp
             self._note(
                 "stamp_back",
                 f"a shared-clock stamp went back by {back:.6f} s (a "
                 "publisher restarted or its clock was reset): a new epoch",
             )
             flags.append("stamp_back")
-        self._last_shared = device_t
-        age = receipt_t - device_t
+        self._last_shared = device_stamp
+        age = receipt_t - device_stamp
         if age < -tol:
             self._note(
                 "stamp_ahead",
@@ -534,7 +536,7 @@ class Stamper:
                 f"than timing.max_stamp_age_s = {self.max_age_s:g} s; {_NOT_SHARED})",
             )
             flags.append("stamp_old")
-        return Stamp(device_t, tuple(flags))
+        return Stamp(device_stamp, tuple(flags))
 
     def _note(self, counter: str, message: str) -> None:
         self.counters[counter] += 1
