@@ -262,12 +262,18 @@ async def test_the_service_records_declared_domains_and_warns_on_a_mismatch(demo
             )
             client.put(topic(config.cell, "encoder"), encode(enc))
             client.put(topic(config.cell, "tracker"), encode(trk))
+            client.put(topic(config.cell, "tracker"), b"not msgpack")
             deadline = time.time() + 5
             while service.received < 2 and time.time() < deadline:
                 await asyncio.sleep(0.05)
+            await asyncio.sleep(0.2)  # the bad payload came last
             status = service.status()
+            estimator_messages = list(service.estimator.messages)
         finally:
             client.close()
+    # the service's own findings are in its status, not in the estimator's reject log
+    assert any("undecodable payload" in m for m in status.messages)
+    assert not any("undecodable" in m or "clock domain" in m for m in estimator_messages)
     assert status.clock_domains == {"encoder": "device", "tracker": "device"}
     assert status.counters["tracker_stamp_old"] == 1
     mismatch = [m for m in status.messages if "clock domain" in m]

@@ -63,6 +63,7 @@ VIZ_PERIOD_S = 0.1  # Rerun gets batches at display rate, never one call per sam
 STATUS_PERIOD_S = 0.1
 STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "stale"
 MAX_ADAPTERS = 16  # adapters whose newest state change the service keeps (bounded)
+MAX_MESSAGES = 16  # the service's own newest messages kept for its status (bounded)
 # adapter states that are trouble (logged as warnings; the others at info)
 ADAPTER_TROUBLE = frozenset({"silent", "wrong_protocol", "disconnected"})
 
@@ -135,6 +136,8 @@ class KeoService:
         self._clock_flags: collections.Counter[str] = collections.Counter()
         # each adapter's newest state change (keo/<cell>/adapter/<name>/status, put on change)
         self._adapters: dict[str, dict[str, Any]] = {}
+        # the service's own findings (bad payloads, clock domains); the estimator keeps its own
+        self._messages: collections.deque[str] = collections.deque(maxlen=MAX_MESSAGES)
         self.adapters_dropped = 0
 
     async def __aenter__(self) -> KeoService:
@@ -228,7 +231,7 @@ class KeoService:
                 msg = decode(payload)
             except msgspec.DecodeError as exc:
                 self.decode_errors += 1
-                self.estimator.messages.append(f"undecodable payload on {key}: {exc}")
+                self._messages.append(f"undecodable payload on {key}: {exc}")
                 continue
             self.received += 1
             self._last_arrival = now
@@ -283,7 +286,7 @@ class KeoService:
                 why = "not a JSON object"
             if not isinstance(doc, dict):
                 self.decode_errors += 1
-                self.estimator.messages.append(f"undecodable adapter status on {key}: {why}")
+                self._messages.append(f"undecodable adapter status on {key}: {why}")
                 continue
             name = str(doc.get("adapter", name))
             if name not in self._adapters and len(self._adapters) >= MAX_ADAPTERS:
@@ -314,7 +317,7 @@ class KeoService:
                 "timing.delay_s was calibrated under the config's domains and may not hold"
             )
             log.warning(text)
-            self.estimator.messages.append(text)
+            self._messages.append(text)
 
     def _publish(self, estimate: Estimate, now: float) -> None:
         """One estimate out to every configured sink (`keo_service.live.sinks`)."""
@@ -376,7 +379,8 @@ class KeoService:
             clock_domains=dict(self._clock_domains),
             counters=counters,
             last_estimate=None if last is None else self.to_message(last),
-            messages=list(self.estimator.messages)[-10:],
+            # the estimator's rejects, then the service's own findings: the newest ten
+            messages=[*self.estimator.messages, *self._messages][-10:],
             delay_tracking=None if self._delay_tracker is None else self._delay_tracker.last_result,
             delay_se_s=self.delay_se(),
             adapters=dict(self._adapters),
