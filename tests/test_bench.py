@@ -32,7 +32,11 @@ from keo_service.io.interchange import read_encoder, read_tracker
 from keo_service.sim.simulate import make_scenario, simulate, write_run
 
 
-@pytest.mark.parametrize("relay_only", [False, True], ids=["service", "transport-floor"])
+@pytest.mark.parametrize(
+    "relay_only",
+    [False, pytest.param(True, marks=pytest.mark.slow)],  # the floor: an acceptance run
+    ids=["service", "transport-floor"],
+)
 def test_end_to_end_chain_answers_every_tracker_sample(
     demo_config, relay_only, tmp_path, monkeypatch
 ):
@@ -167,6 +171,7 @@ def test_the_rerun_pass_runs_the_services_worker_and_its_process_logs_everything
     assert res["rerun"] == "process"
 
 
+@pytest.mark.slow  # an acceptance run (> 9 s): .ci/run runs the slow tests after the default run
 def test_the_rrd_run_reports_the_rerun_process_apart(demo_config, tmp_path, monkeypatch):
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     res = end_to_end(loopback_config(demo_config), seconds=3.0, rrd=True)
@@ -177,6 +182,7 @@ def test_the_rrd_run_reports_the_rerun_process_apart(demo_config, tmp_path, monk
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow  # an acceptance run (> 9 s): .ci/run runs the slow tests after the default run
 def test_a_soak_with_rrd_traces_the_rerun_process_and_its_recording(
     demo_config, tmp_path, monkeypatch
 ):

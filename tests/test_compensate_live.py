@@ -321,6 +321,7 @@ def _ripple_model(closed: ClosedLoopCell, scenario, offsets) -> ModelConfig:
 
 
 @pytest.mark.e2e
+@pytest.mark.slow  # an acceptance run (> 9 s): .ci/run runs the slow tests after the default run
 def test_a_pose_dependent_error_with_a_model_falls_tenfold(tmp_path):
     offsets = (8e-4, -1e-3, 1.2e-3, -8e-4, 1e-3, -6e-4)  # rad: about 1 mm at the tool
     sets = {**PATH, "ripple_rad": "0.0005", "ripple_joints": "2,3"}

@@ -200,10 +200,12 @@ def _estimates(config_path: Path, count: int, timeout: float) -> list[object]:
     ("robot", "protocol"),
     [
         ("ur10", "rtde"),
-        ("mh180", "motoros"),
-        ("mh180", "kuka_rsi"),
-        ("ur10", "abb_egm"),
-        ("ur10", "ros2"),  # and a ROS 2 tracker: two rmw_zenoh drivers
+        # the other protocols as acceptance runs (slow: .ci/run runs them after the default)
+        pytest.param("mh180", "motoros", marks=pytest.mark.slow),
+        pytest.param("mh180", "kuka_rsi", marks=pytest.mark.slow),
+        pytest.param("ur10", "abb_egm", marks=pytest.mark.slow),
+        # and a ROS 2 tracker: two rmw_zenoh drivers
+        pytest.param("ur10", "ros2", marks=pytest.mark.slow),
     ],
 )
 def test_mocks_started_by_hand_from_an_init_config_give_estimates(tmp_path, robot, protocol):

@@ -231,6 +231,7 @@ async def test_adapter_maps_a_drifting_bursty_controller_onto_the_host_clock(dem
     assert abs(drift) < 13e-6
 
 
+@pytest.mark.slow  # an acceptance run (> 9 s): .ci/run runs the slow tests after the default run
 def test_demo_with_a_ur10_over_rtde_converges_to_the_injected_truth():
     res = keo("demo", "--robot", "ur10", "--duration", "14", "--json", timeout=120)
     assert res.returncode == 0, res.stderr

@@ -495,6 +495,7 @@ async def test_the_live_correction_reaches_the_controller_clamped_and_zero_when_
 
 
 @pytest.mark.e2e
+@pytest.mark.slow  # an acceptance run (> 9 s): .ci/run runs the slow tests after the default run
 @pytest.mark.parametrize("protocol", ["kuka_rsi", "abb_egm"])
 def test_joints_over_rsi_and_egm_to_an_estimate_with_every_reply_in_the_cycle(
     demo_config, demo_cell, tmp_path, protocol
