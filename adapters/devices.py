@@ -269,6 +269,31 @@ class _Adapter:
         self._pub.put(encode(sample))
         self.counters["published"] += 1
 
+    def _publish_pose(
+        self,
+        stamp: Stamp,
+        host_ns: int,
+        seq: int,
+        position: list[float] | None,
+        quaternion: list[float] | None,
+        device_stamp: float | None,
+        status: str = "ok",
+    ) -> None:
+        """One tracker sample out on keo/<cell>/tracker with the stamp and the clock fields
+        (the line-protocol and ROS 2 tracker adapters both end here)."""
+        sample = TrackerSample(
+            stamp=stamp.stamp,
+            host_ns=host_ns,
+            seq=seq,
+            status=status,
+            position=position,
+            quaternion=quaternion,
+            device_stamp=device_stamp,
+            **self._clock_fields(stamp),
+        )
+        self._pub.put(encode(sample))
+        self.counters["published"] += 1
+
     def _on_status_query(self, query: zenoh.Query) -> None:
         doc = self._status_doc()
         key = topic(self.config.cell, f"adapter/{self.name}/status")  # not the query's wildcard
@@ -403,18 +428,15 @@ class TrackerAdapter(_Adapter):
             # the tracker's own stamps ("device": mapped onto the host clock, which carries
             # less jitter than the receipt time; "shared": used as they are)
             stamp = self._stamp(pose.device_stamp, host_ns * 1e-9)
-            sample = TrackerSample(
-                stamp=stamp.stamp,
-                host_ns=host_ns,
-                seq=pose.seq,
-                status=pose.status,
-                position=list(pose.position) if pose.position is not None else None,
-                quaternion=list(pose.quaternion) if pose.quaternion is not None else None,
-                device_stamp=pose.device_stamp,
-                **self._clock_fields(stamp),
+            self._publish_pose(
+                stamp,
+                host_ns,
+                pose.seq,
+                list(pose.position) if pose.position is not None else None,
+                list(pose.quaternion) if pose.quaternion is not None else None,
+                pose.device_stamp,
+                pose.status,
             )
-            self._pub.put(encode(sample))
-            self.counters["published"] += 1
 
 
 # UR robot_mode values that mean the arm's drives have power, and safety modes that are stops
@@ -791,15 +813,4 @@ class Ros2PoseAdapter(_Ros2Adapter):
                 return
             q = [v / norm for v in q]
         self._seq += 1
-        st = self._stamp(stamp, host_ns * 1e-9)
-        sample = TrackerSample(
-            stamp=st.stamp,
-            host_ns=host_ns,
-            seq=self._seq,
-            position=p,
-            quaternion=q,
-            device_stamp=stamp,
-            **self._clock_fields(st),
-        )
-        self._pub.put(encode(sample))
-        self.counters["published"] += 1
+        self._publish_pose(self._stamp(stamp, host_ns * 1e-9), host_ns, self._seq, p, q, stamp)
