@@ -43,6 +43,45 @@ def _first_pass(t0: float, period_s: float, now: float) -> float:
     return t0 + max(0, math.floor((now - t0) / period_s)) * period_s
 
 
+class Resampled:
+    """A played track read at any instant within it: a cubic spline through its rows (joints,
+    positions, quaternions' components). A device samples when its cycle runs; this process's
+    timer wakes 0.1-1.3 ms late (asyncio waits in whole milliseconds, and the host is
+    shared), so a row that goes out late describes the instant it goes out: that lateness
+    is the mock's, not the link's, and a real controller's cycle does not have it (stamping
+    the planned instant put 0.1-0.5 ms of this process's wake-ups, moving with the host's
+    load, into every stream's transport time)."""
+
+    def __init__(self, t: np.ndarray, values: np.ndarray) -> None:
+        from scipy.interpolate import CubicSpline  # scipy costs its import only where played
+
+        # in time order, once per instant (a tracker's rows are in stamp order, and jittered
+        # stamps need not keep the order of the instants they measured)
+        order = np.argsort(np.asarray(t, dtype=float), kind="stable")
+        times = np.asarray(t, dtype=float)[order]
+        keep = np.concatenate([[True], np.diff(times) > 0])
+        self.t = times[keep]
+        self._spline = CubicSpline(self.t, np.asarray(values, dtype=float)[order][keep], axis=0)
+
+    def at(self, t: float) -> np.ndarray:
+        out: np.ndarray = self._spline(min(max(t, self.t[0]), self.t[-1]))
+        return out
+
+    def velocity(self, t: float) -> np.ndarray:
+        out: np.ndarray = self._spline(min(max(t, self.t[0]), self.t[-1]), 1)
+        return out
+
+
+def continuous_quaternions(quat: np.ndarray) -> np.ndarray:
+    """The same rotations with each quaternion on the side of its predecessor (q and -q are
+    one rotation; a spline through a sign flip would pass through nonsense)."""
+    out = np.array(quat, dtype=float)
+    for i in range(1, out.shape[0]):
+        if out[i] @ out[i - 1] < 0:
+            out[i] = -out[i]
+    return out
+
+
 async def _sleep_until(wall: float) -> None:
     delay = wall - time.time()
     if delay > 0:
@@ -104,6 +143,9 @@ class _MockServer:
         self._server: asyncio.Server | None = None
         self.send_offsets: np.ndarray | None = None  # per row: when it goes out (stalls)
         self.pass_offset_s = 0.0  # scenario seconds of the passes played before this one
+        # a row that goes out late describes the instant it goes out (see Resampled); False:
+        # every row as simulated, describing its planned instant however late it goes out
+        self.resample = True
 
     async def start(self) -> None:
         self._server = await asyncio.start_server(self._on_client, self.host, self.port)
@@ -130,8 +172,14 @@ class _MockServer:
             writer.close()
 
     async def _play_rows(
-        self, writer: asyncio.StreamWriter, times: np.ndarray, frame: Callable[[int], bytes]
+        self,
+        writer: asyncio.StreamWriter,
+        times: np.ndarray,
+        frame: Callable[[int, float], bytes],
     ) -> None:
+        """Play the rows at their times; `frame(i, t)` makes row i describing scenario time
+        t: the row's time when it is held up by a planned stall (measured on time, delivered
+        late), else the instant it goes out (see `Resampled`)."""
         assert self.t0 is not None
         duration = self.period_s or (float(times[-1]) + 0.1 if times.size else 0.0)
         start = self.t0
@@ -150,10 +198,12 @@ class _MockServer:
                         return
                     await _sleep_until(start + float(send[i]))
                     due = time.time() - start
-                    chunk = [frame(i)]
+                    planned = float(times[i])
+                    on_time = self.resample and send[i] <= times[i]
+                    chunk = [frame(i, max(planned, due) if on_time else planned)]
                     i += 1
                     while i < times.size and send[i] <= due and send[i] > times[i]:
-                        chunk.append(frame(i))  # held up by a stall: out together
+                        chunk.append(frame(i, float(times[i])))  # held up by a stall
                         i += 1
                     writer.write(b"".join(chunk))
                     await writer.drain()
@@ -194,9 +244,11 @@ class MockRobot(_MockServer):
 
     async def _play(self, writer: asyncio.StreamWriter) -> None:
         last_status = [0.0]
+        joints = Resampled(self.encoder.t, self.encoder.q)
 
-        def frame(i: int) -> bytes:
-            data = encode_joint_feedback(self.encoder.q[i].tolist(), self.byte_order)
+        def frame(i: int, at: float) -> bytes:
+            q = self.encoder.q[i] if at == self.encoder.t[i] else joints.at(at)
+            data = encode_joint_feedback(q.tolist(), self.byte_order)
             now = time.time()
             if now - last_status[0] > STATUS_PERIOD_S:
                 last_status[0] = now
@@ -226,9 +278,15 @@ class MockTracker(_MockServer):
         late_ms: float = 0.0,
         burst_every_s: float = 0.0,
         seed: int = 0,
+        instants: np.ndarray | None = None,
     ) -> None:
         super().__init__(host, port, t0, loop_play, period_s)
         self.tracker = tracker
+        # the instant each row measured (the simulator's physical time: its stamps also carry
+        # a delay, jitter and drift): a late row is read off the motion there; without them
+        # the rows go out as simulated
+        self.instants = None if instants is None else np.asarray(instants, dtype=float)
+        self.resample = self.instants is not None
         # (offset s, drift ppm): the tracker's own free-running clock stamps each pose at the
         # instant it measured, `offset + scenario time * (1 + drift)`, whoever is connected
         # (None: the time since the connection, read when the line is sent)
@@ -256,9 +314,13 @@ class MockTracker(_MockServer):
         seq = [0]
         device_t0 = time.monotonic()
 
-        def frame(i: int) -> bytes:
+        instants = self.tracker.t if self.instants is None else self.instants
+        positions = Resampled(instants, self.tracker.p)
+        quats = self.tracker.quat
+        rotations = None if quats is None else Resampled(instants, continuous_quaternions(quats))
+
+        def frame(i: int, t: float) -> bytes:
             seq[0] += 1
-            t = float(self.tracker.t[i])
             if self.device_clock is not None:
                 offset, ppm = self.device_clock
                 device_stamp = round(offset + (t + self.pass_offset_s) * (1.0 + ppm * 1e-6), 7)
@@ -271,18 +333,20 @@ class MockTracker(_MockServer):
             if self.beam_break is not None and 0 <= t - self.beam_break[0] < self.beam_break[1]:
                 return format_pose(seq[0], device_stamp, None, None, status="beam_broken")
             if self.pose_at is not None:
-                # measured now (the device time above is now): the row's time as it went out,
-                # not as planned (a late wake-up would otherwise skew the stamps by its lag)
-                assert self.t0 is not None
-                measured = self.pose_at(time.time() - self.t0)
+                # measured at the instant the row describes (as it went out, see Resampled)
+                measured = self.pose_at(t + self.pass_offset_s)
                 if measured is None:
                     return format_pose(seq[0], device_stamp, None, None, status="no_target")
                 return format_pose(
                     seq[0], device_stamp, (measured[0] * self.scale).tolist(), measured[1].tolist()
                 )
-            p = (self.tracker.p[i] * self.scale).tolist()
-            q = None if self.tracker.quat is None else self.tracker.quat[i].tolist()
-            return format_pose(seq[0], device_stamp, p, q)
+            on_row = t == self.tracker.t[i]
+            instant = float(instants[i]) + (t - float(self.tracker.t[i]))
+            p = (self.tracker.p[i] if on_row else positions.at(instant)) * self.scale
+            if quats is None or rotations is None:
+                return format_pose(seq[0], device_stamp, p.tolist(), None)
+            q = quats[i] if on_row else rotations.at(instant)
+            return format_pose(seq[0], device_stamp, p.tolist(), (q / np.linalg.norm(q)).tolist())
 
         await self._play_rows(writer, self.tracker.t, frame)
 
@@ -388,6 +452,7 @@ class MockRtdeController:
         self.late_s, self.burst_every_s = late_ms * 1e-3, burst_every_s
         self.version = version
         self.rng = np.random.default_rng(seed)
+        self.resample = True  # as _MockServer.resample
         self.clients = 0
         # (scenario time, controller stamp) of the newest packages, for tests
         self.sent: collections.deque[tuple[float, float]] = collections.deque(maxlen=100_000)
@@ -532,10 +597,12 @@ class MockRtdeController:
         """One pass of the track from wall time `start`; the scenario time of each package
         on the controller's clock is its time in the track + `offset_s`."""
         times, send = self._schedule(hz)
-        if self.follow is None:
+        resample = self.follow is None and self.resample
+        track = Resampled(self.track.t, self.track.q) if resample else None
+        if self.follow is None and track is None:  # as simulated
             q = np.column_stack([np.interp(times, self.track.t, c) for c in self.track.q.T])
             qd = np.gradient(q, times, axis=0) if times.size > 1 else np.zeros_like(q)
-        else:  # made live, sample by sample
+        else:  # made live, sample by sample (follow), or read off the track when it goes out
             q = np.zeros((times.size, len(self.track.q[0])))
             qd = np.zeros_like(q)
         n = times.size
@@ -562,7 +629,11 @@ class MockRtdeController:
             chunk = []
             while i < n and send[i] <= now:  # everything due: one write, as a burst arrives
                 at, joints, speed = float(times[i]), q[i], qd[i]
-                if self.follow is not None:
+                if track is not None:
+                    if send[i] <= times[i]:  # on time: the instant it goes out (Resampled)
+                        at = max(at, time.time() - start)
+                    joints, speed = track.at(at), track.velocity(at)
+                elif self.follow is not None:
                     if made < i:
                         make(i)
                         made = i

@@ -171,7 +171,9 @@ def test_record_writes_what_the_devices_sent_and_survives_a_kill(demo_config, de
             30,
             "both recorders subscribed",
         )
+        # the rows exactly as simulated (not read off the motion when they go out late)
         play = ["--scenario", "paper-vertical", "--seed", "4", "--duration", repr(duration)]
+        play += ["--as-planned"]
         play += ["--t0", repr(time.time() + 2.0)]
         for device, adapter in (("robot", "encoder"), ("tracker", "tracker")):
             procs.start(f"mock-{device}", ["mock", device, *args, *play])

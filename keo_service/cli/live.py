@@ -282,9 +282,12 @@ def cmd_mock(args: argparse.Namespace) -> int:
             late_ms=args.late_ms,
             burst_every_s=args.burst_every,
             seed=args.seed,
+            instants=run.physical_t,
         )
 
     server.play_until = until
+    if args.as_planned and hasattr(server, "resample"):
+        server.resample = False
 
     async def main() -> None:
         stop = asyncio.Event()
@@ -514,6 +517,13 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 def _add_stall_and_clock_args(p: argparse.ArgumentParser) -> None:
     """keo mock: late delivery in stalls (RTDE and the tracker) and the tracker's own clock."""
+    p.add_argument(
+        "--as-planned",
+        action="store_true",
+        help="motoros, rtde, tracker: send every row as simulated, describing its planned "
+        "instant however late it goes out (default: a row that goes out late, as this "
+        "process's timer makes it by up to a millisecond, describes the instant it goes out)",
+    )
     p.add_argument(
         "--late-ms", type=float, default=0.0, help="rtde, tracker: longest delivery stall (ms)"
     )

@@ -15,19 +15,23 @@ least, and
   `drift_window_s` seconds (Theil and Sen's estimator; pairs closer than a quarter of
   `min_drift_span_s` are left out): blocks above the line, for seconds at a time, do not
   move it;
-- the offset puts the line, at that slope, through the mean of the lowest `low_fraction`
-  (half) of the block minima of the last `window_s` seconds: a rise in latency lasting
-  seconds (a loaded host) leaves it alone, one lasting most of `window_s` is a new floor and
-  the line follows it.
+- the offset puts the line, at that slope, through the `offset_quantile` (the median) of the
+  block minima of the last `window_s` seconds: a change in latency lasting seconds (a loaded
+  host, or one that answers faster for a while) leaves it nearly alone, one lasting more than
+  half of `window_s` is a new floor and the line follows it.
 
-Not through the lowest blocks alone: on a loaded host the least latency of a block varies by
-a hundred microseconds from block to block (whether the receiving process happened to be
-awake), with rare "lucky" samples far below the rest; a line through those (a lower convex
-hull, tried) jumps whenever one enters or leaves the window and tilts between them: measured
-on loopback with two busy cores, block minima 80-270 us, and hull-mapped stamps stepping by
-100 us and drifting by up to 60 ppm. The mean of the lower half sits on the usual least
-latency and moves little. So the mapped stamps carry the stream's usual shortest transport
-time (which cannot be seen from the host and stays in the offset) and little else.
+Not through the lowest blocks: the least latency of a block varies by a hundred microseconds
+from block to block (whether the receiving process happened to be awake), with rare "lucky"
+samples far below the rest and stretches of seconds when the host answers faster; a line
+through the lowest (a lower convex hull, tried) jumps whenever one enters or leaves the
+window and tilts between them (measured on loopback with two busy cores: block minima 80-270
+us, hull-mapped stamps stepping by 100 us and drifting by up to 60 ppm), and the mean of the
+lowest half (the version before) follows each faster stretch: a line tracker whose block
+minima sat at ~300 us for most of a minute but at ~160 us for 8 s moved its stamps by 80 us
+and back, which the delay between the streams then had to follow. The median moved them by
+20 us (the same recorded receipts replayed). So the mapped stamps carry the stream's usual
+shortest transport time (which cannot be seen from the host and stays in the offset) and
+little else.
 
 A drift needs a span of device time to be resolved: until the blocks span `min_drift_span_s`
 (and `min_drift_blocks` of them), the drift is held at its prior, the drift the mapper had
@@ -66,6 +70,8 @@ import numpy as np
 __all__ = ["ClockMapper", "ClockState", "ReceiptStamps", "pairwise_median_slope"]
 
 MIN_STEP_S = 1e-6
+# the offset's quantile of the newest blocks while the drift is held (see ClockMapper._fit)
+HELD_QUANTILE = 0.25
 
 
 @dataclass(frozen=True)
@@ -104,7 +110,7 @@ class ClockMapper:
         min_drift_blocks: int = 12,
         hold_s: float = 1.0,
         prior_drift: float = 0.0,
-        low_fraction: float = 0.5,
+        offset_quantile: float = 0.5,
         max_drift: float = 1e-3,
     ) -> None:
         self.block_s = block_s
@@ -116,7 +122,7 @@ class ClockMapper:
         self.min_drift_blocks = min_drift_blocks
         self.hold_s = hold_s
         self.prior_drift = prior_drift
-        self.low_fraction = low_fraction
+        self.offset_quantile = offset_quantile
         self.max_drift = max_drift
         self._recent = max(1, math.ceil(window_s / block_s))
         self._blocks: collections.deque[tuple[float, float]] = collections.deque(
@@ -301,8 +307,10 @@ class ClockMapper:
             slope = self.prior_drift
             self._held = True
             recent = d >= ref - self.hold_s
-        above = np.sort(y[recent] - slope * (d[recent] - ref))
-        offset = float(above[: max(1, round(self.low_fraction * above.size))].mean())
+        above = y[recent] - slope * (d[recent] - ref)
+        # held: a few blocks, the first of a connection waiting longest (a backlog): low ones
+        quantile = HELD_QUANTILE if self._held else self.offset_quantile
+        offset = float(np.quantile(above, quantile))
         self._ref, self._offset, self._drift = ref, offset, slope
         self._residual = float(np.sqrt(np.mean((above - offset) ** 2)))
 

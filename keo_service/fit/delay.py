@@ -515,10 +515,14 @@ class OnlineDelayTracker:
     stretches' model does not hold) it is shown but not applied.
 
     Fits of stretches that end within `young_s` of the first samples or of a restart are
-    provisional: taken and applied as any (better than no delay), but the first fit of later
-    stretches replaces them instead of being averaged with them: a young clock mapping's
-    stamps move while its drift converges (in the device-clock test the first 5 s fit lay
-    60-160 us below the delay the stamps needed from 10 s on).
+    provisional: a young clock mapping's stamps move while its drift converges (in the
+    device-clock test the first 5 s fit lay 60-160 us below the delay the stamps needed from
+    10 s on). So while young the stretches are shorter (`young_span_s`) and the newest fit
+    alone is the delay, each replacing the one before (its stamps are the most settled),
+    applied only when known to `max_apply_m` at the tool's speed; the first fit of a later
+    stretch replaces them too. (With 5
+    s stretches averaged, the delay in use at 10 s after the start was 50 us short of what
+    the settled stamps needed: 28 urad at that tool's turning speed.)
 
     Samples a source flagged (its clock re-learning, a stamp ahead of its receipt or too
     old) are left out. When either stream's time base starts anew (its `clock_epoch`
@@ -534,6 +538,7 @@ class OnlineDelayTracker:
         self,
         cell: Cell,
         span_s: float = 5.0,
+        young_span_s: float = 2.0,
         max_samples: int = 40_000,
         max_gap_s: float = 0.05,
         max_position_se_m: float = 2.5e-6,
@@ -554,6 +559,7 @@ class OnlineDelayTracker:
             else dataclasses.replace(cell, gravity_data=cell.nominal_model.createData())
         )
         self.span_s = span_s
+        self.young_span_s = young_span_s
         self.max_gap_s = max_gap_s
         self.max_position_se_m = max_position_se_m
         self.max_se_s = max_se_s
@@ -653,13 +659,18 @@ class OnlineDelayTracker:
     # ---- fits ---------------------------------------------------------------------------
 
     def due(self) -> bool:
-        return bool(self._trk) and self._trk[-1][0] - self._trk[0][0] >= self.span_s
+        return bool(self._trk) and self._trk[-1][0] - self._trk[0][0] >= self._span()
+
+    def _span(self) -> float:
+        """The stretch to fit next: shorter while the clock mappings are young."""
+        young = bool(self._trk) and self._trk[0][0] + self.young_span_s <= self._young_until
+        return self.young_span_s if young else self.span_s
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """Copies of the stretch to fit (call on the loop, then fit anywhere); the stretch is
         consumed: the next fit sees only newer samples."""
         first = self._trk[0][0]
-        trk = [s for s in self._trk if s[0] <= first + self.span_s]
+        trk = [s for s in self._trk if s[0] <= first + self._span()]
         end = trk[-1][0]
         enc = [s for s in self._enc if first - 1.0 <= s[0] <= end + 1.0]
         while self._trk and self._trk[0][0] <= end:
@@ -736,9 +747,13 @@ class OnlineDelayTracker:
             self.counters["fits_refused_imprecise"] += 1
             self.last_result = "kept: the fit gave no finite value"
             return None
-        # welcome while the delay in use is not known to max_position_se_m at this speed;
-        # once it is, only fits that are themselves that precise count
-        known = self.se is not None and self.se * speed <= self.max_position_se_m
+        # welcome while the delay in use is not known to max_position_se_m at this speed (or
+        # is provisional); once it is, only fits that are themselves that precise count
+        provisional = found.t <= self._young_until
+        # the running estimate as sure as it is now: the delay walks on since its newest fit
+        aged_se = None if self.se is None else self._aged_se(self.se, found.t)
+        known = aged_se is not None and aged_se * speed <= self.max_position_se_m
+        known = known and not provisional
         if se > self.max_se_s or (known and se * speed > self.max_position_se_m):
             self.counters["fits_refused_imprecise"] += 1
             self.last_result = (
@@ -747,15 +762,14 @@ class OnlineDelayTracker:
             )
             return None
         tau2 = self._wander2()
-        provisional = found.t < self._young_until
-        if not provisional and self._provisional:
-            # the first fit of stamps from mappings no longer young: the provisional fits
-            # before it described stamps that have moved since; it is not held against them
+        if self._provisional:
+            # provisional fits described stamps that have moved since: the newest replaces
+            # them, a later stretch's first fit too (it is not held against them)
             self._fits.clear()
             self._provisional = 0
-        if self.estimate is not None and self.se is not None and self._fits:
+        if self.estimate is not None and aged_se is not None and self._fits and not provisional:
             gap = value - self.estimate
-            spread = math.sqrt(self.se**2 + se * se + tau2)
+            spread = math.sqrt(aged_se**2 + se * se + tau2)
             if abs(gap) > self.outlier_sigmas * spread:
                 suspect = self._suspect
                 self._suspect = (value, se, found.t)
@@ -800,12 +814,27 @@ class OnlineDelayTracker:
         # not hold, e.g. a robot's geometry) and the delay in use is left alone
         current = found.current_s
         better = math.isfinite(current) and abs(self.estimate - current) > 3 * self.se
-        if self.se * speed > self.max_apply_m and not better:
+        # a provisional fit is the delay alone, judged by its own standard error (the scatter
+        # of fits is not known yet), and never as merely "better": replaced within seconds, a
+        # rough one could only step the delay far the wrong way (a 2 s stretch of a robot with
+        # geometry errors fitted 29.08 +/- 0.34 ms where 28.40 was right)
+        known_se = se if provisional else self.se
+        better = better and not provisional
+        if known_se * speed > self.max_apply_m and not better:
             self.counters["estimates_not_applied"] += 1
-            self.last_result += f"; not applied ({self.se * speed * 1e6:.0f} um at that speed)"
+            self.last_result += f"; not applied ({known_se * speed * 1e6:.0f} um at that speed)"
             return None
         self.applied_se = self.se
         return self.estimate
+
+    def _aged_se(self, se: float, t: float) -> float:
+        """The running estimate's standard error at stream time t: its fits' walk since the
+        newest of them (`wander_rate`). Judged against it, a new fit is neither refused as
+        less precise than an estimate that has gone stale nor as an outlier from it (the
+        delay the device-clock test needed walked 50 us in 30 s; fits against the unaged
+        estimate were refused four times in a row, the delay in use 30 us behind)."""
+        newest = max((f[2] for f in self._fits), default=t)
+        return math.sqrt(se * se + self.wander_rate * max(0.0, t - newest))
 
     def _wander2(self) -> float:
         """tau^2: the scatter of successive accepted fits beyond their standard errors and

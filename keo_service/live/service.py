@@ -411,8 +411,8 @@ class KeoService:
         tracker = self._delay_tracker
         assert tracker is not None
         while not self._stop.is_set():
-            await asyncio.sleep(1.0)
-            if not tracker.due():
+            if not tracker.due():  # else a stretch is waiting already (a slow fit, a replay)
+                await asyncio.sleep(1.0)
                 continue
             window = tracker.snapshot()
             restarts = tracker.counters["restarts"]
