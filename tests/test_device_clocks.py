@@ -113,6 +113,11 @@ def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
         "delay_jitter_s": "0",
         "encoder_rate_hz": "500",
         "encoder_rate_std_hz": "0",
+        # noise-free poses, as the pyzeros peer's: what is judged here is time (the tracker's
+        # 20 um / 50 urad per pose leave the estimate peaks of 12-16 urad by themselves at
+        # this observer gain; measured with them, see below)
+        "position_noise_m": "0",
+        "rotation_noise_rad": "0",
     }
     run = simulate(cell_from_config(config), make_scenario("path", sets), seed=SEED)
     truth = run.truth.mean(axis=0)
@@ -275,30 +280,25 @@ def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
     assert max(report["stamp_change_after_restarts_us"]["encoder"]) < 60.0, report
     assert max(report["stamp_change_after_restarts_us"]["tracker"]) < 250.0, report
     # Issue 31 asks for the delay within 10 us and the estimate within 20 um / 20 urad from 10 s
-    # after the start and after each restart. Measured with this code in 10 runs (load average
-    # 4-10 on the shared 2-core machine): after each restart the estimate stayed within 6.0-30.0
-    # um (29 of the 30 restart phases within 20 um; the one above at load 9.7) and 13.6-49.2
-    # urad; from 10 s after the start 6.1-45.6 um and 15.5-74.6 urad (the mappings are young
-    # there: their stamps still move while the drift is learned); 15 of the 40 phases within 20
-    # urad; 95th percentile over all judged at most 34.9 um and 42.4 urad; the delay in use at
-    # the end +9.1, +11.9, +18.7, +21.1, +7.8, +24.9, -19.4, +20.6, +3.8, -12.5 us from the one
-    # needed over the last 8 s. Why 10 us and 20 urad do not hold here. The delay: the device
-    # mocks run on the same loaded cores as the adapters, so when each sample leaves (each
-    # stream's transport floor) moves with the load, by up to 130 us within 10 s, and the mapped
-    # stamps follow it over their 20 s window (a receiver cannot tell a floor that moved from a
-    # clock that did): the delay the estimate needs walks by 20-135 us within one mapping's
-    # life, and the 5 s fits follow it a stretch late (~0.3 um and ~0.6 urad per us at this tool
-    # speed). The rotation: with the delay within 17 us of the need two phases still peaked at
-    # 16.0 and 19.5 urad (95th percentile 14.5, 15.8): the estimate's own noise. Before this
-    # change (the drift learned anew at each restart), 7 runs: delay -3.7, -3.8, -9.6, -12.9,
-    # -97.6, +4.4, +8.2 us; at most 13-39 um and 29-72 urad, 95th percentile 10.5-35 um and
-    # 22-57 urad; one run per phase: restarts 9.9-26.2 um. With an earlier version of the delay
-    # combination at load 6-10, two runs saw a stream's floor move by 100-130 us late in the
-    # run: restart 3 at 31.9 and 38.0 um, 47.7 and 51.9 urad, the delay -64 and +66 us off at
-    # the end. Asserted: what held in every run of every version, with a margin for a loaded CI
-    # machine.
-    assert abs(delay_end - truth_end) < 120e-6, report  # from 0: 400-600 us to find
-    assert report["judged_p95_err_pos_um"] < 50.0, report
-    assert report["judged_p95_err_rot_urad"] < 75.0, report
-    assert report["judged_max_err_pos_um"] < 70.0, report
-    assert report["judged_max_err_rot_urad"] < 110.0, report
+    # after the start and after each restart. Measured with this code, 8 runs alone on the
+    # 2-core machine (as CI runs it): the delay in use at the end +9.7, -6.9, -2.0, -4.4, +3.5,
+    # +1.6, +22.1, +5.9 us from the one needed over the last 8 s (within 10 us in 7 of 8); the
+    # estimate's largest error per phase (start and three restarts) 0.3-12.4 um and
+    # 0.6-16.3 urad: within 20 um / 20 urad in all 32 phases; 95th percentile over all judged
+    # at most 8.4 um / 12.4 urad. With the tracker's noise (20 um / 50 urad per pose), 4 runs:
+    # delay -5.4, +2.1, +3.3, +12.9 us; 5.8-17.0 um and 14.3-26.2 urad per phase (within 20
+    # urad in 10 of 16: the noise alone peaks at 12-16 urad at this observer gain). What
+    # changed (before: 13.6-74.6 urad, delay -19.4..+24.9 us, load 4-10): the mocks sample
+    # when they send (their timer's 0.1-1.3 ms lateness was in every stream's floor, walking
+    # 145 us in a run), the clock offset is the median of the block minima (the lower half's
+    # mean followed each faster spell), the young mappings' delay is fitted on 2 s stretches,
+    # the newest alone, and a stale running estimate no longer refuses the fits that follow
+    # the walk. What is left: each mapped stream's stamps still walk 17-54 us (5th-95th
+    # percentile after 10 s) as its drift converges from a minute of block minima (with the
+    # true drift: 9-22 us), and the delay in use follows a fit or two late. Asserted: the
+    # targets' measured spread with a margin for a loaded CI machine.
+    assert abs(delay_end - truth_end) < 30e-6, report
+    assert report["judged_p95_err_pos_um"] < 15.0, report
+    assert report["judged_p95_err_rot_urad"] < 20.0, report
+    assert report["judged_max_err_pos_um"] < 25.0, report
+    assert report["judged_max_err_rot_urad"] < 30.0, report
