@@ -333,8 +333,10 @@ class MockTracker(_MockServer):
             if self.beam_break is not None and 0 <= t - self.beam_break[0] < self.beam_break[1]:
                 return format_pose(seq[0], device_stamp, None, None, status="beam_broken")
             if self.pose_at is not None:
-                # measured at the instant the row describes (as it went out, see Resampled)
-                measured = self.pose_at(t + self.pass_offset_s)
+                # measured now, as it goes out (the device time above is read now too, or is
+                # the instant it goes out: see Resampled)
+                assert self.t0 is not None
+                measured = self.pose_at(time.time() - self.t0)
                 if measured is None:
                     return format_pose(seq[0], device_stamp, None, None, status="no_target")
                 return format_pose(

@@ -520,9 +520,9 @@ class OnlineDelayTracker:
     10 s on). So while young the stretches are shorter (`young_span_s`) and the newest fit
     alone is the delay, each replacing the one before (its stamps are the most settled),
     applied only when known to `max_apply_m` at the tool's speed; the first fit of a later
-    stretch replaces them too. (With 5
-    s stretches averaged, the delay in use at 10 s after the start was 50 us short of what
-    the settled stamps needed: 28 urad at that tool's turning speed.)
+    stretch replaces them too. (With 5 s stretches averaged, the delay in use at 10 s after
+    the start was 50 us short of what the settled stamps needed: 28 urad at that tool's
+    turning speed.)
 
     Samples a source flagged (its clock re-learning, a stamp ahead of its receipt or too
     old) are left out. When either stream's time base starts anew (its `clock_epoch`
