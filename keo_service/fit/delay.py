@@ -747,13 +747,14 @@ class OnlineDelayTracker:
             self.counters["fits_refused_imprecise"] += 1
             self.last_result = "kept: the fit gave no finite value"
             return None
-        # welcome while the delay in use is not known to max_position_se_m at this speed (or
-        # is provisional); once it is, only fits that are themselves that precise count
+        # welcome while the delay in use is provisional or not known to max_position_se_m at
+        # this speed (as sure as it is now: the delay walks on since its newest fit); once it
+        # is, only fits that are themselves that precise count
         provisional = found.t <= self._young_until
-        # the running estimate as sure as it is now: the delay walks on since its newest fit
         aged_se = None if self.se is None else self._aged_se(self.se, found.t)
-        known = aged_se is not None and aged_se * speed <= self.max_position_se_m
-        known = known and not provisional
+        known = (
+            not provisional and aged_se is not None and aged_se * speed <= self.max_position_se_m
+        )
         if se > self.max_se_s or (known and se * speed > self.max_position_se_m):
             self.counters["fits_refused_imprecise"] += 1
             self.last_result = (
@@ -812,14 +813,17 @@ class OnlineDelayTracker:
         # applied when known well enough at this speed, or clearly better than the delay in
         # use; otherwise the fits scatter too much (an error the short stretches' model does
         # not hold, e.g. a robot's geometry) and the delay in use is left alone
-        current = found.current_s
-        better = math.isfinite(current) and abs(self.estimate - current) > 3 * self.se
         # a provisional fit is the delay alone, judged by its own standard error (the scatter
         # of fits is not known yet), and never as merely "better": replaced within seconds, a
         # rough one could only step the delay far the wrong way (a 2 s stretch of a robot with
         # geometry errors fitted 29.08 +/- 0.34 ms where 28.40 was right)
+        current = found.current_s
+        better = (
+            not provisional
+            and math.isfinite(current)
+            and abs(self.estimate - current) > 3 * self.se
+        )
         known_se = se if provisional else self.se
-        better = better and not provisional
         if known_se * speed > self.max_apply_m and not better:
             self.counters["estimates_not_applied"] += 1
             self.last_result += f"; not applied ({known_se * speed * 1e6:.0f} um at that speed)"
