@@ -22,6 +22,7 @@ import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 
@@ -30,6 +31,9 @@ from keo_service.core.chain import Chain
 from keo_service.core.errors import KeoError
 from keo_service.core.kinematics import Cell
 from keo_service.core.rotations import log3_many, quaternion_matrices
+from keo_service.fit.delay_trend import LevelAndRate, SteadyOrMoving
+
+_T = TypeVar("_T")
 
 VELOCITY_STEP_S = 0.005  # central differences for the tool's velocity
 STATE_ROWS = 4 * CHUNK  # samples whose tool states are computed at once
@@ -474,6 +478,11 @@ class DelayMeasurement:
     speed_rms: float
     t: float
     current_s: float = math.nan  # the delay in use when the stretch was fitted
+    t_mid: float = math.nan  # the stream time the fit describes (its stretch's middle; nan: t)
+
+    @property
+    def described_t(self) -> float:
+        return self.t if math.isnan(self.t_mid) else self.t_mid
 
 
 @dataclass(frozen=True)
@@ -487,11 +496,11 @@ class DelayRefused:
 class OnlineDelayTracker:
     """The delay found online from the motion, trusted only as far as it is known.
 
-    Samples go into bounded buffers (on the event loop); when `span_s` seconds of clean data
-    have gathered since the last fit, the service takes that stretch (`snapshot`) and fits
-    it off the loop (`measure`: `fit_delay` over that stretch only, so successive fits see
-    disjoint data), then folds the result in on the loop (`combine`). A fit is accepted only
-    when
+    Samples go into bounded buffers (on the event loop); when a stretch of clean data has
+    gathered since the last fit (`span_s`, up to `max_span_s` while its fits are rough),
+    the service takes that stretch (`snapshot`) and fits it off the loop (`measure`:
+    `fit_delay` over that stretch only, so successive fits see disjoint data), then folds
+    the result in on the loop (`combine`). A fit is accepted only when
 
     - the tool moved (`fit_delay` refuses otherwise: at rest nothing changes),
     - its standard error is small against what it changes at the tool's speed there:
@@ -501,18 +510,22 @@ class OnlineDelayTracker:
     - it agrees with the running estimate (within `outlier_sigmas` combined standard
       errors), unless the next fit agrees with it too (then the delay really moved).
 
-    The running estimate is the inverse-variance weighted mean of the last `keep` accepted fits,
-    each weighted by 1 / (se^2 + tau^2 + wander_rate * age), where tau^2 is the scatter of
-    successive fits beyond their own standard errors (the stamps' transport times wander with
-    the host's load, a fit's standard error cannot know that), at least `min_wander_s`^2, and
-    age the stream seconds since the fit: the delay the stamps need walks as the mapped clocks'
-    floors move with the load (measured on a loaded 2-core host: 20-40 us over 15-20 s, about (5
-    us)^2 per second), so an older fit says less about it now. (An equal-weight mean of the last
-    8 fits lagged the walk by 20 s: 40-60 us behind.) Its standard error is 1 / sqrt(sum of the
-    weights). The service slews the estimator's delay to it, never jumps, when it is known to
-    `max_apply_m` at the tool's speed or is more than three standard errors away from the delay
-    in use; otherwise (fits scattering widely, as when the robot's geometry makes an error the
-    stretches' model does not hold) it is shown but not applied.
+    The running estimate follows the delay's level and its rate of change (`LevelAndRate`, a
+    Kalman filter): each accepted fit says the delay at its stretch's middle, with the
+    variance se^2 + tau^2, where tau^2 is the scatter of fits beyond their own standard errors
+    (a fit's standard error cannot know how its stretch's error model fits the robot), from
+    how far each fit lies off the line through its neighbours, at least `min_wander_s`^2.
+    Between fits the level walks (`level_walk`) and so does its rate (`rate_walk`, relaxing
+    to zero over `rate_relax_s`): the delay the stamps need moves as the mapped clocks'
+    floors move with the load and their drifts converge, often steadily (3-5 us/s for 10-20 s
+    in the device-clock test), so an older fit says less about it now, and a steady walk is
+    followed, not lagged. (An equal-weight mean of the last 8 fits lagged the walk by 20 s:
+    40-60 us behind; a mean weighted by age, 15-20 us at the end of a run.) The estimate is
+    the level at the newest stretch's end, its standard error the filter's. The service
+    slews the estimator's delay to it, never jumps, when it is known to `max_apply_m` at the
+    tool's speed or is more than three standard errors away from the delay in use; otherwise
+    (fits scattering widely, as when the robot's geometry makes an error the stretches'
+    model does not hold) it is shown but not applied.
 
     Fits of stretches that end within `young_s` of the first samples or of a restart are
     provisional: a young clock mapping's stamps move while its drift converges (in the
@@ -537,7 +550,8 @@ class OnlineDelayTracker:
     def __init__(
         self,
         cell: Cell,
-        span_s: float = 5.0,
+        span_s: float = 2.5,
+        max_span_s: float = 10.0,
         young_span_s: float = 2.0,
         max_samples: int = 40_000,
         max_gap_s: float = 0.05,
@@ -545,11 +559,14 @@ class OnlineDelayTracker:
         max_se_s: float = 2e-3,
         outlier_sigmas: float = 4.0,
         settle_s: float = 4.0,
-        keep: int = 8,
         min_wander_s: float = 2e-6,
         restart_sigma_s: float = 50e-6,
         max_apply_m: float = 10e-6,
-        wander_rate: float = 25e-12,
+        steady_walk: float = 25e-12,
+        level_walk: float = 4e-12,
+        rate_walk: float = 1e-12,
+        rate_relax_s: float = 30.0,
+        rate_prior: float = 2e-6,
         young_s: float = 10.0,
     ) -> None:
         # fits run off the event loop: give them their own scratch data for gravity torques
@@ -559,6 +576,8 @@ class OnlineDelayTracker:
             else dataclasses.replace(cell, gravity_data=cell.nominal_model.createData())
         )
         self.span_s = span_s
+        self.max_span_s = max(max_span_s, span_s)
+        self._stretch_s = span_s  # the settled stretch now: lengthened while fits are rough
         self.young_span_s = young_span_s
         self.max_gap_s = max_gap_s
         self.max_position_se_m = max_position_se_m
@@ -579,10 +598,12 @@ class OnlineDelayTracker:
         self._young_until = math.nan  # fits of stretches ending before this are provisional
         self._provisional = 0  # how many of the fits kept are provisional
         self._sources: dict[str, tuple[int, int]] = {}  # stream -> (epoch, last seq)
-        self.wander_rate = wander_rate
-        # accepted fits (value, se, stream time)
-        self._fits: collections.deque[tuple[float, float, float]] = collections.deque(maxlen=keep)
-        # accepted fits (value, se, segment): a segment ends when a time base starts anew
+        self._trend = SteadyOrMoving(
+            LevelAndRate(steady_walk, 0.0, rate_relax_s, 0.0),
+            LevelAndRate(level_walk, rate_walk, rate_relax_s, rate_prior),
+        )
+        # accepted settled fits (value, se, segment, stream time described): a segment ends
+        # when a time base starts anew
         self._history: collections.deque[tuple[float, float, int, float]] = collections.deque(
             maxlen=32
         )
@@ -642,7 +663,7 @@ class OnlineDelayTracker:
         """A stream's time base started anew at stream time t: drop what came before."""
         self._enc.clear()
         self._trk.clear()
-        self._fits.clear()
+        self._trend.reset()
         self._provisional = 0
         self._suspect = None
         self._segment += 1
@@ -664,7 +685,7 @@ class OnlineDelayTracker:
     def _span(self) -> float:
         """The stretch to fit next: shorter while the clock mappings are young."""
         young = bool(self._trk) and self._trk[0][0] + self.young_span_s <= self._young_until
-        return self.young_span_s if young else self.span_s
+        return self.young_span_s if young else self._stretch_s
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """Copies of the stretch to fit (call on the loop, then fit anywhere); the stretch is
@@ -730,8 +751,9 @@ class OnlineDelayTracker:
         if not fits:
             return DelayRefused("fits_not_identifiable", str(reason))
         fit = min(fits, key=lambda f: f.residual_rms_moving)
+        middle = 0.5 * float(trk_t[0] + trk_t[-1])
         return DelayMeasurement(
-            fit.delay_s, fit.delay_se_s, fit.speed_rms, float(trk_t[-1]), current
+            fit.delay_s, fit.delay_se_s, fit.speed_rms, float(trk_t[-1]), current, middle
         )
 
     def combine(self, found: DelayMeasurement | DelayRefused) -> float | None:
@@ -742,6 +764,7 @@ class OnlineDelayTracker:
             self.last_result = f"kept: {found.reason}"
             return None
         value, se, speed = found.delay_s, found.se_s, found.speed_rms
+        self._fit_stretch(se * speed)
         said = f"{value * 1e6:.1f} +/- {se * 1e6:.1f} us at {speed * 1e3:.0f} mm/s"
         if not (math.isfinite(value) and math.isfinite(se) and se > 0):
             self.counters["fits_refused_imprecise"] += 1
@@ -751,10 +774,8 @@ class OnlineDelayTracker:
         # this speed (as sure as it is now: the delay walks on since its newest fit); once it
         # is, only fits that are themselves that precise count
         provisional = found.t <= self._young_until
-        aged_se = None if self.se is None else self._aged_se(self.se, found.t)
-        known = (
-            not provisional and aged_se is not None and aged_se * speed <= self.max_position_se_m
-        )
+        se_now = self._se_at(found.t)
+        known = not provisional and se_now is not None and se_now * speed <= self.max_position_se_m
         if se > self.max_se_s or (known and se * speed > self.max_position_se_m):
             self.counters["fits_refused_imprecise"] += 1
             self.last_result = (
@@ -762,52 +783,34 @@ class OnlineDelayTracker:
                 f"speed; trusted below {self.max_position_se_m * 1e6:g} um)"
             )
             return None
-        tau2 = self._wander2()
-        if self._provisional:
-            # provisional fits described stamps that have moved since: the newest replaces
-            # them, a later stretch's first fit too (it is not held against them)
-            self._fits.clear()
-            self._provisional = 0
-        if self.estimate is not None and aged_se is not None and self._fits and not provisional:
-            gap = value - self.estimate
-            spread = math.sqrt(aged_se**2 + se * se + tau2)
-            if abs(gap) > self.outlier_sigmas * spread:
-                suspect = self._suspect
-                self._suspect = (value, se, found.t)
-                agrees = suspect is not None and abs(value - suspect[0]) <= (
-                    self.outlier_sigmas * math.sqrt(se * se + suspect[1] ** 2 + tau2)
-                )
-                if not agrees:
-                    self.counters["fits_refused_outlier"] += 1
-                    self.last_result = (
-                        f"kept: fit {said} disagrees with {self.estimate * 1e6:.1f} +/- "
-                        f"{spread * 1e6:.1f} us (one more like it and it is taken)"
-                    )
-                    return None
-                self._fits.clear()  # two in a row: the delay moved
-                assert suspect is not None
-                self._fits.append(suspect)
-                self._provisional = int(provisional)
+        t_fit = found.described_t
+        # provisional fits described stamps that have moved since: the newest replaces them,
+        # a later stretch's first fit too (it is not held against them); after a restart the
+        # first fit starts the filter
+        fresh = provisional or self._provisional or not self._trend.started
+        moved = None if fresh else self._outlier(value, se, t_fit)
+        if moved is False:
+            self.counters["fits_refused_outlier"] += 1
+            self.last_result = f"kept: fit {said} {self.last_result}"
+            return None
         self._suspect = None
-        self._fits.append((value, se, found.t))
-        if provisional:
-            self._provisional += 1
-        else:  # the scatter of fits is judged from settled mappings' only
-            self._history.append((value, se, self._segment, found.t))
-        tau2 = self._wander2()
-        # an older fit says less about the delay now: the stamps' floors walk with the load
-        weights = [
-            1.0 / (s * s + tau2 + self.wander_rate * max(0.0, found.t - t))
-            for _v, s, t in self._fits
-        ]
-        total = sum(weights)
-        values = [v for v, _s, _t in self._fits]
-        self.estimate = sum(w * v for w, v in zip(weights, values, strict=True)) / total
-        self.se = 1.0 / math.sqrt(total)
+        self._provisional = int(provisional)
+        if not provisional:  # the scatter of fits is judged from settled mappings' only
+            self._history.append((value, se, self._segment, t_fit))
+        tau2 = self._wander2()  # with this fit: its own scatter counts against it too
+        if fresh:
+            self._trend.start(value, se * se + tau2, t_fit)
+        else:
+            if isinstance(moved, tuple):  # two in a row: the delay moved
+                self._trend.start(moved[0], moved[1] ** 2 + tau2, moved[2])
+            self._trend.update(value, se * se + tau2, t_fit)
+        estimate, estimate_var = self._trend.predict(found.t)
+        self.estimate, self.se = estimate, math.sqrt(estimate_var)
         self.counters["fits_accepted"] += 1
         self.last_result = (
             f"fit {said}; delay {self.estimate * 1e6:.1f} +/- {self.se * 1e6:.1f} us "
-            f"({len(self._fits)} fits, wander {math.sqrt(tau2) * 1e6:.1f} us"
+            f"({self._trend.chosen}, {self._trend.rate * 1e6:+.1f} us/s; "
+            f"scatter {math.sqrt(tau2) * 1e6:.1f} us"
             f"{', provisional' if provisional else ''})"
         )
         # applied when known well enough at this speed, or clearly better than the delay in
@@ -823,52 +826,97 @@ class OnlineDelayTracker:
             and math.isfinite(current)
             and abs(self.estimate - current) > 3 * self.se
         )
-        known_se = se if provisional else self.se
-        if known_se * speed > self.max_apply_m and not better:
+        judged_se = se if provisional else self.se
+        if judged_se * speed > self.max_apply_m and not better:
             self.counters["estimates_not_applied"] += 1
-            self.last_result += f"; not applied ({known_se * speed * 1e6:.0f} um at that speed)"
+            self.last_result += f"; not applied ({judged_se * speed * 1e6:.0f} um at that speed)"
             return None
         self.applied_se = self.se
         return self.estimate
 
-    def _aged_se(self, se: float, t: float) -> float:
-        """The running estimate's standard error at stream time t: its fits' walk since the
-        newest of them (`wander_rate`). Judged against it, a new fit is neither refused as
-        less precise than an estimate that has gone stale nor as an outlier from it (the
-        delay the device-clock test needed walked 50 us in 30 s; fits against the unaged
-        estimate were refused four times in a row, the delay in use 30 us behind)."""
-        newest = max((f[2] for f in self._fits), default=t)
-        return math.sqrt(se * se + self.wander_rate * max(0.0, t - newest))
+    def _fit_stretch(self, precision_m: float) -> None:
+        """The settled stretch as short as gives fits known to `max_position_se_m` at the
+        tool's speed (a fit's standard error falls about as its length to the power 1.5):
+        twice as long after a rougher fit, up to `max_span_s`; half as long after one four
+        times as precise, down to `span_s`. (2.5 s stretches follow the delay's walk,
+        measured at 3-5 us/s; a robot whose geometry the stretches' linear error model
+        does not hold needs 5-10 s for a fit worth taking.)"""
+        if not math.isfinite(precision_m) or precision_m > self.max_position_se_m:
+            self._stretch_s = min(2.0 * self._stretch_s, self.max_span_s)
+        elif precision_m < self.max_position_se_m / 4.0:
+            self._stretch_s = max(0.5 * self._stretch_s, self.span_s)
+
+    def _outlier(
+        self, value: float, se: float, t_fit: float
+    ) -> tuple[float, float, float] | bool | None:
+        """Is a fit far off the running estimate (`outlier_sigmas` combined standard
+        errors)? None: no. False: yes, and refused (why, in `last_result`). Else the fit
+        before it, which was just as far off and agrees with it: the delay moved."""
+        tau2 = self._wander2()
+        level, level_var = self._trend.predict(t_fit)
+        spread = math.sqrt(level_var + se * se + tau2)
+        if abs(value - level) <= self.outlier_sigmas * spread:
+            return None
+        suspect, self._suspect = self._suspect, (value, se, t_fit)
+        if suspect is not None and abs(value - suspect[0]) <= (
+            self.outlier_sigmas * math.sqrt(se * se + suspect[1] ** 2 + tau2)
+        ):
+            return suspect
+        self.last_result = (
+            f"disagrees with {level * 1e6:.1f} +/- {spread * 1e6:.1f} us "
+            "(one more like it and it is taken)"
+        )
+        return False
+
+    def _se_at(self, t: float) -> float | None:
+        """The running estimate's standard error at stream time t: grown by the walk since
+        its newest fit. Judged against it, a new fit is neither refused as less precise than
+        an estimate that has gone stale nor as an outlier from it (the delay the device-clock
+        test needed walked 50 us in 30 s; fits against the unaged estimate were refused four
+        times in a row, the delay in use 30 us behind)."""
+        if not self._trend.started:
+            return self.se
+        return math.sqrt(self._trend.predict(t)[1])
 
     def _wander2(self) -> float:
-        """tau^2: the scatter of successive accepted fits beyond their standard errors and
-        the walk `wander_rate` allows between them, from the differences of successive fits
-        within each segment (between restarts): the median of the squared differences over
-        0.4549 (a normal variable's), so that one wild fit does not make every fit look
-        wild, and a slow walk of the delay is not taken for scatter. At least
-        min_wander_s^2, and (10 min_wander_s)^2 until 2 differences say."""
+        """tau^2: the scatter of accepted fits beyond their standard errors, within each
+        segment (between restarts), from how far each fit lies off the straight line
+        through its neighbours (a steady walk of the delay is not scatter): the median over
+        0.4549 (a normal variable's squared median), so that one wild fit does not make every
+        fit look wild. Until 3 such triples say, from the differences of successive fits
+        (which count a walk as scatter too: modest while little is known), and (10
+        min_wander_s)^2 until 3 of those say. At least min_wander_s^2."""
         floor = self.min_wander_s**2
-        d2: list[float] = []
-        se2: list[float] = []
-        dt: list[float] = []
         hist = list(self._history)
-        for a, b in itertools.pairwise(hist):
-            if a[2] == b[2]:
-                d2.append((b[0] - a[0]) ** 2)
-                se2.append(a[1] ** 2 + b[1] ** 2)
-                dt.append(max(0.0, b[3] - a[3]))
-        if len(d2) < 2:
+        off2: list[float] = []
+        se2: list[float] = []
+        for a, b, c in _triples(hist):
+            if a[2] == b[2] == c[2] and a[3] < b[3] < c[3]:
+                w = (b[3] - a[3]) / (c[3] - a[3])  # b's place between its neighbours
+                factor = 1.0 + (1.0 - w) ** 2 + w * w  # white scatter's variance, times this
+                off2.append((b[0] - (1.0 - w) * a[0] - w * c[0]) ** 2 / factor)
+                se2.append((b[1] ** 2 + ((1.0 - w) * a[1]) ** 2 + (w * c[1]) ** 2) / factor)
+        if len(off2) < 3:
+            off2, se2 = [], []
+            for a, b in itertools.pairwise(hist):
+                if a[2] == b[2]:
+                    off2.append((b[0] - a[0]) ** 2 / 2.0)
+                    se2.append((a[1] ** 2 + b[1] ** 2) / 2.0)
+        if len(off2) < 3:
             return max(floor, (10 * self.min_wander_s) ** 2)  # unknown yet: be modest
-        spread = float(np.median(d2)) / 0.4549 - float(np.median(se2))
-        walk = self.wander_rate * float(np.median(dt))
-        return max(floor, (spread - walk) / 2.0)
+        return max(floor, float(np.median(off2)) / 0.4549 - float(np.median(se2)))
 
     def forget(self) -> None:
         """The delay was set by hand (a reload): start the running estimate afresh."""
-        self._fits.clear()
+        self._trend.reset()
         self._provisional = 0
         self._suspect = None
         self.estimate = self.se = self.applied_se = None
+
+
+def _triples(items: list[_T]) -> list[tuple[_T, _T, _T]]:
+    """Each item with its two neighbours: (a, b, c) for every b between them."""
+    return list(zip(items, items[1:], items[2:], strict=False))
 
 
 def _covered(

@@ -61,6 +61,9 @@ if TYPE_CHECKING:
 log = logging.getLogger("keo.service")
 VIZ_PERIOD_S = 0.1  # Rerun gets batches at display rate, never one call per sample
 STATUS_PERIOD_S = 0.1
+# how often the delay tracker is asked whether a stretch is ready (a cheap check): a fit then
+# waits at most this long (its stretches are 2-2.5 s)
+DELAY_POLL_S = 0.25
 STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "stale"
 MAX_ADAPTERS = 16  # adapters whose newest state change the service keeps (bounded)
 MAX_MESSAGES = 16  # the service's own newest messages kept for its status (bounded)
@@ -412,7 +415,7 @@ class KeoService:
         assert tracker is not None
         while not self._stop.is_set():
             if not tracker.due():  # else a stretch is waiting already (a slow fit, a replay)
-                await asyncio.sleep(1.0)
+                await asyncio.sleep(DELAY_POLL_S)
                 continue
             window = tracker.snapshot()
             restarts = tracker.counters["restarts"]
