@@ -94,3 +94,10 @@ def test_rough_fits_lengthen_the_stretch_and_precise_ones_shorten_it(demo_cell):
     assert tracker._span() == 5.0
     tracker.combine(DelayMeasurement(28e-3, 1e-6, 0.3, 45.0))
     assert tracker._span() == 2.5
+    # a young mapping's fits (2 s stretches of their own) leave the settled stretch alone:
+    # rough ones there lengthened it to 10 s and the delay in use then went 12 s without a
+    # fit while the delay the stamps needed walked 70 us (device-clock test)
+    young = OnlineDelayTracker(demo_cell)
+    young.restart(0.0, "a test")  # young until 10 s
+    young.combine(DelayMeasurement(28e-3, 100e-6, 0.3, 8.0))
+    assert young._stretch_s == 2.5

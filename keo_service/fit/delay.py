@@ -764,7 +764,9 @@ class OnlineDelayTracker:
             self.last_result = f"kept: {found.reason}"
             return None
         value, se, speed = found.delay_s, found.se_s, found.speed_rms
-        self._fit_stretch(se * speed)
+        provisional = found.t <= self._young_until
+        if not provisional:  # young stretches have their own length
+            self._fit_stretch(se * speed)
         said = f"{value * 1e6:.1f} +/- {se * 1e6:.1f} us at {speed * 1e3:.0f} mm/s"
         if not (math.isfinite(value) and math.isfinite(se) and se > 0):
             self.counters["fits_refused_imprecise"] += 1
@@ -773,7 +775,6 @@ class OnlineDelayTracker:
         # welcome while the delay in use is provisional or not known to max_position_se_m at
         # this speed (as sure as it is now: the delay walks on since its newest fit); once it
         # is, only fits that are themselves that precise count
-        provisional = found.t <= self._young_until
         se_now = self._se_at(found.t)
         known = not provisional and se_now is not None and se_now * speed <= self.max_position_se_m
         if se > self.max_se_s or (known and se * speed > self.max_position_se_m):
@@ -836,14 +837,14 @@ class OnlineDelayTracker:
 
     def _fit_stretch(self, precision_m: float) -> None:
         """The settled stretch as short as gives fits known to `max_position_se_m` at the
-        tool's speed (a fit's standard error falls about as its length to the power 1.5):
-        twice as long after a rougher fit, up to `max_span_s`; half as long after one four
-        times as precise, down to `span_s`. (2.5 s stretches follow the delay's walk,
-        measured at 3-5 us/s; a robot whose geometry the stretches' linear error model
-        does not hold needs 5-10 s for a fit worth taking.)"""
+        tool's speed: twice as long after a rougher fit, up to `max_span_s`; half as long
+        after one precise enough to stay so at half the length (a fit's standard error
+        grows about as the length to the power -1.5), down to `span_s`. (2.5 s stretches
+        follow the delay's walk, measured at 3-5 us/s; a robot whose geometry the
+        stretches' linear error model does not hold needs 5-10 s for a fit worth taking.)"""
         if not math.isfinite(precision_m) or precision_m > self.max_position_se_m:
             self._stretch_s = min(2.0 * self._stretch_s, self.max_span_s)
-        elif precision_m < self.max_position_se_m / 4.0:
+        elif precision_m * 2.0**1.5 <= self.max_position_se_m:
             self._stretch_s = max(0.5 * self._stretch_s, self.span_s)
 
     def _outlier(
