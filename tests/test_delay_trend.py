@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from keo_service.fit.delay import DelayMeasurement, OnlineDelayTracker
+from keo_service.fit.delay import DelayMeasurement, DelayRefused, OnlineDelayTracker
 from keo_service.fit.delay_trend import LevelAndRate, SteadyOrMoving
 
 
@@ -94,6 +94,13 @@ def test_rough_fits_lengthen_the_stretch_and_precise_ones_shorten_it(demo_cell):
     assert tracker._span() == 5.0
     tracker.combine(DelayMeasurement(28e-3, 1e-6, 0.3, 45.0))
     assert tracker._span() == 2.5
+    # a stretch too short to separate a delay at all counts as a rough fit (a robot with
+    # geometric errors, from delay_s = 0: 2.5 s stretches were never identifiable, and the
+    # delay stayed 28 ms off)
+    tracker.combine(DelayRefused("fits_not_identifiable", "a test", 50.0))
+    assert tracker._span() == 5.0
+    tracker.combine(DelayRefused("fits_without_data", "a test", 55.0))
+    assert tracker._span() == 5.0
     # a young mapping's fits (2 s stretches of their own) leave the settled stretch alone:
     # rough ones there lengthened it to 10 s and the delay in use then went 12 s without a
     # fit while the delay the stamps needed walked 70 us (device-clock test)

@@ -491,6 +491,7 @@ class DelayRefused:
 
     counter: str
     reason: str
+    t: float = math.nan  # the stream time the stretch ends at (nan: not known)
 
 
 class OnlineDelayTracker:
@@ -749,7 +750,7 @@ class OnlineDelayTracker:
             except DelayNotIdentifiableError as exc:
                 reason = exc
         if not fits:
-            return DelayRefused("fits_not_identifiable", str(reason))
+            return DelayRefused("fits_not_identifiable", str(reason), float(trk_t[-1]))
         fit = min(fits, key=lambda f: f.residual_rms_moving)
         middle = 0.5 * float(trk_t[0] + trk_t[-1])
         return DelayMeasurement(
@@ -760,8 +761,7 @@ class OnlineDelayTracker:
         """Accept or refuse one measurement (on the loop) and fold it into the running
         estimate: the estimate to apply, else None (and why, in `last_result`)."""
         if isinstance(found, DelayRefused):
-            self.counters[found.counter] += 1
-            self.last_result = f"kept: {found.reason}"
+            self._refused(found)
             return None
         value, se, speed = found.delay_s, found.se_s, found.speed_rms
         provisional = found.t <= self._young_until
@@ -834,6 +834,14 @@ class OnlineDelayTracker:
             return None
         self.applied_se = self.se
         return self.estimate
+
+    def _refused(self, found: DelayRefused) -> None:
+        """Count a stretch without a delay; one too short to separate a delay at all (a
+        settled one) lengthens the stretch, as a rough fit does."""
+        if found.counter == "fits_not_identifiable" and not found.t <= self._young_until:
+            self._fit_stretch(math.inf)
+        self.counters[found.counter] += 1
+        self.last_result = f"kept: {found.reason}"
 
     def _fit_stretch(self, precision_m: float) -> None:
         """The settled stretch as short as gives fits known to `max_position_se_m` at the
