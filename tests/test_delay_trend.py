@@ -108,3 +108,20 @@ def test_rough_fits_lengthen_the_stretch_and_precise_ones_shorten_it(demo_cell):
     young.restart(0.0, "a test")  # young until 10 s
     young.combine(DelayMeasurement(28e-3, 100e-6, 0.3, 8.0))
     assert young._stretch_s == 2.5
+
+
+def test_two_outliers_agree_as_far_as_the_delay_may_walk_between_them(demo_cell):
+    """A delay that jumped and walks on: the two fits after the jump, 10 s apart, differ by 40
+    us, more than their own errors allow (4 sigma: 10 us) but within the walk allowed in 10 s
+    ((5 us)^2 per second): the delay moved, the second is taken. (Compared without the walk
+    they were refused one after another while the needed delay walked 150 us in 20 s: a
+    fresh-clone CI run of the device-clock test.)"""
+    tracker = OnlineDelayTracker(demo_cell)
+    for k in range(6):
+        tracker.combine(DelayMeasurement(500e-6, 1e-6, 0.3, 2.5 * (k + 1)))
+    assert tracker.estimate == pytest.approx(500e-6, abs=1e-6)
+    assert tracker.combine(DelayMeasurement(600e-6, 1e-6, 0.3, 17.5)) is None
+    assert "one more like it" in tracker.last_result
+    taken = tracker.combine(DelayMeasurement(640e-6, 1e-6, 0.3, 27.5))
+    assert taken is not None, tracker.last_result
+    assert taken > 600e-6

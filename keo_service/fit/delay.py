@@ -599,6 +599,7 @@ class OnlineDelayTracker:
         self._young_until = math.nan  # fits of stretches ending before this are provisional
         self._provisional = 0  # how many of the fits kept are provisional
         self._sources: dict[str, tuple[int, int]] = {}  # stream -> (epoch, last seq)
+        self.steady_walk = steady_walk
         self._trend = SteadyOrMoving(
             LevelAndRate(steady_walk, 0.0, rate_relax_s, 0.0),
             LevelAndRate(level_walk, rate_walk, rate_relax_s, rate_prior),
@@ -867,10 +868,12 @@ class OnlineDelayTracker:
         if abs(value - level) <= self.outlier_sigmas * spread:
             return None
         suspect, self._suspect = self._suspect, (value, se, t_fit)
-        if suspect is not None and abs(value - suspect[0]) <= (
-            self.outlier_sigmas * math.sqrt(se * se + suspect[1] ** 2 + tau2)
-        ):
-            return suspect
+        if suspect is not None:
+            # the two agree as far as the delay may have walked between them
+            walked = self.steady_walk * abs(t_fit - suspect[2])
+            together = math.sqrt(se * se + suspect[1] ** 2 + tau2 + walked)
+            if abs(value - suspect[0]) <= self.outlier_sigmas * together:
+                return suspect
         self.last_result = (
             f"disagrees with {level * 1e6:.1f} +/- {spread * 1e6:.1f} us "
             "(one more like it and it is taken)"
