@@ -511,18 +511,20 @@ class OnlineDelayTracker:
     - it agrees with the running estimate (within `outlier_sigmas` combined standard
       errors), unless the next fit agrees with it too (then the delay really moved).
 
-    The running estimate follows the delay's level and its rate of change (`LevelAndRate`, a
-    Kalman filter): each accepted fit says the delay at its stretch's middle, with the
-    variance se^2 + tau^2, where tau^2 is the scatter of fits beyond their own standard errors
-    (a fit's standard error cannot know how its stretch's error model fits the robot), from
-    how far each fit lies off the line through its neighbours, at least `min_wander_s`^2.
-    Between fits the level walks (`level_walk`) and so does its rate (`rate_walk`, relaxing
-    to zero over `rate_relax_s`): the delay the stamps need moves as the mapped clocks'
-    floors move with the load and their drifts converge, often steadily (3-5 us/s for 10-20 s
-    in the device-clock test), so an older fit says less about it now, and a steady walk is
-    followed, not lagged. (An equal-weight mean of the last 8 fits lagged the walk by 20 s:
-    40-60 us behind; a mean weighted by age, 15-20 us at the end of a run.) The estimate is
-    the level at the newest stretch's end, its standard error the filter's. The service
+    The running estimate is a Kalman filter over the delay's level in two views
+    (`SteadyOrMoving`): "steady", whose level walks (`steady_walk`), and "moving", whose
+    level walks (`level_walk`) with a rate that walks too (`rate_walk`, relaxing to zero over
+    `rate_relax_s`); the one that has been predicting the fits better gives the estimate.
+    Each accepted fit says the delay at its stretch's middle, with the variance se^2 +
+    tau^2, where tau^2 is the scatter of fits beyond their own standard errors (a fit's
+    standard error cannot know how its stretch's error model fits the robot), from how far
+    each fit lies off the line through its neighbours, at least `min_wander_s`^2. The delay
+    the stamps need moves as the mapped clocks' floors move with the load and their drifts
+    converge, often steadily (3-5 us/s for 10-20 s in the device-clock test), so an older
+    fit says less about it now, and a steady walk is followed, not lagged. (An equal-weight
+    mean of the last 8 fits lagged the walk by 20 s: 40-60 us behind; a mean weighted by
+    age, 15-20 us at the end of a run.) The estimate is the level at the newest stretch's
+    end, its standard error the filter's. The service
     slews the estimator's delay to it, never jumps, when it is known to `max_apply_m` at the
     tool's speed or is more than three standard errors away from the delay in use; otherwise
     (fits scattering widely, as when the robot's geometry makes an error the stretches'
@@ -599,7 +601,6 @@ class OnlineDelayTracker:
         self._young_until = math.nan  # fits of stretches ending before this are provisional
         self._provisional = 0  # how many of the fits kept are provisional
         self._sources: dict[str, tuple[int, int]] = {}  # stream -> (epoch, last seq)
-        self.steady_walk = steady_walk
         self._trend = SteadyOrMoving(
             LevelAndRate(steady_walk, 0.0, rate_relax_s, 0.0),
             LevelAndRate(level_walk, rate_walk, rate_relax_s, rate_prior),
@@ -870,7 +871,7 @@ class OnlineDelayTracker:
         suspect, self._suspect = self._suspect, (value, se, t_fit)
         if suspect is not None:
             # the two agree as far as the delay may have walked between them
-            walked = self.steady_walk * abs(t_fit - suspect[2])
+            walked = self._trend.views["steady"].level_walk * abs(t_fit - suspect[2])
             together = math.sqrt(se * se + suspect[1] ** 2 + tau2 + walked)
             if abs(value - suspect[0]) <= self.outlier_sigmas * together:
                 return suspect

@@ -27,6 +27,9 @@ __all__ = ["LevelAndRate", "SteadyOrMoving"]
 
 
 class LevelAndRate:
+    """The Kalman filter over [level, rate] described above (a rate that stays zero when
+    `rate_walk` and `rate_prior` are zero: a level that only walks)."""
+
     def __init__(
         self,
         level_walk: float,
@@ -80,11 +83,12 @@ class LevelAndRate:
         x, p = self._propagated(t)
         return float(x[0]), float(p[0, 0])
 
-    def update(self, value: float, variance: float, t: float) -> None:
-        """Fold in a measurement of the level at time t, with its variance."""
+    def update(self, value: float, variance: float, t: float) -> float | None:
+        """Fold in a measurement of the level at time t, with its variance; how far the
+        level predicted there missed it (None: the first measurement, nothing predicted)."""
         if self._x is None:
             self.start(value, variance, t)
-            return
+            return None
         x, p = self._propagated(t)
         innovation = value - x[0]
         s = p[0, 0] + variance
@@ -93,6 +97,7 @@ class LevelAndRate:
         self._p = p - np.outer(k, p[0, :])
         self._p = 0.5 * (self._p + self._p.T)  # keep it symmetric against rounding
         self._t = max(self._t, t)
+        return float(innovation)
 
 
 class SteadyOrMoving:
@@ -144,6 +149,6 @@ class SteadyOrMoving:
 
     def update(self, value: float, variance: float, t: float) -> None:
         for name, view in self.views.items():
-            if view.started:
-                self._missed[name].append((value - view.predict(t)[0]) ** 2)
-            view.update(value, variance, t)
+            missed = view.update(value, variance, t)
+            if missed is not None:
+                self._missed[name].append(missed * missed)
