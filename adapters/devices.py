@@ -244,6 +244,7 @@ class _Adapter:
             "clock": self.stamper.domain,
             "clock_epoch": self.stamper.epoch,
             "flags": list(stamp.flags),
+            "clock_drift": stamp.drift,
         }
 
     def _publish_joints(

@@ -15,6 +15,7 @@ from keo_service.adapters.line_protocol import format_hello, format_pose
 from keo_service.bench.procs import free_port
 from keo_service.core.clock import SHARED_AHEAD_TOLERANCE_S, Stamper
 from keo_service.core.errors import ConfigError
+from keo_service.fit.stamp_lines import Anchor
 from keo_service.io.config import load_config
 from keo_service.live.bus import open_session
 from keo_service.live.messages import TrackerSample, decode, topic
@@ -109,6 +110,32 @@ def test_device_stamps_are_mapped_and_a_clock_step_starts_a_new_epoch():
     assert s.epoch == 1
     assert any("clock_step" in o.flags for o in stepped)
     assert s.counters["clock_step"] == 1
+
+
+def test_a_mapped_stamp_comes_with_its_lines_drift():
+    """A consumer carries a mapped stamp onto a later line from (stamp, device stamp, the
+    line's drift): within a block (the line does not move) the next stamp is exactly where
+    the previous one's line puts it (after the first block, whose least lag so far moves
+    the line at every sample). Stamps not on a mapping's line say so by having none."""
+    s = Stamper("device")
+    rng = np.random.default_rng(4)
+    device = 5000.0 + np.arange(3000) * 0.002  # 6 s, so that the drift is fitted (not held)
+    receipt = 1.7e9 + (device - 5000.0) * (1 + 30e-6) + 0.001 + 0.003 * rng.random(device.size)
+    out = [s.stamp(float(d), float(r)) for d, r in zip(device, receipt, strict=True)]
+    assert not s.mapper.learning
+    block = np.floor(device / s.mapper.block_s)
+    carried = 0
+    for k in range(250, device.size):
+        prev = out[k - 1]
+        if block[k] != block[k - 1] or prev.drift is None or out[k].drift is None:
+            continue
+        line = Anchor(prev.stamp, float(device[k - 1]), prev.drift)
+        assert float(line.at(np.array([device[k]]))[0]) == pytest.approx(out[k].stamp, abs=1e-6)
+        carried += 1
+    assert carried > 2500
+    assert out[-1].drift == pytest.approx(30e-6, abs=5e-6)  # host per device second
+    assert Stamper("shared").stamp(1.7e9, 1.7e9 + 1e-3).drift is None
+    assert Stamper("receipt").stamp(5.0, 1.7e9).drift is None
 
 
 # ---- receipt: the host's receipt time, device time only kept aside ----------------------------

@@ -133,6 +133,7 @@ class ClockMapper:
         self.continued = 0
         self._checking = False  # a continued line not yet confirmed by a block of new data
         self._last_out = -math.inf  # the host clock does not step with the device's
+        self.on_line = False  # whether the newest stamp mapped lies on the line (`predict`)
         self._reset()
 
     def _reset(self) -> None:
@@ -148,6 +149,12 @@ class ClockMapper:
         self._last_device = -math.inf
         self._outliers = 0
         self._checking = False
+
+    @property
+    def drift(self) -> float:
+        """The drift of the line stamps are mapped with now (s/s): a stamp lies on
+        `stamp - device_stamp = drift * device_stamp + const` until the line moves."""
+        return self._drift
 
     @property
     def learning(self) -> bool:
@@ -228,7 +235,7 @@ class ClockMapper:
                 self.prior_drift = self._drift  # the same oscillator after a restart
             self._reset()
         elif self._outliers:
-            return self._monotonic(host_t)
+            return self._monotonic(host_t, on_line=False)
         self._last_device = max(self._last_device, device_stamp)
         lag = host_t - device_stamp
         index = math.floor(device_stamp / self.block_s)
@@ -259,14 +266,17 @@ class ClockMapper:
         self._reset()
         return False
 
-    def _monotonic(self, t: float) -> float:
+    def _monotonic(self, t: float, on_line: bool = True) -> float:
         """Stamps never go back: while the fit learns (the first samples of a connection
         wait longest, so the offset drops as faster ones arrive) a stamp that would fall
-        before the previous one is placed just after it, and counted."""
+        before the previous one is placed just after it, and counted. `on_line` says whether
+        the stamp returned lies on the line (`predict`)."""
         if t <= self._last_out:
             t = self._last_out + MIN_STEP_S
             self.held_back += 1
+            on_line = False
         self._last_out = t
+        self.on_line = on_line
         return t
 
     def _is_step(self, device_stamp: float, host_t: float) -> bool:
@@ -386,6 +396,9 @@ _KEEP_MESSAGES = 8
 class Stamp:
     stamp: float  # the sample's stream time (host clock, or the shared clock that is the host's)
     flags: tuple[str, ...] = ()
+    # a mapped ("device") stamp: the drift of the line it was mapped with, so that a consumer
+    # can carry it onto a later line of the same mapping (see ClockMapper.map)
+    drift: float | None = None
 
 
 class Stamper:
@@ -514,7 +527,9 @@ class Stamper:
         # no line yet (an offset from one block), or a continued line not yet confirmed
         if self.mapper.state().blocks < 2 or self.mapper.checking:
             flags = (*flags, "clock_relearning")
-        return Stamp(t, flags)
+        # the line's drift, for a consumer to carry the stamp onto a later line; none for a
+        # stamp off the line (held back, or a receipt time kept while a step is confirmed)
+        return Stamp(t, flags, self.mapper.drift if self.mapper.on_line else None)
 
     def _shared(self, device_stamp: float, receipt_t: float) -> Stamp:
         flags: list[str] = []

@@ -32,6 +32,7 @@ from keo_service.core.errors import KeoError
 from keo_service.core.kinematics import Cell
 from keo_service.core.rotations import log3_many, quaternion_matrices
 from keo_service.fit.delay_trend import LevelAndRate, SteadyOrMoving
+from keo_service.fit.stamp_lines import Anchor, moved
 
 _T = TypeVar("_T")
 
@@ -590,12 +591,19 @@ class OnlineDelayTracker:
         self.min_wander_s = min_wander_s
         self.restart_sigma_s = restart_sigma_s
         self.max_apply_m = max_apply_m
-        self._enc: collections.deque[tuple[float, np.ndarray]] = collections.deque(
+        # (stamp, joints, device stamp or None)
+        self._enc: collections.deque[tuple[float, np.ndarray, float | None]] = collections.deque(
             maxlen=max_samples
         )
-        self._trk: collections.deque[tuple[float, np.ndarray, np.ndarray | None]] = (
+        # (stamp, position, quaternion or None, device stamp or None)
+        self._trk: collections.deque[tuple[float, np.ndarray, np.ndarray | None, float | None]] = (
             collections.deque(maxlen=max_samples)
         )
+        # each mapped stream's newest sample on its clock mapping's line; the lines the
+        # running estimate is expressed under; those of the stretch being fitted
+        self._newest: dict[str, Anchor] = {}
+        self._frame: dict[str, Anchor] = {}
+        self._fitting_frame: dict[str, Anchor] | None = None
         self._start = -math.inf  # stream time from which samples count
         self.young_s = young_s
         self._young_until = math.nan  # fits of stretches ending before this are provisional
@@ -615,22 +623,33 @@ class OnlineDelayTracker:
         self.estimate: float | None = None  # the running estimate of the delay (s)
         self.se: float | None = None  # its standard error (s)
         self.applied_se: float | None = None  # that of the estimate last applied (s)
+        self.applied: float | None = None  # the estimate last applied, under `_frame` (s)
         self.counters: collections.Counter[str] = collections.Counter()
         self.last_result: str = "waiting for motion"
 
     # ---- samples (on the event loop: cheap) ---------------------------------------------
 
     def add_encoder(
-        self, t: float, q: Sequence[float], epoch: int = 0, seq: int = 0, flagged: bool = False
+        self,
+        t: float,
+        q: Sequence[float],
+        epoch: int = 0,
+        seq: int = 0,
+        flagged: bool = False,
+        device_stamp: float | None = None,
+        clock_drift: float | None = None,
     ) -> None:
+        """One joint sample; a mapped one ("device" clock) with its device stamp and its
+        line's drift (`JointSample.clock_drift`)."""
         self._source("encoder", t, epoch, seq)
+        device = self._line("encoder", t, device_stamp, clock_drift)
         if flagged or t < self._start:
             self.counters["encoder_left_out"] += 1
             return
         q_arr = np.asarray(q, dtype=float)
         newer = not self._enc or t > self._enc[-1][0]
         if math.isfinite(t) and np.isfinite(q_arr).all() and newer:
-            self._enc.append((t, q_arr))
+            self._enc.append((t, q_arr, device))
 
     def add_tracker(
         self,
@@ -640,8 +659,12 @@ class OnlineDelayTracker:
         epoch: int = 0,
         seq: int = 0,
         flagged: bool = False,
+        device_stamp: float | None = None,
+        clock_drift: float | None = None,
     ) -> None:
+        """One pose; a mapped one as in `add_encoder`."""
         self._source("tracker", t, epoch, seq)
+        device = self._line("tracker", t, device_stamp, clock_drift)
         if flagged or t < self._start:
             self.counters["tracker_left_out"] += 1
             return
@@ -649,7 +672,60 @@ class OnlineDelayTracker:
         q_arr = None if quat is None else np.asarray(quat, dtype=float)
         finite = np.isfinite(p_arr).all() and (q_arr is None or np.isfinite(q_arr).all())
         if math.isfinite(t) and finite and (not self._trk or t > self._trk[-1][0]):
-            self._trk.append((t, p_arr, q_arr))
+            self._trk.append((t, p_arr, q_arr, device))
+
+    def _line(
+        self, stream: str, t: float, device_stamp: float | None, drift: float | None
+    ) -> float | None:
+        """Keep a mapped stream's newest sample on its line (a stamp off the line comes
+        without a drift); the device stamp to keep with the sample, None when the stream's
+        stamps are not mapped by a line (a shared clock, receipt times)."""
+        if device_stamp is None or not math.isfinite(device_stamp):
+            return None
+        if drift is not None and math.isfinite(drift) and math.isfinite(t):
+            self._newest[stream] = Anchor(t, device_stamp, drift)
+        return device_stamp if stream in self._newest else None
+
+    def delay_now(self) -> float | None:
+        """The delay to use now: the estimate last applied, carried along as the mapped
+        streams' lines moved since the stretch it was fitted under (a tracker stamp that moved
+        later needs a longer delay, an encoder stamp a shorter one). None before one was
+        applied."""
+        if self.applied is None:
+            return None
+        return self.applied + self._moved(self._newest)
+
+    def _moved(self, lines: dict[str, Anchor]) -> float:
+        """How far the delay the stamps need moved from the running estimate's lines to
+        these (0 for a stream not mapped by a line)."""
+        return moved(lines.get("tracker"), self._frame.get("tracker")) - moved(
+            lines.get("encoder"), self._frame.get("encoder")
+        )
+
+    def _move_to(self, lines: dict[str, Anchor] | None) -> None:
+        """Express the running estimate (its filter, the fits kept, the estimate applied)
+        under these lines (None: a measurement that came without its snapshot's lines):
+        by construction, no fit is needed to follow a line's move."""
+        if lines is None:
+            return
+        shift = self._moved(lines) if self._frame else 0.0
+        self._frame = dict(lines)
+        if shift == 0.0:
+            return
+        self._trend.shift(shift)
+        self._history = collections.deque(
+            (
+                (v + shift if seg == self._segment else v, se, seg, t)
+                for v, se, seg, t in self._history
+            ),
+            maxlen=self._history.maxlen,
+        )
+        if self._suspect is not None:
+            self._suspect = (self._suspect[0] + shift, *self._suspect[1:])
+        if self.estimate is not None:
+            self.estimate += shift
+        if self.applied is not None:
+            self.applied += shift
 
     def _source(self, stream: str, t: float, epoch: int, seq: int) -> None:
         known = self._sources.get(stream)
@@ -664,6 +740,10 @@ class OnlineDelayTracker:
 
     def restart(self, t: float, why: str) -> None:
         """A stream's time base started anew at stream time t: drop what came before."""
+        self.applied = self.delay_now()  # as in use now; the new mapping's lines are new
+        self._newest.clear()
+        self._frame = {}
+        self._fitting_frame = None
         self._enc.clear()
         self._trk.clear()
         self._trend.reset()
@@ -701,13 +781,26 @@ class OnlineDelayTracker:
             self._trk.popleft()
         while self._enc and self._enc[0][0] < end - 1.0:
             self._enc.popleft()
-        enc_t = np.array([s[0] for s in enc])
+        # the whole stretch under each stream's newest line (see fit/stamp_lines.py)
+        self._fitting_frame = dict(self._newest)
+        enc_t = self._on_line("encoder", [(s[0], s[2]) for s in enc])
         enc_q = np.array([s[1] for s in enc]) if enc else np.empty((0, 0))
-        trk_t = np.array([s[0] for s in trk])
+        trk_t = self._on_line("tracker", [(s[0], s[3]) for s in trk])
         trk_p = np.array([s[1] for s in trk])
         quats = [s[2] for s in trk]
         trk_q = None if any(q is None for q in quats) else np.array(quats)
         return enc_t, enc_q, trk_t, trk_p, trk_q
+
+    def _on_line(self, stream: str, stamps: list[tuple[float, float | None]]) -> np.ndarray:
+        """The stamps (stamp, device stamp) of a stream under its newest line: a sample's
+        device stamp carried by the line, its own stamp when it has none."""
+        t = np.array([s for s, _ in stamps], dtype=float)
+        anchor = self._newest.get(stream)
+        if anchor is not None and t.size:
+            device = np.array([math.nan if d is None else d for _, d in stamps])
+            mapped = ~np.isnan(device)
+            t[mapped] = anchor.at(device[mapped])
+        return t
 
     def fit(
         self,
@@ -762,9 +855,11 @@ class OnlineDelayTracker:
     def combine(self, found: DelayMeasurement | DelayRefused) -> float | None:
         """Accept or refuse one measurement (on the loop) and fold it into the running
         estimate: the estimate to apply, else None (and why, in `last_result`)."""
+        lines, self._fitting_frame = self._fitting_frame, None
         if isinstance(found, DelayRefused):
             self._refused(found)
             return None
+        self._move_to(lines)  # the fit is under the lines of its snapshot
         value, se, speed = found.delay_s, found.se_s, found.speed_rms
         provisional = found.t <= self._young_until
         if not provisional:  # young stretches have their own length
@@ -835,7 +930,8 @@ class OnlineDelayTracker:
             self.last_result += f"; not applied ({judged_se * speed * 1e6:.0f} um at that speed)"
             return None
         self.applied_se = self.se
-        return self.estimate
+        self.applied = self.estimate
+        return self.delay_now()
 
     def _refused(self, found: DelayRefused) -> None:
         """Count a stretch without a delay; one too short to separate a delay at all (a
@@ -924,7 +1020,8 @@ class OnlineDelayTracker:
         self._trend.reset()
         self._provisional = 0
         self._suspect = None
-        self.estimate = self.se = self.applied_se = None
+        self._frame = {}
+        self.estimate = self.se = self.applied_se = self.applied = None
 
 
 def _triples(items: list[_T]) -> list[tuple[_T, _T, _T]]:

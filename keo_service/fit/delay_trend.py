@@ -63,6 +63,12 @@ class LevelAndRate:
     def reset(self) -> None:
         self._x = None
 
+    def shift(self, delta: float) -> None:
+        """Move the level by a known amount (the measurements' frame moved), uncertainty
+        unchanged."""
+        if self._x is not None:
+            self._x[0] += delta
+
     def _propagated(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         assert self._x is not None
         dt = max(0.0, t - self._t)
@@ -146,6 +152,11 @@ class SteadyOrMoving:
 
     def predict(self, t: float) -> tuple[float, float]:
         return self.views[self.chosen].predict(t)
+
+    def shift(self, delta: float) -> None:
+        """Both views' levels moved by a known amount (not a miss of either)."""
+        for view in self.views.values():
+            view.shift(delta)
 
     def update(self, value: float, variance: float, t: float) -> None:
         for name, view in self.views.items():

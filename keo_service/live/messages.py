@@ -46,6 +46,9 @@ class JointSample(_Message, frozen=True, tag=_tag("joint")):
     clock: str = ""
     clock_epoch: int = 0
     flags: list[str] = msgspec.field(default_factory=list)
+    # a "device" stamp: the drift (s/s) of the clock mapping's line it was mapped with, so a
+    # consumer can carry stamps onto the mapping's newer line (the delay tracker does)
+    clock_drift: float | None = None
 
 
 class RobotStatus(_Message, frozen=True, tag=_tag("robot_status")):
@@ -73,6 +76,7 @@ class TrackerSample(_Message, frozen=True, tag=_tag("tracker")):
     clock: str = ""  # as in JointSample
     clock_epoch: int = 0
     flags: list[str] = msgspec.field(default_factory=list)
+    clock_drift: float | None = None  # as in JointSample
 
 
 class EstimateMessage(_Message, frozen=True, tag=_tag("estimate")):

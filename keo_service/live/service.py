@@ -107,6 +107,7 @@ class KeoService:
         cell = cell_from_config(config)
         self.estimator = Estimator(cell, estimator_settings(config))
         self._delay_tracker: OnlineDelayTracker | None = None
+        self._delay_followed: float | None = None  # the delay last set from the tracker
         if config.timing.track_delay:
             from keo_service.fit.delay import OnlineDelayTracker
 
@@ -246,8 +247,15 @@ class KeoService:
                 self.sinks.on_input(msg)
                 if self._delay_tracker is not None:
                     self._delay_tracker.add_encoder(
-                        msg.stamp, msg.joints, msg.clock_epoch, msg.seq, bool(msg.flags)
+                        msg.stamp,
+                        msg.joints,
+                        msg.clock_epoch,
+                        msg.seq,
+                        bool(msg.flags),
+                        msg.device_stamp,
+                        msg.clock_drift,
                     )
+                    self._follow_lines(self._delay_tracker)
             elif isinstance(msg, TrackerSample):
                 self._note_sample("tracker", msg)
                 self._rates["tracker"].tick(now)
@@ -267,7 +275,10 @@ class KeoService:
                         msg.clock_epoch,
                         msg.seq,
                         bool(msg.flags),
+                        msg.device_stamp,
+                        msg.clock_drift,
                     )
+                    self._follow_lines(self._delay_tracker)
             else:
                 self.estimator.counters["unexpected_message"] += 1
                 continue
@@ -407,6 +418,14 @@ class KeoService:
             self._refresh_status()
             await asyncio.sleep(STATUS_PERIOD_S)
 
+    def _follow_lines(self, tracker: OnlineDelayTracker) -> None:
+        """The tracked delay as the streams' clock mappings move their lines (each sample
+        may bring a moved line): the estimator slews to it, as to a new fit."""
+        target = tracker.delay_now()
+        if target is not None and target != self._delay_followed:
+            self._delay_followed = target
+            self.estimator.set_delay_target(target)
+
     async def _delay_loop(self) -> None:
         """Online delay tracking: fit each stretch off the loop, fold the result into the
         running estimate on the loop, and slew the estimator's delay to it (never a step).
@@ -424,6 +443,7 @@ class KeoService:
             if tracker.counters["restarts"] == restarts:
                 target = tracker.combine(found)
                 if target is not None:
+                    self._delay_followed = target
                     self.estimator.set_delay_target(target)
             log.info("delay tracking: %s", tracker.last_result)
 
