@@ -28,24 +28,32 @@ def test_an_anchor_carries_device_stamps_onto_its_line():
     newer = Anchor(float(old.at(np.array([14.0]))[0]) + 30e-6, 14.0, 52e-6)
     assert newer.moved_since(old) == pytest.approx(30e-6, abs=1e-9)
     assert moved(newer, None) == moved(None, old) == 0.0
+    # lines whose drifts differ (100 ppm): 30 us apart at device 14 s, -170 us at 12 s
+    turned = Anchor(104.0 + 30e-6, 14.0, 100e-6)
+    flat = Anchor(100.0, 10.0, 0.0)
+    assert turned.moved_since(flat) == pytest.approx(30e-6, abs=1e-9)
+    assert turned.moved_since(flat, at=102.0) == pytest.approx(-170e-6, abs=0.1e-6)
 
 
-def _line(t_true: np.ndarray, clock: tuple[float, float], jump_at: float, jump_s: float):
+def _line(t_true, clock, jump_at, jump_s, slope=(0.0, 0.0)):
     """Device stamps of a clock (start, rate error) and their mapped stamps under a line that
-    is exact (the inverse rate) but for an offset `jump_s` from `jump_at` on; the drift the
-    mapping's line has."""
+    is exact (the inverse rate) but for an offset `jump_s` from `jump_at` on and a slope
+    error (s/s, and the instant where the line is right); the drift the mapping's line has."""
     start, rate = clock
     device = start + t_true * (1.0 + rate)
-    drift = 1.0 / (1.0 + rate) - 1.0  # host seconds per device second, minus one
-    stamps = t_true + np.where(t_true >= jump_at, jump_s, 0.0)
+    error, right_at = slope
+    drift = (1.0 + error) / (1.0 + rate) - 1.0  # host seconds per device second, minus one
+    stamps = t_true + np.where(t_true >= jump_at, jump_s, 0.0) + error * (t_true - right_at)
     return device, stamps, drift
 
 
-def _feed(tracker, run, lo, hi, enc_jump=(0.0, 0.0), trk_jump=(0.0, 0.0), lines=True):
+def _feed(
+    tracker, run, lo, hi, enc_jump=(0.0, 0.0), trk_jump=(0.0, 0.0), lines=True, trk_slope=(0, 0)
+):
     enc = (run.encoder.t >= lo) & (run.encoder.t < hi)
     trk = (run.tracker.t >= lo) & (run.tracker.t < hi)
     e_dev, e_t, e_drift = _line(run.encoder.t[enc], ENC_CLOCK, *enc_jump)
-    k_dev, k_t, k_drift = _line(run.tracker.t[trk], TRK_CLOCK, *trk_jump)
+    k_dev, k_t, k_drift = _line(run.tracker.t[trk], TRK_CLOCK, *trk_jump, slope=trk_slope)
     for t, q, d in zip(e_t, run.encoder.q[enc], e_dev, strict=True):
         tracker.add_encoder(
             float(t),
@@ -133,3 +141,21 @@ def test_streams_without_lines_change_nothing(demo_cell, run):
     assert applied is not None
     _feed(tracker, run, 6.6, 7.5, trk_jump=(6.7, 40e-6), lines=False)
     assert tracker.delay_now() == applied
+
+
+def test_a_turned_line_carries_the_estimate_where_it_describes(demo_cell, run):
+    """While a mapping's drift converges its line turns. Here the tracker's line runs 20 ppm
+    fast during the first stretch (right at its middle, 26 us off at its ends; the fit is
+    rough: 27990 +/- 37 us, kept but not applied) and right from then on: both stretches
+    need the same delay where each is fitted. Carried onto the new line where it describes
+    (its stretch, 5.3 s), the first fit agrees with the second; carried where the lines were
+    compared (9.2 s, the newest sample, 78 us apart there) it pulls the estimate off
+    (measured: 0.7 us off the truth, that version 16.1 us)."""
+    tracker = OnlineDelayTracker(demo_cell, span_s=2.5, young_span_s=2.5, young_s=0.0)
+    _feed(tracker, run, 4.0, 6.6, trk_slope=(20e-6, 5.3))
+    tracker.combine(tracker.measure(tracker.snapshot(), DELAY))
+    assert tracker.estimate == pytest.approx(DELAY, abs=15e-6), tracker.last_result
+    _feed(tracker, run, 6.6, 9.2)
+    second = tracker.combine(tracker.measure(tracker.snapshot(), DELAY))
+    assert tracker.counters["fits_accepted"] == 2, tracker.last_result
+    assert second == pytest.approx(DELAY, abs=8e-6), tracker.last_result

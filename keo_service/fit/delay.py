@@ -541,6 +541,11 @@ class OnlineDelayTracker:
     the start was 50 us short of what the settled stamps needed: 28 urad at that tool's
     turning speed.)
 
+    Mapped samples ("device" clocks) come with their line's drift: each stretch is fitted
+    under each stream's newest line, and the delay applied is carried along as the lines
+    move (`delay_now`), the running estimate with it (see fit/stamp_lines.py): a line's move
+    needs no fit to be followed.
+
     Samples a source flagged (its clock re-learning, a stamp ahead of its receipt or too
     old) are left out. When either stream's time base starts anew (its `clock_epoch`
     changes, or its `seq` goes back while it gives no epoch: an adapter restarted; one that
@@ -624,6 +629,8 @@ class OnlineDelayTracker:
         self.se: float | None = None  # its standard error (s)
         self.applied_se: float | None = None  # that of the estimate last applied (s)
         self.applied: float | None = None  # the estimate last applied, under `_frame` (s)
+        self._applied_t = math.nan  # the stream time it describes
+        self._estimate_t = math.nan  # the stream time `estimate` describes
         self.counters: collections.Counter[str] = collections.Counter()
         self.last_result: str = "waiting for motion"
 
@@ -689,43 +696,49 @@ class OnlineDelayTracker:
     def delay_now(self) -> float | None:
         """The delay to use now: the estimate last applied, carried along as the mapped
         streams' lines moved since the stretch it was fitted under (a tracker stamp that moved
-        later needs a longer delay, an encoder stamp a shorter one). None before one was
-        applied."""
+        later needs a longer delay, an encoder stamp a shorter one; the move where the
+        estimate describes). None before one was applied."""
         if self.applied is None:
             return None
-        return self.applied + self._moved(self._newest)
+        return self.applied + self._moved(self._newest, self._applied_t)
 
-    def _moved(self, lines: dict[str, Anchor]) -> float:
-        """How far the delay the stamps need moved from the running estimate's lines to
-        these (0 for a stream not mapped by a line)."""
-        return moved(lines.get("tracker"), self._frame.get("tracker")) - moved(
-            lines.get("encoder"), self._frame.get("encoder")
+    def _moved(self, lines: dict[str, Anchor], at: float) -> float:
+        """How far the delay the stamps need at stream time `at` moved from the running
+        estimate's lines to these (0 for a stream not mapped by a line)."""
+        frame = self._frame
+        return moved(lines.get("tracker"), frame.get("tracker"), at) - moved(
+            lines.get("encoder"), frame.get("encoder"), at
         )
 
     def _move_to(self, lines: dict[str, Anchor] | None) -> None:
-        """Express the running estimate (its filter, the fits kept, the estimate applied)
-        under these lines (None: a measurement that came without its snapshot's lines):
-        by construction, no fit is needed to follow a line's move."""
+        """Express the running estimate under these lines (None: a measurement that came
+        without its snapshot's lines): each value (the filter's level and rate, the fits
+        kept, the estimate applied) moved as the lines differ where it describes. By
+        construction, no fit is needed to follow a line's move."""
         if lines is None:
             return
-        shift = self._moved(lines) if self._frame else 0.0
-        self._frame = dict(lines)
-        if shift == 0.0:
+        if not self._frame or not self._trend.started:
+            self._frame = dict(lines)
             return
-        self._trend.shift(shift)
+        at = self._trend.t
+        level = self._moved(lines, at)
+        rate = self._moved(lines, at + 1.0) - level  # the lines' drifts differ
+        self._trend.shift(level, rate)
         self._history = collections.deque(
             (
-                (v + shift if seg == self._segment else v, se, seg, t)
+                (v + self._moved(lines, t) if seg == self._segment else v, se, seg, t)
                 for v, se, seg, t in self._history
             ),
             maxlen=self._history.maxlen,
         )
         if self._suspect is not None:
-            self._suspect = (self._suspect[0] + shift, *self._suspect[1:])
+            value, se, t = self._suspect
+            self._suspect = (value + self._moved(lines, t), se, t)
         if self.estimate is not None:
-            self.estimate += shift
+            self.estimate += self._moved(lines, self._estimate_t)
         if self.applied is not None:
-            self.applied += shift
+            self.applied += self._moved(lines, self._applied_t)
+        self._frame = dict(lines)
 
     def _source(self, stream: str, t: float, epoch: int, seq: int) -> None:
         known = self._sources.get(stream)
@@ -904,6 +917,7 @@ class OnlineDelayTracker:
             self._trend.update(value, se * se + tau2, t_fit)
         estimate, estimate_var = self._trend.predict(found.t)
         self.estimate, self.se = estimate, math.sqrt(estimate_var)
+        self._estimate_t = found.t
         self.counters["fits_accepted"] += 1
         self.last_result = (
             f"fit {said}; delay {self.estimate * 1e6:.1f} +/- {self.se * 1e6:.1f} us "
@@ -930,7 +944,7 @@ class OnlineDelayTracker:
             self.last_result += f"; not applied ({judged_se * speed * 1e6:.0f} um at that speed)"
             return None
         self.applied_se = self.se
-        self.applied = self.estimate
+        self.applied, self._applied_t = self.estimate, self._estimate_t
         return self.delay_now()
 
     def _refused(self, found: DelayRefused) -> None:

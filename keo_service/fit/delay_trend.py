@@ -63,11 +63,19 @@ class LevelAndRate:
     def reset(self) -> None:
         self._x = None
 
-    def shift(self, delta: float) -> None:
-        """Move the level by a known amount (the measurements' frame moved), uncertainty
-        unchanged."""
-        if self._x is not None:
-            self._x[0] += delta
+    @property
+    def t(self) -> float:
+        """The time of the newest measurement (nan before a start)."""
+        return self._t if self._x is not None else math.nan
+
+    def shift(self, delta: float, rate_delta: float = 0.0) -> None:
+        """Move the level (and the rate, where this filter has one) by known amounts: the
+        measurements' frame moved. The uncertainty is unchanged."""
+        if self._x is None:
+            return
+        self._x[0] += delta
+        if self.rate_walk > 0.0 or self.rate_prior > 0.0:
+            self._x[1] += rate_delta
 
     def _propagated(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         assert self._x is not None
@@ -153,10 +161,14 @@ class SteadyOrMoving:
     def predict(self, t: float) -> tuple[float, float]:
         return self.views[self.chosen].predict(t)
 
-    def shift(self, delta: float) -> None:
-        """Both views' levels moved by a known amount (not a miss of either)."""
+    @property
+    def t(self) -> float:
+        return self.views["steady"].t
+
+    def shift(self, delta: float, rate_delta: float = 0.0) -> None:
+        """Both views moved by known amounts (not a miss of either)."""
         for view in self.views.values():
-            view.shift(delta)
+            view.shift(delta, rate_delta)
 
     def update(self, value: float, variance: float, t: float) -> None:
         for name, view in self.views.items():

@@ -14,8 +14,9 @@ recorded streams).
 
 An anchor is one sample on its line: (stamp, device stamp, the line's drift). Under it every
 device stamp of the stream maps to `stamp + (d - device) * (1 + drift)`: the whole stretch on
-one line. A newer anchor of the same mapping lies off an older one's line by how far the
-stamps moved between them (at the newer anchor's device time).
+one line. Two anchors of the same mapping say how far its stamps moved from the older line to
+the newer one, at any instant (the lines' drifts may differ: a value that describes an
+instant is carried by the move there).
 """
 
 from __future__ import annotations
@@ -38,15 +39,21 @@ class Anchor:
         out: np.ndarray = self.stamp + (device - self.device) * (1.0 + self.drift)
         return out
 
-    def moved_since(self, older: Anchor) -> float:
-        """How far the stream's stamps moved from `older`'s line to this one's (s, at this
-        anchor's device time; positive: later)."""
-        return self.stamp - (older.stamp + (self.device - older.device) * (1.0 + older.drift))
+    def moved_since(self, older: Anchor, at: float | None = None) -> float:
+        """How far the stream's stamps moved from `older`'s line to this one's (s; positive:
+        later) at stream time `at` (default: this anchor's). Where matters when the two
+        lines' drifts differ: a value that describes an instant moves as the lines differ
+        there."""
+        d = self.device if at is None else self.device + (at - self.stamp) / (1.0 + self.drift)
+        # stamp differences first: the stamps themselves are ~1e9 s, their lines agree to us
+        return (self.stamp - older.stamp) + (
+            (d - self.device) * (1.0 + self.drift) - (d - older.device) * (1.0 + older.drift)
+        )
 
 
-def moved(newer: Anchor | None, older: Anchor | None) -> float:
-    """`newer.moved_since(older)`, 0 when either is missing (a stream whose stamps are not
+def moved(newer: Anchor | None, older: Anchor | None, at: float | None = None) -> float:
+    """`newer.moved_since(older, at)`, 0 when either is missing (a stream whose stamps are not
     mapped by a line: a shared clock, receipt times; or not seen yet)."""
     if newer is None or older is None:
         return 0.0
-    return newer.moved_since(older)
+    return newer.moved_since(older, at)
