@@ -246,16 +246,7 @@ class KeoService:
                 out = self.estimator.on_encoder(msg.stamp, msg.joints)
                 self.sinks.on_input(msg)
                 if self._delay_tracker is not None:
-                    self._delay_tracker.add_encoder(
-                        msg.stamp,
-                        msg.joints,
-                        msg.clock_epoch,
-                        msg.seq,
-                        bool(msg.flags),
-                        msg.device_stamp,
-                        msg.clock_drift,
-                    )
-                    self._follow_lines(self._delay_tracker)
+                    self._track_delay(self._delay_tracker, msg)
             elif isinstance(msg, TrackerSample):
                 self._note_sample("tracker", msg)
                 self._rates["tracker"].tick(now)
@@ -267,18 +258,8 @@ class KeoService:
                     ok=msg.status == "ok",
                     device_stamp=msg.device_stamp,
                 )
-                if self._delay_tracker is not None and msg.position is not None:
-                    self._delay_tracker.add_tracker(
-                        msg.stamp,
-                        msg.position,
-                        msg.quaternion,
-                        msg.clock_epoch,
-                        msg.seq,
-                        bool(msg.flags),
-                        msg.device_stamp,
-                        msg.clock_drift,
-                    )
-                    self._follow_lines(self._delay_tracker)
+                if self._delay_tracker is not None:
+                    self._track_delay(self._delay_tracker, msg)
             else:
                 self.estimator.counters["unexpected_message"] += 1
                 continue
@@ -418,9 +399,15 @@ class KeoService:
             self._refresh_status()
             await asyncio.sleep(STATUS_PERIOD_S)
 
-    def _follow_lines(self, tracker: OnlineDelayTracker) -> None:
-        """The tracked delay as the streams' clock mappings move their lines (each sample
-        may bring a moved line): the estimator slews to it, as to a new fit."""
+    def _track_delay(self, tracker: OnlineDelayTracker, msg: JointSample | TrackerSample) -> None:
+        """One sample into the delay tracker with its clock fields; then the tracked delay as
+        the streams' clock mappings move their lines (each sample may bring a moved line):
+        the estimator slews to it, as to a new fit."""
+        clock = (msg.clock_epoch, msg.seq, bool(msg.flags), msg.device_stamp, msg.clock_drift)
+        if isinstance(msg, JointSample):
+            tracker.add_encoder(msg.stamp, msg.joints, *clock)
+        elif msg.position is not None:
+            tracker.add_tracker(msg.stamp, msg.position, msg.quaternion, *clock)
         target = tracker.delay_now()
         if target is not None and target != self._delay_followed:
             self._delay_followed = target
