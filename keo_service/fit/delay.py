@@ -784,8 +784,9 @@ class OnlineDelayTracker:
         return self.young_span_s if young else self._stretch_s
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-        """Copies of the stretch to fit (call on the loop, then fit anywhere); the stretch is
-        consumed: the next fit sees only newer samples."""
+        """Copies of the stretch to fit (call on the loop, then fit anywhere), its stamps
+        under each stream's newest line, which the next `combine` takes the fit to be under;
+        the stretch is consumed: the next fit sees only newer samples."""
         first = self._trk[0][0]
         trk = [s for s in self._trk if s[0] <= first + self._span()]
         end = trk[-1][0]

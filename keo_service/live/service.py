@@ -400,14 +400,18 @@ class KeoService:
             await asyncio.sleep(STATUS_PERIOD_S)
 
     def _track_delay(self, tracker: OnlineDelayTracker, msg: JointSample | TrackerSample) -> None:
-        """One sample into the delay tracker with its clock fields; then the tracked delay as
-        the streams' clock mappings move their lines (each sample may bring a moved line):
-        the estimator slews to it, as to a new fit."""
+        """One sample into the delay tracker with its clock fields; then the tracked delay, as
+        the streams' clock mappings move their lines (each sample may bring a moved line)."""
         clock = (msg.clock_epoch, msg.seq, bool(msg.flags), msg.device_stamp, msg.clock_drift)
         if isinstance(msg, JointSample):
             tracker.add_encoder(msg.stamp, msg.joints, *clock)
         elif msg.position is not None:
             tracker.add_tracker(msg.stamp, msg.position, msg.quaternion, *clock)
+        self._follow_tracked_delay(tracker)
+
+    def _follow_tracked_delay(self, tracker: OnlineDelayTracker) -> None:
+        """The estimator slews to the tracked delay when it changed (a fit applied, a line
+        moved); nothing before one was applied."""
         target = tracker.delay_now()
         if target is not None and target != self._delay_followed:
             self._delay_followed = target
@@ -428,10 +432,8 @@ class KeoService:
             current = self.estimator.delay.offset_s
             found = await asyncio.to_thread(tracker.measure, window, current)
             if tracker.counters["restarts"] == restarts:
-                target = tracker.combine(found)
-                if target is not None:
-                    self._delay_followed = target
-                    self.estimator.set_delay_target(target)
+                tracker.combine(found)
+                self._follow_tracked_delay(tracker)
             log.info("delay tracking: %s", tracker.last_result)
 
     async def _sink_loop(self, sink: Sink) -> None:
