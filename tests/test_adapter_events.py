@@ -159,11 +159,11 @@ def test_each_adapter_event_is_one_text_log_entry(demo_cell, tmp_path):
     """The service's status carries each adapter's newest event; the Rerun sink writes it once
     per `event_seq`, a warning for trouble, in the adapter's words (not also as a bare state
     change), and an adapter that publishes no events still gets its state changes."""
-    from keo_service.live.rerun_sink import RerunSink
+    from keo_service.live.rerun_logger import RerunLogger
     from tests.test_rerun_view import _pose_estimate, _status
 
     rrd = tmp_path / "e.rrd"
-    sink = RerunSink(demo_cell, rrd=rrd)
+    sink = RerunLogger(demo_cell, rrd=rrd)
     sink.add(_pose_estimate(10.0))
     now = time.time()
 

@@ -29,7 +29,7 @@ from keo_service.core.display import (
 from keo_service.core.errors import KeoError
 from keo_service.core.estimator import Estimate
 from keo_service.core.kinematics import POSE_CHANNELS, Cell, load_robot
-from keo_service.live.rerun_sink import RerunSink, blueprint
+from keo_service.live.rerun_logger import RerunLogger, blueprint
 
 from .conftest import CONFIGS
 
@@ -131,7 +131,7 @@ def _pose_estimate(t: float) -> Estimate:
 
 def test_rejects_and_held_steps_are_rates_per_second_one_series_per_reason(demo_cell, tmp_path):
     rrd = tmp_path / "s.rrd"
-    sink = RerunSink(demo_cell, rrd=rrd)
+    sink = RerunLogger(demo_cell, rrd=rrd)
     base = 1_700_000_000.0
     totals = [
         {"estimates": 0, "rejected": 0, "tracker_stamp_not_increasing": 0, "held_tracker_gap": 0,
@@ -173,7 +173,7 @@ def test_rejects_and_held_steps_are_rates_per_second_one_series_per_reason(demo_
 
 def test_the_delay_band_is_drawn_when_its_standard_error_is_known(demo_cell, tmp_path):
     rrd = tmp_path / "d.rrd"
-    sink = RerunSink(demo_cell, rrd=rrd)
+    sink = RerunLogger(demo_cell, rrd=rrd)
     status = _status(1.0, {}) | {"delay_se_s": 0.0015}
     sink.add(_pose_estimate(5.0))
     sink.flush(status)
@@ -193,7 +193,7 @@ def _log_entries(rrd: Path) -> list[tuple[str, str]]:
 
 def test_the_text_log_receives_health_changes_and_runs_of_flags(demo_cell, tmp_path):
     rrd = tmp_path / "h.rrd"
-    sink = RerunSink(demo_cell, rrd=rrd)
+    sink = RerunLogger(demo_cell, rrd=rrd)
     sink.add(_pose_estimate(10.0))
     now = time.time()  # status snapshots carry the host time; estimates their stream time
     sink.flush(_status(now + 1.5, {}, health="ok"))
@@ -216,7 +216,7 @@ def test_adapter_reconnections_and_clock_resets_reach_the_text_log(demo_cell, tm
     """As an adapter reports itself in the service's status: its counters (a lost
     connection counted as `disconnects`) and its clock (domain, epoch: a fresh start)."""
     rrd = tmp_path / "a.rrd"
-    sink = RerunSink(demo_cell, rrd=rrd)
+    sink = RerunLogger(demo_cell, rrd=rrd)
     sink.add(_pose_estimate(10.0))
     now = time.time()
 
@@ -237,7 +237,7 @@ def test_adapter_reconnections_and_clock_resets_reach_the_text_log(demo_cell, tm
 
 def test_a_flapping_health_is_summed_up_not_listed_change_by_change(demo_cell, tmp_path):
     rrd = tmp_path / "f.rrd"
-    sink = RerunSink(demo_cell, rrd=rrd)
+    sink = RerunLogger(demo_cell, rrd=rrd)
     sink.add(_pose_estimate(10.0))
     now = time.time()
     for k in range(30):  # 3 s of snapshots at 10 Hz, the health flipping at each
@@ -249,7 +249,7 @@ def test_a_flapping_health_is_summed_up_not_listed_change_by_change(demo_cell, t
     assert health[-1].startswith("health stale -> ok")  # the one it settled on
     assert "changes since the last entry" in " ".join(health)
     # the flags of held steps that come and go: a run a second at most
-    sink = RerunSink(demo_cell, rrd=tmp_path / "g.rrd")
+    sink = RerunLogger(demo_cell, rrd=tmp_path / "g.rrd")
     for k in range(200):  # 2 s of stream time, a held step every fifth
         flags = ("encoder_stale",) if k % 5 == 0 else ()
         measured = None if flags else [1e-4] * 6
@@ -350,7 +350,7 @@ def test_a_urdf_with_meshes_is_drawn_with_them(demo_cell, tmp_path):
     )
     cell = Cell(load_robot(urdf), pin.SE3.Identity(), pin.SE3.Identity())
     rrd = tmp_path / "m.rrd"
-    sink = RerunSink(cell, rrd=rrd, urdf=str(urdf))
+    sink = RerunLogger(cell, rrd=rrd, urdf=str(urdf))
     sink.add(Estimate(1.0, [1e-3, 0, 0], [1e-3, 0, 0], (), 1.0, ("px", "py", "pz"), np.zeros(1)))
     sink.flush()
     sink.close()

@@ -14,8 +14,8 @@ from rerun.chunk import RrdReader
 
 from keo_service.core.estimator import Estimate
 from keo_service.core.kinematics import POSE_CHANNELS
+from keo_service.live.rerun_logger import RerunLogger
 from keo_service.live.rerun_process import RerunWorker, _frame, _Frames
-from keo_service.live.rerun_sink import RerunSink
 
 
 def _estimate(t: float) -> Estimate:
@@ -104,7 +104,7 @@ def test_a_long_recording_rolls_into_files_of_one_recording(demo_cell, tmp_path)
     """The SDK holds an index entry per chunk of an open file: a daemon's recording is split
     into files so that closing one frees them; each file whole, one recording id across."""
     rrd = tmp_path / "cell.rrd"
-    sink = RerunSink(demo_cell, rrd=rrd, roll_after_s=0.0)  # due at every batch
+    sink = RerunLogger(demo_cell, rrd=rrd, roll_after_s=0.0)  # due at every batch
     for batch in range(3):
         for i in range(100):
             sink.add(_estimate(batch * 0.1 + i * 0.001))

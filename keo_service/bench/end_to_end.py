@@ -213,7 +213,7 @@ def _end_to_end(
         "service_counters": counters,
     }
     if rrd:  # the recording rolls every 10 minutes: its files in the sink's own order
-        from keo_service.live.rerun_sink import rolled_path  # imports Rerun: only here
+        from keo_service.live.rerun_logger import rolled_path  # imports Rerun: only here
 
         files = list(
             itertools.takewhile(Path.exists, (rolled_path(recording, i) for i in itertools.count()))

@@ -5,7 +5,7 @@ In the service's process Rerun's calls hold the GIL for a few milliseconds at ev
 meanwhile wait, and at 1 kHz those waits were the service's 99th percentile. Here the service
 only encodes each estimate (msgpack, about a microsecond) into a bounded buffer and writes
 the buffer to a pipe, a few times a second, without ever blocking; this module's `main`, run
-as `python -m keo_service.live.rerun_process`, reads the pipe and runs the `RerunSink`.
+as `python -m keo_service.live.rerun_process`, reads the pipe and runs the `RerunLogger`.
 
 The pipe carries frames: a 4-byte little-endian length, then the payload. The first payload
 is the pickled `(cell, rrd, viewer, options)` from the parent (options: the URDF for its
@@ -359,7 +359,7 @@ def _read_frames(fd: int, frames: _Frames, timeout: float | None) -> list[bytes]
 
 
 def _serve(fd: int) -> None:
-    from keo_service.live.rerun_sink import WINDOW_S, RerunSink  # rerun: only in this process
+    from keo_service.live.rerun_logger import WINDOW_S, RerunLogger  # rerun: only in this process
 
     frames = _Frames()
     pending: list[bytes] = []
@@ -370,7 +370,7 @@ def _serve(fd: int) -> None:
         pending = got
     cell, rrd, viewer, options = pickle.loads(pending.pop(0))  # from our own parent
     window_s = options.get("window_s")
-    sink = RerunSink(
+    sink = RerunLogger(
         cell,
         rrd=None if rrd is None else Path(rrd),
         viewer=viewer,

@@ -36,7 +36,7 @@ from keo_service.live.messages import (
     estimate_message,
     topic,
 )
-from keo_service.live.sinks import EstimateBusSink, RerunOutput, Sinks
+from keo_service.live.sinks import EstimateBusSink, RerunSink, Sinks
 from keo_service.live.supervise import supervise
 
 # keys a SIGHUP applies without a restart
@@ -114,14 +114,14 @@ class KeoService:
             self._delay_tracker = OnlineDelayTracker(cell, max_gap_s=config.timing.max_gap_s)
         # the outputs, in order: bus, corrections, ROS 2, Rerun (`keo_service.live.sinks`)
         self.sinks = Sinks()
-        self._viz: RerunOutput | None = None
+        self._viz: RerunSink | None = None
         if rrd is not None or viewer is not None:
             from keo_service.live.rerun_process import RerunWorker
 
             worker = RerunWorker(
                 cell, rrd=rrd, viewer=viewer, urdf=config.robot.urdf, window_s=viewer_window_s
             )
-            self._viz = RerunOutput(worker, VIZ_PERIOD_S, self.status)
+            self._viz = RerunSink(worker, VIZ_PERIOD_S, self.status)
         self._own_session = session is None
         self._session = session
         self._stop = asyncio.Event()

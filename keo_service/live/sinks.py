@@ -40,7 +40,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "EstimateBusSink",
-    "RerunOutput",
+    "RerunSink",
     "Ros2EstimateSink",
     "Sink",
     "SinkFailedError",
@@ -249,7 +249,7 @@ class Ros2EstimateSink(_Base):
         self.bridge.close()
 
 
-class RerunOutput(_Base):
+class RerunSink(_Base):
     """Rerun, through the worker process: every estimate, and a status snapshot (`status()`)
     every `period_s` (its rates, counters and events for the text log). A Rerun process that
     died is an internal failure (raised at the next tick)."""

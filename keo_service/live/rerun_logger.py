@@ -1,5 +1,5 @@
 """Rerun logging, kept at the edge: `blueprint()` sets up the layout (the one function that
-does, for live, recorded and replayed data alike), `RerunSink` batches estimates and status
+does, for live, recorded and replayed data alike), `RerunLogger` batches estimates and status
 and sends them at display rate (`rerun_process` runs it in a process of its own, so that
 logging never sits in the estimator's path, on the event loop or on its GIL).
 
@@ -341,7 +341,7 @@ def _adapter_state(doc: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-class RerunSink:
+class RerunLogger:
     """Collects estimates; `flush()` (called at display rate) sends them as columns."""
 
     def __init__(
