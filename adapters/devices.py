@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import json
 import logging
 import math
 import time
@@ -38,6 +37,7 @@ from keo_service.io.ros2_messages import JOINT_STATE, POINT_STAMPED, POSE_STAMPE
 from keo_service.live.bus import AsyncSubscription, session_for_client_async
 from keo_service.live.compensation import correction_to_send
 from keo_service.live.messages import (
+    AdapterStatus,
     CorrectionMessage,
     JointSample,
     RobotStatus,
@@ -152,10 +152,12 @@ class _Adapter:
             await self._save_clock(time.monotonic())
             await asyncio.sleep(WATCH_PERIOD_S)
 
-    def _status_doc(self) -> dict[str, Any]:
+    def _status_doc(self) -> AdapterStatus:
+        """What `keo status` shows of this adapter: its counters and codec's rejects, what
+        adapters.health makes of them, the connection's newest problem."""
         doc = {**self.status(), **self.health.summary(time.monotonic())}
         doc["last_error"] = self.device.last_error
-        return doc
+        return msgspec.convert(doc, AdapterStatus)
 
     def _publish_change(self) -> None:
         """A change of state or a new connection since the last look: the status document
@@ -168,20 +170,20 @@ class _Adapter:
         self._reported = (state, connections)
         doc = self._status_doc()
         self._events += 1
-        doc["event_seq"] = self._events
-        doc["event"] = self._event_text(before, state, connections > seen > 0, doc)
+        event = self._event_text(before, state, connections > seen > 0, doc)
+        doc = msgspec.structs.replace(doc, event_seq=self._events, event=event)
         try:
-            self._event_pub.put(json.dumps(doc).encode())
+            self._event_pub.put(doc.to_json())
         except zenoh.ZError as exc:  # counted; the state is still in the status query
             self.counters["event_publish_failed"] += 1
             log.warning("%s: publishing a state change failed: %s", self.name, exc)
 
-    def _event_text(self, before: str, state: str, reconnected: bool, doc: dict[str, Any]) -> str:
+    def _event_text(self, before: str, state: str, reconnected: bool, doc: AdapterStatus) -> str:
         health = self.health
         endpoint = health.endpoint
         if state == "silent":
-            age = doc.get("last_data_age_s")
-            quiet = "nothing arrived" if age is None else f"nothing for {age:.1f} s"
+            age = doc.last_data_age_s
+            quiet = f"nothing for {age:.1f} s" if isinstance(age, float) else "nothing arrived"
             return (
                 f"the device at {endpoint} went silent: {quiet} "
                 f"({health.section}.silent_after_s = {health.silent_after_s:g})"
@@ -189,7 +191,7 @@ class _Adapter:
         if state == "wrong_protocol":
             return health.mismatch
         if state == "disconnected":
-            last = doc.get("last_error") or ""
+            last = doc.last_error or ""
             return f"disconnected from {endpoint}" + (f": {last}" if last else "")
         if before == "silent":
             return f"data again from {endpoint} ({state})"
@@ -296,9 +298,8 @@ class _Adapter:
         self.counters["published"] += 1
 
     def _on_status_query(self, query: zenoh.Query) -> None:
-        doc = self._status_doc()
         key = topic(self.config.cell, f"adapter/{self.name}/status")  # not the query's wildcard
-        query.reply(key, json.dumps(doc).encode())
+        query.reply(key, self._status_doc().to_json())
 
     def _declare(self, session: zenoh.Session) -> None:
         raise NotImplementedError

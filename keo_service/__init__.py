@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 __version__ = "0.1.0"
 
 _EXPORTS = {
+    "AdapterStatus": "keo_service.live.messages",
     "Client": "keo_service.live.client",
     "SyncClient": "keo_service.live.client",
     "ClientError": "keo_service.live.client",
@@ -36,6 +37,7 @@ _EXPORTS = {
 }
 
 __all__ = [
+    "AdapterStatus",
     "Cell",
     "Client",
     "ClientError",
@@ -66,6 +68,7 @@ if TYPE_CHECKING:
     from keo_service.io.config import Config, load_config
     from keo_service.live.client import Client, ClientError, SyncClient
     from keo_service.live.messages import (
+        AdapterStatus,
         EstimateMessage,
         JointSample,
         RobotStatus,

@@ -103,6 +103,6 @@ def wait_for_adapters(
 
         def ready() -> bool:
             now = keo.adapters(timeout=1.0)
-            return all(now.get(name, {}).get("state") in states for name in names)
+            return all(name in now and now[name].state in states for name in names)
 
         wait_until(ready, timeout, f"adapters {', '.join(names)} {' or '.join(states)}")

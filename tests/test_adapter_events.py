@@ -111,8 +111,8 @@ def test_a_silent_tracker_reaches_the_service_log_status_and_rerun_text_log(demo
                 deadline = time.monotonic() + 30
                 while time.monotonic() < deadline:
                     status = _service_status(session, config)
-                    doc = (status.adapters if status else {}).get("tracker", {})
-                    states.append((time.monotonic(), str(doc.get("state"))))
+                    doc = (status.adapters if status else {}).get("tracker")
+                    states.append((time.monotonic(), str(doc.state if doc else None)))
                     if device.quiet_until and time.monotonic() > device.quiet_until + 1.0:
                         break
                     time.sleep(0.05)

@@ -451,7 +451,8 @@ async def _watch(adapter_cls, config, seconds: float, *args: object) -> dict[str
         async with adapter_cls(config, *args, session=session) as adapter:
             await asyncio.sleep(seconds)
             found = await asyncio.to_thread(query_adapters, session, config.cell, 2.0)
-            return found.get(adapter.name) or {}
+            # the typed status as the JSON document the adapter put on the bus
+            return msgspec.to_builtins(found[adapter.name]) if adapter.name in found else {}
     finally:
         session.close()
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from keo_service.bench.procs import free_port, process_group
-from keo_service.cli.status_view import status_table
+from keo_service.live.status_view import status_table
 from tests.conftest import keo
 
 BAD_LINE = b"this is not json\n"

@@ -451,11 +451,12 @@ def _human(doc: dict[str, Any]) -> str:
 def cmd_status(args: argparse.Namespace) -> int:
     import msgspec
 
-    from keo_service.cli.status_view import adapter_lines, status_table
     from keo_service.live.client import ClientError, SyncClient
+    from keo_service.live.messages import AdapterStatus
+    from keo_service.live.status_view import adapter_lines, status_table
 
     config = common.load(args.config)
-    adapters: dict[str, Any] = {}
+    adapters: dict[str, AdapterStatus] = {}
     try:
         with SyncClient.from_config(config, connect_timeout_s=args.timeout) as keo:
             # the adapters answer for themselves: state, rate, counters, newest rejects
@@ -464,13 +465,13 @@ def cmd_status(args: argparse.Namespace) -> int:
     except ClientError as exc:
         print(f"keo status: {exc}", file=sys.stderr)
         if adapters and args.json:
-            sys.stdout.write(json.dumps({"adapters": adapters}, indent=2, default=str) + "\n")
+            doc = {"adapters": msgspec.to_builtins(adapters)}
+            sys.stdout.write(json.dumps(doc, indent=2, default=str) + "\n")
         elif adapters:
-            sys.stdout.write("\n".join(adapter_lines(adapters)) + "\n")
+            sys.stdout.write("\n".join(adapter_lines(msgspec.to_builtins(adapters))) + "\n")
         return 1
-    doc = msgspec.to_builtins(status)
     # the adapters' own answers are newer than what the service kept of their last change
-    doc["adapters"] = adapters or doc.get("adapters") or {}
+    doc = msgspec.to_builtins(msgspec.structs.replace(status, adapters=adapters or status.adapters))
     if args.json:
         sys.stdout.write(json.dumps(doc, indent=2, default=str) + "\n")
     else:

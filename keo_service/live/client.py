@@ -19,7 +19,6 @@ behind); the caller's code runs on its own loop or thread, never on Zenoh's.
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 from collections.abc import AsyncIterator, Iterator, Sequence
 from pathlib import Path
@@ -37,7 +36,14 @@ from keo_service.live.bus import (
     open_client,
     open_client_async,
 )
-from keo_service.live.messages import EstimateMessage, Message, ServiceStatus, decode, topic
+from keo_service.live.messages import (
+    AdapterStatus,
+    EstimateMessage,
+    Message,
+    ServiceStatus,
+    decode,
+    topic,
+)
 
 __all__ = ["Client", "ClientError", "SyncClient"]
 
@@ -83,21 +89,25 @@ def _query(session: zenoh.Session, key: str, kind: type[_M], timeout: float) -> 
         time.sleep(min(0.1, max(0.0, deadline - time.monotonic())))
 
 
-def query_adapters(session: zenoh.Session, cell: str, timeout: float) -> dict[str, dict[str, Any]]:
-    """Each adapter's own status (keo/<cell>/adapter/<name>/status, JSON): its state, rate,
-    counters and newest reject messages, by adapter name. Adapters that do not answer within
-    `timeout` are missing."""
-    out: dict[str, dict[str, Any]] = {}
+def query_adapters(session: zenoh.Session, cell: str, timeout: float) -> dict[str, AdapterStatus]:
+    """Each adapter's own status (keo/<cell>/adapter/<name>/status): its state, rate,
+    counters and newest reject messages, by adapter name, sorted.
+
+    Args:
+        session: an open Zenoh session on the cell's bus.
+        cell: the config's `cell`.
+        timeout: seconds to wait for the answers; adapters that do not answer within it are
+            missing, and an answer that is not an adapter's status is left out.
+    """
+    out: dict[str, AdapterStatus] = {}
     for reply in session.get(topic(cell, "adapter/*/status"), timeout=timeout):
         if reply.ok is None:
             continue
-        name = str(reply.ok.key_expr).split("/")[-2]
         try:
-            doc = json.loads(reply.ok.payload.to_bytes())
-        except ValueError:
+            doc = AdapterStatus.from_json(reply.ok.payload.to_bytes())
+        except msgspec.DecodeError:
             continue
-        if isinstance(doc, dict):
-            out[str(doc.get("adapter", name))] = doc
+        out[doc.adapter] = doc
     return dict(sorted(out.items()))
 
 
@@ -227,7 +237,7 @@ class Client(_ClientBase):
             _query, session, topic(self.cell, "estimate"), EstimateMessage, timeout
         )
 
-    async def adapters(self, timeout: float = 2.0) -> dict[str, dict[str, Any]]:
+    async def adapters(self, timeout: float = 2.0) -> dict[str, AdapterStatus]:
         """Each adapter's own status by name (see `query_adapters`)."""
         session = self._open_session()
         return await asyncio.to_thread(query_adapters, session, self.cell, timeout)
@@ -286,7 +296,7 @@ class SyncClient(_ClientBase):
     def latest(self, timeout: float = 2.0) -> EstimateMessage | None:
         return _query(self._open_session(), topic(self.cell, "estimate"), EstimateMessage, timeout)
 
-    def adapters(self, timeout: float = 2.0) -> dict[str, dict[str, Any]]:
+    def adapters(self, timeout: float = 2.0) -> dict[str, AdapterStatus]:
         """Each adapter's own status by name (see `query_adapters`)."""
         return query_adapters(self._open_session(), self.cell, timeout)
 

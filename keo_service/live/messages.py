@@ -18,6 +18,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 import msgspec
+from msgspec import UNSET, UnsetType
 
 if TYPE_CHECKING:
     from keo_service.core.estimator import Estimate
@@ -141,7 +142,7 @@ class ServiceStatus(_Message, frozen=True, tag=_tag("status")):
     # each stream's clock domain as the samples declare it ("encoder": "device", ...)
     clock_domains: dict[str, str] = msgspec.field(default_factory=dict)
     # each adapter's own status (state, rates, counters, newest rejects), as gathered
-    adapters: dict[str, dict[str, Any]] = msgspec.field(default_factory=dict)
+    adapters: dict[str, AdapterStatus] = msgspec.field(default_factory=dict)
 
 
 class CorrectionMessage(_Message, frozen=True, tag=_tag("correction")):
@@ -163,6 +164,70 @@ class CorrectionMessage(_Message, frozen=True, tag=_tag("correction")):
     valid: bool
     reason: str = ""
     clamped: bool = False
+
+
+# An adapter's states that are trouble: logged as warnings by the service and the Rerun log,
+# shown as such by `keo status` (the others are logged at info)
+ADAPTER_TROUBLE = frozenset({"silent", "wrong_protocol", "disconnected"})
+
+
+class AdapterStatus(msgspec.Struct, frozen=True, kw_only=True):
+    """An adapter's own status on keo/<cell>/adapter/<name>/status, as JSON: what it answers to
+    a query and puts on the key at each change of state (then with `event` and `event_seq`).
+
+    JSON rather than MessagePack so that `keo echo` and any tool read it as it is; every field
+    but `adapter` is absent (UNSET) where that kind of adapter has nothing to say, so the
+    document on the wire is what each adapter wrote before it was typed. Units: `rate_hz` Hz,
+    `last_data_age_s` and `cycle_ms` as named, `reply_us` microseconds.
+    """
+
+    adapter: str  # "encoder" or "tracker"
+    # what adapters.health makes of it: "starting", "connecting", "connected", "receiving",
+    # "silent", "wrong_protocol", "disconnected"
+    state: str | UnsetType = UNSET
+    endpoint: str | UnsetType = UNSET  # host:port, or the ROS 2 topic
+    protocol: str | UnsetType = UNSET  # the configured protocol (io.protocols)
+    rate_hz: float | UnsetType = UNSET  # published samples per second, over the last 5 s
+    last_data_age_s: float | UnsetType | None = UNSET  # None: nothing yet on this connection
+    silent_events: int | UnsetType = UNSET
+    problem: str | UnsetType = UNSET  # a device that does not speak the protocol, in words
+    last_error: str | UnsetType = UNSET  # the connection's newest problem, with the key to fix
+    counters: dict[str, int] = msgspec.field(default_factory=dict)
+    clock: dict[str, Any] | UnsetType = UNSET  # core.clock.Stamper.state()
+    # the codec's reject counters ("decoder"; the line protocol's "parser") and newest messages
+    decoder: dict[str, int] | UnsetType = UNSET
+    parser: dict[str, int] | UnsetType = UNSET
+    messages: list[str] | UnsetType = UNSET
+    stamps_held_back: int | UnsetType = UNSET  # MotoROS: receipt stamps held back
+    controller: str | UnsetType = UNSET  # RTDE: the controller's version
+    topics: list[str] | UnsetType = UNSET  # ROS 2: the topics subscribed
+    # the UDP servers (RSI, EGM): answer times, cycle, scheduling, the peer, corrections
+    reply_us: dict[str, float] | UnsetType = UNSET
+    cycle_ms: float | UnsetType = UNSET
+    scheduling: str | UnsetType = UNSET
+    correction: dict[str, Any] | UnsetType | None = UNSET
+    peer: str | UnsetType | None = UNSET
+    external_axes: list[float] | UnsetType | None = UNSET
+    controller_late_count: int | UnsetType | None = UNSET
+    robot_state: dict[str, bool | None] | UnsetType = UNSET
+    event_seq: int | UnsetType = UNSET  # counts the changes put on the key
+    event: str | UnsetType = UNSET  # what changed, in words, with the key to fix
+
+    @property
+    def trouble(self) -> bool:
+        """Whether a user must act: a state in `ADAPTER_TROUBLE`, or a device it cannot reach
+        (still connecting, with the connection's error)."""
+        return self.state in ADAPTER_TROUBLE or (
+            self.state == "connecting" and bool(self.last_error)
+        )
+
+    def to_json(self) -> bytes:
+        return msgspec.json.encode(self)
+
+    @classmethod
+    def from_json(cls, payload: bytes) -> AdapterStatus:
+        """Raises msgspec.DecodeError (with where and what) for anything else."""
+        return msgspec.json.decode(payload, type=cls)
 
 
 Message = (

@@ -34,7 +34,6 @@ import time
 import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -55,6 +54,7 @@ from keo_service.core.display import (
 )
 from keo_service.core.estimator import Estimate
 from keo_service.core.kinematics import Cell, tool_pose
+from keo_service.live.status_view import EVENT_GAP_S, StatusEvents, StatusRates, adapter_counters
 
 TIMELINE = "stream_time"
 MAX_BATCH = 20_000  # rows kept between flushes at most; a flush is forced beyond
@@ -64,19 +64,9 @@ WINDOW_S = 30.0  # the plots show the newest this many seconds
 SPEED_PERIOD_S = 0.01  # the tool speed is taken over steps of at least this (<= 100 Hz)
 SCENE_PERIOD_S = 0.1  # the cell is drawn at most this often (stream time: 10 Hz)
 STATUS_SEND_S = 1.0  # status rows are sent in columns this often
-MAX_LOG_MESSAGES_PER_STATUS = 3  # reject messages copied to the text log per status row
 BAND_SE = 2.0  # the delay band: +- this many standard errors
-EVENT_GAP_S = 1.0  # a flapping health or flag: at most one text log entry this often
 
 UNITS = {"p": "mm", "r": "mrad"}
-# counters that count work done, not trouble: shown as stream rates, not as rejects
-THROUGHPUT = frozenset(
-    {"encoder_samples", "tracker_samples", "estimates", "published", "received", "channels"}
-)
-THROUGHPUT_WORDS = ("samples", "frames", "published", "received", "sent", "bytes", "packets")
-EVENT_WORDS = ("connect", "clock", "epoch")  # counters whose increase goes to the text log
-# adapter states that are trouble: their events are warnings, the others information
-ADAPTER_TROUBLE = frozenset({"silent", "wrong_protocol", "disconnected"})
 
 ERROR_ROOT = "keo/error"
 SPEED = "keo/tool_speed"
@@ -168,177 +158,6 @@ def blueprint(
         rrb.SelectionPanel(state="collapsed"),
         rrb.TimePanel(state="collapsed"),
     )
-
-
-def _group(name: str) -> str | None:
-    """Where a service counter is drawn: 'held', 'rejects', or None (throughput)."""
-    if name in THROUGHPUT or name == "rejected":
-        return None
-    if name.startswith("held_"):
-        return "held"
-    return "rejects"
-
-
-class StatusRates:
-    """Rates per second from the service's running counters: differences between status
-    snapshots over their host times. A reason gets its series once its counter is above zero
-    and keeps it (zero while the counter stands still); `total` is always there, so a quiet plot
-    shows a zero line. A counter that went back (a restarted service) counts as no step."""
-
-    def __init__(self) -> None:
-        self._prev: dict[str, int] = {}
-        self._prev_s: float | None = None
-        self.seen: dict[str, set[str]] = {"rejects": set(), "held": set()}
-
-    def update(
-        self, counters: Mapping[str, int], now_s: float
-    ) -> dict[str, dict[str, float]] | None:
-        """{'rejects': {reason: per_s, 'total': per_s}, 'held': {...}}, or None for the first
-        snapshot (and one at the same host time as the previous)."""
-        prev, prev_s = self._prev, self._prev_s
-        self._prev = dict(counters)
-        self._prev_s = now_s
-        for name, value in counters.items():
-            group = _group(name)
-            if group is not None and value > 0:
-                self.seen[group].add(name)
-        if prev_s is None or now_s <= prev_s:
-            return None
-        dt = now_s - prev_s
-        out: dict[str, dict[str, float]] = {"rejects": {}, "held": {}}
-        for group, names in self.seen.items():
-            for name in names:
-                step = counters.get(name, 0) - prev.get(name, 0)
-                reason = name.removeprefix("held_") if group == "held" else name
-                out[group][reason] = max(step, 0) / dt
-            out[group]["total"] = sum(out[group].values())
-        return out
-
-
-def adapter_counters(adapters: Mapping[str, Any]) -> dict[str, int]:
-    """The adapters' own trouble counters, named '<adapter>.<counter>' (throughput left out)."""
-    out: dict[str, int] = {}
-    for name, doc in adapters.items():
-        counters = doc.get("counters") if isinstance(doc, Mapping) else None
-        if not isinstance(counters, Mapping):
-            continue
-        for key, value in counters.items():
-            if isinstance(value, int) and not any(w in key for w in THROUGHPUT_WORDS):
-                out[f"{name}.{key}"] = value
-    return out
-
-
-class StatusEvents:
-    """What in a status snapshot is an event for the text log: a change of health, of an
-    adapter's state or clock epoch, of a stream's clock domain, of what delay tracking
-    says; a counter of (re)connections or clock resets going up; new reject messages."""
-
-    def __init__(self) -> None:
-        self._prev: dict[str, Any] | None = None
-        self._health: Any = None  # as last written to the log
-        self._health_at = -np.inf
-        self._flips = 0  # health changes since then, not written
-
-    def _health_event(self, health: Any, previous: Any, t: float) -> list[tuple[str, str]]:
-        """A health that flaps is written at most every EVENT_GAP_S, with how often it
-        changed meanwhile; the health it settles on is always written."""
-        if health != previous:
-            self._flips += 1
-        if health == self._health or t - self._health_at < EVENT_GAP_S:
-            return []
-        text = f"health {self._health} -> {health}"
-        if self._flips > 1:
-            text += f" ({self._flips} changes since the last entry)"
-        self._health, self._health_at, self._flips = health, t, 0
-        return [("INFO" if health == "ok" else "WARN", text)]
-
-    def update(self, status: Mapping[str, Any], t: float = 0.0) -> list[tuple[str, str]]:
-        """(level, text) pairs, oldest first; `t`: the snapshot's time (s)."""
-        prev = self._prev
-        counters = dict(status.get("counters") or {})
-        adapters = status.get("adapters") or {}
-        counters.update(adapter_counters(adapters))
-        now: dict[str, Any] = {
-            "health": status.get("health"),
-            "clock_domains": dict(status.get("clock_domains") or {}),
-            "adapters": {
-                name: _adapter_state(doc)
-                for name, doc in adapters.items()
-                if isinstance(doc, Mapping)
-            },
-            "delay_tracking": status.get("delay_tracking"),
-            "counters": counters,
-            "messages": list(status.get("messages") or []),
-        }
-        self._prev = now
-        out: list[tuple[str, str]] = []
-        if prev is None:
-            self._health, self._health_at = now["health"], t
-            out.append(("INFO", f"health {now['health']}"))
-            for name, state in now["adapters"].items():
-                out += _adapter_event(name, state, {})
-            return out
-        out += self._health_event(now["health"], prev["health"], t)
-        for name, state in now["adapters"].items():
-            out += _adapter_changes(name, state, prev["adapters"].get(name, {}))
-        for stream, domain in now["clock_domains"].items():
-            old = prev["clock_domains"].get(stream)
-            if old is not None and old != domain:
-                out.append(("WARN", f"{stream} clock domain {old} -> {domain}"))
-        for name, value in counters.items():
-            if any(w in name for w in EVENT_WORDS):
-                step = value - prev["counters"].get(name, 0)
-                if step > 0:
-                    out.append(("WARN", f"{name} +{step} (now {value})"))
-        if now["delay_tracking"] and now["delay_tracking"] != prev["delay_tracking"]:
-            out.append(("INFO", f"delay tracking: {now['delay_tracking']}"))
-        old_messages = set(prev["messages"])
-        fresh = [m for m in now["messages"] if m not in old_messages]
-        for message in fresh[-MAX_LOG_MESSAGES_PER_STATUS:]:
-            out.append(("WARN", message))
-        return out
-
-
-def _adapter_event(
-    name: str, state: Mapping[str, Any], before: Mapping[str, Any]
-) -> list[tuple[str, str]]:
-    """An adapter's own state change (silent, back, reconnected, wrong protocol), as it put
-    it on its status key: once per `event_seq`."""
-    event = state.get("event")
-    if not event or state.get("event_seq") == before.get("event_seq"):
-        return []
-    level = "WARN" if state.get("state") in ADAPTER_TROUBLE else "INFO"
-    return [(level, f"{name}: {event}")]
-
-
-def _adapter_changes(
-    name: str, state: Mapping[str, Any], before: Mapping[str, Any]
-) -> list[tuple[str, str]]:
-    """What changed in one adapter's state between two snapshots: its own event, else
-    (an adapter that publishes none) the state as compared here; its clock."""
-    out = _adapter_event(name, state, before)
-    for key, value in state.items():
-        if key in ("event", "event_seq") or (key == "state" and "event" in state):
-            continue  # said by the adapter's event, in its own words
-        if before.get(key) != value and key in before:
-            level = "WARN" if key != "state" or value not in ("connected", "ok") else "INFO"
-            out.append((level, f"{name}: {key} {before.get(key)} -> {value}"))
-    return out
-
-
-def _adapter_state(doc: Mapping[str, Any]) -> dict[str, Any]:
-    """The parts of an adapter's status whose change is an event (`event`, `event_seq`:
-    the adapter's own words for a change of state, when it published one)."""
-    out: dict[str, Any] = {}
-    for key in ("state", "connected", "event", "event_seq"):
-        if key in doc:
-            out[key] = doc[key]
-    clock = doc.get("clock")
-    if isinstance(clock, Mapping):
-        for key in ("domain", "epoch"):  # the epoch counts the clock's fresh starts
-            if key in clock:
-                out[f"clock {key}"] = clock[key]
-    return out
 
 
 class RerunLogger:
@@ -645,19 +464,24 @@ class RerunLogger:
         if isinstance(rates, Mapping):
             for name, value in rates.items():
                 self._row(f"{RATES}/{name}", t, [float(value)])
+        self._add_counter_rates(status, t)
+
+    def _add_counter_rates(self, status: Mapping[str, object], t: float) -> None:
+        """Rejects and held steps per second, the service's and the adapters' counters."""
         counters = status.get("counters")
-        if isinstance(counters, Mapping):
-            merged = dict(counters)
-            adapters = status.get("adapters")
-            if isinstance(adapters, Mapping):
-                merged.update(adapter_counters(adapters))
-            host_ns = status.get("host_ns")
-            host_s = float(host_ns) * 1e-9 if isinstance(host_ns, int) else time.time()
-            per_s = self._rates.update(merged, host_s)
-            if per_s is not None:
-                for group, root in (("rejects", REJECTS), ("held", HELD)):
-                    for reason, value in per_s[group].items():
-                        self._row(f"{root}/{reason}", t, [value])
+        if not isinstance(counters, Mapping):
+            return
+        merged = dict(counters)
+        adapters = status.get("adapters")
+        if isinstance(adapters, Mapping):
+            merged.update(adapter_counters(adapters))
+        host_ns = status.get("host_ns")
+        host_s = float(host_ns) * 1e-9 if isinstance(host_ns, int) else time.time()
+        per_s = self._rates.update(merged, host_s)
+        if per_s is not None:
+            for group, root in (("rejects", REJECTS), ("held", HELD)):
+                for reason, value in per_s[group].items():
+                    self._row(f"{root}/{reason}", t, [value])
 
     def _send_status(self) -> None:
         self._status_sent = time.monotonic()

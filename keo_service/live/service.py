@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import json
 import logging
 import time
 from pathlib import Path
@@ -27,6 +26,7 @@ from keo_service.io.cell import cell_from_config, delay_model, estimator_setting
 from keo_service.io.config import Config
 from keo_service.live.bus import AsyncSubscription, session_for_service
 from keo_service.live.messages import (
+    AdapterStatus,
     EstimateMessage,
     JointSample,
     ServiceStatus,
@@ -67,8 +67,6 @@ DELAY_POLL_S = 0.25
 STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "stale"
 MAX_ADAPTERS = 16  # adapters whose newest state change the service keeps (bounded)
 MAX_MESSAGES = 16  # the service's own newest messages kept for its status (bounded)
-# adapter states that are trouble (logged as warnings; the others at info)
-ADAPTER_TROUBLE = frozenset({"silent", "wrong_protocol", "disconnected"})
 
 
 class RateMeter:
@@ -139,7 +137,7 @@ class KeoService:
         self._clock_domains: dict[str, str] = {}
         self._clock_flags: collections.Counter[str] = collections.Counter()
         # each adapter's newest state change (keo/<cell>/adapter/<name>/status, put on change)
-        self._adapters: dict[str, dict[str, Any]] = {}
+        self._adapters: dict[str, AdapterStatus] = {}
         # the service's own findings (bad payloads, clock domains); the estimator keeps its own
         self._messages: collections.deque[str] = collections.deque(maxlen=MAX_MESSAGES)
         self.adapters_dropped = 0
@@ -271,28 +269,20 @@ class KeoService:
         log, the status (`adapters`) and so Rerun's text log. Published by the adapters when
         their state changes; nothing is polled."""
         async for key, payload in self._adapter_sub:
-            name = key.split("/")[-2]
             try:
-                doc = json.loads(payload)
-            except ValueError as exc:
-                doc = None
-                why = f"not JSON: {exc}"
-            else:
-                why = "not a JSON object"
-            if not isinstance(doc, dict):
+                doc = AdapterStatus.from_json(payload)
+            except msgspec.DecodeError as exc:
                 self.decode_errors += 1
-                self._messages.append(f"undecodable adapter status on {key}: {why}")
+                self._messages.append(f"undecodable adapter status on {key}: {exc}")
                 continue
-            name = str(doc.get("adapter", name))
+            name = doc.adapter
             if name not in self._adapters and len(self._adapters) >= MAX_ADAPTERS:
                 self.adapters_dropped += 1  # bounded: a 17th name is counted, not kept
                 continue
             self._adapters[name] = doc
-            event = doc.get("event")
-            if event:
-                state = doc.get("state")
-                level = logging.WARNING if state in ADAPTER_TROUBLE else logging.INFO
-                log.log(level, "adapter %s: %s", name, event)
+            if doc.event:
+                level = logging.WARNING if doc.trouble else logging.INFO
+                log.log(level, "adapter %s: %s", name, doc.event)
 
     def _note_sample(self, stream: str, msg: JointSample | TrackerSample) -> None:
         """Record the clock domain a stream's samples declare and count their stamp flags;

@@ -1,0 +1,379 @@
+"""The service's status as a person reads it, and what changed between two of them.
+
+`status_table`: `keo status` (the service's health, uptime, rates, delay with its standard
+error, clock domains, counters and newest messages, then each adapter's state, rate, counters
+and newest reject messages). `StatusEvents` and `StatusRates`: the differences between
+successive snapshots, as events for a text log and as rates per second (Rerun's view draws
+them). Both read the status document (`ServiceStatus` as plain values, with `adapters`), the
+same one `keo status --json` prints; fields missing from it are left out, never guessed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+from keo_service.live.messages import ADAPTER_TROUBLE
+
+NEWEST = 5  # reject and service messages shown per source (the JSON has all it carries)
+WIDTH = 96
+MAX_LOG_MESSAGES_PER_STATUS = 3  # reject messages copied to the text log per status row
+EVENT_GAP_S = 1.0  # a flapping health or flag: at most one text log entry this often
+# counters that count work done, not trouble: shown as stream rates, not as rejects
+THROUGHPUT = frozenset(
+    {"encoder_samples", "tracker_samples", "estimates", "published", "received", "channels"}
+)
+THROUGHPUT_WORDS = ("samples", "frames", "published", "received", "sent", "bytes", "packets")
+EVENT_WORDS = ("connect", "clock", "epoch")  # counters whose increase goes to the text log
+
+
+def _number(value: Any) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value) if math.isfinite(float(value)) else None
+
+
+def _duration(seconds: Any) -> str:
+    s = _number(seconds)
+    if s is None:
+        return "?"
+    if s < 120:
+        return f"{s:.1f} s"
+    if s < 7200:
+        return f"{s / 60:.1f} min"
+    return f"{s / 3600:.1f} h"
+
+
+def _hz(value: Any) -> str:
+    v = _number(value)
+    return "?" if v is None else f"{v:.1f} Hz"
+
+
+def _wrap(label: str, items: list[str], indent: int = 2) -> list[str]:
+    """`label  a · b · c`, wrapped under the first item at WIDTH."""
+    head = " " * indent + f"{label:<16}"
+    if not items:
+        return [head + "-"]
+    lines, line = [], head
+    for item in items:
+        sep = "" if line == head else " · "
+        if line != head and len(line) + len(sep) + len(item) > WIDTH:
+            lines.append(line)
+            line, sep = " " * len(head), ""
+        line += sep + item
+    lines.append(line)
+    return lines
+
+
+def _counters(counters: Any) -> list[str]:
+    """Non-zero counters as `name value`, sorted by name; the zeros summed up in one item."""
+    if not isinstance(counters, dict):
+        return []
+    items = [f"{k} {v}" for k, v in sorted(counters.items()) if v]
+    zeros = sum(1 for v in counters.values() if not v)
+    if zeros:
+        items.append(f"({zeros} more at 0)")
+    return items
+
+
+def _delay(doc: dict[str, Any]) -> str:
+    delay = _number(doc.get("delay_s"))
+    if delay is None:
+        return "?"
+    se = _number(doc.get("delay_se_s"))
+    text = f"{delay * 1e3:.2f} ms"
+    text += f" ± {se * 1e3:.2f} ms" if se is not None else " (configured, no standard error yet)"
+    drift = _number(doc.get("drift"))
+    if drift:
+        text += f", drift {drift * 1e6:+.1f} ppm"
+    return text
+
+
+def _estimate(last: Any) -> list[str]:
+    if not isinstance(last, dict):
+        return _wrap("last estimate", ["none yet"])
+    channels = last.get("channels") or []
+    values = last.get("estimate") or []
+    items = []
+    for name, value in zip(channels, values, strict=False):
+        v = _number(value)
+        unit = "mm" if str(name).startswith("p") else "mrad"
+        items.append(f"{name} {v * 1e3:+.3f} {unit}" if v is not None else f"{name} ?")
+    flags = last.get("flags") or []
+    if flags:
+        items.append("flags " + ",".join(map(str, flags)))
+    return _wrap("last estimate", items)
+
+
+def _messages(label: str, messages: Any, indent: int = 2) -> list[str]:
+    if not isinstance(messages, list) or not messages:
+        return []
+    newest = [str(m) for m in messages[-NEWEST:]]
+    more = len(messages) - len(newest)
+    head = f"{label} (newest {len(newest)} of {len(messages)})" if more else label
+    return [" " * indent + head + ":"] + [" " * (indent + 2) + "- " + m for m in newest]
+
+
+def service_lines(doc: dict[str, Any]) -> list[str]:
+    """The service's part of the table."""
+    lines = [
+        f"keo status: cell {doc.get('cell', '?')}: {doc.get('health', '?')}, "
+        f"up {_duration(doc.get('uptime_s'))}"
+    ]
+    rates = doc.get("rates_hz")
+    if isinstance(rates, dict):
+        lines += _wrap("rates", [f"{k} {_hz(v)}" for k, v in rates.items()])
+    lines += _wrap("delay", [_delay(doc)])
+    if doc.get("delay_tracking"):
+        lines += _wrap("delay tracking", [str(doc["delay_tracking"])])
+    domains = doc.get("clock_domains")
+    if isinstance(domains, dict):
+        lines += _wrap("clock domains", [f"{k} {v}" for k, v in sorted(domains.items())])
+    if "alignment" in doc:
+        lines += _wrap("alignment", [str(doc["alignment"])])
+    lines += _estimate(doc.get("last_estimate"))
+    lines += _wrap("counters", _counters(doc.get("counters")))
+    lines += _messages("messages", doc.get("messages"))
+    return lines
+
+
+def _adapter_counters(status: dict[str, Any]) -> list[str]:
+    """The adapter's own counters, then its codec's (decoder or parser) and clock's."""
+    items = _counters(status.get("counters"))
+    for part in ("decoder", "parser"):
+        codec = status.get(part)
+        if isinstance(codec, dict) and any(codec.values()):
+            items += [f"{part}.{k} {v}" for k, v in sorted(codec.items()) if v]
+    clock = status.get("clock")
+    if isinstance(clock, dict) and isinstance(clock.get("counters"), dict):
+        items += [f"clock.{k} {v}" for k, v in sorted(clock["counters"].items()) if v]
+    return items
+
+
+def adapter_lines(adapters: Any) -> list[str]:
+    """Each adapter: a row of state, protocol, endpoint, rate and data age, then its counters
+    and newest reject messages."""
+    if not isinstance(adapters, dict) or not adapters:
+        return ["adapters: none answered"]
+    rows = [("adapter", "state", "protocol", "endpoint", "rate", "last data")]
+    for name, status in sorted(adapters.items()):
+        s = status if isinstance(status, dict) else {}
+        age = _number(s.get("last_data_age_s"))
+        rows.append(
+            (
+                str(name),
+                str(s.get("state", "?")),
+                str(s.get("protocol", "?")),
+                str(s.get("endpoint", "?")),
+                _hz(s.get("rate_hz")),
+                "never" if age is None else f"{age:.2f} s ago",
+            )
+        )
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["adapters:"]
+    lines += [
+        "  " + "  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in rows
+    ]
+    for name, status in sorted(adapters.items()):
+        s = status if isinstance(status, dict) else {}
+        lines.append(f"  {name}:")
+        lines += _wrap("counters", _adapter_counters(s), indent=4)
+        for key, label in (("problem", "problem"), ("last_error", "last error")):
+            if s.get(key):
+                lines += _wrap(label, [str(s[key])], indent=4)
+        if s.get("silent_events"):
+            lines += _wrap("silent", [f"{s['silent_events']} times"], indent=4)
+        lines += _messages("rejects", s.get("messages"), indent=4)
+        clock = s.get("clock")
+        if isinstance(clock, dict):
+            lines += _messages("clock", clock.get("messages"), indent=4)
+    return lines
+
+
+def status_table(doc: dict[str, Any]) -> str:
+    """The whole status document as text (ends with a newline)."""
+    return "\n".join([*service_lines(doc), "", *adapter_lines(doc.get("adapters"))]) + "\n"
+
+
+# ---- what changed between two snapshots (the text log and the rates of Rerun's view) ----
+
+
+def _group(name: str) -> str | None:
+    """Where a service counter is drawn: 'held', 'rejects', or None (throughput)."""
+    if name in THROUGHPUT or name == "rejected":
+        return None
+    if name.startswith("held_"):
+        return "held"
+    return "rejects"
+
+
+class StatusRates:
+    """Rates per second from the service's running counters: differences between status
+    snapshots over their host times. A reason gets its series once its counter is above zero
+    and keeps it (zero while the counter stands still); `total` is always there, so a quiet plot
+    shows a zero line. A counter that went back (a restarted service) counts as no step."""
+
+    def __init__(self) -> None:
+        self._prev: dict[str, int] = {}
+        self._prev_s: float | None = None
+        self.seen: dict[str, set[str]] = {"rejects": set(), "held": set()}
+
+    def update(
+        self, counters: Mapping[str, int], now_s: float
+    ) -> dict[str, dict[str, float]] | None:
+        """{'rejects': {reason: per_s, 'total': per_s}, 'held': {...}}, or None for the first
+        snapshot (and one at the same host time as the previous)."""
+        prev, prev_s = self._prev, self._prev_s
+        self._prev = dict(counters)
+        self._prev_s = now_s
+        for name, value in counters.items():
+            group = _group(name)
+            if group is not None and value > 0:
+                self.seen[group].add(name)
+        if prev_s is None or now_s <= prev_s:
+            return None
+        dt = now_s - prev_s
+        out: dict[str, dict[str, float]] = {"rejects": {}, "held": {}}
+        for group, names in self.seen.items():
+            for name in names:
+                step = counters.get(name, 0) - prev.get(name, 0)
+                reason = name.removeprefix("held_") if group == "held" else name
+                out[group][reason] = max(step, 0) / dt
+            out[group]["total"] = sum(out[group].values())
+        return out
+
+
+def adapter_counters(adapters: Mapping[str, Any]) -> dict[str, int]:
+    """The adapters' own trouble counters, named '<adapter>.<counter>' (throughput left out)."""
+    out: dict[str, int] = {}
+    for name, doc in adapters.items():
+        counters = doc.get("counters") if isinstance(doc, Mapping) else None
+        if not isinstance(counters, Mapping):
+            continue
+        for key, value in counters.items():
+            if isinstance(value, int) and not any(w in key for w in THROUGHPUT_WORDS):
+                out[f"{name}.{key}"] = value
+    return out
+
+
+class StatusEvents:
+    """What in a status snapshot is an event for the text log: a change of health, of an
+    adapter's state or clock epoch, of a stream's clock domain, of what delay tracking
+    says; a counter of (re)connections or clock resets going up; new reject messages."""
+
+    def __init__(self) -> None:
+        self._prev: dict[str, Any] | None = None
+        self._health: Any = None  # as last written to the log
+        self._health_at = -math.inf
+        self._flips = 0  # health changes since then, not written
+
+    def _health_event(self, health: Any, previous: Any, t: float) -> list[tuple[str, str]]:
+        """A health that flaps is written at most every EVENT_GAP_S, with how often it
+        changed meanwhile; the health it settles on is always written."""
+        if health != previous:
+            self._flips += 1
+        if health == self._health or t - self._health_at < EVENT_GAP_S:
+            return []
+        text = f"health {self._health} -> {health}"
+        if self._flips > 1:
+            text += f" ({self._flips} changes since the last entry)"
+        self._health, self._health_at, self._flips = health, t, 0
+        return [("INFO" if health == "ok" else "WARN", text)]
+
+    def update(self, status: Mapping[str, Any], t: float = 0.0) -> list[tuple[str, str]]:
+        """(level, text) pairs, oldest first; `t`: the snapshot's time (s)."""
+        prev, now = self._prev, _snapshot(status)
+        self._prev = now
+        out: list[tuple[str, str]] = []
+        if prev is None:
+            self._health, self._health_at = now["health"], t
+            out.append(("INFO", f"health {now['health']}"))
+            for name, state in now["adapters"].items():
+                out += _adapter_event(name, state, {})
+            return out
+        out += self._health_event(now["health"], prev["health"], t)
+        for name, state in now["adapters"].items():
+            out += _adapter_changes(name, state, prev["adapters"].get(name, {}))
+        for stream, domain in now["clock_domains"].items():
+            old = prev["clock_domains"].get(stream)
+            if old is not None and old != domain:
+                out.append(("WARN", f"{stream} clock domain {old} -> {domain}"))
+        out += _counter_events(now["counters"], prev["counters"])
+        if now["delay_tracking"] and now["delay_tracking"] != prev["delay_tracking"]:
+            out.append(("INFO", f"delay tracking: {now['delay_tracking']}"))
+        old_messages = set(prev["messages"])
+        fresh = [m for m in now["messages"] if m not in old_messages]
+        for message in fresh[-MAX_LOG_MESSAGES_PER_STATUS:]:
+            out.append(("WARN", message))
+        return out
+
+
+def _snapshot(status: Mapping[str, Any]) -> dict[str, Any]:
+    """The parts of a status document whose change is an event."""
+    counters = dict(status.get("counters") or {})
+    adapters = status.get("adapters") or {}
+    counters.update(adapter_counters(adapters))
+    return {
+        "health": status.get("health"),
+        "clock_domains": dict(status.get("clock_domains") or {}),
+        "adapters": {
+            name: _adapter_state(doc) for name, doc in adapters.items() if isinstance(doc, Mapping)
+        },
+        "delay_tracking": status.get("delay_tracking"),
+        "counters": counters,
+        "messages": list(status.get("messages") or []),
+    }
+
+
+def _counter_events(now: Mapping[str, int], before: Mapping[str, int]) -> list[tuple[str, str]]:
+    """A counter of (re)connections or clock resets that went up."""
+    out = []
+    for name, value in now.items():
+        if any(w in name for w in EVENT_WORDS):
+            step = value - before.get(name, 0)
+            if step > 0:
+                out.append(("WARN", f"{name} +{step} (now {value})"))
+    return out
+
+
+def _adapter_event(
+    name: str, state: Mapping[str, Any], before: Mapping[str, Any]
+) -> list[tuple[str, str]]:
+    """An adapter's own state change (silent, back, reconnected, wrong protocol), as it put
+    it on its status key: once per `event_seq`."""
+    event = state.get("event")
+    if not event or state.get("event_seq") == before.get("event_seq"):
+        return []
+    level = "WARN" if state.get("state") in ADAPTER_TROUBLE else "INFO"
+    return [(level, f"{name}: {event}")]
+
+
+def _adapter_changes(
+    name: str, state: Mapping[str, Any], before: Mapping[str, Any]
+) -> list[tuple[str, str]]:
+    """What changed in one adapter's state between two snapshots: its own event, else
+    (an adapter that publishes none) the state as compared here; its clock."""
+    out = _adapter_event(name, state, before)
+    for key, value in state.items():
+        if key in ("event", "event_seq") or (key == "state" and "event" in state):
+            continue  # said by the adapter's event, in its own words
+        if before.get(key) != value and key in before:
+            level = "WARN" if key != "state" or value not in ("connected", "ok") else "INFO"
+            out.append((level, f"{name}: {key} {before.get(key)} -> {value}"))
+    return out
+
+
+def _adapter_state(doc: Mapping[str, Any]) -> dict[str, Any]:
+    """The parts of an adapter's status whose change is an event (`event`, `event_seq`:
+    the adapter's own words for a change of state, when it published one)."""
+    out: dict[str, Any] = {}
+    for key in ("state", "connected", "event", "event_seq"):
+        if key in doc:
+            out[key] = doc[key]
+    clock = doc.get("clock")
+    if isinstance(clock, Mapping):
+        for key in ("domain", "epoch"):  # the epoch counts the clock's fresh starts
+            if key in clock:
+                out[f"clock {key}"] = clock[key]
+    return out
