@@ -106,6 +106,11 @@ class EgmCodec:
         self.messages = self._rejects.messages
         self._last_seq: int | None = None
         self._behind = 0
+        self.datagrams = 0  # datagrams parsed so far: a reject names its number
+
+    def _next_datagram(self) -> None:
+        self.datagrams += 1
+        self._rejects.at = f"datagram {self.datagrams}"
 
     def reset(self) -> None:
         """A new controller session: the sequence check starts over."""
@@ -136,6 +141,7 @@ class EgmCodec:
         return True
 
     def parse_robot(self, data: bytes) -> EgmRobotFrame | None:
+        self._next_datagram()
         if len(data) > MAX_DATAGRAM:
             self._rejects.reject("too_long", f"datagram of {len(data)} bytes")
             return None
@@ -188,6 +194,7 @@ class EgmCodec:
         )
 
     def parse_sensor(self, data: bytes) -> EgmSensorFrame | None:
+        self._next_datagram()
         msg = egm_pb2.EgmSensor()
         try:
             msg.ParseFromString(data)

@@ -22,7 +22,7 @@ import zenoh
 from keo_service.adapters import rtde
 from keo_service.adapters.clock_state import SAVE_PERIOD_S, load_into, save, state_path
 from keo_service.adapters.connection import DEVICE, Device, run_tcp_client
-from keo_service.adapters.health import AdapterHealth
+from keo_service.adapters.health import AdapterHealth, rejects_of
 from keo_service.adapters.line_protocol import MAX_LINE, LineProtocolParser
 from keo_service.adapters.rtde import Package, RtdeDecoder
 from keo_service.adapters.simple_message import (
@@ -124,6 +124,7 @@ class _Adapter:
         )
         self._events = 0
         self._reported: tuple[str, int] = ("", 0)
+        self._reported_error = ""  # the connection's problem as last put in an event
         task = asyncio.create_task(self._run(), name=f"keo.adapter.{self.name}")
         self._task = supervise(task, self._stop.is_set, self._fail)
         watcher = asyncio.create_task(self._watch(), name=f"keo.adapter.{self.name}.watch")
@@ -149,6 +150,10 @@ class _Adapter:
             if self.health.state == "receiving":
                 self.device.last_error = ""  # the newest problem is over once data flows
             self._publish_change()
+            self._publish_problem()
+            rejects = self.health.take_reject_summary()
+            if rejects:
+                self._publish_event(self._status_doc(), rejects, "warning")
             await self._save_clock(time.monotonic())
             await asyncio.sleep(WATCH_PERIOD_S)
 
@@ -161,43 +166,75 @@ class _Adapter:
 
     def _publish_change(self) -> None:
         """A change of state or a new connection since the last look: the status document
-        with `event` (what happened, in words) and `event_seq` put on the status key."""
+        with `event` (what happened, in words, with the key to fix) put on the status key."""
         state = self.health.state
         connections = int(self.counters.get("connections", 0))
         before, seen = self._reported
         if (state, connections) == self._reported:
             return
         self._reported = (state, connections)
+        if state == "disconnected":  # its event says the connection's problem
+            self._reported_error = self.device.last_error
         doc = self._status_doc()
+        text, level = self._event_text(before, state, connections > seen > 0, doc)
+        self._publish_event(doc, text, level)
+
+    def _publish_problem(self) -> None:
+        """A device it cannot reach: the connection's problem (with the keys to fix) once per
+        new problem, however often the connection is retried."""
+        error = self.device.last_error
+        if error == self._reported_error:
+            return
+        self._reported_error = error
+        if error and self.health.state in ("connecting", "disconnected"):
+            self._publish_event(self._status_doc(), error, "warning")
+
+    def _publish_event(self, doc: AdapterStatus, text: str, level: str) -> None:
+        """The status document with the event, its level and the next `event_seq` put on the
+        status key (the service logs it; any client may listen)."""
         self._events += 1
-        event = self._event_text(before, state, connections > seen > 0, doc)
-        doc = msgspec.structs.replace(doc, event_seq=self._events, event=event)
+        doc = msgspec.structs.replace(doc, event_seq=self._events, event=text, level=level)
         try:
             self._event_pub.put(doc.to_json())
         except zenoh.ZError as exc:  # counted; the state is still in the status query
             self.counters["event_publish_failed"] += 1
             log.warning("%s: publishing a state change failed: %s", self.name, exc)
 
-    def _event_text(self, before: str, state: str, reconnected: bool, doc: AdapterStatus) -> str:
+    def _event_text(
+        self, before: str, state: str, reconnected: bool, doc: AdapterStatus
+    ) -> tuple[str, str]:
+        """A change of state in words with the config keys that fix it, and its level."""
         health = self.health
         endpoint = health.endpoint
+        section = health.section
         if state == "silent":
             age = doc.last_data_age_s
-            quiet = f"nothing for {age:.1f} s" if isinstance(age, float) else "nothing arrived"
+            if not isinstance(age, float):  # connected, and never a byte of data
+                return (
+                    f"connected to {endpoint} but nothing arrived within {section}.silent_after_s "
+                    f"= {health.silent_after_s:g} s: is it {health.expected}? check "
+                    f"{section}.port and {section}.protocol",
+                    "warning",
+                )
             return (
-                f"the device at {endpoint} went silent: {quiet} "
-                f"({health.section}.silent_after_s = {health.silent_after_s:g})"
+                f"the device at {endpoint} went silent: nothing for {age:.1f} s "
+                f"({section}.silent_after_s = {health.silent_after_s:g})",
+                "warning",
             )
         if state == "wrong_protocol":
-            return health.mismatch
+            return health.mismatch, "error"
         if state == "disconnected":
             last = doc.last_error or ""
-            return f"disconnected from {endpoint}" + (f": {last}" if last else "")
+            why = f": {last}" if last else " (the device closed the connection)"
+            return f"disconnected from {endpoint}{why}; reconnecting", "warning"
         if before == "silent":
-            return f"data again from {endpoint} ({state})"
+            return f"data again from {endpoint} ({state})", "info"
         if reconnected:
-            return f"reconnected to {endpoint} ({state})"
-        return f"{state} ({endpoint})" if not before else f"{before} -> {state} ({endpoint})"
+            return f"reconnected to {endpoint} ({state})", "info"
+        if before in ("starting", "connecting") and state in ("connected", "receiving"):
+            return f"connected to {endpoint} ({state})", "info"
+        text = f"{state} ({endpoint})" if not before else f"{before} -> {state} ({endpoint})"
+        return text, "info"
 
     async def __aexit__(self, *exc: object) -> None:
         self._stop.set()
@@ -209,6 +246,14 @@ class _Adapter:
         self._event_pub.undeclare()
         if self._own_session and self._session is not None:
             self._session.close()
+        rejected, _messages = rejects_of(self.status())
+        log.info(
+            "%s: stopped%s: %d samples published, %d inputs rejected",
+            self.name,
+            "" if self.failure is None else " on an internal failure",
+            self.counters.get("published", 0),
+            rejected,
+        )
 
     async def wait(self) -> None:
         await self._stop.wait()
@@ -668,6 +713,7 @@ class _Ros2Adapter(_Adapter):
             session, f"keo_{self.config.cell}_{self.name}", ros.domain_id, ros.distro
         )
         self.rejects = RejectLog(keep=16)
+        self._received = 0
         self._seq = 0
         self._declare_output(session)
 
@@ -699,7 +745,10 @@ class _Ros2Adapter(_Adapter):
 
     def on_payload(self, payload: bytes, typename: str, key: str = "") -> None:
         """One sample's CDR bytes: decoded by rosbags and published; whatever rosbags cannot
-        decode is counted as `bad_cdr` (its errors are not one documented type)."""
+        decode is counted as `bad_cdr` (its errors are not one documented type). A reject
+        names the message's number among those received."""
+        self._received += 1
+        self.rejects.at = f"message {self._received} received"
         try:
             message = self.node.deserialize(payload, typename)
         except Exception as exc:

@@ -28,7 +28,7 @@ RATE_WINDOW_S = 5.0
 MISMATCH_REJECTS = 3  # rejects with nothing valid on a connection: not this protocol
 
 
-def _rejects(status: dict[str, Any]) -> tuple[int, list[str]]:
+def rejects_of(status: dict[str, Any]) -> tuple[int, list[str]]:
     """Total rejects of the adapter's codec(s) and their newest messages."""
     total = 0
     for part in ("decoder", "parser"):
@@ -75,6 +75,8 @@ class AdapterHealth:
         self._silent = False
         self.rate_hz = 0.0
         self._rates: collections.deque[tuple[float, int]] = collections.deque()
+        # the newest interval's rejects summarised for the service's log, until taken
+        self._reject_summary = ""
 
     @property
     def expected(self) -> str:
@@ -84,7 +86,7 @@ class AdapterHealth:
         """Look at the adapter's status at monotonic time `now`; log what changed."""
         counters = status.get("counters", {})
         published = int(counters.get("published", 0))
-        rejected, messages = _rejects(status)
+        rejected, messages = rejects_of(status)
         connections = counters.get("connections")
         if connections is None:  # no TCP connection of its own (ROS 2, UDP): data is contact
             connected = published > 0 or rejected > 0
@@ -124,18 +126,31 @@ class AdapterHealth:
             self.state = "receiving" if self._last_data_at is not None else "connected"
 
     def _warn_rejects(self, rejected: int, messages: list[str], now: float) -> None:
+        """At most once per WARN_EVERY_S: the rejects since the last warning, in the adapter's
+        log with the newest messages, and summarised for the service's log with the first
+        (each message says where in the input it was)."""
         new = rejected - self._warned_rejects
         if new <= 0 or now - self._last_warn < WARN_EVERY_S:
             return
         newest = "; ".join(messages[-min(new, 3) :]) or "no message"
-        self.log.warning(
-            "%s: %d input(s) rejected%s: %s",
-            self.name,
-            new,
-            "" if self._last_warn == -math.inf else f" in the last {WARN_EVERY_S:g} s",
-            newest,
+        interval = "" if self._last_warn == -math.inf else f" in the last {WARN_EVERY_S:g} s"
+        self.log.warning("%s: %d input(s) rejected%s: %s", self.name, new, interval, newest)
+        if not messages:
+            first = "no message kept"
+        elif new <= len(messages):
+            first = f"the first: {messages[-new]}"
+        else:  # more than the codec keeps: the oldest it still has
+            first = f"the earliest kept: {messages[0]}"
+        self._reject_summary = (
+            f"{new} input(s) rejected{interval} from {self.endpoint}; {first}"
+            + (f"; the newest: {messages[-1]}" if new > 1 and messages else "")
         )
         self._warned_rejects, self._last_warn = rejected, now
+
+    def take_reject_summary(self) -> str:
+        """The newest interval's rejects in one line, once ("" when there were none)."""
+        summary, self._reject_summary = self._reject_summary, ""
+        return summary
 
     def _judge_protocol(
         self, published: int, rejected: int, messages: list[str], now: float

@@ -159,8 +159,14 @@ class RsiCodec:
         self._rejects = RejectLog(keep=16)
         self.counters = self._rejects.counters
         self.messages = self._rejects.messages
+        self.datagrams = 0  # datagrams parsed so far: a reject names its number
+
+    def _next_datagram(self) -> None:
+        self.datagrams += 1
+        self._rejects.at = f"datagram {self.datagrams}"
 
     def parse_rob(self, data: bytes) -> RobFrame | None:
+        self._next_datagram()
         try:
             root = _document(data, "Rob")
             ipoc = _ipoc(root)
@@ -185,6 +191,7 @@ class RsiCodec:
         return RobFrame(ipoc, axes, tcp, external, delay)
 
     def parse_sen(self, data: bytes) -> SenFrame | None:
+        self._next_datagram()
         try:
             root = _document(data, "Sen")
             ipoc = _ipoc(root)

@@ -107,17 +107,25 @@ class LineProtocolParser:
         self._rejects = RejectLog(keep=16)
         self.counters = self._rejects.counters
         self.messages = self._rejects.messages
+        self.lines = 0  # lines of this connection so far
+        self.offset = 0  # bytes of this connection before the current line
 
     def reset(self) -> None:
-        """New connection: a new hello is needed; sequence checks start over."""
+        """New connection: a new hello is needed; sequence checks and positions start over."""
         self.scale = None
         self._last_seq = None
         self._last_t = -math.inf
+        self.lines = self.offset = 0
 
     def _reject(self, counter: str, message: str) -> None:
         self._rejects.reject(counter, message)
 
     def parse(self, line: bytes) -> Pose | None:
+        """One line (with its newline) of the connection: a pose, or None for a hello or a
+        reject (counted; its message says which line of the connection and at which byte)."""
+        self.lines += 1
+        self._rejects.at = f"line {self.lines} at byte {self.offset} of the connection"
+        self.offset += len(line)
         if len(line) > MAX_LINE:
             self._reject("too_long", f"line of {len(line)} bytes, limit {MAX_LINE}")
             return None

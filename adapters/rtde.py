@@ -288,12 +288,14 @@ class RtdeDecoder:
         self.counters = self._rejects.counters
         self.messages = self._rejects.messages
         self._skipped = 0
+        self._offset = 0  # bytes of the connection before the buffer's first
 
     def feed(self, data: bytes) -> list[Package]:
         self._buf += data
         out: list[Package] = []
         while len(self._buf) >= HEADER.size:
             size, kind = HEADER.unpack_from(self._buf)
+            self._rejects.at = f"byte {self._offset} of the connection"
             if kind not in KNOWN_TYPES or size < HEADER.size or size > MAX_PACKAGE:
                 if self._skipped == 0:
                     self._rejects.reject(
@@ -302,6 +304,7 @@ class RtdeDecoder:
                     )
                 self._skipped += 1
                 del self._buf[0]
+                self._offset += 1
                 continue
             if len(self._buf) < size:
                 break
@@ -310,11 +313,15 @@ class RtdeDecoder:
                 self._skipped = 0
             out.append(Package(kind, bytes(self._buf[HEADER.size : size])))
             del self._buf[:size]
+            self._offset += size
             self.counters["packages"] += 1
         if len(self._buf) > MAX_PACKAGE:  # cannot happen with a valid size; keep memory bounded
+            self._offset += len(self._buf) - MAX_PACKAGE
             del self._buf[: len(self._buf) - MAX_PACKAGE]
         return out
 
     def reject(self, reason: str, message: str) -> None:
-        """A package that framed well but says something wrong (counted, never fatal)."""
+        """A package that framed well but says something wrong (counted, never fatal; its
+        place is given as the end of the bytes decoded so far, the package came before)."""
+        self._rejects.at = f"before byte {self._offset} of the connection"
         self._rejects.reject(reason, message)

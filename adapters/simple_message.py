@@ -92,9 +92,15 @@ class SimpleMessageDecoder:
         self._rejects = RejectLog(keep=16)
         self.counters = self._rejects.counters
         self.messages = self._rejects.messages
+        self._offset = 0  # bytes of the connection before the buffer's first
 
     def _reject(self, counter: str, message: str) -> None:
+        self._rejects.at = f"byte {self._offset} of the connection"
         self._rejects.reject(counter, message)
+
+    def _consume(self, n: int) -> None:
+        del self._buf[:n]
+        self._offset += n
 
     def reset(self) -> None:
         """Connection lost: a partial frame left in the buffer is counted as truncated."""
@@ -102,12 +108,13 @@ class SimpleMessageDecoder:
             self._reject("truncated", f"connection ended inside a frame ({len(self._buf)} bytes)")
         self._buf.clear()
         self._skipped = 0
+        self._offset = 0
 
     def feed(self, data: bytes) -> list[JointFeedback | RobotStatusFrame]:
         self._buf += data
         if len(self._buf) > self._max_buffer:
             self._reject("overflow", f"{len(self._buf)} bytes without a frame; buffer cleared")
-            self._buf.clear()
+            self._consume(len(self._buf))
             return []
         out: list[JointFeedback | RobotStatusFrame] = []
         while len(self._buf) >= 16:
@@ -118,7 +125,7 @@ class SimpleMessageDecoder:
                     self._reject(*problem)
                 self._skipped += 1
                 self.counters["skipped_bytes"] += 1
-                del self._buf[:1]  # resynchronise one byte on
+                self._consume(1)  # resynchronise one byte on
                 continue
             if len(self._buf) < 4 + length:
                 break
@@ -126,8 +133,8 @@ class SimpleMessageDecoder:
                 self.messages.append(f"resynchronised after skipping {self._skipped} bytes")
                 self._skipped = 0
             frame = bytes(self._buf[4 : 4 + length])
-            del self._buf[: 4 + length]
-            item = self._parse(msg_type, frame)
+            item = self._parse(msg_type, frame)  # a reject names the frame's first byte
+            self._consume(4 + length)
             if item is not None:
                 out.append(item)
         return out

@@ -211,3 +211,118 @@ async def test_the_service_answers_no_status_before_its_first_snapshot(demo_conf
         service._on_status_query(Query())
     assert len(replies) == 1
     assert isinstance(decode(replies[0][1]), ServiceStatus)
+
+
+class _LateTracker:
+    """A line-protocol tracker that starts listening on `port` only when `open()` is called,
+    then sends hello, GOOD poses, one line that is not JSON, and poses until closed; it knows
+    the bad line's number and byte offset in the connection from the bytes it sent."""
+
+    GOOD = 5
+    BAD = b"\xff not a pose\n"
+
+    def __init__(self, port: int) -> None:
+        self.port = port
+        self._stop = threading.Event()
+        self.bad_line = 0
+        self.bad_offset = 0
+        self._thread: threading.Thread | None = None
+        self._server: socket.socket | None = None
+
+    def open(self) -> None:
+        self._server = socket.create_server(("127.0.0.1", self.port))
+        self._server.settimeout(0.2)
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        assert self._server is not None
+        conn = None
+        while conn is None and not self._stop.is_set():
+            try:
+                conn, _ = self._server.accept()
+            except TimeoutError:
+                continue
+        if conn is None:
+            return
+        lines = [format_hello("m", "test")]
+        lines += [format_pose(k, time.time(), [1.0, 0.5, 0.2], [1, 0, 0, 0]) for k in range(1, 6)]
+        self.bad_line = len(lines) + 1
+        self.bad_offset = sum(len(line) for line in lines)
+        lines.append(self.BAD)
+        with conn:
+            try:
+                conn.sendall(b"".join(lines))
+                seq = self.GOOD
+                while not self._stop.is_set():
+                    seq += 1
+                    conn.sendall(format_pose(seq, time.time(), [1.0, 0.5, 0.2], [1, 0, 0, 0]))
+                    time.sleep(0.01)
+            except OSError:  # the adapter stopped at the end of the test
+                return
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+        if self._server is not None:
+            self._server.close()
+
+
+@pytest.mark.e2e
+def test_the_service_log_tells_the_story(demo_config, tmp_path):
+    """issue 50: the service's own log says that the tracker cannot be reached (once, at
+    WARNING, with the keys to fix, however often the adapter retries), that it connected,
+    that an input was rejected and where (the line and byte offset the device sent it at),
+    and it starts and stops with a line of its own, SIGTERM included."""
+    config = loopback_config(demo_config)
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text(config_to_toml(config), encoding="utf-8")
+    device = _LateTracker(config.tracker.port)
+    endpoint = f"127.0.0.1:{config.tracker.port}"
+    try:
+        with process_group(tmp_path) as procs:
+            procs.start("service", ["run", "--config", str(cfg)])
+            session = session_for_client(config, retry_for=20)
+            try:
+                while _service_status(session, config) is None:
+                    time.sleep(0.1)
+                procs.start("adapter-tracker", ["adapter", "tracker", "--config", str(cfg)])
+                deadline = time.monotonic() + 30  # nothing listens: it retries
+                while procs.log("adapter-tracker").count("cannot connect") < 3:
+                    assert time.monotonic() < deadline, procs.log("adapter-tracker")
+                    time.sleep(0.1)
+                device.open()
+                while "rejected" not in procs.log("service"):
+                    assert time.monotonic() < deadline, procs.log("service")
+                    time.sleep(0.1)
+            finally:
+                session.close()
+            codes = procs.close()  # SIGTERM
+            service_log = procs.log("service")
+            adapter_log = procs.log("adapter-tracker")
+    finally:
+        device.close()
+    assert codes["service"] == 0, service_log
+    lines = service_log.splitlines()
+    assert any(" INFO " in ln and " up; listening on " in ln for ln in lines), service_log
+    # the unreachable device: said once (the adapter retried three times or more), a warning
+    # that names the keys to fix
+    unreachable = [ln for ln in lines if "adapter tracker: cannot connect to " + endpoint in ln]
+    assert adapter_log.count("cannot connect") >= 3
+    assert len(unreachable) == 1, service_log
+    assert " WARNING " in unreachable[0]
+    assert "check tracker.host and tracker.port" in unreachable[0]
+    # then connected, at info
+    assert any(" INFO " in ln and f"adapter tracker: connected to {endpoint}" in ln for ln in lines)
+    # the reject: summarised with the first one and where it was, as the device sent it
+    rejected = [ln for ln in lines if "adapter tracker: 1 input(s) rejected" in ln]
+    assert len(rejected) == 1, service_log
+    assert " WARNING " in rejected[0]
+    where = f"(line {device.bad_line} at byte {device.bad_offset} of the connection)"
+    assert "the first: not JSON: " in rejected[0]
+    assert rejected[0].endswith(where), (rejected[0], where)
+    # a clean stop on SIGTERM: the signal, then the last line with what it did
+    assert any("SIGTERM received, stopping" in ln for ln in lines), service_log
+    assert " stopped after " in lines[-1], lines[-1]
+    assert "estimates" in lines[-1]

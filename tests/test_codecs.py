@@ -137,3 +137,40 @@ def test_messages_roundtrip_and_refuse_other_versions():
     foreign = msgspec.msgpack.encode({"type": "keo.joint/3", "stamp": 1.0})  # a later version
     with pytest.raises(msgspec.DecodeError, match=r"keo\.joint/3"):
         decode(foreign)
+
+
+def test_rejects_say_where_in_the_stream_they_were():
+    """issue 50: a reject names its place, from the bytes as sent: the simple message decoder
+    the byte offset in the connection, the line parser the line number and its first byte;
+    both count afresh on a new connection."""
+    good = encode_joint_feedback(Q)
+    bad = encode_joint_feedback([math.nan, 0, 0, 0, 0, 0])
+    garbage = b"\xfe" * 7
+    dec = SimpleMessageDecoder()
+    dec.feed(good + good[:30])  # split inside the second frame
+    dec.feed(good[30:] + bad + garbage + good)
+    assert dec.counters["bad_value"] == 1
+    assert dec.messages[0].endswith(f"(byte {2 * len(good)} of the connection)"), dec.messages
+    assert dec.messages[1].endswith(f"(byte {3 * len(good)} of the connection)"), dec.messages
+    dec.feed(good[:20])
+    dec.reset()  # the connection ends inside a frame: counted where that frame began
+    assert dec.messages[-1].endswith(f"(byte {4 * len(good) + 7} of the connection)")
+    dec.feed(bad)  # a new connection: offsets from 0
+    assert dec.messages[-1].endswith("(byte 0 of the connection)")
+
+    lines = [format_hello("mm"), format_pose(1, 0.1, [1.0, 2.0, 3.0], [1.0, 0, 0, 0])]
+    lines += [b"not json\n", format_pose(2, 0.2, [1.0, 2.0, 3.0], [1.0, 0, 0, 0])]
+    lines += [b'{"type": "pose", "seq": 3, "t": 0.3, "p": [1, 2], "q": [1, 0, 0, 0]}\n']
+    parser = LineProtocolParser()
+    for line in lines:
+        parser.parse(line)
+    offsets = [sum(len(x) for x in lines[:k]) for k in range(len(lines))]
+    assert list(parser.messages) == [
+        m for m in parser.messages if m.endswith(" of the connection)")
+    ]
+    assert parser.messages[0].startswith("not JSON")
+    assert parser.messages[0].endswith(f"(line 3 at byte {offsets[2]} of the connection)")
+    assert parser.messages[1].endswith(f"(line 5 at byte {offsets[4]} of the connection)")
+    parser.reset()
+    parser.parse(b"{}\n")
+    assert parser.messages[-1].endswith("(line 1 at byte 0 of the connection)")

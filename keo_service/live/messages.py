@@ -15,6 +15,7 @@ MCAP) never held these messages and read the same under both.
 
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING, Any
 
 import msgspec
@@ -212,6 +213,9 @@ class AdapterStatus(msgspec.Struct, frozen=True, kw_only=True):
     robot_state: dict[str, bool | None] | UnsetType = UNSET
     event_seq: int | UnsetType = UNSET  # counts the changes put on the key
     event: str | UnsetType = UNSET  # what changed, in words, with the key to fix
+    # how much the event matters, as the adapter judges it: "info", "warning" or "error" (the
+    # service logs it at this level; absent: `trouble` decides)
+    level: str | UnsetType = UNSET
 
     @property
     def trouble(self) -> bool:
@@ -220,6 +224,14 @@ class AdapterStatus(msgspec.Struct, frozen=True, kw_only=True):
         return self.state in ADAPTER_TROUBLE or (
             self.state == "connecting" and bool(self.last_error)
         )
+
+    @property
+    def log_level(self) -> int:
+        """The `logging` level of its event: its own `level`, else warning for trouble."""
+        levels = {"info": logging.INFO, "warning": logging.WARNING, "error": logging.ERROR}
+        if isinstance(self.level, str) and self.level in levels:
+            return levels[self.level]
+        return logging.WARNING if self.trouble else logging.INFO
 
     def to_json(self) -> bytes:
         return msgspec.json.encode(self)

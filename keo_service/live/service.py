@@ -175,9 +175,27 @@ class KeoService:
         self.sinks.close()
         if self._own_session and self._session is not None:
             self._session.close()
+        self._log_stopped()
 
-    def stop(self) -> None:
+    def stop(self, why: str = "") -> None:
+        """Stop the service; `why` (a signal's name) is logged once."""
+        if why and not self._stop.is_set():
+            log.info("keo service for cell %s: %s received, stopping", self.cell, why)
         self._stop.set()
+
+    def _log_stopped(self) -> None:
+        """The last line of the service's log: how long it ran and what it did."""
+        counters = self.estimator.counters
+        log.info(
+            "keo service for cell %s stopped%s after %.1f s: %d samples received, %d estimates, "
+            "%d inputs rejected by the service",
+            self.cell,
+            "" if self.failure is None else " on an internal failure",
+            time.monotonic() - self._started,
+            self.received,
+            counters.get("estimates", 0),
+            counters.get("rejected", 0) + self.decode_errors,
+        )
 
     def _add_sinks(self, session: zenoh.Session) -> None:
         """The configured outputs: the bus (with the latest estimate for a client that joins
@@ -281,8 +299,7 @@ class KeoService:
                 continue
             self._adapters[name] = doc
             if doc.event:
-                level = logging.WARNING if doc.trouble else logging.INFO
-                log.log(level, "adapter %s: %s", name, doc.event)
+                log.log(doc.log_level, "adapter %s: %s", name, doc.event)
 
     def _note_sample(self, stream: str, msg: JointSample | TrackerSample) -> None:
         """Record the clock domain a stream's samples declare and count their stamp flags;
@@ -500,7 +517,7 @@ async def run_service(
             systemd.notify("READY=1")
 
         for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, service.stop)
+            loop.add_signal_handler(sig, service.stop, sig.name)
         loop.add_signal_handler(signal.SIGHUP, reload)
         period = systemd.watchdog_period()
         watchdog = None

@@ -345,7 +345,11 @@ def _adapter_event(
     event = state.get("event")
     if not event or state.get("event_seq") == before.get("event_seq"):
         return []
-    level = "WARN" if state.get("state") in ADAPTER_TROUBLE else "INFO"
+    words = state.get("level")
+    if words in ("warning", "error"):  # the adapter's own judgement of its event
+        level = "WARN" if words == "warning" else "ERROR"
+    else:
+        level = "WARN" if state.get("state") in ADAPTER_TROUBLE else "INFO"
     return [(level, f"{name}: {event}")]
 
 
@@ -356,7 +360,7 @@ def _adapter_changes(
     (an adapter that publishes none) the state as compared here; its clock."""
     out = _adapter_event(name, state, before)
     for key, value in state.items():
-        if key in ("event", "event_seq") or (key == "state" and "event" in state):
+        if key in ("event", "event_seq", "level") or (key == "state" and "event" in state):
             continue  # said by the adapter's event, in its own words
         if before.get(key) != value and key in before:
             level = "WARN" if key != "state" or value not in ("connected", "ok") else "INFO"
@@ -368,7 +372,7 @@ def _adapter_state(doc: Mapping[str, Any]) -> dict[str, Any]:
     """The parts of an adapter's status whose change is an event (`event`, `event_seq`:
     the adapter's own words for a change of state, when it published one)."""
     out: dict[str, Any] = {}
-    for key in ("state", "connected", "event", "event_seq"):
+    for key in ("state", "connected", "event", "event_seq", "level"):
         if key in doc:
             out[key] = doc[key]
     clock = doc.get("clock")
