@@ -14,15 +14,8 @@ import logging
 import math
 from typing import Any
 
-# what each protocol's device is, in words, for the messages
-PROTOCOL_WORDS = {
-    "motoros": "a MotoROS state server (ROS-Industrial simple message, port 50241 by default)",
-    "rtde": "a Universal Robots controller's RTDE server (port 30004 by default)",
-    "ros2": "a ROS 2 node publishing the topic",
-    "kuka_rsi": "a KUKA controller running RSI (UDP, port 49152 by default)",
-    "abb_egm": "an ABB controller running EGM (UDP, port 6510 by default)",
-    "line": "a tracker speaking keo's line protocol (a hello line, then pose lines)",
-}
+from keo_service.io.protocols import Section, protocol_for
+
 WARN_EVERY_S = 5.0  # at most one reject warning per adapter this often
 RATE_WINDOW_S = 5.0
 MISMATCH_REJECTS = 3  # rejects with nothing valid on a connection: not this protocol
@@ -80,7 +73,12 @@ class AdapterHealth:
 
     @property
     def expected(self) -> str:
-        return PROTOCOL_WORDS.get(self.protocol, self.protocol)
+        """What the device should be, in words (the protocol table's)."""
+        section: Section = "tracker" if self.section == "tracker" else "robot"
+        try:
+            return protocol_for(section, self.protocol).words
+        except KeyError:
+            return self.protocol
 
     def tick(self, status: dict[str, Any], now: float) -> None:
         """Look at the adapter's status at monotonic time `now`; log what changed."""

@@ -19,13 +19,15 @@ import math
 import struct
 import time
 from collections.abc import Callable
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
 from keo_service.adapters import rtde
 from keo_service.adapters.line_protocol import format_hello, format_pose
+from keo_service.adapters.mock import MockSettings, TcpMockServer
 from keo_service.adapters.simple_message import encode_joint_feedback, encode_robot_status
+from keo_service.io.config import Config
 
 log = logging.getLogger("keo.mock")
 STATUS_PERIOD_S = 0.5
@@ -123,7 +125,9 @@ def stall_schedule(
     return send
 
 
-class _MockServer:
+class _MockServer(TcpMockServer):
+    """A TCP server playing rows of a track to each client, from t0 on the wall clock."""
+
     def __init__(
         self,
         host: str,
@@ -146,17 +150,6 @@ class _MockServer:
         # a row that goes out late describes the instant it goes out (see Resampled); False:
         # every row as simulated, describing its planned instant however late it goes out
         self.resample = True
-
-    async def start(self) -> None:
-        self._server = await asyncio.start_server(self._on_client, self.host, self.port)
-        if self.t0 is None:
-            self.t0 = time.time() + 0.5
-        log.info("mock listening on %s:%d, playing from t0=%.3f", self.host, self.port, self.t0)
-
-    async def close(self) -> None:
-        if self._server is not None:
-            self._server.close()
-            await self._server.wait_closed()
 
     async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self.clients += 1
@@ -401,7 +394,7 @@ def _input_type(name: str) -> str:
     return MOCK_RTDE_INPUTS.get(name, "NOT_FOUND")
 
 
-class MockRtdeController:
+class MockRtdeController(TcpMockServer):
     """A Universal Robots controller's RTDE server (protocol 2) playing a joint track.
 
     It samples the track at the frequency the client asks for (at most `max_hz`: 500 on
@@ -417,6 +410,8 @@ class MockRtdeController:
     joints are not played from the track but made live, sample by sample: a controller
     running a program that adds the registers to its commanded tool pose.
     """
+
+    kind = "mock RTDE controller"
 
     def __init__(
         self,
@@ -459,19 +454,6 @@ class MockRtdeController:
         # (scenario time, controller stamp) of the newest packages, for tests
         self.sent: collections.deque[tuple[float, float]] = collections.deque(maxlen=100_000)
         self._server: asyncio.Server | None = None
-
-    async def start(self) -> None:
-        self._server = await asyncio.start_server(self._on_client, self.host, self.port)
-        if self.t0 is None:
-            self.t0 = time.time() + 0.5
-        log.info(
-            "mock RTDE controller on %s:%d, playing from t0=%.3f", self.host, self.port, self.t0
-        )
-
-    async def close(self) -> None:
-        if self._server is not None:
-            self._server.close()
-            await self._server.wait_closed()
 
     def device_time(self, scenario_t: float) -> float:
         return self.clock_offset_s + scenario_t * (1.0 + self.clock_drift)
@@ -662,3 +644,59 @@ class MockRtdeController:
                 i += 1
             writer.write(b"".join(chunk))
             await writer.drain()
+
+
+# ---- the protocol table's builders (io.protocols: MockSettings -> the mock) ----
+
+
+def motoros_mock(s: MockSettings, config: Config, run: Any) -> MockRobot:
+    """A MotoROS controller playing the run's joints in the config's byte order."""
+    mock = MockRobot(
+        run.encoder, s.host, s.port, config.robot.byte_order, s.t0, s.loop, period_s=s.period_s
+    )
+    mock.resample = s.resample
+    return mock
+
+
+def rtde_mock(s: MockSettings, config: Config, run: Any) -> MockRtdeController:
+    """A UR controller's RTDE server playing the run's joints on its own clock."""
+    mock = MockRtdeController(
+        run.encoder,
+        s.host,
+        s.port,
+        s.t0,
+        max_hz=s.max_hz,
+        clock_offset_s=1000.0 if s.clock_offset_s is None else s.clock_offset_s,
+        clock_drift_ppm=s.clock_drift_ppm,
+        late_ms=s.late_ms,
+        burst_every_s=s.burst_every_s,
+        seed=s.seed,
+        loop_play=s.loop,
+        period_s=s.period_s,
+        correction_register=config.robot.correction_register,
+    )
+    mock.resample = s.resample
+    return mock
+
+
+def line_mock(s: MockSettings, config: Config, run: Any) -> MockTracker:
+    """A line-protocol tracker playing the run's poses, with the faults asked for."""
+    mock = MockTracker(
+        run.tracker,
+        s.host,
+        s.port,
+        s.t0,
+        s.loop,
+        wall_clock=s.wall_clock,
+        beam_break=s.beam_break,
+        clock_step=s.clock_step,
+        period_s=s.period_s,
+        device_clock=s.device_clock,
+        late_ms=s.late_ms,
+        burst_every_s=s.burst_every_s,
+        seed=s.seed,
+        instants=run.physical_t,
+    )
+    if not s.resample:
+        mock.resample = False
+    return mock

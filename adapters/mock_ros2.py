@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from keo_service.adapters.mock import MockSettings, TaskMock
 from keo_service.adapters.mock_devices import JointTrack, PoseTrack, _first_pass
 from keo_service.io.ros2_messages import (
     JOINT_STATE,
@@ -42,7 +43,7 @@ log = logging.getLogger("keo.mock")
 TRACKER_FRAME = "tracker"
 
 
-class MockRos2Driver:
+class MockRos2Driver(TaskMock):
     """One ROS 2 driver node publishing one topic: `joints` (a JointTrack, with `names` in
     the track's column order) or `poses` (a PoseTrack, positions in metres)."""
 
@@ -99,15 +100,11 @@ class MockRos2Driver:
         )
         self._task = asyncio.create_task(self._play(publisher), name="keo.mock.ros2")
 
-    async def played(self, timeout: float) -> None:
-        """Until the scenario is played to its end (or `play_until`)."""
-        if self._task is not None:
-            await asyncio.wait({self._task}, timeout=timeout)
+    def summary(self) -> dict[str, object] | None:
+        return None
 
     async def close(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            await asyncio.gather(self._task, return_exceptions=True)
+        await self._stop_task()
         if self._node is not None:
             self._node.close()
         if self._session is not None:
@@ -144,3 +141,39 @@ class MockRos2Driver:
             if not self.loop_play:
                 return
             start += self.period_s
+
+
+# ---- the protocol table's builders (io.protocols: MockSettings -> the mock) ----
+
+
+def _t0(s: MockSettings) -> float:
+    return s.t0 if s.t0 is not None else time.time() + 0.5
+
+
+def joint_state_mock(s: MockSettings, config: Any, run: Any) -> MockRos2Driver:
+    """A ROS 2 robot driver: JointState on robot.joint_states_topic, the URDF's joint names."""
+    from keo_service.io.cell import robot_from_config
+
+    return MockRos2Driver(
+        config,
+        config.robot.joint_states_topic,
+        _t0(s),
+        joints=run.encoder,
+        names=list(robot_from_config(config).joint_names),
+        loop_play=s.loop,
+        period_s=s.period_s,
+        node_name="keo_mock_robot_driver",
+    )
+
+
+def pose_mock(s: MockSettings, config: Any, run: Any) -> MockRos2Driver:
+    """A ROS 2 tracker driver: PoseStamped (PointStamped) on tracker.pose_topic, metres."""
+    return MockRos2Driver(
+        config,
+        config.tracker.pose_topic,
+        _t0(s),
+        poses=run.tracker,
+        loop_play=s.loop,
+        period_s=s.period_s,
+        node_name="keo_mock_tracker_driver",
+    )

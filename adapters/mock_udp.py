@@ -2,7 +2,7 @@
 side, on the real wire formats.
 
 Each sends one datagram per cycle (4 ms by default) to keo's server, stamped with its own
-millisecond clock (RSI's IPOC, EGM's header.tm: `clock_offset_ms` plus the scenario time),
+millisecond clock (RSI's IPOC, EGM's header.tm: `clock_offset_s` (in ms) plus the scenario time),
 the send instant jittered by up to `jitter_ms`. An answer counts as late when it arrives more
 than one cycle after its datagram went out, or never; after `max_late` late answers in a row
 the controller stops the robot as the real one does (RSI's late-packet limit, EGM's comm
@@ -31,14 +31,17 @@ import logging
 import math
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from keo_service.adapters import abb_egm, kuka_rsi
 from keo_service.adapters.line_protocol import format_hello, format_pose
+from keo_service.adapters.mock import MockSettings, TaskMock, TcpMockServer
 from keo_service.adapters.mock_devices import JointTrack, _first_pass
 from keo_service.adapters.realtime import request_realtime
+from keo_service.io.config import Config
 
 log = logging.getLogger("keo.mock")
 
@@ -57,7 +60,7 @@ class _Replies(asyncio.DatagramProtocol):
         self.owner.counters["send_errors"] += 1
 
 
-class MockUdpController:
+class MockUdpController(TaskMock):
     protocol = ""
 
     def __init__(
@@ -69,7 +72,7 @@ class MockUdpController:
         cycle_ms: float = 4.0,
         jitter_ms: float = 0.0,
         max_late: int = 100,
-        clock_offset_ms: int = 5_000_000,
+        clock_offset_s: float = 5000.0,
         corrector: Corrector | None = None,
         seed: int = 0,
         loop_play: bool = False,
@@ -88,7 +91,8 @@ class MockUdpController:
         self.cycle_ms = cycle_ms
         self.jitter_s = jitter_ms * 1e-3
         self.max_late = max_late
-        self.clock_offset_ms = clock_offset_ms
+        # the controller's millisecond clock (RSI's IPOC, EGM's header.tm) at t0
+        self.clock_offset_ms = round(clock_offset_s * 1e3)
         self.corrector = corrector
         self.loop_play = loop_play
         self.rng = np.random.default_rng(seed)
@@ -126,15 +130,8 @@ class MockUdpController:
             self.t0,
         )
 
-    async def played(self, timeout: float) -> None:
-        """Until the scenario is played to its end (or the robot stopped)."""
-        if self._task is not None:
-            await asyncio.wait({self._task}, timeout=timeout)
-
     async def close(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            await asyncio.gather(self._task, return_exceptions=True)
+        await self._stop_task()
         if self._transport is not None:
             self._transport.close()
 
@@ -343,10 +340,12 @@ class MockEgmController(MockUdpController):
 PoseAt = Callable[[float], tuple[list[float], list[float] | None]]
 
 
-class LiveTracker:
+class LiveTracker(TcpMockServer):
     """A line-protocol tracker that measures a pose computed at each sample instant
     (`pose_at(scenario_t)` -> position m and scalar-first quaternion, in the tracker frame),
     so that it sees the true tool of a controller that applies corrections."""
+
+    kind = "mock live tracker"
 
     def __init__(
         self, pose_at: PoseAt, host: str, port: int, t0: float, rate_hz: float = 100.0
@@ -354,24 +353,17 @@ class LiveTracker:
         self.pose_at = pose_at
         self.host, self.port, self.t0 = host, port, t0
         self.period = 1.0 / rate_hz
-        self._server: asyncio.Server | None = None
-
-    async def start(self) -> None:
-        self._server = await asyncio.start_server(self._on_client, self.host, self.port)
-
-    async def close(self) -> None:
-        if self._server is not None:
-            self._server.close()
-            await self._server.wait_closed()
 
     async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        assert self.t0 is not None  # given to the constructor
+        t0 = self.t0
         writer.write(format_hello("mm", source="keo live mock tracker"))
         seq = 0
         try:
-            k = max(0, math.ceil((time.time() - self.t0) / self.period))
+            k = max(0, math.ceil((time.time() - t0) / self.period))
             while True:
                 t = k * self.period
-                delay = self.t0 + t - time.time()
+                delay = t0 + t - time.time()
                 if delay > 0:
                     await asyncio.sleep(delay)
                 p, q = self.pose_at(t)
@@ -383,3 +375,44 @@ class LiveTracker:
             pass
         finally:
             writer.close()
+
+
+# ---- the protocol table's builders (io.protocols: MockSettings -> the mock) ----
+
+
+def _controller(
+    cls: type[MockUdpController], s: MockSettings, config: Config, run: Any
+) -> MockUdpController:
+    """The RSI or EGM controller side, sending to keo's server (the config's robot host and
+    port); with `robot.correction` naming its protocol it applies the corrections it gets."""
+    from keo_service.io.cell import cell_from_config
+    from keo_service.sim.controller import tool_corrector
+
+    corrector = None
+    if config.robot.correction == cls.protocol:
+        corrector = tool_corrector(cell_from_config(config))
+    return cls(
+        run.encoder,
+        s.host,
+        s.port,
+        s.t0,
+        cycle_ms=s.cycle_ms,
+        jitter_ms=s.jitter_ms,
+        max_late=s.max_late,
+        clock_offset_s=5000.0 if s.clock_offset_s is None else s.clock_offset_s,
+        corrector=corrector,
+        seed=s.seed,
+        loop_play=s.loop,
+        realtime=True,
+        period_s=s.period_s,
+    )
+
+
+def rsi_mock(s: MockSettings, config: Config, run: Any) -> MockUdpController:
+    """A KUKA controller's RSI object sending `<Rob>` to keo every cycle."""
+    return _controller(MockRsiController, s, config, run)
+
+
+def egm_mock(s: MockSettings, config: Config, run: Any) -> MockUdpController:
+    """An ABB controller's EGM channel sending `EgmRobot` to keo every cycle."""
+    return _controller(MockEgmController, s, config, run)

@@ -1,4 +1,5 @@
-"""Which adapter class serves a config's `robot.protocol` and `tracker.protocol`.
+"""The adapter and the mock of a config's protocols, as the protocol table (io.protocols)
+names them: the one place that turns a row's "module:name" into the class or function.
 
 Kept apart from the adapters themselves so that the TCP adapters (`devices`) and the UDP ones
 (`udp_devices`, which build on `devices`) do not import each other.
@@ -6,27 +7,38 @@ Kept apart from the adapters themselves so that the TCP adapters (`devices`) and
 
 from __future__ import annotations
 
-from keo_service.adapters.devices import (
-    EncoderAdapter,
-    Ros2PoseAdapter,
-    RtdeEncoderAdapter,
-    TrackerAdapter,
-)
-from keo_service.adapters.udp_devices import UDP_ADAPTERS
+import importlib
+from typing import Any
+
 from keo_service.io.config import Config
+from keo_service.io.protocols import Protocol, Section, protocol_for
 
-__all__ = ["encoder_adapter_for", "tracker_adapter_for"]
-
-
-def encoder_adapter_for(config: Config) -> type[EncoderAdapter]:
-    """The encoder adapter of `robot.protocol` (ros2: `Ros2JointStateAdapter`, which needs
-    the URDF's joint names, is built by the caller)."""
-    protocol = config.robot.protocol
-    if protocol in UDP_ADAPTERS:  # kuka_rsi, abb_egm: UDP servers the controller sends to
-        return UDP_ADAPTERS[protocol]
-    return RtdeEncoderAdapter if protocol == "rtde" else EncoderAdapter
+__all__ = ["encoder_adapter_for", "load", "mock_factory", "protocol_of", "tracker_adapter_for"]
 
 
-def tracker_adapter_for(config: Config) -> type[TrackerAdapter | Ros2PoseAdapter]:
-    """The tracker adapter of `tracker.protocol`."""
-    return Ros2PoseAdapter if config.tracker.protocol == "ros2" else TrackerAdapter
+def load(where: str) -> Any:
+    """The object a table row names, "module:name" in keo_service.adapters."""
+    module, _, name = where.partition(":")
+    return getattr(importlib.import_module(f"keo_service.adapters.{module}"), name)
+
+
+def protocol_of(config: Config, section: Section) -> Protocol:
+    """The table's row for the protocol the config gives a section's device."""
+    device = config.robot if section == "robot" else config.tracker
+    return protocol_for(section, device.protocol)
+
+
+def encoder_adapter_for(config: Config) -> Any:
+    """The encoder adapter class of `robot.protocol` (ros2's `Ros2JointStateAdapter` takes
+    the URDF's joint names instead of their number)."""
+    return load(protocol_of(config, "robot").adapter)
+
+
+def tracker_adapter_for(config: Config) -> Any:
+    """The tracker adapter class of `tracker.protocol`."""
+    return load(protocol_of(config, "tracker").adapter)
+
+
+def mock_factory(protocol: Protocol) -> Any:
+    """The function that builds the protocol's mock device from `MockSettings`."""
+    return load(protocol.mock)

@@ -373,7 +373,13 @@ async def _loop_udp_controller(protocol: str) -> None:
     t0 = time.time() + 0.2
     cls = MockRsiController if protocol == "kuka_rsi" else MockEgmController
     mock = cls(
-        Track(), "127.0.0.1", port, t0=t0, loop_play=True, period_s=1.3, clock_offset_ms=offset_ms
+        Track(),
+        "127.0.0.1",
+        port,
+        t0=t0,
+        loop_play=True,
+        period_s=1.3,
+        clock_offset_s=offset_ms * 1e-3,
     )
     await mock.start()
     try:

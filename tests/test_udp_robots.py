@@ -311,7 +311,7 @@ async def test_adapter_answers_every_cycle_and_stamps_from_the_controller_clock(
         config.robot.port,
         t0=t0,
         jitter_ms=3.0,
-        clock_offset_ms=offset_ms,
+        clock_offset_s=offset_ms * 1e-3,
         external=[1250.0, 0.0, 0.0, 0.0, 0.0, 0.0],
         drop_probability=0.02,
         max_late=1_000_000,  # judged elsewhere: here the machine's load must not stop it
@@ -752,7 +752,7 @@ async def test_a_restarted_controller_starts_a_new_clock_epoch(demo_config, prot
                     "127.0.0.1",
                     config.robot.port,
                     t0=time.time() + 0.1,
-                    clock_offset_ms=offset_ms,
+                    clock_offset_s=offset_ms * 1e-3,
                     max_late=1_000_000,
                 )
                 await mock.start()

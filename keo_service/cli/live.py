@@ -95,16 +95,17 @@ def cmd_adapter(args: argparse.Namespace) -> int:
     import asyncio
 
     from keo_service.adapters.devices import Ros2JointStateAdapter
-    from keo_service.adapters.select import encoder_adapter_for, tracker_adapter_for
+    from keo_service.adapters.select import encoder_adapter_for, protocol_of, tracker_adapter_for
     from keo_service.io.cell import robot_from_config
 
     config = common.load(args.config)
     _setup_logging(args.verbose)
     robot = robot_from_config(config)
     nq = robot.nq
-    if args.device == "encoder" and config.robot.protocol in ("rtde", "kuka_rsi") and nq != 6:
+    fixed = protocol_of(config, "robot").joints
+    if args.device == "encoder" and fixed and nq != fixed:
         raise ConfigError(
-            config.source, "robot.urdf", f"{nq} joints; {config.robot.protocol} reports 6"
+            config.source, "robot.urdf", f"{nq} joints; {config.robot.protocol} reports {fixed}"
         )
 
     def make() -> Any:
@@ -139,74 +140,62 @@ def _pair(text: str | None, option: str) -> tuple[float, float] | None:
     return a, b
 
 
-def _udp_controller(
-    args: argparse.Namespace, config: Any, protocol: str, run: Any, period: float | None = None
-) -> Any:
-    """The RSI or EGM controller side, sending to keo's server (the config's robot host and
-    port); with `robot.correction` naming the protocol it applies the corrections it gets."""
-    from keo_service.adapters.mock_udp import MockEgmController, MockRsiController
-    from keo_service.io.cell import cell_from_config
-    from keo_service.sim.controller import tool_corrector
+def _mock_settings(args: argparse.Namespace, protocol: str, period: float) -> Any:
+    """`keo mock`'s options as the settings every mock is built from (adapters.mock)."""
+    from keo_service.adapters.mock import MockSettings
 
-    cls = MockRsiController if protocol == "kuka_rsi" else MockEgmController
-    port = args.port or (config.robot.endpoint_port if config.robot.protocol == protocol else 0)
-    corrector = (
-        tool_corrector(cell_from_config(config)) if config.robot.correction == protocol else None
-    )
-    return cls(
-        run.encoder,
-        args.host or config.robot.host,
-        port or (49152 if protocol == "kuka_rsi" else 6510),
-        args.t0,
+    return MockSettings(
+        device=args.device,
+        protocol=protocol,
+        host=args.host or "",  # "": the config's
+        port=args.port or 0,  # 0: the config's, or the protocol's default
+        t0=args.t0,
+        loop=args.loop,
+        period_s=period,
+        seed=args.seed,
+        resample=not args.as_planned,
+        late_ms=args.late_ms,
+        burst_every_s=args.burst_every,
+        clock_offset_s=args.clock_offset,  # None: the mock's default
+        clock_drift_ppm=args.clock_drift_ppm,
+        max_hz=args.max_hz,
         cycle_ms=args.cycle_ms,
         jitter_ms=args.jitter_ms,
         max_late=args.max_late,
-        corrector=corrector,
-        seed=args.seed,
-        loop_play=args.loop,
-        realtime=True,
-        period_s=period,
+        wall_clock=args.wall_clock_device_time,
+        beam_break=_pair(args.beam_break, "--beam-break"),
+        clock_step=_pair(args.clock_step, "--clock-step"),
+        device_clock=_pair(args.device_clock, "--device-clock"),
     )
 
 
-def _ros2_driver(
-    args: argparse.Namespace, config: Any, run: Any, names: list[str], period: float
-) -> Any:
-    """A ROS 2 robot driver (JointState on robot.joint_states_topic) or tracker driver
-    (PoseStamped on tracker.pose_topic) on the config's bus, stamped with the wall clock."""
-    from keo_service.adapters.mock_ros2 import MockRos2Driver
+def _on_the_grid(args: argparse.Namespace, period: float) -> float | None:
+    """Without --t0, every mock of the scenario plays the same phase: t0 on the wall-clock
+    grid of its period, looping; one period from now (None: for ever with --loop). Returns
+    when to stop playing."""
+    from keo_service.adapters.mock_devices import wall_clock_t0
 
-    if args.device == "robot":
-        return MockRos2Driver(
-            config,
-            config.robot.joint_states_topic,
-            args.t0,
-            joints=run.encoder,
-            names=names,
-            loop_play=args.loop,
-            period_s=period,
-            node_name="keo_mock_robot_driver",
-        )
-    return MockRos2Driver(
-        config,
-        config.tracker.pose_topic,
-        args.t0,
-        poses=run.tracker,
-        loop_play=args.loop,
-        period_s=period,
-        node_name="keo_mock_tracker_driver",
+    if args.t0 is not None:
+        return None
+    args.t0 = wall_clock_t0(period)
+    until = None if args.loop else time.time() + period
+    args.loop = True
+    logging.getLogger("keo.mock").info(
+        "%s: t0 on the wall-clock grid of the scenario's %.1f s period (any mock of this "
+        "scenario agrees); playing %s",
+        args.scenario,
+        period,
+        "for ever" if until is None else "one period (--loop: for ever)",
     )
+    return until
 
 
 def cmd_mock(args: argparse.Namespace) -> int:
     import asyncio
 
-    from keo_service.adapters.mock_devices import (
-        MockRobot,
-        MockRtdeController,
-        MockTracker,
-        wall_clock_t0,
-    )
+    import msgspec
+
+    from keo_service.adapters.mock import build_mock
     from keo_service.io.cell import cell_from_config
     from keo_service.sim.simulate import make_scenario, simulate
 
@@ -219,84 +208,26 @@ def cmd_mock(args: argparse.Namespace) -> int:
         overrides["position_only"] = "true"
     if getattr(args, "follow_corrections", False):
         return _mock_compensated_cell(args, config, overrides)
-    cell = cell_from_config(config)
-    run = simulate(cell, make_scenario(args.scenario, overrides), seed=args.seed)
-    # both mocks simulate the same run: one period for both streams, and without --t0 the
-    # same start on the wall-clock grid of that period
+    run = simulate(
+        cell_from_config(config), make_scenario(args.scenario, overrides), seed=args.seed
+    )
+    # both mocks simulate the same run: one period for both streams
     period = mock_period(run.encoder.t, run.tracker.t)
-    until = None
-    if args.t0 is None:  # on the grid every mock plays the same phase: one whole period
-        args.t0 = wall_clock_t0(period)  # from now, or for ever with --loop
-        until = None if args.loop else time.time() + period
-        args.loop = True
-        logging.getLogger("keo.mock").info(
-            "%s: t0 on the wall-clock grid of the scenario's %.1f s period (any mock of this "
-            "scenario agrees); playing %s",
-            args.scenario,
-            period,
-            "for ever" if until is None else "one period (--loop: for ever)",
-        )
-    server: Any
-    protocol = args.protocol or config.robot.protocol
-    if (protocol if args.device == "robot" else config.tracker.protocol) == "ros2":
-        server = _ros2_driver(args, config, run, list(cell.robot.joint_names), period)
-    elif args.device == "robot" and protocol == "rtde":
-        server = MockRtdeController(
-            run.encoder,
-            args.host or config.robot.host,
-            args.port or (config.robot.endpoint_port if config.robot.protocol == "rtde" else 30004),
-            args.t0,
-            max_hz=args.max_hz,
-            clock_offset_s=args.clock_offset,
-            clock_drift_ppm=args.clock_drift_ppm,
-            late_ms=args.late_ms,
-            burst_every_s=args.burst_every,
-            seed=args.seed,
-            loop_play=args.loop,
-            period_s=period,
-        )
-    elif args.device == "robot" and protocol in ("kuka_rsi", "abb_egm"):
-        server = _udp_controller(args, config, protocol, run, period)
-    elif args.device == "robot":
-        server = MockRobot(
-            run.encoder,
-            args.host or config.robot.host,
-            args.port or config.robot.endpoint_port,
-            config.robot.byte_order,
-            args.t0,
-            args.loop,
-            period_s=period,
-        )
-    else:
-        server = MockTracker(
-            run.tracker,
-            args.host or config.tracker.host,
-            args.port or config.tracker.port,
-            args.t0,
-            args.loop,
-            wall_clock=args.wall_clock_device_time,
-            beam_break=_pair(args.beam_break, "--beam-break"),
-            clock_step=_pair(args.clock_step, "--clock-step"),
-            period_s=period,
-            device_clock=_pair(args.device_clock, "--device-clock"),
-            late_ms=args.late_ms,
-            burst_every_s=args.burst_every,
-            seed=args.seed,
-            instants=run.physical_t,
-        )
-
-    server.play_until = until
-    if args.as_planned and hasattr(server, "resample"):
-        server.resample = False
+    until = _on_the_grid(args, period)
+    device = config.robot if args.device == "robot" else config.tracker
+    protocol = (args.protocol if args.device == "robot" else None) or device.protocol
+    settings = msgspec.structs.replace(_mock_settings(args, protocol, period), play_until=until)
+    mock = build_mock(settings, config, run)
 
     async def main() -> None:
         stop = asyncio.Event()
         _install_stop(stop.set)
-        await server.start()
+        await mock.start()
         await stop.wait()
-        await server.close()
-        if hasattr(server, "summary"):  # the UDP controllers: what they saw, as one JSON line
-            sys.stdout.write(json.dumps(server.summary()) + "\n")
+        await mock.close()
+        summary = mock.summary()  # the UDP controllers: what they saw, as one JSON line
+        if summary is not None:
+            sys.stdout.write(json.dumps(summary) + "\n")
 
     asyncio.run(main())
     return 0
@@ -346,7 +277,7 @@ def _mock_compensated_cell(args: argparse.Namespace, config: Any, overrides: dic
         args.port or config.robot.endpoint_port,
         args.t0,
         max_hz=args.max_hz,
-        clock_offset_s=args.clock_offset,
+        clock_offset_s=1000.0 if args.clock_offset is None else args.clock_offset,
         seed=args.seed,
         follow=closed.joints,
         correction_register=config.robot.correction_register,
@@ -542,22 +473,9 @@ def _add_stall_and_clock_args(p: argparse.ArgumentParser) -> None:
     )
 
 
-def register(add: common.AddCommand) -> None:
-    p = add("run", cmd_run, "the service (daemon)")
-    p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
-    add_viewer_options(p, url=True)
-    p.add_argument(
-        "--log-format",
-        choices=["auto", "text", "json"],
-        default="auto",
-        help="json: one JSON object per line (auto: json under journald)",
-    )
-    p.add_argument("-v", "--verbose", action="store_true")
-
-    p = add("adapter", cmd_adapter, "a device adapter (its own process)", config=False)
-    p.add_argument("device", choices=["encoder", "tracker"])
-    p.add_argument("--config", required=True)
-    p.add_argument("-v", "--verbose", action="store_true")
+def _register_mock(add: common.AddCommand) -> None:
+    """`keo mock`: its protocols are the protocol table's (io.protocols)."""
+    from keo_service.io.protocols import names as protocol_names
 
     p = add("mock", cmd_mock, "a device simulator speaking the real wire format", config=False)
     p.add_argument("device", choices=["robot", "tracker"])
@@ -588,13 +506,16 @@ def register(add: common.AddCommand) -> None:
     )
     p.add_argument(
         "--protocol",
-        choices=["motoros", "rtde", "kuka_rsi", "abb_egm", "ros2"],
+        choices=protocol_names("robot"),
         help="robot: the wire format (default: the config's robot.protocol); ros2: "
         "JointState over rmw_zenoh on the config's bus (the tracker's ros2: its protocol)",
     )
     p.add_argument("--max-hz", type=float, default=500.0, help="rtde: 500 e-Series, 125 CB3")
     p.add_argument(
-        "--clock-offset", type=float, default=1000.0, help="rtde: controller clock at t0"
+        "--clock-offset",
+        type=float,
+        help="rtde, kuka_rsi, abb_egm: the controller clock's reading at t0, seconds "
+        "(default: rtde 1000, kuka_rsi and abb_egm 5000)",
     )
     p.add_argument("--clock-drift-ppm", type=float, default=0.0, help="rtde: controller clock rate")
     _add_stall_and_clock_args(p)
@@ -618,6 +539,26 @@ def register(add: common.AddCommand) -> None:
     p.add_argument("--joint-offsets", metavar="Q1,...", help="with corrections: the arm's (rad)")
     p.add_argument("--summary", type=Path, help="with corrections: the true errors as JSON")
     p.add_argument("-v", "--verbose", action="store_true")
+
+
+def register(add: common.AddCommand) -> None:
+    p = add("run", cmd_run, "the service (daemon)")
+    p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
+    add_viewer_options(p, url=True)
+    p.add_argument(
+        "--log-format",
+        choices=["auto", "text", "json"],
+        default="auto",
+        help="json: one JSON object per line (auto: json under journald)",
+    )
+    p.add_argument("-v", "--verbose", action="store_true")
+
+    p = add("adapter", cmd_adapter, "a device adapter (its own process)", config=False)
+    p.add_argument("device", choices=["encoder", "tracker"])
+    p.add_argument("--config", required=True)
+    p.add_argument("-v", "--verbose", action="store_true")
+
+    _register_mock(add)
 
     p = add("echo", cmd_echo, "print what arrives on a key expression", config=False)
     p.add_argument("key")

@@ -10,13 +10,15 @@ import difflib
 import re
 import tomllib
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import msgspec
 import tomli_w
 
 from keo_service.core.errors import ConfigError
 from keo_service.core.settings import EstimatorSettings
+from keo_service.io.protocols import PROTOCOLS
+from keo_service.io.protocols import names as protocol_names
 
 # the estimator's defaults are the config's defaults: one place for each value
 _DEFAULTS = EstimatorSettings()
@@ -32,25 +34,18 @@ class _Section(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     pass
 
 
-# the controller's port when `robot.port` is not given (ros2 has none: it comes over the bus)
-DEFAULT_ROBOT_PORTS = {
-    "motoros": 50241,
-    "rtde": 30004,
-    "ros2": 0,
-    "kuka_rsi": 49152,
-    "abb_egm": 6510,
-}
-# the clock domain a protocol's stamps are on when `clock` is not given: ROS 2 stamps are ROS
-# time (the cell's common clock), RTDE/RSI/EGM stamps come from the controller's own clock,
-# MotoROS gives none (stamped on receipt); keo's tracker line protocol carries device time
-DEFAULT_ROBOT_CLOCKS = {
-    "motoros": "receipt",
-    "rtde": "device",
-    "ros2": "shared",
-    "kuka_rsi": "device",
-    "abb_egm": "device",
-}
-DEFAULT_TRACKER_CLOCKS = {"line": "device", "ros2": "shared"}
+# the defaults by protocol, from the protocol table (io.protocols): the controller's port when
+# `robot.port` is not given (ros2 has none: it comes over the bus), and the clock domain a
+# protocol's stamps are on when `clock` is not given
+DEFAULT_ROBOT_PORTS = {p.name: p.port for p in PROTOCOLS if p.section == "robot"}
+DEFAULT_ROBOT_CLOCKS = {p.name: p.clock for p in PROTOCOLS if p.section == "robot"}
+DEFAULT_TRACKER_CLOCKS = {p.name: p.clock for p in PROTOCOLS if p.section == "tracker"}
+if TYPE_CHECKING:
+    RobotProtocol = str
+    TrackerProtocol = str
+else:  # the values the table has: msgspec refuses others, naming the key and the choices
+    RobotProtocol = Literal[protocol_names("robot")]
+    TrackerProtocol = Literal[protocol_names("tracker")]
 ClockDomain = Literal["shared", "device", "receipt"]
 RosTopic = Annotated[
     str, msgspec.Meta(pattern=r"^/[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
@@ -64,7 +59,7 @@ class RobotConfig(_Section):
     # "motoros": ROS-Industrial simple message (MotoROS); "rtde": Universal Robots RTDE;
     # "ros2": sensor_msgs/msg/JointState over rmw_zenoh (any ROS 2 driver)
     # "kuka_rsi": KUKA RobotSensorInterface (keo is the UDP server); "abb_egm": ABB EGM
-    protocol: Literal["motoros", "rtde", "ros2", "kuka_rsi", "abb_egm"] = "motoros"
+    protocol: RobotProtocol = "motoros"
     # what the stamps are: "shared" (already on the cell's common clock), "device" (the
     # controller's own clock, mapped onto the host's), "receipt" (none: stamped on arrival);
     # not given: the protocol's default (DEFAULT_ROBOT_CLOCKS)
@@ -88,7 +83,7 @@ class RobotConfig(_Section):
         if self.port == 0:
             self.port = DEFAULT_ROBOT_PORTS.get(self.protocol, 0)
         if self.clock is None:
-            self.clock = DEFAULT_ROBOT_CLOCKS[self.protocol]  # type: ignore[assignment]
+            self.clock = DEFAULT_ROBOT_CLOCKS[self.protocol]
 
     @property
     def endpoint_port(self) -> int:
@@ -108,7 +103,7 @@ class TrackerConfig(_Section):
     port: Port = 5005
     # "line": keo's line protocol over TCP; "ros2": geometry_msgs/msg/PoseStamped (or
     # PointStamped for a single reflector) over rmw_zenoh, metres
-    protocol: Literal["line", "ros2"] = "line"
+    protocol: TrackerProtocol = "line"
     pose_topic: RosTopic = "/lasertracker/pose"
     # the stamps' clock domain (see RobotConfig.clock); not given: DEFAULT_TRACKER_CLOCKS
     clock: ClockDomain | None = None
@@ -121,7 +116,7 @@ class TrackerConfig(_Section):
 
     def __post_init__(self) -> None:
         if self.clock is None:
-            self.clock = DEFAULT_TRACKER_CLOCKS[self.protocol]  # type: ignore[assignment]
+            self.clock = DEFAULT_TRACKER_CLOCKS[self.protocol]
 
 
 class Ros2Config(_Section):

@@ -20,11 +20,13 @@ import msgspec
 from keo_service.core.errors import ConfigError
 from keo_service.io.config import Config, load_config, parse_config
 from keo_service.io.config_reference import commented_toml
+from keo_service.io.protocols import names as protocol_names
+from keo_service.io.protocols import protocol_for
 from keo_service.resources import configs_dir
 
 ROBOTS = ("ur10", "mh180")
-ROBOT_PROTOCOLS = ("rtde", "motoros", "ros2", "kuka_rsi", "abb_egm")
-TRACKER_PROTOCOLS = ("line", "ros2")
+ROBOT_PROTOCOLS = protocol_names("robot")  # the protocol table's (io.protocols)
+TRACKER_PROTOCOLS = protocol_names("tracker")
 
 
 @dataclass(frozen=True)
@@ -145,8 +147,11 @@ def write_init_config(opts: InitOptions) -> Config:
         raise ConfigError("--out", "out", f"{out} exists; choose another file or pass --force")
     source = _urdf_source(opts.robot)
     base, flange, nq = _frames(source)
-    if opts.robot_protocol == "rtde" and nq != 6:
-        raise ConfigError("--robot", "robot.urdf", f"{nq} joints; a UR controller (rtde) reports 6")
+    fixed = protocol_for("robot", opts.robot_protocol).joints
+    if fixed and nq != fixed:
+        raise ConfigError(
+            "--robot", "robot.urdf", f"{nq} joints; {opts.robot_protocol} reports {fixed}"
+        )
     out.parent.mkdir(parents=True, exist_ok=True)
     target = out.parent / source.name
     if target.resolve() != source.resolve():
