@@ -24,7 +24,7 @@ class Protocol:
     Attributes:
         name: the config's `protocol` value.
         section: the config section of its device, "robot" (an encoder adapter) or "tracker".
-        codec: its codec module in `keo_service.adapters` (bytes in, typed frames out).
+        codec: its codec module under `keo_service` (bytes in, typed frames out).
         adapter: its adapter class, "module:Class" in `keo_service.adapters`.
         mock: the function that builds its mock device from `MockSettings`, "module:function"
             in `keo_service.adapters`.
@@ -53,7 +53,7 @@ PROTOCOLS: tuple[Protocol, ...] = (
     Protocol(
         "motoros",
         "robot",
-        codec="simple_message",
+        codec="adapters.simple_message",
         adapter="devices:EncoderAdapter",
         mock="mock_devices:motoros_mock",
         clock="receipt",  # MotoROS leaves the frame's time at 0
@@ -64,7 +64,7 @@ PROTOCOLS: tuple[Protocol, ...] = (
     Protocol(
         "rtde",
         "robot",
-        codec="rtde",
+        codec="adapters.rtde",
         adapter="devices:RtdeEncoderAdapter",
         mock="mock_devices:rtde_mock",
         clock="device",
@@ -76,7 +76,7 @@ PROTOCOLS: tuple[Protocol, ...] = (
     Protocol(
         "ros2",
         "robot",
-        codec="ros2",  # keo_service.live.ros2: rmw_zenoh's keys and CDR through rosbags
+        codec="live.ros2",  # rmw_zenoh's keys and attachments; CDR through rosbags
         adapter="devices:Ros2JointStateAdapter",
         mock="mock_ros2:joint_state_mock",
         clock="shared",  # ROS time
@@ -87,7 +87,7 @@ PROTOCOLS: tuple[Protocol, ...] = (
     Protocol(
         "kuka_rsi",
         "robot",
-        codec="kuka_rsi",
+        codec="adapters.kuka_rsi",
         adapter="udp_devices:KukaRsiAdapter",
         mock="mock_udp:rsi_mock",
         clock="device",
@@ -99,7 +99,7 @@ PROTOCOLS: tuple[Protocol, ...] = (
     Protocol(
         "abb_egm",
         "robot",
-        codec="abb_egm",
+        codec="adapters.abb_egm",
         adapter="udp_devices:AbbEgmAdapter",
         mock="mock_udp:egm_mock",
         clock="device",
@@ -110,7 +110,7 @@ PROTOCOLS: tuple[Protocol, ...] = (
     Protocol(
         "line",
         "tracker",
-        codec="line_protocol",
+        codec="adapters.line_protocol",
         adapter="devices:TrackerAdapter",
         mock="mock_devices:line_mock",
         clock="device",
@@ -121,7 +121,7 @@ PROTOCOLS: tuple[Protocol, ...] = (
     Protocol(
         "ros2",
         "tracker",
-        codec="ros2",
+        codec="live.ros2",
         adapter="devices:Ros2PoseAdapter",
         mock="mock_ros2:pose_mock",
         clock="shared",
