@@ -6,6 +6,8 @@ Codecs, pure (no sockets): `simple_message` (MotoROS), `line_protocol` (keo's tr
 `egm/egm.proto`). Connections: `connection` (the reconnecting TCP loop), `health` (what a user
 sees of an adapter), `realtime` (best-effort real-time priority for the UDP answers).
 Adapters, which join a connection, a codec and the bus: `devices` (TCP and ROS 2),
-`udp_devices` (RSI, EGM), chosen by `select`. Mock devices speaking the same wire formats:
-`mock_devices` (TCP), `mock_udp` (RSI, EGM controllers).
+`udp_devices` (RSI, EGM); `select` turns the protocol table's rows (`io.protocols`) into them.
+Mock devices speaking the same wire formats: `mock` (what they share: `MockDevice`,
+`MockSettings`, `build_mock`), `mock_devices` (TCP), `mock_udp` (RSI, EGM controllers),
+`mock_ros2` (ROS 2 drivers).
 """
