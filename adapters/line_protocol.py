@@ -120,7 +120,8 @@ class LineProtocolParser:
     def _reject(self, counter: str, message: str) -> None:
         self._rejects.reject(counter, message)
 
-    def parse(self, line: bytes) -> Pose | None:
+    # one early reject per malformed field, in wire order
+    def parse(self, line: bytes) -> Pose | None:  # noqa: C901, PLR0912
         """One line (with its newline) of the connection: a pose, or None for a hello or a
         reject (counted; its message says which line of the connection and at which byte)."""
         self.lines += 1

@@ -458,7 +458,10 @@ class MockRtdeController(TcpMockServer):
     def device_time(self, scenario_t: float) -> float:
         return self.clock_offset_s + scenario_t * (1.0 + self.clock_drift)
 
-    async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    # the controller's session: one branch per message it answers, in the protocol's order
+    async def _on_client(  # noqa: C901, PLR0912, PLR0915
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
         self.clients += 1
         decoder = rtde.RtdeDecoder()
         recipe: rtde.Recipe | None = None
@@ -570,7 +573,8 @@ class MockRtdeController(TcpMockServer):
                 return
             start += self.period_s
 
-    async def _stream_pass(
+    # one pass of the track: each row's time, its stall, looping and the stop, in order
+    async def _stream_pass(  # noqa: C901
         self,
         writer: asyncio.StreamWriter,
         recipe: rtde.Recipe,
