@@ -326,3 +326,15 @@ def test_the_service_log_tells_the_story(demo_config, tmp_path):
     assert any("SIGTERM received, stopping" in ln for ln in lines), service_log
     assert " stopped after " in lines[-1], lines[-1]
     assert "estimates" in lines[-1]
+
+
+def test_the_topics_page_names_every_field_of_an_adapters_status():
+    """The typed adapter status (what Client.adapters() returns) is documented field by
+    field, as the bus messages are."""
+    from keo_service.live.messages import AdapterStatus
+    from tests.conftest import REPO
+
+    page = (REPO / "docs" / "topics-and-files.md").read_text(encoding="utf-8")
+    assert "`keo_service.AdapterStatus`" in page
+    for field in msgspec.structs.fields(AdapterStatus):
+        assert f"`{field.name}`" in page, field.name
