@@ -51,10 +51,10 @@ class MockSettings(msgspec.Struct, frozen=True, kw_only=True):
     device clock's offset in seconds for every protocol.
     """
 
-    device: Literal["robot", "tracker"]
-    protocol: str  # the row of the protocol table whose mock plays
-    host: str
-    port: int  # 0: the protocol's default
+    host: str  # where a server listens, or where a UDP controller sends ("": the config's)
+    port: int  # 0: the config's, or the protocol's default (through build_mock)
+    device: Literal["robot", "tracker"] = "robot"  # for build_mock: which device plays
+    protocol: str = ""  # for build_mock: the row of the protocol table whose mock plays
     t0: float | None = None  # wall time of scenario time 0 (None: 0.5 s after the start)
     loop: bool = False  # play the scenario again every period_s
     period_s: float | None = None  # None: the last row's time plus a little
@@ -91,7 +91,6 @@ def build_mock(settings: MockSettings, config: Config, run: Any) -> MockDevice:
     port = settings.port or (device.port if device.protocol == row.name else row.port)
     settings = msgspec.structs.replace(settings, host=settings.host or device.host, port=port)
     mock: MockDevice = mock_factory(row)(settings, config, run)
-    mock.play_until = settings.play_until
     return mock
 
 

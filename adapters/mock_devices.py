@@ -128,28 +128,21 @@ def stall_schedule(
 class _MockServer(TcpMockServer):
     """A TCP server playing rows of a track to each client, from t0 on the wall clock."""
 
-    def __init__(
-        self,
-        host: str,
-        port: int,
-        t0: float | None,
-        loop_play: bool,
-        period_s: float | None = None,
-    ) -> None:
-        self.host, self.port = host, port
-        self.t0 = t0
-        self.loop_play = loop_play
-        self.period_s = period_s  # None: the last row's time + 0.1 s
+    def __init__(self, settings: MockSettings) -> None:
+        self.host, self.port = settings.host, settings.port
+        self.t0 = settings.t0
+        self.loop_play = settings.loop
+        self.period_s = settings.period_s  # None: the last row's time + 0.1 s
         # wall time after which nothing more is sent (None: no limit); with loop_play, a
         # mock on the wall-clock grid plays one whole period from wherever it starts
-        self.play_until: float | None = None
+        self.play_until = settings.play_until
         self.clients = 0
         self._server: asyncio.Server | None = None
         self.send_offsets: np.ndarray | None = None  # per row: when it goes out (stalls)
         self.pass_offset_s = 0.0  # scenario seconds of the passes played before this one
         # a row that goes out late describes the instant it goes out (see Resampled); False:
         # every row as simulated, describing its planned instant however late it goes out
-        self.resample = True
+        self.resample = settings.resample
 
     async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self.clients += 1
@@ -222,16 +215,9 @@ class MockRobot(_MockServer):
     """MotoROS state server: JOINT_FEEDBACK (time left at 0) and ROBOT_STATUS every 0.5 s."""
 
     def __init__(
-        self,
-        encoder: JointTrack,
-        host: str,
-        port: int,
-        byte_order: str = "little",
-        t0: float | None = None,
-        loop_play: bool = False,
-        period_s: float | None = None,
+        self, encoder: JointTrack, settings: MockSettings, byte_order: str = "little"
     ) -> None:
-        super().__init__(host, port, t0, loop_play, period_s)
+        super().__init__(settings)
         self.encoder = encoder
         self.byte_order = byte_order
 
@@ -257,48 +243,38 @@ class MockTracker(_MockServer):
     def __init__(
         self,
         tracker: PoseTrack,
-        host: str,
-        port: int,
-        t0: float | None = None,
-        loop_play: bool = False,
+        settings: MockSettings,
+        *,
         length_unit: str = "mm",
-        wall_clock: bool = False,
-        beam_break: tuple[float, float] | None = None,
-        clock_step: tuple[float, float] | None = None,
         pose_at: Callable[[float], tuple[np.ndarray, np.ndarray] | None] | None = None,
-        period_s: float | None = None,
-        device_clock: tuple[float, float] | None = None,
-        late_ms: float = 0.0,
-        burst_every_s: float = 0.0,
-        seed: int = 0,
         instants: np.ndarray | None = None,
     ) -> None:
-        super().__init__(host, port, t0, loop_play, period_s)
+        super().__init__(settings)
         self.tracker = tracker
         # the instant each row measured (the simulator's physical time: its stamps also carry
         # a delay, jitter and drift): a late row is read off the motion there; without them
         # the rows go out as simulated
         self.instants = None if instants is None else np.asarray(instants, dtype=float)
-        self.resample = self.instants is not None
+        self.resample = self.instants is not None and settings.resample
         # (offset s, drift ppm): the tracker's own free-running clock stamps each pose at the
         # instant it measured, `offset + scenario time * (1 + drift)`, whoever is connected
         # (None: the time since the connection, read when the line is sent)
-        self.device_clock = device_clock
+        self.device_clock = settings.device_clock
         self.send_offsets = stall_schedule(
             np.asarray(tracker.t, dtype=float),
-            late_ms * 1e-3,
-            burst_every_s,
-            np.random.default_rng(seed),
+            settings.late_ms * 1e-3,
+            settings.burst_every_s,
+            np.random.default_rng(settings.seed),
         )
         # measured live instead of played: the sensor pose (m, scalar-first quaternion) for a
         # row's time, e.g. of an arm that a compensated controller moves (None: no target)
         self.pose_at = pose_at
         # faults a real tracker shows: (start, duration) of a broken beam in scenario seconds,
         # and (at, step) of a jump of its own clock
-        self.beam_break = beam_break
-        self.clock_step = clock_step
+        self.beam_break = settings.beam_break
+        self.clock_step = settings.clock_step
         # device time = wall clock at sending (for latency measurements), else time since connect
-        self.wall_clock = wall_clock
+        self.wall_clock = settings.wall_clock
         self.length_unit = length_unit
         self.scale = 1e3 if length_unit == "mm" else 1.0
 
@@ -416,20 +392,11 @@ class MockRtdeController(TcpMockServer):
     def __init__(
         self,
         track: JointTrack,
-        host: str,
-        port: int,
-        t0: float | None = None,
-        max_hz: float = 500.0,
-        clock_offset_s: float = 1000.0,
-        clock_drift_ppm: float = 0.0,
-        late_ms: float = 0.0,
-        burst_every_s: float = 0.0,
+        settings: MockSettings,
+        *,
         version: tuple[int, int, int, int] = (5, 15, 0, 0),
-        seed: int = 0,
         follow: Callable[[float, tuple[float, ...] | None], np.ndarray] | None = None,
         correction_register: int = 24,
-        loop_play: bool = False,
-        period_s: float | None = None,
     ) -> None:
         self.track = track
         self.follow = follow
@@ -440,16 +407,18 @@ class MockRtdeController(TcpMockServer):
         )
         # looping: the track again every period_s (default: its last time + 0.1 s), the
         # controller's clock running on
-        self.loop_play = loop_play
-        self.period_s = period_s or float(track.t[-1]) + 0.1
-        self.play_until: float | None = None  # as _MockServer.play_until
-        self.host, self.port, self.t0 = host, port, t0
-        self.max_hz = max_hz
-        self.clock_offset_s, self.clock_drift = clock_offset_s, clock_drift_ppm * 1e-6
-        self.late_s, self.burst_every_s = late_ms * 1e-3, burst_every_s
+        self.loop_play = settings.loop
+        self.period_s = settings.period_s or float(track.t[-1]) + 0.1
+        self.play_until = settings.play_until  # as _MockServer.play_until
+        self.host, self.port, self.t0 = settings.host, settings.port, settings.t0
+        self.max_hz = settings.max_hz
+        offset = settings.clock_offset_s
+        self.clock_offset_s = 1000.0 if offset is None else offset
+        self.clock_drift = settings.clock_drift_ppm * 1e-6
+        self.late_s, self.burst_every_s = settings.late_ms * 1e-3, settings.burst_every_s
         self.version = version
-        self.rng = np.random.default_rng(seed)
-        self.resample = True  # as _MockServer.resample
+        self.rng = np.random.default_rng(settings.seed)
+        self.resample = settings.resample  # as _MockServer.resample
         self.clients = 0
         # (scenario time, controller stamp) of the newest packages, for tests
         self.sent: collections.deque[tuple[float, float]] = collections.deque(maxlen=100_000)
@@ -655,52 +624,14 @@ class MockRtdeController(TcpMockServer):
 
 def motoros_mock(s: MockSettings, config: Config, run: Any) -> MockRobot:
     """A MotoROS controller playing the run's joints in the config's byte order."""
-    mock = MockRobot(
-        run.encoder, s.host, s.port, config.robot.byte_order, s.t0, s.loop, period_s=s.period_s
-    )
-    mock.resample = s.resample
-    return mock
+    return MockRobot(run.encoder, s, config.robot.byte_order)
 
 
 def rtde_mock(s: MockSettings, config: Config, run: Any) -> MockRtdeController:
     """A UR controller's RTDE server playing the run's joints on its own clock."""
-    mock = MockRtdeController(
-        run.encoder,
-        s.host,
-        s.port,
-        s.t0,
-        max_hz=s.max_hz,
-        clock_offset_s=1000.0 if s.clock_offset_s is None else s.clock_offset_s,
-        clock_drift_ppm=s.clock_drift_ppm,
-        late_ms=s.late_ms,
-        burst_every_s=s.burst_every_s,
-        seed=s.seed,
-        loop_play=s.loop,
-        period_s=s.period_s,
-        correction_register=config.robot.correction_register,
-    )
-    mock.resample = s.resample
-    return mock
+    return MockRtdeController(run.encoder, s, correction_register=config.robot.correction_register)
 
 
 def line_mock(s: MockSettings, config: Config, run: Any) -> MockTracker:
     """A line-protocol tracker playing the run's poses, with the faults asked for."""
-    mock = MockTracker(
-        run.tracker,
-        s.host,
-        s.port,
-        s.t0,
-        s.loop,
-        wall_clock=s.wall_clock,
-        beam_break=s.beam_break,
-        clock_step=s.clock_step,
-        period_s=s.period_s,
-        device_clock=s.device_clock,
-        late_ms=s.late_ms,
-        burst_every_s=s.burst_every_s,
-        seed=s.seed,
-        instants=run.physical_t,
-    )
-    if not s.resample:
-        mock.resample = False
-    return mock
+    return MockTracker(run.tracker, s, instants=run.physical_t)

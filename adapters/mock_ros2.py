@@ -51,23 +51,23 @@ class MockRos2Driver(TaskMock):
         self,
         config: Any,
         topic: str,
-        t0: float,
+        settings: MockSettings,
+        *,
         joints: JointTrack | None = None,
         names: list[str] | None = None,
         poses: PoseTrack | None = None,
-        loop_play: bool = False,
-        period_s: float | None = None,
         node_name: str = "mock_driver",
     ) -> None:
         if (joints is None) == (poses is None):
             raise ValueError("a ROS 2 mock plays joints or poses")
+        t0 = settings.t0 if settings.t0 is not None else time.time() + 0.5
         self.config, self.topic, self.t0 = config, topic, t0
         self.joints, self.names, self.poses = joints, list(names or []), poses
-        self.loop_play = loop_play
+        self.loop_play = settings.loop
         times = (joints if joints is not None else poses).t  # type: ignore[union-attr]
         self.times = np.asarray(times, dtype=float)
-        self.period_s = period_s or float(self.times[-1]) + 0.1
-        self.play_until: float | None = None
+        self.period_s = settings.period_s or float(self.times[-1]) + 0.1
+        self.play_until = settings.play_until
         self.node_name = node_name
         self.published = 0
         self._velocity: np.ndarray | None = None
@@ -146,10 +146,6 @@ class MockRos2Driver(TaskMock):
 # ---- the protocol table's builders (io.protocols: MockSettings -> the mock) ----
 
 
-def _t0(s: MockSettings) -> float:
-    return s.t0 if s.t0 is not None else time.time() + 0.5
-
-
 def joint_state_mock(s: MockSettings, config: Any, run: Any) -> MockRos2Driver:
     """A ROS 2 robot driver: JointState on robot.joint_states_topic, the URDF's joint names."""
     from keo_service.io.cell import robot_from_config
@@ -157,11 +153,9 @@ def joint_state_mock(s: MockSettings, config: Any, run: Any) -> MockRos2Driver:
     return MockRos2Driver(
         config,
         config.robot.joint_states_topic,
-        _t0(s),
+        s,
         joints=run.encoder,
         names=list(robot_from_config(config).joint_names),
-        loop_play=s.loop,
-        period_s=s.period_s,
         node_name="keo_mock_robot_driver",
     )
 
@@ -169,11 +163,5 @@ def joint_state_mock(s: MockSettings, config: Any, run: Any) -> MockRos2Driver:
 def pose_mock(s: MockSettings, config: Any, run: Any) -> MockRos2Driver:
     """A ROS 2 tracker driver: PoseStamped (PointStamped) on tracker.pose_topic, metres."""
     return MockRos2Driver(
-        config,
-        config.tracker.pose_topic,
-        _t0(s),
-        poses=run.tracker,
-        loop_play=s.loop,
-        period_s=s.period_s,
-        node_name="keo_mock_tracker_driver",
+        config, config.tracker.pose_topic, s, poses=run.tracker, node_name="keo_mock_tracker_driver"
     )

@@ -66,36 +66,29 @@ class MockUdpController(TaskMock):
     def __init__(
         self,
         track: JointTrack,
-        host: str,
-        port: int,
-        t0: float | None = None,
-        cycle_ms: float = 4.0,
-        jitter_ms: float = 0.0,
-        max_late: int = 100,
-        clock_offset_s: float = 5000.0,
+        settings: MockSettings,
+        *,
         corrector: Corrector | None = None,
-        seed: int = 0,
-        loop_play: bool = False,
         drop_probability: float = 0.0,
         realtime: bool = False,
-        period_s: float | None = None,
     ) -> None:
         self.realtime = realtime  # ask for real-time scheduling, as a controller has
+        self.cycle_ms = settings.cycle_ms
         # looping: the track again every period_s (default: its last time + one cycle)
-        self.period_s = period_s or float(track.t[-1]) + cycle_ms * 1e-3
-        self.play_until: float | None = None  # wall time after which nothing more is sent
+        self.period_s = settings.period_s or float(track.t[-1]) + self.cycle_ms * 1e-3
+        self.play_until = settings.play_until  # wall time after which nothing more is sent
         self.seq = 0  # datagrams made so far (EGM's seqno), on from pass to pass
         self.track = track
         self.drop_probability = drop_probability  # datagrams lost on the way to keo
-        self.host, self.port, self.t0 = host, port, t0
-        self.cycle_ms = cycle_ms
-        self.jitter_s = jitter_ms * 1e-3
-        self.max_late = max_late
+        self.host, self.port, self.t0 = settings.host, settings.port, settings.t0
+        self.jitter_s = settings.jitter_ms * 1e-3
+        self.max_late = settings.max_late
         # the controller's millisecond clock (RSI's IPOC, EGM's header.tm) at t0
-        self.clock_offset_ms = round(clock_offset_s * 1e3)
+        offset_s = 5000.0 if settings.clock_offset_s is None else settings.clock_offset_s
+        self.clock_offset_ms = round(offset_s * 1e3)
         self.corrector = corrector
-        self.loop_play = loop_play
-        self.rng = np.random.default_rng(seed)
+        self.loop_play = settings.loop
+        self.rng = np.random.default_rng(settings.seed)
         self.counters: collections.Counter[str] = collections.Counter()
         self.rtt_s: collections.deque[float] = collections.deque(maxlen=200_000)
         self.correction = np.zeros(6)
@@ -283,9 +276,14 @@ class MockRsiController(MockUdpController):
     protocol = "kuka_rsi"
 
     def __init__(
-        self, *args: object, external: list[float] | None = None, **kwargs: object
+        self,
+        track: JointTrack,
+        settings: MockSettings,
+        *,
+        external: list[float] | None = None,
+        **hooks: Any,
     ) -> None:
-        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        super().__init__(track, settings, **hooks)
         self.external = external
         self.codec = kuka_rsi.RsiCodec()
 
@@ -315,9 +313,14 @@ class MockEgmController(MockUdpController):
     protocol = "abb_egm"
 
     def __init__(
-        self, *args: object, external: list[float] | None = None, **kwargs: object
+        self,
+        track: JointTrack,
+        settings: MockSettings,
+        *,
+        external: list[float] | None = None,
+        **hooks: Any,
     ) -> None:
-        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        super().__init__(track, settings, **hooks)
         self.external = external
         self.codec = abb_egm.EgmCodec()
         self._tm_of_seq: dict[int, int] = {}
@@ -391,21 +394,7 @@ def _controller(
     corrector = None
     if config.robot.correction == cls.protocol:
         corrector = tool_corrector(cell_from_config(config))
-    return cls(
-        run.encoder,
-        s.host,
-        s.port,
-        s.t0,
-        cycle_ms=s.cycle_ms,
-        jitter_ms=s.jitter_ms,
-        max_late=s.max_late,
-        clock_offset_s=5000.0 if s.clock_offset_s is None else s.clock_offset_s,
-        corrector=corrector,
-        seed=s.seed,
-        loop_play=s.loop,
-        realtime=True,
-        period_s=s.period_s,
-    )
+    return cls(run.encoder, s, corrector=corrector, realtime=True)
 
 
 def rsi_mock(s: MockSettings, config: Config, run: Any) -> MockUdpController:

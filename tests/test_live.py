@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from keo_service.adapters.devices import EncoderAdapter, TrackerAdapter
+from keo_service.adapters.mock import MockSettings
 from keo_service.adapters.mock_devices import MockRobot, MockTracker
 from keo_service.bench.demo import loopback_config
 from keo_service.bench.procs import process_group
@@ -89,8 +90,12 @@ async def test_chain_in_one_process(live_config, demo_cell):
     run = simulate(demo_cell, make_scenario("paper-step", {"duration_s": "3.5"}), seed=21)
     truth = run.truth.mean(axis=0)
     t0 = time.time() + 1.0
-    robot = MockRobot(run.encoder, "127.0.0.1", live_config.robot.port, t0=t0)
-    tracker = MockTracker(run.tracker, "127.0.0.1", live_config.tracker.port, t0=t0)
+    robot = MockRobot(
+        run.encoder, MockSettings(host="127.0.0.1", port=live_config.robot.port, t0=t0)
+    )
+    tracker = MockTracker(
+        run.tracker, MockSettings(host="127.0.0.1", port=live_config.tracker.port, t0=t0)
+    )
     await robot.start()
     await tracker.start()
     try:

@@ -21,6 +21,7 @@ import pytest
 import pyzeros  # noqa: F401  (a test dependency: fail loudly when it is missing)
 import zenoh
 
+from keo_service.adapters.mock import MockSettings
 from keo_service.bench.procs import free_port, process_group
 from keo_service.io.config import load_config
 from tests.conftest import keo, wait_for_status
@@ -171,9 +172,8 @@ async def test_the_ros2_mock_loops_with_the_stamps_running_on(demo_config):
     peer = open_session("peer", listen=bus.listen)
     sub = peer.declare_subscriber("0/joint_states/**", on_sample)
     t0 = time.time() + 0.3
-    mock = MockRos2Driver(
-        config, "/joint_states", t0, joints=track, names=UR10_JOINTS, loop_play=True, period_s=1.3
-    )
+    settings = MockSettings(host="", port=0, t0=t0, loop=True, period_s=1.3)
+    mock = MockRos2Driver(config, "/joint_states", settings, joints=track, names=UR10_JOINTS)
     try:
         await mock.start()
         await asyncio.sleep(4.5)  # three passes and more

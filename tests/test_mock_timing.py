@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from keo_service.adapters.mock import MockSettings
 from keo_service.adapters.mock_devices import MockTracker
 from keo_service.bench.procs import free_port
 from keo_service.sim.simulate import make_scenario, simulate
@@ -38,10 +39,7 @@ async def test_a_late_row_describes_the_instant_it_goes_out(demo_cell):
     port = free_port()
     mock = MockTracker(
         played.tracker,
-        "127.0.0.1",
-        port,
-        t0=t0,
-        device_clock=(OFFSET_S, DRIFT_PPM),
+        MockSettings(host="127.0.0.1", port=port, t0=t0, device_clock=(OFFSET_S, DRIFT_PPM)),
         instants=played.physical_t,
     )
     await mock.start()

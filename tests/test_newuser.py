@@ -14,6 +14,7 @@ from pathlib import Path
 import msgspec
 import pytest
 
+from keo_service.adapters.mock import MockSettings
 from keo_service.bench.procs import free_port, process_group
 from keo_service.core.errors import ConfigError
 from keo_service.io import config_reference
@@ -280,14 +281,13 @@ async def test_loop_plays_the_scenario_again_for_every_mock_protocol(protocol):
     port = free_port()
     t0 = time.time() + 0.2
     server: MockRobot | MockTracker | MockRtdeController
+    settings = MockSettings(host="127.0.0.1", port=port, t0=t0, loop=True, period_s=1.3)
     if protocol == "motoros":
-        server = MockRobot(Track(), "127.0.0.1", port, t0=t0, loop_play=True, period_s=1.3)
+        server = MockRobot(Track(), settings)
     elif protocol == "line":
-        server = MockTracker(Track(), "127.0.0.1", port, t0=t0, loop_play=True, period_s=1.3)
+        server = MockTracker(Track(), settings)
     else:
-        server = MockRtdeController(
-            Track(), "127.0.0.1", port, t0=t0, max_hz=50.0, loop_play=True, period_s=1.3
-        )
+        server = MockRtdeController(Track(), msgspec.structs.replace(settings, max_hz=50.0))
     await server.start()
     stamps: list[float] = []
     try:
@@ -374,12 +374,14 @@ async def _loop_udp_controller(protocol: str) -> None:
     cls = MockRsiController if protocol == "kuka_rsi" else MockEgmController
     mock = cls(
         Track(),
-        "127.0.0.1",
-        port,
-        t0=t0,
-        loop_play=True,
-        period_s=1.3,
-        clock_offset_s=offset_ms * 1e-3,
+        MockSettings(
+            host="127.0.0.1",
+            port=port,
+            t0=t0,
+            loop=True,
+            period_s=1.3,
+            clock_offset_s=offset_ms * 1e-3,
+        ),
     )
     await mock.start()
     try:

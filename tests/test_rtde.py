@@ -18,6 +18,7 @@ import pytest
 
 from keo_service.adapters import rtde
 from keo_service.adapters.devices import RtdeEncoderAdapter
+from keo_service.adapters.mock import MockSettings
 from keo_service.adapters.mock_devices import MockRtdeController
 from keo_service.bench.procs import free_port
 from keo_service.core.clock import ClockMapper
@@ -178,13 +179,15 @@ async def test_adapter_maps_a_drifting_bursty_controller_onto_the_host_clock(dem
     t0 = time.time() + 1.0
     mock = MockRtdeController(
         SimpleNamespace(t=t, q=q),
-        "127.0.0.1",
-        robot.port,
-        t0=t0,
-        clock_offset_s=offset,
-        clock_drift_ppm=drift_ppm,
-        late_ms=6.0,
-        burst_every_s=0.2,
+        MockSettings(
+            host="127.0.0.1",
+            port=robot.port,
+            t0=t0,
+            clock_offset_s=offset,
+            clock_drift_ppm=drift_ppm,
+            late_ms=6.0,
+            burst_every_s=0.2,
+        ),
     )
     await mock.start()
     service_side = open_session("peer", listen=[endpoint])

@@ -25,6 +25,7 @@ from scipy.spatial.transform import Rotation
 from keo_service.adapters import abb_egm, kuka_rsi
 from keo_service.adapters.devices import TrackerAdapter
 from keo_service.adapters.egm import egm_pb2
+from keo_service.adapters.mock import MockSettings
 from keo_service.adapters.mock_udp import LiveTracker, MockEgmController, MockRsiController
 from keo_service.adapters.select import encoder_adapter_for
 from keo_service.adapters.udp_devices import CorrectionOutput, rkorr_of
@@ -307,15 +308,17 @@ async def test_adapter_answers_every_cycle_and_stamps_from_the_controller_clock(
     t0 = time.time() + 0.8
     mock = MOCKS[protocol](
         track,
-        "127.0.0.1",
-        config.robot.port,
-        t0=t0,
-        jitter_ms=3.0,
-        clock_offset_s=offset_ms * 1e-3,
+        MockSettings(
+            host="127.0.0.1",
+            port=config.robot.port,
+            t0=t0,
+            jitter_ms=3.0,
+            clock_offset_s=offset_ms * 1e-3,
+            max_late=1_000_000,  # judged elsewhere: here the machine's load must not stop it
+            seed=3,
+        ),
         external=[1250.0, 0.0, 0.0, 0.0, 0.0, 0.0],
         drop_probability=0.02,
-        max_late=1_000_000,  # judged elsewhere: here the machine's load must not stop it
-        seed=3,
     )
     service_side = open_session("peer", listen=config.bus.listen)
     samples: list[JointSample] = []
@@ -416,8 +419,9 @@ async def test_the_controller_stops_the_robot_after_n_late_answers():
     transport, sensor = await loop.create_datagram_endpoint(
         FiveAnswers, local_addr=("127.0.0.1", 0)
     )
+    port = transport.get_extra_info("sockname")[1]
     mock = MockRsiController(
-        slow_track(5.0), "127.0.0.1", transport.get_extra_info("sockname")[1], max_late=10
+        slow_track(5.0), MockSettings(host="127.0.0.1", port=port, max_late=10)
     )
     await mock.start()
     try:
@@ -443,9 +447,8 @@ async def test_the_live_correction_reaches_the_controller_clamped_and_zero_when_
         received.append(c.copy())
         return q
 
-    mock = MOCKS[protocol](
-        slow_track(30.0), "127.0.0.1", config.robot.port, t0=time.time() + 0.3, corrector=corrector
-    )
+    settings = MockSettings(host="127.0.0.1", port=config.robot.port, t0=time.time() + 0.3)
+    mock = MOCKS[protocol](slow_track(30.0), settings, corrector=corrector)
     service_side = open_session("peer", listen=config.bus.listen)
     pub = service_side.declare_publisher(topic(config.cell, "correction"))
 
@@ -600,10 +603,9 @@ async def test_the_correction_loop_takes_a_constant_2_mm_2_mrad_error_below_0_05
     T_kb = cell.T_bk.inverse()
     mock = MOCKS[protocol](
         track,
-        "127.0.0.1",
-        config.robot.port,
+        # the deadline is judged with the adapter in its own process
+        MockSettings(host="127.0.0.1", port=config.robot.port, max_late=1_000_000),
         corrector=tool_corrector(cell),
-        max_late=1_000_000,  # the deadline is judged with the adapter in its own process
     )
 
     def true_tool(scenario_t: float) -> pin.SE3:
@@ -647,7 +649,7 @@ async def test_the_correction_loop_takes_a_constant_2_mm_2_mrad_error_below_0_05
         pub = publisher.declare_publisher(topic(config.cell, "correction"))
         t0 = time.time() + 1.0
         mock.t0 = t0
-        tracker = LiveTracker(seen, "127.0.0.1", config.tracker.port, t0=t0, rate_hz=100.0)
+        tracker = LiveTracker(seen, "127.0.0.1", config.tracker.port, t0, rate_hz=100.0)
         await tracker.start()
         try:
             async with (
@@ -749,11 +751,13 @@ async def test_a_restarted_controller_starts_a_new_clock_epoch(demo_config, prot
             for offset_ms in (9_000_000, 1_000):  # the second: counting from near zero
                 mock = MOCKS[protocol](
                     slow_track(0.6),
-                    "127.0.0.1",
-                    config.robot.port,
-                    t0=time.time() + 0.1,
-                    clock_offset_s=offset_ms * 1e-3,
-                    max_late=1_000_000,
+                    MockSettings(
+                        host="127.0.0.1",
+                        port=config.robot.port,
+                        t0=time.time() + 0.1,
+                        clock_offset_s=offset_ms * 1e-3,
+                        max_late=1_000_000,
+                    ),
                 )
                 await mock.start()
                 await asyncio.sleep(0.9)

@@ -254,6 +254,7 @@ def _mock_compensated_cell(args: argparse.Namespace, config: Any, overrides: dic
     import asyncio
     import json
 
+    from keo_service.adapters.mock import MockSettings
     from keo_service.adapters.mock_devices import MockRtdeController, MockTracker
     from keo_service.io.cell import cell_from_config
     from keo_service.sim.closed_loop import ClosedLoopCell
@@ -273,21 +274,25 @@ def _mock_compensated_cell(args: argparse.Namespace, config: Any, overrides: dic
     run = simulate(cell, scenario, seed=args.seed)  # the tracker's sample times
     robot = MockRtdeController(
         run.encoder,
-        args.host or config.robot.host,
-        args.port or config.robot.endpoint_port,
-        args.t0,
-        max_hz=args.max_hz,
-        clock_offset_s=1000.0 if args.clock_offset is None else args.clock_offset,
-        seed=args.seed,
+        MockSettings(
+            host=args.host or config.robot.host,
+            port=args.port or config.robot.endpoint_port,
+            t0=args.t0,
+            max_hz=args.max_hz,
+            clock_offset_s=args.clock_offset,
+            seed=args.seed,
+        ),
         follow=closed.joints,
         correction_register=config.robot.correction_register,
     )
     tracker = MockTracker(
         run.tracker,
-        args.host or config.tracker.host,
-        config.tracker.port,
-        args.t0,
-        beam_break=_pair(args.beam_break, "--beam-break"),
+        MockSettings(
+            host=args.host or config.tracker.host,
+            port=config.tracker.port,
+            t0=args.t0,
+            beam_break=_pair(args.beam_break, "--beam-break"),
+        ),
         pose_at=closed.sensor,
     )
 
