@@ -155,13 +155,26 @@ class _ClientBase:
 
     @classmethod
     def from_config(cls, config: Config | str | Path, **kw: Any) -> Self:
-        """Endpoint, cell and TLS settings from a keo config (a path or a loaded Config)."""
+        """A client for the cell of a keo config, so a script needs no endpoint of its own.
+
+        Args:
+            config: a config file's path, or a loaded `Config`; its `bus.connect` (else
+                `bus.listen`), `cell`, TLS and access settings are used.
+            **kw: `queue_size` and `connect_timeout_s` (seconds) as for the constructor.
+
+        Returns:
+            The client, not yet open (use it as a context manager).
+
+        Raises:
+            ConfigError: the config cannot be read (naming the key).
+        """
         client = cls(**kw)
         client._settings = _Settings.from_config(_config(config), **kw)
         return client
 
     @property
     def cell(self) -> str:
+        """The cell whose keys (keo/<cell>/...) the client reads."""
         return self._settings.cell
 
     @property
@@ -176,12 +189,20 @@ class _ClientBase:
 
 
 class Client(_ClientBase):
-    """An async context manager that owns one Zenoh client session and its subscriptions.
+    """An async context manager that owns one Zenoh client session and its subscriptions
+    (`async with Client(...) as keo:`), so that closing it ends every iteration it started.
 
-    `endpoint`: where the service (or a router) listens, e.g. "tcp/127.0.0.1:7447".
-    `connect_timeout_s`: how long to keep trying to reach it (default 20 s; None: until it
-    answers); then `ClientError`, a `KeoError` whose text says where and what to check.
-    `queue_size`: samples buffered per iteration before the oldest is dropped.
+    Args:
+        endpoint: where the service (or a router) listens, e.g. "tcp/127.0.0.1:7447", or a
+            list of such endpoints.
+        cell: the cell whose keys are read (the config's `cell`).
+        queue_size: samples buffered per iteration before the oldest is dropped (counted in
+            `dropped`): a slow reader never holds up the bus.
+        connect_timeout_s: seconds to keep trying to reach the bus (None: until it answers).
+
+    Raises:
+        ClientError: on entering, when the bus cannot be reached within
+            `connect_timeout_s` (the text names the endpoint and the keys to check).
     """
 
     async def __aenter__(self) -> Self:
@@ -206,8 +227,16 @@ class Client(_ClientBase):
             await asyncio.to_thread(session.close)
 
     async def samples(self, channel: str) -> AsyncIterator[Message]:
-        """Every decodable keo message on a channel ("encoder", "tracker", "estimate",
-        "robot_status") or a full key expression, in arrival order."""
+        """Every decodable keo message on a channel, in arrival order; what is not a keo
+        message (a foreign payload on a wildcard key) is skipped.
+
+        Args:
+            channel: "encoder", "tracker", "estimate", "robot_status", "correction", or a
+                full key expression.
+
+        Returns:
+            An async iterator of the messages (`keo_service.live.messages`, SI units).
+        """
         sub = AsyncSubscription(
             self._open_session(), [_key(self.cell, channel)], maxlen=self._settings.queue_size
         )
@@ -225,25 +254,51 @@ class Client(_ClientBase):
                 sub.close()
 
     async def estimates(self) -> AsyncIterator[EstimateMessage]:
-        """The service's estimates as they are published."""
+        """The service's estimates as they are published (`stamp` s; `measured`, `estimate`:
+        m and rad, px py pz rx ry rz)."""
         async for msg in self.samples("estimate"):
             if isinstance(msg, EstimateMessage):
                 yield msg
 
     async def latest(self, timeout: float = 2.0) -> EstimateMessage | None:
-        """The service's latest estimate (None when it has none yet or does not answer)."""
+        """The service's latest estimate, for a client that joins late.
+
+        Args:
+            timeout: seconds to wait for the answer.
+
+        Returns:
+            The estimate, or None when the service has none yet or does not answer.
+        """
         session = self._open_session()
         return await asyncio.to_thread(
             _query, session, topic(self.cell, "estimate"), EstimateMessage, timeout
         )
 
     async def adapters(self, timeout: float = 2.0) -> dict[str, AdapterStatus]:
-        """Each adapter's own status by name (see `query_adapters`)."""
+        """Each adapter's own status, asked of the adapters themselves.
+
+        Args:
+            timeout: seconds to wait for the answers.
+
+        Returns:
+            The status by adapter name ("encoder", "tracker"); an adapter that does not
+            answer within `timeout` is missing.
+        """
         session = self._open_session()
         return await asyncio.to_thread(query_adapters, session, self.cell, timeout)
 
     async def status(self, timeout: float = 5.0) -> ServiceStatus:
-        """The service's status; ClientError when no service answers within `timeout`."""
+        """The service's status: health, rates, the delay in use, counters, adapters.
+
+        Args:
+            timeout: seconds to wait for the answer.
+
+        Returns:
+            The status (`ServiceStatus`).
+
+        Raises:
+            ClientError: no service answered within `timeout`.
+        """
         session = self._open_session()
         key = topic(self.cell, "status")
         status = await asyncio.to_thread(_query, session, key, ServiceStatus, timeout)
@@ -253,8 +308,8 @@ class Client(_ClientBase):
 
 
 class SyncClient(_ClientBase):
-    """The same for scripts without asyncio: a context manager; iteration blocks the caller's
-    thread, never Zenoh's."""
+    """The same for scripts without asyncio (`with SyncClient(...) as keo:`): iteration
+    blocks the caller's thread, never Zenoh's. Arguments and errors as for `Client`."""
 
     def __enter__(self) -> Self:
         s = self._settings
@@ -272,8 +327,16 @@ class SyncClient(_ClientBase):
             session.close()
 
     def samples(self, channel: str, timeout: float | None = None) -> Iterator[Message]:
-        """Messages on a channel or key expression; ends when none arrived for `timeout`
-        seconds (None: never)."""
+        """Messages on a channel or key expression, as `Client.samples`.
+
+        Args:
+            channel: a channel name or a full key expression.
+            timeout: the iteration ends when nothing arrived for this many seconds (None:
+                never).
+
+        Returns:
+            An iterator of the messages.
+        """
         sub = BlockingSubscription(
             self._open_session(), _key(self.cell, channel), maxlen=self._settings.queue_size
         )
@@ -288,19 +351,26 @@ class SyncClient(_ClientBase):
             sub.close()
 
     def estimates(self, timeout: float | None = None) -> Iterator[EstimateMessage]:
-        """Estimates as published; ends when none arrived for `timeout` seconds."""
+        """Estimates as published, as `Client.estimates`; the iteration ends when none
+        arrived for `timeout` seconds (None: never)."""
         for msg in self.samples("estimate", timeout):
             if isinstance(msg, EstimateMessage):
                 yield msg
 
     def latest(self, timeout: float = 2.0) -> EstimateMessage | None:
+        """The latest estimate, as `Client.latest` (`timeout` in seconds)."""
         return _query(self._open_session(), topic(self.cell, "estimate"), EstimateMessage, timeout)
 
     def adapters(self, timeout: float = 2.0) -> dict[str, AdapterStatus]:
-        """Each adapter's own status by name (see `query_adapters`)."""
+        """Each adapter's own status by name, as `Client.adapters` (`timeout` in seconds)."""
         return query_adapters(self._open_session(), self.cell, timeout)
 
     def status(self, timeout: float = 5.0) -> ServiceStatus:
+        """The service's status, as `Client.status`.
+
+        Raises:
+            ClientError: no service answered within `timeout` seconds.
+        """
         key = topic(self.cell, "status")
         status = _query(self._open_session(), key, ServiceStatus, timeout)
         if status is None:

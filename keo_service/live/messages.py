@@ -36,6 +36,17 @@ class _Message(msgspec.Struct, frozen=True, kw_only=True, tag_field="type"):
 
 
 class JointSample(_Message, frozen=True, tag=_tag("joint")):
+    """keo/<cell>/encoder: one joint sample of the robot, as an encoder adapter read it.
+
+    Attributes:
+        stamp: the stream time used for alignment, s (the host's clock, in `clock`'s domain).
+        host_ns: when the adapter received it, ns since the epoch.
+        seq: the adapter's counter, one per sample (a gap is a sample lost on the bus).
+        joints: positions, rad (m for a prismatic joint), in the URDF's joint order.
+        velocities: the joints' velocities, rad/s, where the controller gives them.
+        device_stamp: the controller's own time of the sample, s, where it gives one.
+    """
+
     stamp: float
     host_ns: int
     seq: int
@@ -54,6 +65,11 @@ class JointSample(_Message, frozen=True, tag=_tag("joint")):
 
 
 class RobotStatus(_Message, frozen=True, tag=_tag("robot_status")):
+    """keo/<cell>/robot_status: the controller's state as ROS-Industrial's ROBOT_STATUS has it
+    (MotoROS sends it; the RTDE adapter maps UR's robot and safety modes onto it), each field
+    1 (true), 0 (false) or -1 (unknown); `error_code` and `mode` as the controller gives them;
+    `host_ns` when it was received, ns since the epoch."""
+
     host_ns: int
     drives_powered: int
     e_stopped: int
@@ -65,8 +81,9 @@ class RobotStatus(_Message, frozen=True, tag=_tag("robot_status")):
 
 
 class TrackerSample(_Message, frozen=True, tag=_tag("tracker")):
-    """A pose (position, and quaternion scalar first for a 6-DoF probe), or a gap when
-    status != "ok"."""
+    """keo/<cell>/tracker: a pose (position, and quaternion scalar first for a 6-DoF probe),
+    or a gap when status != "ok" (`stamp`, `host_ns`, `device_stamp`, the clock fields as in
+    `JointSample`; `seq` the tracker's own sequence number)."""
 
     stamp: float
     host_ns: int
@@ -126,6 +143,21 @@ def estimate_message(
 
 
 class ServiceStatus(_Message, frozen=True, tag=_tag("status")):
+    """keo/<cell>/status (a queryable): what the service is doing, for `keo status` and
+    `Client.status()`.
+
+    Attributes:
+        health: "ok", "waiting" (no estimate yet) or "stale" (none fresh for a second, or
+            the newest one held).
+        uptime_s: seconds since the service started; `host_ns` when this was made, ns.
+        rates_hz: samples per second of each stream and of the estimates.
+        delay_s: the delay in use (s): the tracker stream lags the encoder stream by it.
+        drift: the delay model's drift, s per s of stream time.
+        gains: the observer's gains, 1/s (px py pz rx ry rz).
+        counters: rejects, held steps and the rest, by name.
+        last_estimate: the newest estimate, if any; `messages`: the newest findings.
+    """
+
     cell: str
     health: str
     host_ns: int
