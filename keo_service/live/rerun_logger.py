@@ -22,10 +22,11 @@ Status is sent in columns once a second, errors at every flush: one chunk per en
 batch instead of a row per call (see docs/viewer.md for the sizes measured).
 
 A recording file is rolled every `ROLL_AFTER_S`: the Rerun SDK keeps a few hundred bytes per
-chunk of an open file until it closes it (its index), which at 1 kHz grew the Rerun process
-by about 7 MB a minute without end; closing the file frees them. `PATH` first, then
-`<stem>-0001<suffix>`, ...: one recording id across them (open them together and Rerun shows
-one recording), each file whole on its own (static frames and series styles in each).
+chunk of an open file until it closes it (its index), so the Rerun process grows for as long
+as one file stays open (docs/viewer.md has the rate measured); closing the file frees them.
+`PATH` first, then `<stem>-0001<suffix>`, ...: one recording id across them (open them
+together and Rerun shows one recording), each file whole on its own (static frames and series
+styles in each).
 """
 
 from __future__ import annotations
