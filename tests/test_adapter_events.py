@@ -338,3 +338,53 @@ def test_the_topics_page_names_every_field_of_an_adapters_status():
     assert "`keo_service.AdapterStatus`" in page
     for field in msgspec.structs.fields(AdapterStatus):
         assert f"`{field.name}`" in page, field.name
+
+
+@pytest.mark.parametrize(
+    "doc",
+    [
+        {  # a MotoROS encoder adapter, as it wrote its status before it was typed
+            "adapter": "encoder",
+            "counters": {"published": 12, "connections": 1},
+            "clock": {"domain": "receipt", "epoch": 1764280000000},
+            "decoder": {"frames": 12, "rejected": 0},
+            "messages": [],
+            "stamps_held_back": 0,
+            "state": "receiving",
+            "endpoint": "127.0.0.1:50241",
+            "protocol": "motoros",
+            "rate_hz": 39.5,
+            "last_data_age_s": 0.012,
+            "silent_events": 0,
+            "problem": "",
+            "last_error": "",
+        },
+        {  # a line-protocol tracker that has seen nothing yet, with an event
+            "adapter": "tracker",
+            "counters": {},
+            "clock": {"domain": "device", "epoch": 1764280000000, "offset_s": 0.0},
+            "parser": {},
+            "messages": ["not JSON: x (line 2 at byte 40 of the connection)"],
+            "state": "connecting",
+            "endpoint": "127.0.0.1:5005",
+            "protocol": "line",
+            "rate_hz": 0.0,
+            "last_data_age_s": None,
+            "silent_events": 0,
+            "problem": "",
+            "last_error": "cannot connect to 127.0.0.1:5005 (refused)",
+            "event_seq": 2,
+            "event": "cannot connect to 127.0.0.1:5005 (refused)",
+            "level": "warning",
+        },
+    ],
+)
+def test_the_typed_adapter_status_keeps_the_json_document_as_it_was(doc):
+    """`keo status --json` unchanged on the wire: the typed status writes back exactly the
+    fields an adapter wrote (none added, none lost), and it is trouble as documented."""
+    from keo_service.live.messages import AdapterStatus
+
+    typed = msgspec.convert(doc, AdapterStatus)
+    assert json.loads(typed.to_json()) == doc
+    assert AdapterStatus.from_json(json.dumps(doc).encode()) == typed
+    assert typed.trouble == (doc["state"] == "connecting" and bool(doc["last_error"]))
