@@ -30,7 +30,7 @@ import pinocchio as pin
 from keo_service.core.compensation import compensate
 from keo_service.core.kinematics import se3_from_xyz_rpy
 from keo_service.fit.analysis import split
-from keo_service.io.compensation_files import tool_model
+from keo_service.io.cell import tool_model
 from keo_service.io.config import load_config
 from keo_service.offline.analyze import load_data
 
