@@ -33,12 +33,15 @@ _EXPORTS = {
     "JointSample": "keo_service.live.messages",
     "TrackerSample": "keo_service.live.messages",
     "RobotStatus": "keo_service.live.messages",
+    "compensate": "keo_service.offline.compensate",
+    "CompensateResult": "keo_service.offline.compensate",
 }
 
 __all__ = [
     "Cell",
     "Client",
     "ClientError",
+    "CompensateResult",
     "Config",
     "ConfigError",
     "DataFormatError",
@@ -53,6 +56,7 @@ __all__ = [
     "SyncClient",
     "TrackerSample",
     "cell_from_config",
+    "compensate",
     "estimator_settings",
     "load_config",
 ]
@@ -72,6 +76,7 @@ if TYPE_CHECKING:
         ServiceStatus,
         TrackerSample,
     )
+    from keo_service.offline.compensate import CompensateResult, compensate
 
 
 def __getattr__(name: str) -> Any:
