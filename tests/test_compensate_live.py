@@ -88,7 +88,9 @@ def test_size_and_rate_are_clamped_and_counted_and_invalid_is_zero():
 
 
 def test_correction_to_send_is_zero_when_none_stale_or_invalid():
-    limits = CompensationLimits.from_config_values(1.0, 1.0, 50.0, max_age_s=0.1)
+    limits = CompensationConfig(
+        max_mm=1.0, max_mrad=1.0, max_rate_mm_s=50.0, max_age_s=0.1
+    ).limits()
     now = 10_000_000_000
 
     def msg(age_s: float, valid: bool = True, p=(2e-3, 0.0, 0.0)) -> CorrectionMessage:

@@ -29,7 +29,7 @@ import msgspec
 import numpy as np
 import zenoh
 
-from keo_service.core.compensation import CompensationLimits, CorrectionFilter
+from keo_service.core.compensation import CorrectionFilter
 from keo_service.core.compensation import correction_to_send as _to_send
 from keo_service.core.estimator import Estimate
 from keo_service.core.kinematics import error_as_pose
@@ -43,7 +43,7 @@ from keo_service.live.messages import (
     topic,
 )
 
-__all__ = ["CorrectionPublisher", "CorrectionSink", "correction_to_send", "limits_of"]
+__all__ = ["CorrectionPublisher", "CorrectionSink", "correction_to_send"]
 
 log = logging.getLogger("keo.compensation")
 DEFAULT_CYCLE_S = 0.01  # the correction's cycle before the observer's period is known
@@ -52,11 +52,6 @@ CYCLE_BOUNDS_S = (0.001, 0.1)  # the observer's period as the cycle, kept within
 # one: estimates at the cycle's own rate would be doubled by every tick that comes late)
 RENEW_AFTER = 1.5
 WARN_EVERY_S = 1.0  # a correction going stale is a warning at most this often (always counted)
-
-
-def limits_of(compensation: CompensationConfig) -> CompensationLimits:
-    """The [compensation] limits (and the correction's maximum age), in SI units."""
-    return compensation.limits()
 
 
 def correction_to_send(
