@@ -43,7 +43,6 @@ from keo_service.live.messages import (
 log = logging.getLogger("keo.adapter")
 
 DEFAULT_CYCLE_S = 0.004
-CORRECTION_MAX_AGE_S = 0.1  # one older than this (since receipt) is not applied: ramps to zero
 REPLY_WINDOW = 1000
 
 
@@ -56,10 +55,13 @@ class CorrectionOutput:
     Zenoh delivers on its own thread: the latest message is swapped in under a lock, read in
     the datagram callback."""
 
-    def __init__(self, limits: Any) -> None:
-        self.max_m = limits.max_mm * 1e-3
-        self.max_rad = limits.max_mrad * 1e-3
-        self.rate = limits.max_rate_mm_s * 1e-3  # m/s, and rad/s for the rotation
+    def __init__(self, compensation: Any) -> None:
+        limits = compensation.limits()  # [compensation] in SI units, read in one place
+        self.max_m = limits.max_m
+        self.max_rad = limits.max_rad
+        self.rate = limits.max_rate_m_s  # m/s, and rad/s for the rotation
+        # one older than this (since receipt) is not applied: ramps to zero
+        self.max_age_s = limits.max_age_s
         self.counters: collections.Counter[str] = collections.Counter()
         self._lock = threading.Lock()
         self._latest: tuple[CorrectionMessage, float] | None = None
@@ -90,7 +92,7 @@ class CorrectionOutput:
             self.reason = f"invalid: {msg.reason}"
             self.counters["correction_invalid"] += 1
             return np.zeros(6)
-        if now - at > CORRECTION_MAX_AGE_S:
+        if now - at > self.max_age_s:
             self.reason = f"stale: none for {now - at:.2f} s"
             self.counters["correction_stale"] += 1
             return np.zeros(6)

@@ -4,18 +4,22 @@ beside the uncompensated error.
 
     python docs/compensation_figure.py CONFIG ENCODER TRACKER MODEL_TOML
 
-For every held-out pose i (joints q_i, the tool measured at M_i = T_bk T_ks_i through the
-model's registration): the program's target is the nominal tool pose N(q_i). Uncompensated,
-the robot puts the tool at M_i: the error is N(q_i)^-1 M_i. Compensated, `keo compensate`
-(the same code) gives joints q_c with Model(q_c) = N(q_i); the real tool there is predicted
-from what the model still misses at q_i, carried to the nearby q_c:
+For every held-out pose i (joints q_i, the probe measured at T_bk T_ks_i through the model's
+registration, carried rigidly to the TCP: M_i = T_bk T_ks_i T_np^-1 T_nt with the model's
+probe T_np and the user's [tool] T_nt): the program's target is the nominal tool pose
+N(q_i). Uncompensated, the robot puts the tool at M_i: the error is N(q_i)^-1 M_i.
+Compensated, `keo compensate` (the same code) gives joints q_c with Model(q_c) = N(q_i); the
+real tool there is predicted from what the model still misses at q_i, carried to the nearby
+q_c:
 true(q_c) = Model(q_c) Model(q_i)^-1 M_i, so the error is Model(q_i)^-1 M_i. The Newton solve
 runs on every held-out pose and its flags and residuals are reported.
 
-Its "uncompensated" column is measured through the identified model's registration (T_bk,
-T_ns), which absorbs part of what the model's effects explain, so it is not the nominal
-model's own error: the README's uncompensated column is report.json's `baseline.validation`
-(the nominal model with its own registration fitted), as `keo analyze` reports it.
+Which registration the "uncompensated" column uses: model.toml's ([tracker] xyz/rpy and
+probe_xyz/rpy), which keo analyze states in the nominal robot's frames (the rigid motion that
+best carries the nominal robot onto the identified one over the calibration poses,
+`keo_service.core.compensation.pinning`). It is therefore close to, not the same as,
+report.json's `baseline.validation` (the nominal model with its own registration fitted, what
+the README's uncompensated column quotes); both are printed.
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ import pinocchio as pin
 from keo_service.core.compensation import compensate
 from keo_service.core.kinematics import se3_from_xyz_rpy
 from keo_service.fit.analysis import split
-from keo_service.io.compensation_files import tool_model
+from keo_service.io.cell import probe_frame, tool_model
 from keo_service.io.config import load_config
 from keo_service.offline.analyze import load_data
 
@@ -52,10 +56,16 @@ def main(config_path: str, encoder: str, tracker: str, model_path: str) -> dict[
     model_config = load_config(model_path)
     model = tool_model(model_config, require_effects=True)
     T_bk = se3_from_xyz_rpy(model_config.tracker.xyz, model_config.tracker.rpy)
+    # probe -> TCP, rigid on the flange: the measurement carried to the user's tool
+    T_pt = probe_frame(model_config).actInv(
+        se3_from_xyz_rpy(model_config.tool.xyz, model_config.tool.rpy)
+    )
     q = data.q[val]
     assert data.R_ks is not None
-    R_m = np.einsum("ij,njk->nik", T_bk.rotation, data.R_ks[val])
-    p_m = data.p_ks[val] @ T_bk.rotation.T + T_bk.translation
+    R_s = np.einsum("ij,njk->nik", T_bk.rotation, data.R_ks[val])
+    p_s = data.p_ks[val] @ T_bk.rotation.T + T_bk.translation
+    R_m = np.einsum("nij,jk->nik", R_s, T_pt.rotation)
+    p_m = p_s + np.einsum("nij,j->ni", R_s, T_pt.translation)
     R_n, p_n = model.poses(q, identified=False)
     R_i, p_i = model.poses(q, identified=True)
     result = compensate(model, R_n, p_n, q, seeds_are_nominal=True)
@@ -69,8 +79,13 @@ def main(config_path: str, encoder: str, tracker: str, model_path: str) -> dict[
     def rms(v: np.ndarray) -> float:
         return float(np.sqrt(np.mean(v * v)))
 
+    baseline = None
+    report = Path(model_path).parent / "report.json"
+    if report.is_file():
+        baseline = json.loads(report.read_text())["baseline"]["validation"]
     return {
         "held_out_poses": int(q.shape[0]),
+        "nominal_own_registration": baseline,
         "uncompensated": {
             "pos_rms_mm": rms(un_pos),
             "pos_max_mm": float(un_pos.max()),

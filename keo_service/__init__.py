@@ -34,6 +34,8 @@ _EXPORTS = {
     "JointSample": "keo_service.live.messages",
     "TrackerSample": "keo_service.live.messages",
     "RobotStatus": "keo_service.live.messages",
+    "compensate": "keo_service.offline.compensate",
+    "CompensateResult": "keo_service.offline.compensate",
 }
 
 __all__ = [
@@ -41,6 +43,7 @@ __all__ = [
     "Cell",
     "Client",
     "ClientError",
+    "CompensateResult",
     "Config",
     "ConfigError",
     "DataFormatError",
@@ -55,6 +58,7 @@ __all__ = [
     "SyncClient",
     "TrackerSample",
     "cell_from_config",
+    "compensate",
     "estimator_settings",
     "load_config",
 ]
@@ -75,6 +79,7 @@ if TYPE_CHECKING:
         ServiceStatus,
         TrackerSample,
     )
+    from keo_service.offline.compensate import CompensateResult, compensate
 
 
 def __getattr__(name: str) -> Any:

@@ -224,7 +224,7 @@ def test_the_identified_model_puts_the_tool_on_the_target_to_a_nanometre(analyze
     chain) at the corrected joints."""
     model_config, program = analyzed["model_config"], analyzed["program"][:10]
     cell = cell_from_config(model_config)
-    from keo_service.io.compensation_files import tool_model
+    from keo_service.io.cell import tool_model
 
     model = tool_model(model_config)
     R, p = model.poses(program, identified=False)
@@ -269,7 +269,7 @@ def test_a_pose_list_with_and_without_seeds(analyzed, tmp_path, capsys):
 
 
 def test_flags(analyzed):
-    from keo_service.io.compensation_files import tool_model
+    from keo_service.io.cell import tool_model
 
     model = tool_model(analyzed["model_config"])
     base = analyzed["program"][0]

@@ -24,13 +24,13 @@ import pytest
 from keo_service.adapters import rtde
 from keo_service.bench.demo import STARTUP_S, loopback_config
 from keo_service.bench.procs import process_group
-from keo_service.core.correction import (
+from keo_service.core.compensation import (
     CompensationLimits,
     CorrectionFilter,
     correction_to_send,
 )
 from keo_service.io.cell import cell_from_config
-from keo_service.io.config import ModelConfig, config_to_toml, load_config
+from keo_service.io.config import CompensationConfig, ModelConfig, config_to_toml, load_config
 from keo_service.live.bus import open_session
 from keo_service.live.messages import CorrectionMessage, decode, topic
 from keo_service.sim.closed_loop import ClosedLoopCell
@@ -60,7 +60,7 @@ def test_the_correction_undoes_the_error_transform_on_the_right_of_the_command()
 
 
 def test_size_and_rate_are_clamped_and_counted_and_invalid_is_zero():
-    limits = CompensationLimits.from_config_values(5.0, 5.0, 50.0)
+    limits = CompensationConfig(max_mm=5.0, max_mrad=5.0, max_rate_mm_s=50.0).limits()
     filt = CorrectionFilter(limits)
     big = [0.02, 0.0, 0.0, 0.0, 0.0, 0.0]  # 20 mm error
     out = [filt.step(0.01 * k, big, None) for k in range(200)]
@@ -88,7 +88,9 @@ def test_size_and_rate_are_clamped_and_counted_and_invalid_is_zero():
 
 
 def test_correction_to_send_is_zero_when_none_stale_or_invalid():
-    limits = CompensationLimits.from_config_values(1.0, 1.0, 50.0, max_age_s=0.1)
+    limits = CompensationConfig(
+        max_mm=1.0, max_mrad=1.0, max_rate_mm_s=50.0, max_age_s=0.1
+    ).limits()
     now = 10_000_000_000
 
     def msg(age_s: float, valid: bool = True, p=(2e-3, 0.0, 0.0)) -> CorrectionMessage:

@@ -12,9 +12,10 @@ import math
 import numpy as np
 import pytest
 
-from keo_service.core.correction import CompensationLimits, CorrectionFilter
+from keo_service.core.compensation import CompensationLimits, CorrectionFilter
 from keo_service.core.estimator import Estimator
 from keo_service.io.cell import estimator_settings
+from keo_service.io.config import CompensationConfig
 from keo_service.live import compensation
 from keo_service.live.bus import open_session
 from keo_service.live.recorder import replay_plan
@@ -126,7 +127,7 @@ def test_encoder_stall_invalidates_the_correction_once_stale(
 
 
 def test_a_step_in_the_estimate_is_clamped_in_size_and_rate_and_counted():
-    limits = CompensationLimits.from_config_values(5.0, 5.0, 50.0)
+    limits = CompensationConfig(max_mm=5.0, max_mrad=5.0, max_rate_mm_s=50.0).limits()
     f = CorrectionFilter(limits)
     rate = 100.0  # Hz
     sent = []

@@ -99,3 +99,31 @@ def test_subscribe_to_a_running_service(demo_config, tmp_path):
     assert "delay 28.0 ms" in lines[0]  # the demo config's delay
     estimates = [line for line in lines[1:] if line.startswith("t=")]
     assert len(estimates) == 5
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
+def test_compensate_a_program(tmp_path):
+    """`compensate` as a library call on the model of a simulated analysis: the corrections
+    it reports are the model's predicted deviation from the nominal robot, and the region it
+    prints is the calibration's."""
+    rec = tmp_path / "rec"
+    done = keo("simulate", "--config", str(DEMO), "--scenario", "static-poses", "--out",
+               str(rec), "--set", "poses=120", "--seed", "2")  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    done = keo("analyze", "--config", str(DEMO), "--encoder", str(rec / "encoder.csv"),
+               "--tracker", str(rec / "tracker.csv"), "--out", str(tmp_path / "an"),
+               timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    program = np.loadtxt(rec / "encoder.csv", delimiter=",", skiprows=1)[::10, 1:7]
+    targets = tmp_path / "targets.csv"
+    np.savetxt(targets, program, delimiter=",", header="q1,q2,q3,q4,q5,q6", comments="")
+    out = run_example(
+        "compensate.py", str(tmp_path / "an" / "model.toml"), str(targets), str(tmp_path / "o.csv")
+    )
+    found = re.search(
+        r"corrections ([\d.]+) mm .*deviation from the nominal robot: ([\d.]+) mm", out
+    )
+    assert found, out
+    assert float(found.group(1)) == pytest.approx(float(found.group(2)), rel=0.05)
+    assert "calibrated: tool" in out

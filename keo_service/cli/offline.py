@@ -214,19 +214,56 @@ def cmd_analyze(args: argparse.Namespace) -> int:
 
 @common.collector_paused
 def cmd_compensate(args: argparse.Namespace) -> int:
-    from keo_service.io.compensation_files import run_compensate
+    from keo_service.offline.compensate import compensate
 
-    summary = run_compensate(common.load(args.config), args.targets, args.out)
+    summary = compensate(
+        common.load(args.config), args.targets, args.out, accuracy_columns=args.accuracy
+    ).summary
     if args.json:
         common.print_json(summary)
+        return common.EXIT_OK
+    flags = ", ".join(f"{k} {v}" for k, v in summary["flags"].items() if v) or "no flags"
+    tool = summary["tool_frame"]
+    print(
+        f"targets: the TCP [tool] xyz {tool['xyz']} m, rpy {tool['rpy']} rad, in the robot "
+        "base frame"
+    )
+    region = summary["calibrated_region"]
+    if region is None:
+        print("calibrated region: not stated in this model (re-run keo analyze to write it)")
     else:
-        flags = ", ".join(f"{k} {v}" for k, v in summary["flags"].items() if v) or "no flags"
-        print(
-            f"wrote {summary['out']}: {summary['targets']} targets ({summary['form']}); "
-            f"correction {summary['correction_mm']['rms']:.4f} mm RMS, "
-            f"{summary['correction_mm']['max']:.4f} mm max, "
-            f"{summary['correction_mrad']['rms']:.4f} mrad RMS; {flags}"
+        joints = ", ".join(
+            f"{n} {lo:+.3f}..{hi:+.3f}" for n, (lo, hi) in region["joints_rad"].items()
         )
+        print(f"calibrated region: joints (rad) {joints}")
+        for b in region["tool_boxes_m"]:
+            lo, hi = b["lower"], b["upper"]
+            print(
+                f"  tool {b['band']} ({b['poses']} poses): x {lo[0]:+.3f}..{hi[0]:+.3f}, "
+                f"y {lo[1]:+.3f}..{hi[1]:+.3f}, z {lo[2]:+.3f}..{hi[2]:+.3f} m"
+            )
+    outside = summary["outside_region"]
+    if outside and outside["targets"]:
+        far = outside["max_mm"]
+        print(
+            f"{outside['targets']} target(s) outside the calibrated region"
+            + (f" (farthest {far:.1f} mm)" if far is not None else "")
+            + (
+                f", {outside['unseen_orientation']} with a tool orientation no calibration pose had"
+                if outside["unseen_orientation"]
+                else ""
+            )
+            + ": the model's accuracy there is not known (--accuracy: outside_region_mm)"
+        )
+    acc = summary["model_accuracy_mm"]
+    print(
+        f"wrote {summary['out']}: {summary['targets']} targets ({summary['form']}); "
+        f"correction {summary['correction_mm']['rms']:.4f} mm RMS, "
+        f"{summary['correction_mm']['max']:.4f} mm max, "
+        f"{summary['correction_mrad']['rms']:.4f} mrad RMS"
+        + (f"; model accuracy {acc:.4f} mm RMS (held out)" if acc else "")
+        + f"; {flags}"
+    )
     return common.EXIT_OK
 
 
@@ -325,8 +362,15 @@ def register(add: common.AddCommand) -> None:
         "compensate",
         cmd_compensate,
         "the joints (and the nominal-model pose to command) that put the tool on each target "
-        "under the identified model (--config: the model.toml of keo analyze)",
+        "under the identified model (--config: the model.toml of keo analyze); targets are "
+        "the TCP ([tool]) in the robot base frame",
     )
     p.add_argument("--targets", type=Path, required=True, help="targets CSV")
     p.add_argument("--out", type=Path, required=True, help="compensated targets CSV")
+    p.add_argument(
+        "--accuracy",
+        action="store_true",
+        help="add the columns predicted_mm, predicted_mrad (the model's deviation from the "
+        "nominal robot at each target) and accuracy_mm (its predicted accuracy there)",
+    )
     p.add_argument("--json", action="store_true")

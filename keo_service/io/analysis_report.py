@@ -21,7 +21,7 @@ from keo_service.fit.analysis import Analysis
 from keo_service.fit.effects import JointMaps, config_fields, effect_from_config
 from keo_service.fit.model import Data, Model
 from keo_service.fit.uncertainty import TrackerUncertainty
-from keo_service.io.config import Config, ModelConfig, config_to_toml
+from keo_service.io.config import Config, ModelConfig
 
 
 def tracker_uncertainty(config: Config) -> TrackerUncertainty:
@@ -85,11 +85,13 @@ def model_config(result: Analysis, base: Config) -> Config:
     def xyz_rpy(T: np.ndarray) -> tuple[list[float], list[float]]:
         return T[:3, 3].tolist(), pin.rpy.matrixToRpy(T[:3, :3]).tolist()
 
-    tool_xyz, tool_rpy = xyz_rpy(T_ns)
+    # the identified sensor mount is the probe, a measurement frame; [tool] stays the user's
+    probe_xyz, probe_rpy = xyz_rpy(T_ns)
     trk_xyz, trk_rpy = xyz_rpy(T_bk)
-    tool = msgspec.structs.replace(base.tool, xyz=tool_xyz, rpy=tool_rpy)
-    tracker = msgspec.structs.replace(base.tracker, xyz=trk_xyz, rpy=trk_rpy)
-    return msgspec.structs.replace(base, tool=tool, tracker=tracker, model=m)
+    tracker = msgspec.structs.replace(
+        base.tracker, xyz=trk_xyz, rpy=trk_rpy, probe_xyz=probe_xyz, probe_rpy=probe_rpy
+    )
+    return msgspec.structs.replace(base, tracker=tracker, model=m)
 
 
 def _plots(
@@ -429,11 +431,23 @@ def write_analysis(
     improved: Config,
 ) -> None:
     """report.json, the plots, report.md and model.toml into `out` (created)."""
+    from keo_service.io import model_file  # model.toml: frames pinned, region, travel
+
     out.mkdir(parents=True, exist_ok=True)
+    final = report["final"]["validation"]
+    improved = model_file.pinned_config(
+        improved,
+        data.q,
+        result.model.position_only or data.R_ks is None,
+        final["pos_rms_mm"],
+        final.get("rot_rms_mrad") or 0.0,
+    )
+    report["calibrated_region"] = model_file.region_report(improved)
     plots = _plots(out, result, data, base_x, baseline)
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False, default=float))
-    (out / "report.md").write_text(markdown(report, plots))
-    (out / "model.toml").write_text(config_to_toml(improved))
+    text = markdown(report, plots)
+    (out / "report.md").write_text(text + "\n" + "\n".join(model_file.region_markdown(improved)))
+    model_file.write_model_toml(improved, out)
 
 
 def _mounts_markdown(registration: dict[str, Any]) -> list[str]:

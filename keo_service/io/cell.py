@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
+from keo_service.core.compensation import CalibratedRegion, RegionBand, ToolModel
 from keo_service.core.corrections import Corrections
 from keo_service.core.errors import ConfigError
 from keo_service.core.kinematics import Cell, RobotModel, load_robot, se3_from_xyz_rpy
@@ -21,19 +22,61 @@ def robot_from_config(config: Config) -> RobotModel:
     )
 
 
+def probe_frame(config: Config) -> pin.SE3:
+    """The tracker's probe in the flange frame: `[tracker] probe_xyz/probe_rpy`, else the
+    config's [tool] (a config whose tool is the probe)."""
+    t = config.tracker
+    if t.probe_xyz is None and t.probe_rpy is None:
+        return se3_from_xyz_rpy(config.tool.xyz, config.tool.rpy)
+    return se3_from_xyz_rpy(t.probe_xyz or [0.0, 0.0, 0.0], t.probe_rpy or [0.0, 0.0, 0.0])
+
+
+def probe_in_tool(config: Config) -> np.ndarray | None:
+    """T_tp (4x4): the probe seen from the user's TCP, None when they are one frame (the
+    measured error is the probe's; this carries it to the tool)."""
+    T_tp = se3_from_xyz_rpy(config.tool.xyz, config.tool.rpy).actInv(probe_frame(config))
+    if np.allclose(T_tp.homogeneous, np.eye(4), atol=1e-15):
+        return None
+    out: np.ndarray = T_tp.homogeneous
+    return out
+
+
+def pinning_frames(config: Config) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """`[model] base_xyz/rpy` and `flange_xyz/rpy` as 4x4 (None where not given)."""
+    m = config.model
+    out: list[np.ndarray | None] = []
+    for key, xyz, rpy in (("base", m.base_xyz, m.base_rpy), ("flange", m.flange_xyz, m.flange_rpy)):
+        if not xyz and not rpy:
+            out.append(None)
+            continue
+        if len(xyz) != 3 or len(rpy) != 3:
+            raise ConfigError(
+                config.source, f"model.{key}_xyz", f"{key}_xyz and {key}_rpy: 3 numbers each"
+            )
+        out.append(se3_from_xyz_rpy(xyz, rpy).homogeneous)
+    return out[0], out[1]
+
+
 def cell_from_config(config: Config) -> Cell:
-    """The cell of a config: robot (with identified geometry applied), tool and tracker
-    registration, and the identified corrections of its [model] section."""
+    """The cell of a config: robot (with identified geometry and the model's pinned base and
+    flange applied), the measurement frame (the probe) and tracker registration, and the
+    identified corrections of its [model] section. The measured error is the probe's: the
+    sensor compared with where the model puts the probe (`probe_in_tool` carries it to the
+    user's TCP)."""
     robot = robot_from_config(config)
     corrections = corrections_from_config(config.model, robot.nq, config.source)
+    base, flange = pinning_frames(config)
     nominal = None
     if corrections is not None:
         nominal = robot.model
         if corrections.placement is not None and np.any(corrections.placement):
             robot = _with_placement_corrections(robot, corrections.placement)
+    if base is not None or flange is not None:
+        nominal = robot.model if nominal is None else nominal
+        robot = _with_pinning(robot, base, flange)
     return Cell(
         robot=robot,
-        T_nt=se3_from_xyz_rpy(config.tool.xyz, config.tool.rpy),
+        T_nt=probe_frame(config),
         T_bk=se3_from_xyz_rpy(config.tracker.xyz, config.tracker.rpy),
         corrections=corrections,
         nominal_model=nominal,
@@ -48,6 +91,35 @@ def _with_placement_corrections(robot: RobotModel, placement: np.ndarray) -> Rob
         model.jointPlacements[j] = model.jointPlacements[j] * pin.exp6(
             pin.Motion(delta[:3], delta[3:])
         )
+    return RobotModel(
+        model,
+        robot.base_frame_id,
+        robot.flange_frame_id,
+        robot.joint_names,
+        robot.lower,
+        robot.upper,
+        robot.velocity_limit,
+    )
+
+
+def _with_pinning(
+    robot: RobotModel, base: np.ndarray | None, flange: np.ndarray | None
+) -> RobotModel:
+    """The robot with the model's base before its first joint and flange after its flange
+    frame (`keo_service.core.compensation.pinning`)."""
+    model = pin.Model(robot.model)
+    if base is not None:
+        data = model.createData()
+        pin.framesForwardKinematics(model, data, pin.neutral(model))
+        T_ob = data.oMf[robot.base_frame_id]
+        shift = T_ob * pin.SE3(base) * T_ob.inverse()  # base, stated in the base frame
+        for j in range(1, model.njoints):
+            if model.parents[j] == 0:
+                model.jointPlacements[j] = shift * model.jointPlacements[j]
+    if flange is not None:
+        frame = model.frames[robot.flange_frame_id]
+        frame.placement = frame.placement * pin.SE3(flange)
+        model.frames[robot.flange_frame_id] = frame
     return RobotModel(
         model,
         robot.base_frame_id,
@@ -164,3 +236,45 @@ def estimator_settings(config: Config) -> EstimatorSettings:
         max_gap_s=timing.max_gap_s,
         stale_after_s=timing.stale_after_s,
     )
+
+
+def calibrated_region_of(config: Config) -> CalibratedRegion | None:
+    """`[model] calibrated_q_min/max` and `calibrated_region` (None when not written)."""
+    m = config.model
+    if not m.calibrated_q_min and not m.calibrated_region:
+        return None
+    if len(m.calibrated_q_min) != len(m.calibrated_q_max):
+        raise ConfigError(
+            config.source, "model.calibrated_q_min", "as many numbers as calibrated_q_max"
+        )
+    bands = tuple(
+        RegionBand(b.band, b.poses, np.asarray(b.lower, dtype=float), np.asarray(b.upper))
+        for b in m.calibrated_region
+    )
+    return CalibratedRegion(
+        np.asarray(m.calibrated_q_min, dtype=float), np.asarray(m.calibrated_q_max), bands
+    )
+
+
+def tool_model(config: Config, require_effects: bool = False) -> ToolModel:
+    """The nominal robot, the [model] section's corrections and pinning, and the user's TCP
+    ([tool]) of a config: the tool poses compensation works with."""
+    robot = robot_from_config(config)
+    corrections = corrections_from_config(config.model, robot.nq, config.source)
+    if corrections is not None and corrections.is_zero:
+        corrections = None
+    if require_effects and corrections is None:
+        raise ConfigError(
+            config.source,
+            "model",
+            "no identified effects of the robot (joint offsets, geometry, compliance, backlash, "
+            "cyclic, joint maps) to compensate: pass the model.toml that `keo analyze` wrote",
+        )
+    base, flange = pinning_frames(config)
+    region = calibrated_region_of(config)
+    if region is not None and region.q_min.size != robot.nq:
+        raise ConfigError(
+            config.source, "model.calibrated_q_min", f"{robot.nq} numbers, one per joint"
+        )
+    T_nt = se3_from_xyz_rpy(config.tool.xyz, config.tool.rpy).homogeneous
+    return ToolModel(robot, corrections, T_nt, base, flange, region)

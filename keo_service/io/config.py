@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Annotated, Literal
 import msgspec
 import tomli_w
 
+from keo_service.core.compensation import DEFAULT_MAX_AGE_S, CompensationLimits
 from keo_service.core.errors import ConfigError
 from keo_service.core.settings import EstimatorSettings
 from keo_service.io.protocols import PROTOCOLS
@@ -99,6 +100,11 @@ class ToolConfig(_Section):
 class TrackerConfig(_Section):
     xyz: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
     rpy: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    # the tracker's probe (or reflector) in the flange frame (m; rad, URDF rpy): a measurement
+    # frame, identified by keo analyze; [tool] stays the user's TCP, the frame compensation
+    # targets refer to. Not given: the probe is at [tool] (a config whose tool is the probe)
+    probe_xyz: Vec3 | None = None
+    probe_rpy: Vec3 | None = None
     host: str = "127.0.0.1"
     port: Port = 5005
     # "line": keo's line protocol over TCP; "ros2": geometry_msgs/msg/PoseStamped (or
@@ -177,6 +183,24 @@ class CompensationConfig(_Section):
     # valid only while the newest encoder sample, the newest tracker pose and the newest
     # estimate arrived within this (host time); the controller interfaces' 0.1 s age limit
     stale_after_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 0.1
+    # a received correction older than this is not applied by any controller interface (the
+    # RTDE registers, KUKA RSI, ABB EGM): they send zero instead
+    max_age_s: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = DEFAULT_MAX_AGE_S
+
+    def limits(self) -> CompensationLimits:
+        """These limits in SI units: what the service and every controller output apply."""
+        return CompensationLimits.from_config_values(
+            self.max_mm, self.max_mrad, self.max_rate_mm_s, self.max_age_s
+        )
+
+
+class RegionBandConfig(_Section):
+    """The box (base frame, m) the calibration poses' tool swept in one orientation band."""
+
+    band: Literal["down", "side", "up"]
+    poses: Annotated[int, msgspec.Meta(ge=1)]
+    lower: Vec3
+    upper: Vec3
 
 
 class BusConfig(_Section):
@@ -224,6 +248,25 @@ class ModelConfig(_Section):
     temperature_ref_c: float = 0.0
     time_drift_m_per_s: list[float] = msgspec.field(default_factory=list)
     time_ref_s: float = 0.0
+    # the model in the nominal robot's frames (keo analyze): its tool pose is
+    # base * chain(q) * flange * tool, base and flange the rigid motions the tracker
+    # registration and the probe mount cannot tell from the arm (m; rad, URDF rpy)
+    base_xyz: list[float] = msgspec.field(default_factory=list)
+    base_rpy: list[float] = msgspec.field(default_factory=list)
+    flange_xyz: list[float] = msgspec.field(default_factory=list)
+    flange_rpy: list[float] = msgspec.field(default_factory=list)
+    # what pinned the flange: "probe" (the config's stated probe mount, close to the identified
+    # one, taken as true) or "arm" (the arm closest to the nominal robot); "" not pinned
+    flange_by: Literal["", "probe", "arm"] = ""
+    # where the calibration poses went: each joint's range (rad) and, per tool orientation
+    # band, the box of the tool's positions in the base frame
+    calibrated_q_min: list[float] = msgspec.field(default_factory=list)
+    calibrated_q_max: list[float] = msgspec.field(default_factory=list)
+    calibrated_region: list[RegionBandConfig] = msgspec.field(default_factory=list)
+    # the model's held-out accuracy (position mm, orientation mrad RMS): the predicted
+    # accuracy `keo compensate` gives each target inside the calibrated region
+    accuracy_mm: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
+    accuracy_mrad: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
 
 
 class Config(_Section):

@@ -105,6 +105,12 @@ KEYS: dict[str, tuple[str, str]] = {
     ),
     "tracker.xyz": ("m", "robot base -> tracker frame: translation"),
     "tracker.rpy": ("rad", "robot base -> tracker frame: rotation (roll, pitch, yaw as tool.rpy)"),
+    "tracker.probe_xyz": (
+        "m",
+        "the tracker's probe in the flange frame, a measurement frame (keo analyze identifies "
+        "it; [tool] stays the TCP); not given: the probe is at [tool]",
+    ),
+    "tracker.probe_rpy": ("rad", "the probe's rotation in the flange frame (as tool.rpy)"),
     "tracker.host": ("", "line: the tracker's line-protocol server"),
     "tracker.port": ("", "line: its TCP port"),
     "tracker.protocol": (
@@ -231,6 +237,33 @@ KEYS: dict[str, tuple[str, str]] = {
     "model.coupling_slopes": ("rad/rad", "per coupling: the linear term in joint k's angle"),
     "model.coupling_knots": ("rad", "per coupling: knots of the map of joint k's angle"),
     "model.coupling_values": ("rad", "per coupling: joint j's angle error at each knot"),
+    "model.base_xyz": (
+        "m",
+        "the model in the nominal robot's frames: its base before the joint chain, the rigid "
+        "motion the tracker registration cannot tell from the arm (keo analyze)",
+    ),
+    "model.base_rpy": ("rad", "and its rotation (as tool.rpy)"),
+    "model.flange_xyz": (
+        "m",
+        "its flange after the joint chain, the rigid motion the probe mount cannot tell from "
+        "the arm (keo analyze)",
+    ),
+    "model.flange_rpy": ("rad", "and its rotation (as tool.rpy)"),
+    "model.flange_by": (
+        "",
+        'what pinned the flange: "probe" (the stated probe mount, taken as true) or "arm" (the '
+        "arm closest to the nominal robot)",
+    ),
+    "model.calibrated_q_min": ("rad", "per joint: the smallest angle the calibration poses had"),
+    "model.calibrated_q_max": ("rad", "per joint: the largest"),
+    "model.calibrated_region": (
+        "m",
+        "per orientation band of the TCP (down, side, up): the box its positions swept in the "
+        "base frame over the calibration poses: [[model.calibrated_region]] tables with band, "
+        "poses, lower, upper",
+    ),
+    "model.accuracy_mm": ("mm", "the model's held-out position RMS (keo compensate's accuracy)"),
+    "model.accuracy_mrad": ("mrad", "and its orientation RMS"),
     "ros2.enabled": (
         "",
         "keo run also publishes each estimate as "
@@ -242,6 +275,11 @@ KEYS: dict[str, tuple[str, str]] = {
     "compensation.max_mm": ("mm", "a live correction larger than this is clamped (and counted)"),
     "compensation.max_mrad": ("mrad", "and one turning more than this"),
     "compensation.max_rate_mm_s": ("mm/s", "and one changing faster than this"),
+    "compensation.max_age_s": (
+        "s",
+        "a received correction older than this is not applied by any controller output (RTDE "
+        "registers, KUKA RSI, ABB EGM): they send zero",
+    ),
     "compensation.rate_hz": (
         "Hz",
         "the correction's own cycle: validity checked and the correction renewed or "
@@ -360,6 +398,8 @@ def _toml_value(value: Any) -> str:
 def _default_text(e: Entry) -> str:
     if e.default is msgspec.NODEFAULT:
         return "required"
+    if e.default is None and e.key.startswith("tracker.probe_"):
+        return "[tool]'s"
     if e.default is None:
         return "the protocol's"
     if e.key == "robot.port":
@@ -390,6 +430,8 @@ def commented_toml(values: Config, header: str) -> str:
             ]
             continue
         value = doc[e.section][e.name] if e.section else doc[e.name]
+        if value is None and e.key.startswith("tracker.probe_"):  # not given: at [tool]
+            value = doc["tool"][e.name.removeprefix("probe_")]
         unit = f" [{e.unit}]" if e.unit else ""
         lines += textwrap.wrap(f"{e.text}{unit}", 96, initial_indent="# ", subsequent_indent="# ")
         default = _default_text(e)

@@ -6,7 +6,7 @@ For controller interfaces that send a correction with each reply (UR RTDE regist
 RSI, ABB EGM): `correction_to_send(latest, config.compensation)` gives the translation (m) and
 rotation vector (rad) to send now, in the tool frame, for the right of the commanded tool
 pose (T_cmd = T_goal * C); zero when none was received, it is not valid or it is older than
-`max_age_s`.
+`[compensation] max_age_s`.
 
 Validity is also timer-driven (`tick`, run on the correction's own cycle: `[compensation]
 rate_hz`, else the observer's period): a correction is valid only while the newest encoder
@@ -29,8 +29,8 @@ import msgspec
 import numpy as np
 import zenoh
 
-from keo_service.core.correction import CompensationLimits, CorrectionFilter
-from keo_service.core.correction import correction_to_send as _to_send
+from keo_service.core.compensation import CorrectionFilter
+from keo_service.core.compensation import correction_to_send as _to_send
 from keo_service.core.estimator import Estimate
 from keo_service.core.kinematics import error_as_pose
 from keo_service.core.rules import OUTSIDE_CALIBRATED_RANGE
@@ -43,10 +43,9 @@ from keo_service.live.messages import (
     topic,
 )
 
-__all__ = ["CorrectionPublisher", "CorrectionSink", "correction_to_send", "limits_of"]
+__all__ = ["CorrectionPublisher", "CorrectionSink", "correction_to_send"]
 
 log = logging.getLogger("keo.compensation")
-MAX_AGE_S = 0.1  # a correction older than this is not applied by the controller interfaces
 DEFAULT_CYCLE_S = 0.01  # the correction's cycle before the observer's period is known
 CYCLE_BOUNDS_S = (0.001, 0.1)  # the observer's period as the cycle, kept within these
 # a quiet cycle renews the newest correction once this many cycles passed without a put (not
@@ -55,22 +54,13 @@ RENEW_AFTER = 1.5
 WARN_EVERY_S = 1.0  # a correction going stale is a warning at most this often (always counted)
 
 
-def limits_of(compensation: CompensationConfig, max_age_s: float = MAX_AGE_S) -> CompensationLimits:
-    return CompensationLimits.from_config_values(
-        compensation.max_mm, compensation.max_mrad, compensation.max_rate_mm_s, max_age_s
-    )
-
-
 def correction_to_send(
     latest: CorrectionMessage | None,
     compensation: CompensationConfig,
     now_ns: int | None = None,
-    max_age_s: float = MAX_AGE_S,
 ) -> tuple[list[float], list[float]]:
     """(translation m, rotation vector rad) to send to the controller now; see the module."""
-    return _to_send(
-        latest, limits_of(compensation, max_age_s), time.time_ns() if now_ns is None else now_ns
-    )
+    return _to_send(latest, compensation.limits(), time.time_ns() if now_ns is None else now_ns)
 
 
 def correction_topic(cell: str) -> str:
@@ -81,14 +71,12 @@ def correction_topic(cell: str) -> str:
 def _feedforward(config: Config) -> Any:
     """The identified model's tool poses when the config holds a [model], else None (then
     nothing more is built or imported)."""
-    from keo_service.io.cell import corrections_from_config, robot_from_config
+    from keo_service.io.cell import corrections_from_config, robot_from_config, tool_model
 
     robot = robot_from_config(config)
     corrections = corrections_from_config(config.model, robot.nq, config.source)
     if corrections is None or corrections.is_zero:
         return None
-    from keo_service.io.compensation_files import tool_model
-
     return tool_model(config)
 
 
@@ -102,7 +90,12 @@ class CorrectionPublisher:
 
     def __init__(self, config: Config, session: zenoh.Session, ros2_node: Any = None) -> None:
         self.cell = config.cell
-        self.filter = CorrectionFilter(limits_of(config.compensation), _feedforward(config))
+        from keo_service.io.cell import probe_in_tool
+
+        self.filter = CorrectionFilter(
+            config.compensation.limits(), _feedforward(config), probe_in_tool(config)
+        )
+        self._max_age_s = config.compensation.max_age_s
         self._pub = session.declare_publisher(topic(config.cell, "correction"), express=True)
         self._ros2 = None
         self._types: Any = None
@@ -286,13 +279,13 @@ class CorrectionPublisher:
 
     def on_joints(self, t: float, q: Any) -> None:
         """An encoder sample (stream time t, joints q): with a model and an estimate newer
-        than MAX_AGE_S, the correction with the feedforward at q (else nothing: the
+        than `[compensation] max_age_s`, the correction with the feedforward at q (else nothing: the
         controller interfaces zero a correction that is not renewed)."""
         if self.filter.model is None or self._estimate is None:
             return
         at, values, reason = self._estimate
         now = time.monotonic()
-        if now - at > MAX_AGE_S:
+        if now - at > self._max_age_s:
             return
         stale, _ = self._verdict(now)
         self._put(self._make(t, values, np.asarray(q, dtype=float), reason or stale), now)

@@ -1,0 +1,172 @@
+"""`keo compensate`: the joints (and the nominal-model pose to command) that put the user's
+TCP on each target under the identified model, as a library function.
+
+    from keo_service import compensate
+    result = compensate("ur10_B/analysis/model.toml", "targets.csv", "compensated.csv")
+    print(result.summary["correction_mm"], result.region)
+
+The model is `keo analyze`'s model.toml, in the nominal robot's frames (see
+`keo_service.core.compensation`): a correction is the model's kinematic error at the target,
+not a rigid motion the tracker registration absorbed. The targets' and the output's columns:
+`keo_service.io.targets`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from keo_service.core.compensation import (
+    FLAGS,
+    CalibratedRegion,
+    Compensated,
+    ToolModel,
+)
+from keo_service.core.compensation import (
+    compensate as solve_targets,
+)
+from keo_service.core.corrections import approach_directions
+from keo_service.core.rotations import quaternion_matrices
+from keo_service.io.cell import tool_model
+from keo_service.io.config import Config, load_config
+from keo_service.io.targets import Targets, read_targets, write_compensated
+
+
+@dataclass
+class CompensateResult:
+    """What `keo compensate` writes and prints: the solve per target (`result`), the targets
+    as read, the model's calibrated region (None for a model.toml that does not state it),
+    the predicted accuracy per target (mm, NaN where the model states none) and the summary
+    the command prints (`--json`)."""
+
+    result: Compensated
+    targets: Targets
+    region: CalibratedRegion | None
+    accuracy_mm: np.ndarray
+    summary: dict[str, Any]
+    out: Path | None
+
+
+def compensate_targets(model: ToolModel, targets: Targets) -> Compensated:
+    """The goals of the targets and their compensation. Backlash (a direction-dependent
+    effect) takes each joint's approach direction from the row order, as a program runs."""
+    seeds: np.ndarray | None = targets.q
+    if targets.is_program:
+        assert seeds is not None
+        R_goal, p_goal = model.poses(seeds, identified=False)
+        nominal = True
+    else:
+        assert targets.p is not None
+        assert targets.quat is not None
+        R_goal = np.ascontiguousarray(quaternion_matrices(targets.quat).transpose(2, 0, 1))
+        p_goal, nominal = targets.p, False
+    direction = None
+    corr = model.corrections
+    if corr is not None and np.any(corr.backlash) and seeds is not None:
+        direction = approach_directions(seeds)
+    return solve_targets(model, R_goal, p_goal, seeds, direction, seeds_are_nominal=nominal)
+
+
+def predicted_accuracy(config: Config, result: Compensated) -> np.ndarray:
+    """The model's predicted position accuracy (mm) at each target: its held-out RMS
+    (`[model] accuracy_mm`) inside the calibrated region, NaN outside it or where the model
+    states none (a per-configuration uncertainty replaces this where the model has one)."""
+    acc = config.model.accuracy_mm
+    out = np.full(len(result.flags), acc if acc > 0.0 else np.nan)
+    for i, flags in enumerate(result.flags):
+        if "outside_calibrated_range" in flags:
+            out[i] = np.nan
+    if result.outside_region_m is not None:
+        out[result.outside_region_m > 0.0] = np.nan
+    return out
+
+
+def _rms(v: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(v**2)))
+
+
+def _outside_region(d: np.ndarray) -> dict[str, Any]:
+    """How many targets lie outside the calibrated region, and the farthest (mm; None when
+    one had an orientation no calibration pose had)."""
+    out = d[d > 0.0]
+    return {
+        "targets": int(out.size),
+        "max_mm": None if np.isinf(out).any() else (float(out.max() * 1e3) if out.size else 0.0),
+        "unseen_orientation": int(np.isinf(out).sum()),
+    }
+
+
+def _region_summary(region: CalibratedRegion | None, names: list[str]) -> dict[str, Any] | None:
+    if region is None:
+        return None
+    return {
+        "joints_rad": {
+            n: [float(lo), float(hi)]
+            for n, lo, hi in zip(names, region.q_min, region.q_max, strict=True)
+        },
+        "tool_boxes_m": [
+            {
+                "band": b.band,
+                "poses": b.poses,
+                "lower": b.lower.tolist(),
+                "upper": b.upper.tolist(),
+            }
+            for b in region.bands
+        ],
+    }
+
+
+def compensate(
+    config: Config | str | Path,
+    targets: str | Path,
+    out: str | Path | None = None,
+    accuracy_columns: bool = False,
+) -> CompensateResult:
+    """Read a model (a Config or the path of `keo analyze`'s model.toml) and a targets file,
+    solve every target, write the output file to `out` (when given; with
+    `accuracy_columns` also predicted_mm, predicted_mrad and accuracy_mm) and return it all."""
+    if not isinstance(config, Config):
+        config = load_config(config)
+    model = tool_model(config, require_effects=True)
+    read = read_targets(targets, model.nq)
+    result = compensate_targets(model, read)
+    accuracy = predicted_accuracy(config, result)
+    out_path = None if out is None else Path(out)
+    if out_path is not None:
+        write_compensated(out_path, read, result, accuracy if accuracy_columns else None)
+    counts = dict.fromkeys(FLAGS, 0)
+    for row in result.flags:
+        for f in row:
+            counts[f] += 1
+    ok = np.array([not ({"unreachable", "not_converged"} & set(f)) for f in result.flags])
+    pred_m = result.predicted_m if result.predicted_m is not None else np.zeros(0)
+    pred_r = result.predicted_rad if result.predicted_rad is not None else np.zeros(0)
+    summary: dict[str, Any] = {
+        "out": None if out_path is None else str(out_path),
+        "targets": int(result.q.shape[0]),
+        "form": "joint program" if read.is_program else "tool poses",
+        "tool_frame": {"xyz": list(config.tool.xyz), "rpy": list(config.tool.rpy)},
+        "flags": counts,
+        "correction_mm": {
+            "rms": _rms(result.correction_m * 1e3),
+            "max": float(np.max(result.correction_m) * 1e3),
+        },
+        "correction_mrad": {
+            "rms": _rms(result.correction_rad * 1e3),
+            "max": float(np.max(result.correction_rad) * 1e3),
+        },
+        "predicted_mm_rms": _rms(pred_m * 1e3) if pred_m.size else None,
+        "predicted_mrad_rms": _rms(pred_r * 1e3) if pred_r.size else None,
+        "model_accuracy_mm": config.model.accuracy_mm or None,
+        "model_accuracy_mrad": config.model.accuracy_mrad or None,
+        "residual_um_max": float(np.max(result.residual_m[ok]) * 1e6) if ok.any() else None,
+        "residual_urad_max": float(np.max(result.residual_rad[ok]) * 1e6) if ok.any() else None,
+        "calibrated_region": _region_summary(model.region, list(model.robot.joint_names)),
+        "outside_region": None
+        if result.outside_region_m is None
+        else _outside_region(result.outside_region_m),
+    }
+    return CompensateResult(result, read, model.region, accuracy, summary, out_path)
