@@ -23,7 +23,17 @@ def robot_from_config(config: Config) -> RobotModel:
 
 def cell_from_config(config: Config) -> Cell:
     """The cell of a config: robot (with identified geometry applied), tool and tracker
-    registration, and the identified corrections of its [model] section."""
+    registration, and the identified corrections of its [model] section.
+
+    Args:
+        config: a loaded config (`load_config`).
+
+    Returns:
+        The `Cell` the estimator computes the error with (lengths m, angles rad).
+
+    Raises:
+        ConfigError: the URDF or a frame named in the config is missing or unusable.
+    """
     robot = robot_from_config(config)
     corrections = corrections_from_config(config.model, robot.nq, config.source)
     nominal = None
@@ -152,7 +162,15 @@ def delay_model(timing: TimingConfig) -> DelayModel:
 
 
 def estimator_settings(config: Config) -> EstimatorSettings:
-    """The estimator's settings from [observer] and [timing]."""
+    """The estimator's settings from [observer] and [timing].
+
+    Args:
+        config: a loaded config (`load_config`).
+
+    Returns:
+        `EstimatorSettings`: gains (1/s), delay (s, with drift), alignment, rates (Hz) and
+        the buffer and gap limits (s).
+    """
     timing, obs = config.timing, config.observer
     return EstimatorSettings(
         gains=tuple(obs.gain),

@@ -145,7 +145,18 @@ class _ClientBase:
 
     @classmethod
     def from_config(cls, config: Config | str | Path, **kw: Any) -> Self:
-        """Endpoint, cell and TLS settings from a keo config (a path or a loaded Config)."""
+        """Endpoint, cell and TLS settings from a keo config (a path or a loaded Config).
+
+        Args:
+            config: the config of the service to follow (its `cell` and `[bus]` section).
+            **kw: the constructor's keywords (`queue_size`, `connect_timeout_s` in s).
+
+        Returns:
+            A client, not yet connected (use it in a `with` / `async with` block).
+
+        Raises:
+            ConfigError: the config is wrong (the message names the key).
+        """
         client = cls(**kw)
         client._settings = _Settings.from_config(_config(config), **kw)
         return client
@@ -168,10 +179,17 @@ class _ClientBase:
 class Client(_ClientBase):
     """An async context manager that owns one Zenoh client session and its subscriptions.
 
-    `endpoint`: where the service (or a router) listens, e.g. "tcp/127.0.0.1:7447".
-    `connect_timeout_s`: how long to keep trying to reach it (default 20 s; None: until it
-    answers); then `ClientError`, a `KeoError` whose text says where and what to check.
-    `queue_size`: samples buffered per iteration before the oldest is dropped.
+    Args:
+        endpoint: where the service (or a router) listens, e.g. "tcp/127.0.0.1:7447" (what
+            `keo demo` prints), or several.
+        cell: the cell's name (the `cell` key of its config; the demo's is "demo").
+        queue_size: samples buffered per iteration before the oldest is dropped (counted in
+            `dropped`).
+        connect_timeout_s: how long to keep trying to reach it, s (None: until it answers).
+
+    Raises:
+        ClientError: on entering, when nothing answered within `connect_timeout_s` (a
+            `KeoError` whose text says where and what to check).
     """
 
     async def __aenter__(self) -> Self:
@@ -221,7 +239,15 @@ class Client(_ClientBase):
                 yield msg
 
     async def latest(self, timeout: float = 2.0) -> EstimateMessage | None:
-        """The service's latest estimate (None when it has none yet or does not answer)."""
+        """The service's latest estimate.
+
+        Args:
+            timeout: how long to wait for the answer, s.
+
+        Returns:
+            The estimate (stamp s; measured and estimate in m and rad), or None when the
+            service has none yet or does not answer.
+        """
         session = self._open_session()
         return await asyncio.to_thread(
             _query, session, topic(self.cell, "estimate"), EstimateMessage, timeout
@@ -233,7 +259,14 @@ class Client(_ClientBase):
         return await asyncio.to_thread(query_adapters, session, self.cell, timeout)
 
     async def status(self, timeout: float = 5.0) -> ServiceStatus:
-        """The service's status; ClientError when no service answers within `timeout`."""
+        """The service's status (health, rates in Hz, delay in s, counters, adapters).
+
+        Args:
+            timeout: how long to wait for the answer, s.
+
+        Raises:
+            ClientError: no service answered within `timeout`.
+        """
         session = self._open_session()
         key = topic(self.cell, "status")
         status = await asyncio.to_thread(_query, session, key, ServiceStatus, timeout)
@@ -284,6 +317,7 @@ class SyncClient(_ClientBase):
                 yield msg
 
     def latest(self, timeout: float = 2.0) -> EstimateMessage | None:
+        """The service's latest estimate, or None (as `Client.latest`; `timeout` in s)."""
         return _query(self._open_session(), topic(self.cell, "estimate"), EstimateMessage, timeout)
 
     def adapters(self, timeout: float = 2.0) -> dict[str, dict[str, Any]]:
@@ -291,6 +325,11 @@ class SyncClient(_ClientBase):
         return query_adapters(self._open_session(), self.cell, timeout)
 
     def status(self, timeout: float = 5.0) -> ServiceStatus:
+        """The service's status (as `Client.status`; `timeout` in s).
+
+        Raises:
+            ClientError: no service answered within `timeout`.
+        """
         key = topic(self.cell, "status")
         status = _query(self._open_session(), key, ServiceStatus, timeout)
         if status is None:

@@ -44,12 +44,12 @@ __all__ = [
     "estimate",
 ]
 
-EncoderInput: TypeAlias = "str | Path | tuple[np.ndarray, np.ndarray]"
+EncoderInput: TypeAlias = str | Path | tuple[np.ndarray, np.ndarray]
 """An encoder stream: the path of `encoder.csv` (or of an MCAP recording), or the arrays
 `(t, q)`: `t` (n,) seconds, `q` (n, nq) radians in the robot model's joint order."""
 
 TrackerInput: TypeAlias = (
-    "str | Path | tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray | None]"
+    str | Path | tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray | None]
 )
 """A tracker stream: the path of `tracker.csv` (or of an MCAP recording), or the arrays
 `(t, p)` / `(t, p, quat)`: `t` (n,) seconds, `p` (n, 3) metres (sensor frame in the tracker
