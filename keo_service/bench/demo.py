@@ -21,7 +21,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from keo_service.bench.procs import free_port, process_group
+from keo_service.bench.procs import ProcessGroup, free_port, process_group
 from keo_service.core.errors import ConfigError
 from keo_service.core.observer import noise_gain
 from keo_service.io.cell import cell_from_config
@@ -106,6 +106,23 @@ def _finish_logs(work: Path, keep: bool, failed: bool) -> str | None:
     return None
 
 
+def _seconds_until_listening(endpoint: str, procs: ProcessGroup, limit: float = 60.0) -> float:
+    """How long the service took to listen: the mocks, started next, import as much and
+    compute their scenario besides, so their start is given three times this (on a loaded
+    machine a fixed 4 s lead let the scenario end before the mocks were up, and the demo saw
+    no estimate; twice still lost 40 % of a 10 s run)."""
+    started = time.monotonic()
+    host, _, port = endpoint.removeprefix("tcp/").rpartition(":")
+    while time.monotonic() - started < limit and procs.procs["service"].poll() is None:
+        with (
+            contextlib.suppress(OSError),
+            socket.create_connection((host.strip("[]"), int(port)), 0.2),
+        ):
+            break
+        time.sleep(0.1)
+    return time.monotonic() - started
+
+
 def _say_endpoint(config: Config, to_stderr: bool) -> None:
     endpoint = config.bus.listen[0]
     print(
@@ -142,17 +159,6 @@ def run_demo(args: argparse.Namespace) -> int:
     work, keep = _work_dir(args)
     cfg_path = work / "demo.toml"
     cfg_path.write_text(config_to_toml(config), encoding="utf-8")
-    t0 = time.time() + STARTUP_S
-    play = [
-        "--scenario",
-        scenario,
-        "--seed",
-        str(args.seed),
-        "--t0",
-        repr(t0),
-        "--duration",
-        repr(args.duration),
-    ]
     status = None
     viewer = _open_viewer(args)
     with contextlib.ExitStack() as cleanup, process_group(work) as procs:
@@ -163,14 +169,23 @@ def run_demo(args: argparse.Namespace) -> int:
             rrd += ["--viewer", viewer.grpc_url]
         if getattr(args, "viewer_window", None) is not None:
             rrd += ["--viewer-window", repr(args.viewer_window)]
-        procs.start_cell(cfg_path, play, service=rrd, robot=robot_args)
+        cfg = ["--config", str(cfg_path)]
+        procs.start("service", ["run", *cfg, *rrd])
+        _say_endpoint(config, to_stderr=args.json)
+        lead = max(STARTUP_S, 3.0 * _seconds_until_listening(config.bus.listen[0], procs))
+        t0 = time.time() + lead
+        play = ["--scenario", scenario, "--seed", str(args.seed), "--t0", repr(t0)]
+        play += ["--duration", repr(args.duration)]
+        procs.start("mock-robot", ["mock", "robot", *cfg, *play, *robot_args])
+        procs.start("mock-tracker", ["mock", "tracker", *cfg, *play])
+        procs.start("adapter-encoder", ["adapter", "encoder", *cfg])
+        procs.start("adapter-tracker", ["adapter", "tracker", *cfg])
         if not args.json:
             print(
                 f"keo demo: 5 processes on loopback; {args.robot} playing {scenario} "
-                f"for {args.duration:g} s from t0 + {STARTUP_S:g} s ...",
+                f"for {args.duration:g} s, starting in {lead:.0f} s ...",
                 flush=True,
             )
-        _say_endpoint(config, to_stderr=args.json)
         try:
             estimates, status = asyncio.run(_follow(config, t0 + args.duration + 0.5))
         except ClientError:
