@@ -99,6 +99,33 @@ def test_the_client_snippets_run_against_the_demo_as_the_readme_starts_it(tmp_pa
     assert sum(" ok [" in line for line in procs.log("snippet-sync").splitlines()) > 50
 
 
+@pytest.mark.e2e
+def test_the_demo_says_why_steps_were_held_and_leaves_no_temp_folder(tmp_path):
+    import json
+    import os
+
+    from keo_service.bench.demo import HELD_WHY
+
+    env = {**os.environ, "TMPDIR": str(tmp_path)}  # where tempfile puts the demo's folder
+    argv = [sys.executable, "-m", "keo_service.cli", "demo", "--duration", "15", "--json"]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=180, env=env, check=False)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    assert re.search(r"the service listens on tcp/127\.0\.0\.1:\d+ ", done.stderr)
+    assert summary["endpoint"] in done.stderr
+    assert summary["held"] == sum(summary["held_reasons"].values())
+    assert set(summary["held_reasons"]) <= set(HELD_WHY)
+    assert summary["logs"] is None  # a good run: removed
+    assert not list(tmp_path.glob("keo-demo-*"))
+    # --logs keeps them where asked
+    logs = tmp_path / "logs"
+    argv = [*argv[:-1], "--logs", str(logs), "--json"]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=180, env=env, check=False)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["logs"] == str(logs)
+    assert (logs / "service.log").is_file()
+
+
 def test_the_demo_refuses_a_busy_listen_endpoint_and_says_why():
     import socket
 

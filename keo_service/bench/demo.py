@@ -108,9 +108,9 @@ def _finish_logs(work: Path, keep: bool, failed: bool) -> str | None:
 
 def _seconds_until_listening(endpoint: str, procs: ProcessGroup, limit: float = 60.0) -> float:
     """How long the service took to listen: the mocks, started next, import as much and
-    compute their scenario besides, so their start is given three times this (on a loaded
-    machine a fixed 4 s lead let the scenario end before the mocks were up, and the demo saw
-    no estimate; twice still lost 40 % of a 10 s run)."""
+    compute their scenario besides, so their start is given four times this (on a machine
+    loaded 8x over, a fixed 4 s lead let the scenario end before the mocks were up and the
+    demo saw no estimate; the mocks took 3-3.5x the service's time there)."""
     started = time.monotonic()
     host, _, port = endpoint.removeprefix("tcp/").rpartition(":")
     while time.monotonic() - started < limit and procs.procs["service"].poll() is None:
@@ -172,7 +172,7 @@ def run_demo(args: argparse.Namespace) -> int:
         cfg = ["--config", str(cfg_path)]
         procs.start("service", ["run", *cfg, *rrd])
         _say_endpoint(config, to_stderr=args.json)
-        lead = max(STARTUP_S, 3.0 * _seconds_until_listening(config.bus.listen[0], procs))
+        lead = max(STARTUP_S, 4.0 * _seconds_until_listening(config.bus.listen[0], procs))
         t0 = time.time() + lead
         play = ["--scenario", scenario, "--seed", str(args.seed), "--t0", repr(t0)]
         play += ["--duration", repr(args.duration)]
