@@ -214,3 +214,41 @@ def test_view_refuses_a_folder_without_a_recording(tmp_path):
     done = keo("view", str(tmp_path), "--config", str(DEMO), "--out", str(tmp_path / "x.txt"))
     assert done.returncode == 2
     assert "--out" in done.stderr
+
+
+def test_each_library_function_reads_each_file_once(moving, monkeypatch, tmp_path):
+    """The warning's check and the work share one read (as the commands always did)."""
+    from keo_service.io import interchange
+    from keo_service.offline import analyze as analyze_module
+    from keo_service.offline import recording
+
+    calls: list[str] = []
+
+    def counted(reader):
+        def read(path, *args, **kwargs):
+            calls.append(Path(path).name)
+            return reader(path, *args, **kwargs)
+
+        return read
+
+    monkeypatch.setattr(recording, "read_encoder", counted(interchange.read_encoder))
+    monkeypatch.setattr(recording, "read_tracker", counted(interchange.read_tracker))
+    given = []
+
+    def run_analysis(config, encoders, trackers, out, registration_only, recordings=None):
+        given.append(recordings)
+        return {"effects": [], "baseline": {}, "final": {}}
+
+    monkeypatch.setattr(analyze_module, "run_analysis", run_analysis)
+    enc, trk = moving / "encoder.csv", moving / "tracker.csv"
+    config = zero_delay_config(tmp_path)
+    for call in (
+        lambda: keo_service.estimate(DEMO, enc, trk),
+        lambda: keo_service.calibrate_delay(DEMO, enc, trk),
+        lambda: keo_service.analyze(config, enc, trk, tmp_path / "an", quiet=True),
+    ):
+        calls.clear()
+        call()
+        assert sorted(calls) == ["encoder.csv", "tracker.csv"]
+    (recordings,) = given
+    assert len(recordings) == 1  # the analysis got what was read for the warning

@@ -15,9 +15,7 @@ the tool's speed times the unknown delay.
 from __future__ import annotations
 
 import os
-import shutil
 import sys
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +23,7 @@ from typing import TYPE_CHECKING, Any, TypeAlias
 
 import numpy as np
 
-from keo_service.io.interchange import EncoderData, TrackerData, write_encoder, write_tracker
+from keo_service.io.interchange import EncoderData, TrackerData
 from keo_service.offline.recording import Recording, read_recording
 
 if TYPE_CHECKING:
@@ -331,7 +329,7 @@ def estimate(
 
 
 def _name(source: object) -> str:
-    return str(source) if _is_path(source) else "FILE"
+    return str(source) if _is_path(source) and str(source) != "(arrays)" else "FILE"
 
 
 # ---- calibrate_delay -------------------------------------------------------------------------
@@ -498,38 +496,28 @@ def analyze(
     import contextlib
     import io
 
-    from keo_service.offline.analyze import run_analysis
+    from keo_service.offline.analyze import _read_all, run_analysis
 
     cfg, name = _config(config)
     out_dir = Path(out)
-    arrays_dir: Path | None = None
     encoders, trackers = _as_lists(encoder), _as_lists(tracker)
-    try:
-        if encoders is None or trackers is None:
-            arrays_dir = Path(tempfile.mkdtemp(prefix="keo-analyze-"))
-            recording = _recording(cfg, encoder, tracker)  # type: ignore[arg-type]
-            write_encoder(arrays_dir / "encoder.csv", recording.encoder)
-            write_tracker(arrays_dir / "tracker.csv", recording.tracker)
-            encoders, trackers = [arrays_dir / "encoder.csv"], [arrays_dir / "tracker.csv"]
-            recordings = [recording]
-        else:
-            recordings = [
-                read_recording(cfg, e, t, mcap=False)
-                for e, t in zip(encoders, trackers, strict=False)
-            ]
-        warnings = [
-            w
-            for r, e, t in zip(recordings, encoders, trackers, strict=False)
-            if (w := delay_warning(cfg, r, name, _name(e), _name(t))) is not None
-        ]
-        for w in warnings:
-            _say(w, quiet)
-        sink = io.StringIO()
-        with contextlib.redirect_stderr(sink) if quiet else contextlib.nullcontext():
-            report = run_analysis(cfg, list(encoders), list(trackers), out_dir, registration_only)
-    finally:
-        if arrays_dir is not None:
-            shutil.rmtree(arrays_dir, ignore_errors=True)
+    if encoders is None or trackers is None:  # arrays: one recording
+        recordings = [_recording(cfg, encoder, tracker)]  # type: ignore[arg-type]
+        encoders, trackers = [Path("(arrays)")], [Path("(arrays)")]
+    else:  # each file read once, here; the analysis gets the arrays
+        recordings = _read_all(cfg, encoders, trackers, registration_only)
+    warnings = [
+        w
+        for r, e, t in zip(recordings, encoders, trackers, strict=True)
+        if (w := delay_warning(cfg, r, name, _name(e), _name(t))) is not None
+    ]
+    for w in warnings:
+        _say(w, quiet)
+    sink = io.StringIO()
+    with contextlib.redirect_stderr(sink) if quiet else contextlib.nullcontext():
+        report = run_analysis(
+            cfg, encoders, trackers, out_dir, registration_only, recordings=recordings
+        )
     found = next((e for e in report.get("effects", []) if e.get("name") == "time_delay"), None)
     if warnings and found is not None:
         delay = found.get("parameters", {}).get("delay_s")
