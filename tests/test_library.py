@@ -205,6 +205,11 @@ def test_view_writes_the_recording_and_its_estimates_to_a_rerun_file(moving, tmp
     for needed in ("/world/tool", "/world/robot/links", "/world/error", "/keo/tool_speed"):
         assert needed in entities
     assert len(RrdReader(str(rrd)).blueprints()) == 1
+    if form == "csv":  # without --config: the demo cell, said so (docs/design.md §6's form)
+        done = keo("view", str(directory), "--out", str(tmp_path / "b.rrd"))
+        assert done.returncode == 0, done.stderr
+        assert "keo view: no --config; using " in done.stderr
+        assert "(the demo cell)" in done.stderr
 
 
 def test_view_refuses_a_folder_without_a_recording(tmp_path):

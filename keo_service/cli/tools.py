@@ -17,7 +17,7 @@ def cmd_view(args: argparse.Namespace) -> int:
 
     if args.out.suffix != ".rrd":
         raise ConfigError("command line", "--out", f"a Rerun file ends in .rrd: {args.out}")
-    result = view_recording(common.load(args.config), args.directory, args.out)
+    result = view_recording(common.load(_view_config(args)), args.directory, args.out)
     for warning in result.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     summary = {
@@ -36,6 +36,22 @@ def cmd_view(args: argparse.Namespace) -> int:
             f"{result.duration_s:.1f} s [{result.path}]; open it with: rerun {result.out}"
         )
     return common.EXIT_OK
+
+
+def _view_config(args: argparse.Namespace) -> str:
+    """--config, else the one config file in the recording's folder, else the demo cell, said
+    on stderr (the cell decides every number: never chosen in silence)."""
+    if args.config is not None:
+        return str(args.config)
+    found = sorted(args.directory.glob("*.toml"))
+    chosen = found[0] if len(found) == 1 else demo_config_path()
+    print(
+        f"keo view: no --config; using {chosen} "
+        + ("(the one config in the folder)" if len(found) == 1 else "(the demo cell)")
+        + ": give --config C for your cell",
+        file=sys.stderr,
+    )
+    return str(chosen)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -142,6 +158,12 @@ def register(add: common.AddCommand) -> None:
         "view",
         cmd_view,
         "a recording (interchange CSV or MCAP folder) as a Rerun file, estimates included",
+        config=False,
+    )
+    p.add_argument(
+        "--config",
+        type=Path,
+        help="the cell's config (default: the one .toml in DIR, else the demo cell; said so)",
     )
     p.add_argument("directory", type=Path, help="written by keo record (or keo simulate)")
     p.add_argument("--out", type=Path, required=True, help="the Rerun file (.rrd) to write")
