@@ -388,8 +388,8 @@ def calibrate_delay(
         significant; write `delay_s` into the config's `[timing]`.
 
     Raises:
-        DelayNotIdentifiableError: the motion cannot determine the delay (the message says
-            why; e.g. the tool never moves).
+        DelayNotIdentifiableError: a `KeoError`: the motion cannot determine the delay (the
+            message says why; e.g. the tool never moves).
         ConfigError: the config is wrong (the message names the key).
         DataFormatError: a file is not in the interchange format.
     """
