@@ -49,8 +49,8 @@ STARTUP_S = 4.0  # the children import numpy, Pinocchio and Zenoh before the sce
 HELD_WHY = {
     "encoder_stale": "no encoder sample yet at the tracker sample's time minus the delay (the "
     "streams' first moments, or the encoder stream stopped)",
-    "encoder_too_old": "the tracker sample's time lies before the oldest encoder sample kept "
-    "(timing.buffer_s)",
+    "encoder_too_old": "the tracker sample's time minus the delay lies before the oldest "
+    "encoder sample there is (before the encoder stream began, or older than timing.buffer_s)",
     "encoder_gap": "the encoder samples around its time are further apart than timing.max_gap_s",
     "tracker_gap": "the tracker sent no valid pose (a status other than ok, e.g. beam broken)",
     "tracker_stale": "the newest tracker pose is older than timing.stale_after_s",
