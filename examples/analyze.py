@@ -1,21 +1,20 @@
-"""What the robot model still gets wrong: run `keo analyze` on a recording and summarise its
-report (the fields of report.json that docs/design.md §6 fixes).
+"""What the robot model still gets wrong: analyze a recording with the library and summarise
+its report (the fields of report.json that docs/design.md §6 fixes).
 
     keo simulate --config configs/demo.toml --scenario static-poses --out rec
     python examples/analyze.py --config configs/demo.toml rec out
 
-The analysis is a command, not a library call: it writes report.json, report.md, plots and
-model.toml (the config with every kept effect, usable by `keo run`) into the output folder.
+`analyze` is what `keo analyze` runs: it writes report.json, report.md, plots and model.toml
+(the config with every kept effect, usable by `keo run` and `keo compensate`) into the output
+folder, and returns the report as a dict.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import shutil
-import subprocess
-import sys
 from pathlib import Path
+
+from keo_service import KeoError, analyze
 
 
 def stats(s: dict[str, float]) -> str:
@@ -29,36 +28,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("out", type=Path, help="where the report goes")
     args = parser.parse_args(argv)
 
-    keo = shutil.which("keo") or ""
-    command = [keo] if keo else [sys.executable, "-m", "keo_service.cli"]
-    done = subprocess.run(
-        [
-            *command,
-            "analyze",
-            "--config",
+    try:
+        result = analyze(
             args.config,
-            "--encoder",
-            str(args.recording / "encoder.csv"),
-            "--tracker",
-            str(args.recording / "tracker.csv"),
-            "--out",
-            str(args.out),
-            "--json",
-        ],
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    if done.returncode != 0:
-        print(done.stderr, file=sys.stderr)
-        return done.returncode
-    report = json.loads((args.out / "report.json").read_text())
-    print(f"nominal model, held out: {stats(report['baseline']['validation'])}")
-    for effect in report["effects"]:
+            args.recording / "encoder.csv",
+            args.recording / "tracker.csv",
+            args.out,
+            quiet=True,  # no progress lines; warnings stay in result.warnings
+        )
+    except KeoError as exc:
+        print(f"cannot analyze: {exc}")
+        return 1
+    for warning in result.warnings:
+        print(f"warning: {warning}")
+    print(f"nominal model, held out: {stats(result.baseline['validation'])}")
+    for effect in result.effects:
         print(f"  + {effect['name']}: {stats(effect['validation'])}")
-    print(f"final model, held out: {stats(report['final']['validation'])}")
-    print(f"not explained: {report['unexplained']}")
-    print(f"the model with these effects: {args.out / 'model.toml'}")
+    print(f"final model, held out: {stats(result.final['validation'])}")
+    print(f"not explained: {result.report['unexplained']}")
+    print(f"the model with these effects: {result.model_path}")
     return 0
 
 

@@ -1,9 +1,30 @@
 """keo: a real-time Kinematic Error Observer for industrial robots.
 
-The public surface is `__all__`: the client of a running service, the estimator and its
-settings, config loading, and the wire message types. The names load lazily, so that
-`import keo_service.core` stays free of asyncio, Zenoh and msgspec (docs/design.md §8).
-Where each part lives: ARCHITECTURE.md.
+The public surface is `__all__`, and this page is its reference:
+
+- the offline work as functions, each taking a config and a recording (paths or arrays) and
+  returning a typed result that holds what the matching command prints or writes:
+  `estimate` (`keo estimate`), `calibrate_delay` (`keo calibrate-delay`), `analyze`
+  (`keo analyze`);
+- the client of a running service (`Client`, `SyncClient`) and the wire message types it
+  returns (`EstimateMessage`, `ServiceStatus`, ...);
+- the estimator itself (`Estimator`, `EstimatorSettings`, `Cell`) for feeding samples by hand;
+- config loading (`load_config`, `cell_from_config`, `estimator_settings`) and keo's errors
+  (every one derives from `KeoError`).
+
+Units are SI everywhere (s, m, rad); mm and mrad appear only in text meant for people.
+
+    from keo_service import analyze, calibrate_delay, estimate
+
+    found = calibrate_delay("cell.toml", "rec/encoder.csv", "rec/tracker.csv")
+    print(found.delay_s, found.delay_se_s)              # s
+    result = estimate("cell.toml", "rec/encoder.csv", "rec/tracker.csv", out="est.csv")
+    print(result.estimate[-1], result.warnings)         # m, rad
+    report = analyze("cell.toml", "rec/encoder.csv", "rec/tracker.csv", "analysis")
+    print(report.final["validation"]["pos_rms_mm"], report.model_path)
+
+The names load lazily, so that `import keo_service.core` stays free of asyncio, Zenoh and
+msgspec (docs/design.md §8). Where each part lives: ARCHITECTURE.md.
 """
 
 from __future__ import annotations
@@ -36,10 +57,18 @@ _EXPORTS = {
     "RobotStatus": "keo_service.live.messages",
     "compensate": "keo_service.offline.compensate",
     "CompensateResult": "keo_service.offline.compensate",
+    # the offline work as functions (the commands are a thin layer over them)
+    "estimate": "keo_service.offline.library",
+    "EstimateResult": "keo_service.offline.library",
+    "calibrate_delay": "keo_service.offline.library",
+    "DelayResult": "keo_service.offline.library",
+    "analyze": "keo_service.offline.library",
+    "AnalysisResult": "keo_service.offline.library",
 }
 
 __all__ = [
     "AdapterStatus",
+    "AnalysisResult",
     "Cell",
     "Client",
     "ClientError",
@@ -47,8 +76,10 @@ __all__ = [
     "Config",
     "ConfigError",
     "DataFormatError",
+    "DelayResult",
     "Estimate",
     "EstimateMessage",
+    "EstimateResult",
     "Estimator",
     "EstimatorSettings",
     "JointSample",
@@ -57,8 +88,11 @@ __all__ = [
     "ServiceStatus",
     "SyncClient",
     "TrackerSample",
+    "analyze",
+    "calibrate_delay",
     "cell_from_config",
     "compensate",
+    "estimate",
     "estimator_settings",
     "load_config",
 ]
@@ -80,6 +114,14 @@ if TYPE_CHECKING:
         TrackerSample,
     )
     from keo_service.offline.compensate import CompensateResult, compensate
+    from keo_service.offline.library import (
+        AnalysisResult,
+        DelayResult,
+        EstimateResult,
+        analyze,
+        calibrate_delay,
+        estimate,
+    )
 
 
 def __getattr__(name: str) -> Any:

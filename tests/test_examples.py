@@ -67,6 +67,26 @@ def test_estimate_a_recording(tmp_path):
     assert "tracker_samples=" in out
 
 
+def test_delay_then_estimate_with_the_library(tmp_path):
+    """`calibrate_delay` finds the simulator's 28 ms; `estimate` with it follows the injected
+    error (truth.csv)."""
+    rec = tmp_path / "rec"
+    done = keo("simulate", "--config", str(DEMO), "--scenario", "paper-vertical", "--out",
+               str(rec), "--set", "duration_s=20", "--seed", "4")  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    out = run_example("delay_and_estimate.py", "--config", str(DEMO), str(rec))
+    delay = float(re.search(r"delay: ([\d.]+) \+/- [\d.]+ ms", out).group(1))
+    assert abs(delay - 28.0) < 2.0
+    final = re.search(r"final estimate at t=([\d.]+) s \(mm, mrad\): (.*)", out)
+    assert final, out
+    values = np.array([float(v.split()[1]) for v in final.group(2).split(", ")])
+    truth = np.loadtxt(rec / "truth.csv", delimiter=",", skiprows=1)
+    true_mm = 1e3 * truth[-1, 1:]
+    size = np.max(np.abs(true_mm[:3]))
+    assert size > 1.0
+    assert np.max(np.abs(values[:3] - true_mm[:3])) < 0.15 * size, (values, true_mm)
+
+
 @pytest.mark.slow
 @pytest.mark.e2e
 def test_analyze_a_recording(tmp_path):

@@ -61,7 +61,7 @@ def check_converged(estimates: list[EstimateMessage], truth: np.ndarray, t_start
 def readme_snippets(endpoint: str, cell: str) -> list[str]:
     """The README's client examples (async and sync), pointed at this test's service."""
     readme = (REPO / "README.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", readme, re.S)[:2]
+    blocks = [b for b in re.findall(r"```python\n(.*?)```", readme, re.S) if "Client(" in b]
     return [
         code.replace("tcp/127.0.0.1:7447", endpoint).replace('cell="demo"', f'cell="{cell}"')
         for code in blocks

@@ -8,16 +8,21 @@ import argparse
 import asyncio
 import contextlib
 import json
+import re
+import shutil
+import socket
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
 import msgspec
 import numpy as np
 
-from keo_service.bench.procs import free_port, process_group
+from keo_service.bench.procs import ProcessGroup, free_port, process_group
+from keo_service.core.errors import ConfigError
 from keo_service.core.observer import noise_gain
 from keo_service.io.cell import cell_from_config
 from keo_service.io.config import Config, config_to_toml, load_config
@@ -40,15 +45,93 @@ DEMO_ROBOTS = {
 }
 STARTUP_S = 4.0  # the children import numpy, Pinocchio and Zenoh before the scenario starts
 
+# why an estimate's step was held, in a user's words (the flag is the estimate's only flag)
+HELD_WHY = {
+    "encoder_stale": "no encoder sample yet at the tracker sample's time minus the delay (the "
+    "streams' first moments, or the encoder stream stopped)",
+    "encoder_too_old": "the tracker sample's time minus the delay lies before the oldest "
+    "encoder sample there is (before the encoder stream began, or older than timing.buffer_s)",
+    "encoder_gap": "the encoder samples around its time are further apart than timing.max_gap_s",
+    "tracker_gap": "the tracker sent no valid pose (a status other than ok, e.g. beam broken)",
+    "tracker_stale": "the newest tracker pose is older than timing.stale_after_s",
+}
 
-def loopback_config(config: Config) -> Config:
-    """The same cell on free loopback ports, so a demo never collides with anything."""
+
+def loopback_config(config: Config, listen: str | None = None) -> Config:
+    """The same cell on free loopback ports, so a demo never collides with anything; the
+    service listens on `listen` when given (`keo demo --listen`)."""
     robot = msgspec.structs.replace(config.robot, host="127.0.0.1", port=free_port())
     tracker = msgspec.structs.replace(config.tracker, host="127.0.0.1", port=free_port())
-    bus = msgspec.structs.replace(
-        config.bus, mode="peer", listen=[f"tcp/127.0.0.1:{free_port()}"], connect=[]
-    )
+    endpoint = listen or f"tcp/127.0.0.1:{free_port()}"
+    bus = msgspec.structs.replace(config.bus, mode="peer", listen=[endpoint], connect=[])
     return msgspec.structs.replace(config, robot=robot, tracker=tracker, bus=bus)
+
+
+def check_listen(endpoint: str) -> str:
+    """`--listen`: a Zenoh endpoint `tcp/HOST:PORT` whose port is free (else exit 2, saying
+    so, instead of a service that dies in its log while the demo waits for it)."""
+    match = re.fullmatch(r"tcp/(\[[0-9a-fA-F:.]+\]|[^:/\s]+):(\d{1,5})", endpoint)
+    if match is None:
+        raise ConfigError("--listen", "listen", f"{endpoint!r} is not tcp/HOST:PORT")
+    host, port = match.group(1).strip("[]"), int(match.group(2))
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise ConfigError(
+                "--listen",
+                "listen",
+                f"cannot listen on {endpoint}: {exc.strerror} (another keo demo or keo run "
+                "there? pick another port)",
+            ) from None
+    return endpoint
+
+
+def _work_dir(args: argparse.Namespace) -> tuple[Path, bool]:
+    """Where the children's logs go, and whether they stay: `--logs DIR` keeps them there;
+    by default a temporary folder removed at the end unless something failed."""
+    logs = getattr(args, "logs", None)
+    if logs is not None:
+        logs.mkdir(parents=True, exist_ok=True)
+        return logs.resolve(), True
+    return Path(tempfile.mkdtemp(prefix="keo-demo-")), False
+
+
+def _finish_logs(work: Path, keep: bool, failed: bool) -> str | None:
+    """Remove the temporary log folder after a good run; keep and name it otherwise."""
+    if keep or failed:
+        return str(work)
+    shutil.rmtree(work, ignore_errors=True)
+    return None
+
+
+def _seconds_until_listening(endpoint: str, procs: ProcessGroup, limit: float = 60.0) -> float:
+    """How long the service took to listen: the mocks, started next, import as much and
+    compute their scenario besides, so their start is given four times this (on a machine
+    loaded 8x over, a fixed 4 s lead let the scenario end before the mocks were up and the
+    demo saw no estimate; the mocks took 3-3.5x the service's time there)."""
+    started = time.monotonic()
+    host, _, port = endpoint.removeprefix("tcp/").rpartition(":")
+    while time.monotonic() - started < limit and procs.procs["service"].poll() is None:
+        with (
+            contextlib.suppress(OSError),
+            socket.create_connection((host.strip("[]"), int(port)), 0.2),
+        ):
+            break
+        time.sleep(0.1)
+    return time.monotonic() - started
+
+
+def _say_endpoint(config: Config, to_stderr: bool) -> None:
+    endpoint = config.bus.listen[0]
+    print(
+        f"keo demo: the service listens on {endpoint} (cell {config.cell!r}); from another "
+        f'terminal: Client("{endpoint}", cell="{config.cell}"), or keo echo '
+        f"'keo/{config.cell}/estimate' with [bus] connect = [\"{endpoint}\"]",
+        file=sys.stderr if to_stderr else sys.stdout,
+        flush=True,
+    )
 
 
 async def _follow(config: Config, until: float) -> tuple[list[EstimateMessage], ServiceStatus]:
@@ -71,21 +154,11 @@ def run_demo(args: argparse.Namespace) -> int:
         return run_compensated_demo(args)
     config_name, scenario, robot_args = DEMO_ROBOTS[args.robot]
     base = load_config(args.config or configs_dir() / config_name)
-    config = loopback_config(base)
-    work = Path(tempfile.mkdtemp(prefix="keo-demo-"))
+    listen = getattr(args, "listen", None)
+    config = loopback_config(base, check_listen(listen) if listen else None)
+    work, keep = _work_dir(args)
     cfg_path = work / "demo.toml"
     cfg_path.write_text(config_to_toml(config), encoding="utf-8")
-    t0 = time.time() + STARTUP_S
-    play = [
-        "--scenario",
-        scenario,
-        "--seed",
-        str(args.seed),
-        "--t0",
-        repr(t0),
-        "--duration",
-        repr(args.duration),
-    ]
     status = None
     viewer = _open_viewer(args)
     with contextlib.ExitStack() as cleanup, process_group(work) as procs:
@@ -96,12 +169,21 @@ def run_demo(args: argparse.Namespace) -> int:
             rrd += ["--viewer", viewer.grpc_url]
         if getattr(args, "viewer_window", None) is not None:
             rrd += ["--viewer-window", repr(args.viewer_window)]
-        procs.start_cell(cfg_path, play, service=rrd, robot=robot_args)
+        cfg = ["--config", str(cfg_path)]
+        procs.start("service", ["run", *cfg, *rrd])
+        _say_endpoint(config, to_stderr=args.json)
+        lead = max(STARTUP_S, 4.0 * _seconds_until_listening(config.bus.listen[0], procs))
+        t0 = time.time() + lead
+        play = ["--scenario", scenario, "--seed", str(args.seed), "--t0", repr(t0)]
+        play += ["--duration", repr(args.duration)]
+        procs.start("mock-robot", ["mock", "robot", *cfg, *play, *robot_args])
+        procs.start("mock-tracker", ["mock", "tracker", *cfg, *play])
+        procs.start("adapter-encoder", ["adapter", "encoder", *cfg])
+        procs.start("adapter-tracker", ["adapter", "tracker", *cfg])
         if not args.json:
             print(
-                f"keo demo: 5 processes on loopback (logs in {work}); {args.robot} playing "
-                f"{scenario} "
-                f"for {args.duration:g} s from t0 + {STARTUP_S:g} s ...",
+                f"keo demo: 5 processes on loopback; {args.robot} playing {scenario} "
+                f"for {args.duration:g} s, starting in {lead:.0f} s ...",
                 flush=True,
             )
         try:
@@ -109,7 +191,9 @@ def run_demo(args: argparse.Namespace) -> int:
         except ClientError:
             estimates = []
         codes = procs.close()
-    summary = _summary(config, args, scenario, estimates, status, codes, t0, work)
+    summary = _summary(config, args, scenario, estimates, status, codes, t0)
+    failed = summary["estimates"] == 0 or any(code not in (0, None) for code in codes.values())
+    summary["logs"] = _finish_logs(work, keep, failed)
     if args.rrd is not None:
         summary["rrd"] = str(args.rrd)
     if args.json:
@@ -138,7 +222,6 @@ def _summary(
     status: ServiceStatus | None,
     codes: dict[str, int | None],
     t0: float,
-    work: Path,
 ) -> dict[str, Any]:
     run = simulate(
         cell_from_config(config),
@@ -150,10 +233,14 @@ def _summary(
         "robot": args.robot,
         "scenario": scenario,
         "duration_s": args.duration,
+        "endpoint": config.bus.listen[0],
         "estimates": len(estimates),
         "held": len(estimates) - len(good),
+        # why each held step was held: its flag (the reason) and how often
+        "held_reasons": dict(
+            Counter("|".join(e.flags) or "unknown" for e in estimates if e.measured is None)
+        ),
         "exit_codes": codes,
-        "logs": str(work),
     }
     if status is not None:
         out["rates_hz"] = status.rates_hz
@@ -187,6 +274,9 @@ def _summary(
 
 def _print_summary(s: dict[str, Any]) -> None:
     print(f"estimates received: {s['estimates']} ({s['held']} held)")
+    for reason, count in s["held_reasons"].items():
+        why = HELD_WHY.get(reason, "see the flag in docs/topics-and-files.md")
+        print(f"  held {count}x {reason}: {why}; the observer kept its state")
     if "rates_hz" in s:
         rates = ", ".join(f"{k} {v:.1f} Hz" for k, v in s["rates_hz"].items())
         print(f"rates seen by the service (at the end): {rates}")
@@ -206,6 +296,8 @@ def _print_summary(s: dict[str, Any]) -> None:
             f"(white-noise band 1 sigma: {s['predicted_noise_pos_mm']:.4f} mm per axis)"
         )
     print(f"process exit codes: {s['exit_codes']}")
+    if s["logs"] is not None:
+        print(f"the processes' logs: {s['logs']}")
 
 
 # ---- keo demo --compensate -------------------------------------------------------------------
@@ -223,10 +315,11 @@ def run_compensated_demo(args: argparse.Namespace) -> int:
     the registers (with the tracker that sees its arm). The mock knows the true tool error at
     every controller cycle, with the correction and (the same path) without it."""
     base = load_config(args.config or configs_dir() / "ur10_demo.toml")
-    config = loopback_config(base)
+    listen = getattr(args, "listen", None)
+    config = loopback_config(base, check_listen(listen) if listen else None)
     robot = msgspec.structs.replace(config.robot, correction="rtde_registers", frequency_hz=125.0)
     config = msgspec.structs.replace(config, robot=robot)
-    work = Path(tempfile.mkdtemp(prefix="keo-demo-"))
+    work, keep = _work_dir(args)
     cfg_path = work / "demo.toml"
     cfg_path.write_text(config_to_toml(config), encoding="utf-8")
     summary_path = work / "errors.json"
@@ -241,10 +334,11 @@ def run_compensated_demo(args: argparse.Namespace) -> int:
     ]
     if not args.json:
         print(
-            f"keo demo --compensate: 4 processes on loopback (logs in {work}); a UR10 follows "
+            f"keo demo --compensate: 4 processes on loopback; a UR10 follows "
             f"0.25 m strokes at 0.1 m/s plus keo's correction for {duration:g} s ...",
             flush=True,
         )
+    _say_endpoint(config, to_stderr=args.json)
     with process_group(work) as procs:
         procs.start("service", ["run", *cfg])
         procs.start("mock-robot", mock)
@@ -256,12 +350,14 @@ def run_compensated_demo(args: argparse.Namespace) -> int:
         print(f"keo demo: the mock robot wrote no errors (logs in {work})", file=sys.stderr)
         return 1
     doc = json.loads(summary_path.read_text(encoding="utf-8"))
-    out = {"exit_codes": codes, "logs": str(work), **doc["summary"], "along_path": _bins(doc)}
+    closed = doc["summary"].get("loop_closed_at_s") is not None
+    logs = _finish_logs(work, keep, not closed)
+    out = {"exit_codes": codes, "logs": logs, **doc["summary"], "along_path": _bins(doc)}
     if args.json:
         sys.stdout.write(json.dumps(out, indent=2) + "\n")
     else:
         _print_compensated(out)
-    return 0 if doc["summary"].get("loop_closed_at_s") is not None else 1
+    return 0 if closed else 1
 
 
 def _bins(doc: dict[str, Any], width_s: float = 0.5) -> list[dict[str, float]]:
@@ -308,3 +404,5 @@ def _print_compensated(s: dict[str, Any]) -> None:
             f"{s['uncompensated_rot_rms_mrad']:.4f} mrad RMS"
         )
     print(f"process exit codes: {s['exit_codes']}")
+    if s["logs"] is not None:
+        print(f"the processes' logs: {s['logs']}")

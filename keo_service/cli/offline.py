@@ -105,34 +105,22 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 @common.collector_paused
 def cmd_estimate(args: argparse.Namespace) -> int:
-    from keo_service.offline.estimate import estimate_files, write_estimates
+    from keo_service.offline.library import estimate
 
-    config = common.load(args.config)
-    result = estimate_files(config, args.encoder, args.tracker, streaming=args.streaming)
-    write_estimates(args.out, result)
-    table = result.table
-    held = int(table.held.sum())
-    summary = {
-        "out": str(args.out),
-        "path": result.path,
-        "estimates": int(table.stamp.size),
-        "held": held,
-        "channels": list(table.channels),
-        "counters": table.counters,
-        "messages": table.messages[-10:],
-    }
+    result = estimate(args.config, args.encoder, args.tracker, args.out, streaming=args.streaming)
     if args.json:
-        common.print_json(summary)
+        common.print_json(result.summary())
     else:
-        print(f"wrote {table.stamp.size} estimates ({held} held) to {args.out} [{result.path}]")
+        size = result.stamp.size
+        print(f"wrote {size} estimates ({result.held} held) to {args.out} [{result.path}]")
         skipped = {
             k: v
-            for k, v in table.counters.items()
+            for k, v in result.counters.items()
             if k.startswith(("encoder_", "tracker_")) and not k.endswith("samples")
         }
         if skipped:
             print("skipped rows: " + ", ".join(f"{k}={v}" for k, v in sorted(skipped.items())))
-            for m in table.messages[-5:]:
+            for m in result.messages[-5:]:
                 print(f"  {m}")
     return common.EXIT_OK
 
@@ -152,11 +140,10 @@ def cmd_paper(args: argparse.Namespace) -> int:
 @common.collector_paused
 def cmd_calibrate_delay(args: argparse.Namespace) -> int:
     from keo_service.fit.delay import DelayNotIdentifiableError
-    from keo_service.offline.delay import calibrate_delay
+    from keo_service.offline.library import calibrate_delay
 
-    config = common.load(args.config)
     try:
-        result = calibrate_delay(config, args.encoder, args.tracker, with_drift=not args.no_drift)
+        result = calibrate_delay(args.config, args.encoder, args.tracker, drift=not args.no_drift)
     except DelayNotIdentifiableError as exc:
         if args.json:
             common.print_json({"verdict": "refused", "reason": str(exc)})
@@ -169,7 +156,7 @@ def cmd_calibrate_delay(args: argparse.Namespace) -> int:
     if not result.explained:
         print(
             "keo calibrate-delay: the number above is not to be trusted: "
-            + "; ".join(result.fit.notes),
+            + "; ".join(result.notes),
             file=sys.stderr,
         )
         return common.EXIT_FAILURE
@@ -199,16 +186,18 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
-    from keo_service.offline.analyze import run_analysis
+    from keo_service.offline.library import analyze
 
-    report = run_analysis(
-        common.load(args.config), args.encoder, args.tracker, args.out, args.registration_only
+    result = analyze(
+        args.config, args.encoder, args.tracker, args.out, registration_only=args.registration_only
     )
     if args.json:
-        common.print_json(report)
+        common.print_json(result.report)
     else:
-        print((args.out / "report.md").read_text())
+        print(result.report_path.read_text())
         print(f"wrote {args.out}/report.json, report.md, plots and model.toml")
+        for warning in result.warnings:  # again at the end, where the eye lands
+            print(f"warning: {warning}", file=sys.stderr)
     return common.EXIT_OK
 
 

@@ -1,4 +1,4 @@
-"""The embedded default and the benchmarks: demo, bench."""
+"""The embedded default, a recording as a Rerun file, and the benchmarks: demo, view, bench."""
 
 from __future__ import annotations
 
@@ -10,6 +10,48 @@ from keo_service.cli import common
 from keo_service.cli.live import add_viewer_options
 from keo_service.core.errors import ConfigError
 from keo_service.resources import demo_config_path
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from keo_service.bench.view import view_recording
+
+    if args.out.suffix != ".rrd":
+        raise ConfigError("command line", "--out", f"a Rerun file ends in .rrd: {args.out}")
+    result = view_recording(common.load(_view_config(args)), args.directory, args.out)
+    for warning in result.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    summary = {
+        "out": str(result.out),
+        "estimates": result.estimates,
+        "held": result.held,
+        "duration_s": result.duration_s,
+        "path": result.path,
+        "warnings": result.warnings,
+    }
+    if args.json:
+        common.print_json(summary)
+    else:
+        print(
+            f"wrote {result.out}: {result.estimates} estimates ({result.held} held) over "
+            f"{result.duration_s:.1f} s [{result.path}]; open it with: rerun {result.out}"
+        )
+    return common.EXIT_OK
+
+
+def _view_config(args: argparse.Namespace) -> str:
+    """--config, else the one config file in the recording's folder, else the demo cell, said
+    on stderr (the cell decides every number: never chosen in silence)."""
+    if args.config is not None:
+        return str(args.config)
+    found = sorted(args.directory.glob("*.toml"))
+    chosen = found[0] if len(found) == 1 else demo_config_path()
+    print(
+        f"keo view: no --config; using {chosen} "
+        + ("(the one config in the folder)" if len(found) == 1 else "(the demo cell)")
+        + ": give --config C for your cell",
+        file=sys.stderr,
+    )
+    return str(chosen)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -113,6 +155,20 @@ def cmd_selftest(args: argparse.Namespace) -> int:
 def register(add: common.AddCommand) -> None:
     _register_init(add)
     p = add(
+        "view",
+        cmd_view,
+        "a recording (interchange CSV or MCAP folder) as a Rerun file, estimates included",
+        config=False,
+    )
+    p.add_argument(
+        "--config",
+        type=Path,
+        help="the cell's config (default: the one .toml in DIR, else the demo cell; said so)",
+    )
+    p.add_argument("directory", type=Path, help="written by keo record (or keo simulate)")
+    p.add_argument("--out", type=Path, required=True, help="the Rerun file (.rrd) to write")
+    p.add_argument("--json", action="store_true")
+    p = add(
         "demo",
         cmd_demo,
         "mock devices, adapters and service on loopback; prints a summary",
@@ -127,6 +183,19 @@ def register(add: common.AddCommand) -> None:
     p.add_argument("--config", help="default: the demo cell of --robot")
     p.add_argument("--duration", type=float, default=18.0, help="seconds of scenario to play")
     p.add_argument("--rrd", type=Path, help="save a Rerun recording here")
+    p.add_argument(
+        "--listen",
+        metavar="ENDPOINT",
+        help="the service's Zenoh endpoint, e.g. tcp/127.0.0.1:7447, for your own client "
+        "(default: a free loopback port; either way it is printed at the start)",
+    )
+    p.add_argument(
+        "--logs",
+        type=Path,
+        metavar="DIR",
+        help="keep the processes' logs here (default: a temporary folder, removed after a "
+        "good run, kept and named after a failed one)",
+    )
     p.add_argument("--json", action="store_true")
     p.add_argument("--seed", type=int, default=1)
     add_viewer_options(p, url=False)

@@ -62,7 +62,17 @@ def cell_from_config(config: Config) -> Cell:
     flange applied), the measurement frame (the probe) and tracker registration, and the
     identified corrections of its [model] section. The measured error is the probe's: the
     sensor compared with where the model puts the probe (`probe_in_tool` carries it to the
-    user's TCP)."""
+    user's TCP).
+
+    Args:
+        config: a loaded config (`load_config`).
+
+    Returns:
+        The `Cell` the estimator computes the error with (lengths m, angles rad).
+
+    Raises:
+        ConfigError: the URDF or a frame named in the config is missing or unusable.
+    """
     robot = robot_from_config(config)
     corrections = corrections_from_config(config.model, robot.nq, config.source)
     base, flange = pinning_frames(config)
@@ -224,7 +234,15 @@ def delay_model(timing: TimingConfig) -> DelayModel:
 
 
 def estimator_settings(config: Config) -> EstimatorSettings:
-    """The estimator's settings from [observer] and [timing]."""
+    """The estimator's settings from [observer] and [timing].
+
+    Args:
+        config: a loaded config (`load_config`).
+
+    Returns:
+        `EstimatorSettings`: gains (1/s), delay (s, with drift), alignment, rates (Hz) and
+        the buffer and gap limits (s).
+    """
     timing, obs = config.timing, config.observer
     return EstimatorSettings(
         gains=tuple(obs.gain),

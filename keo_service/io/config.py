@@ -431,7 +431,18 @@ def _check_clocks(config: Config, source: str) -> None:
 
 
 def load_config(path: str | Path) -> Config:
-    """Read and validate a config file. Raises ConfigError naming the offending key."""
+    """Read and validate a config file (TOML, docs/config.md).
+
+    Args:
+        path: the config file; relative paths in it are relative to its folder.
+
+    Returns:
+        The validated `Config` (SI units: m, rad, s, Hz), every absent key at its default.
+
+    Raises:
+        ConfigError: the file cannot be read, is not TOML, or a key is unknown, of the wrong
+            type or out of range (the message names the key, with "did you mean").
+    """
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")

@@ -222,10 +222,11 @@ def run_analysis(
     tracker: Path | list[Path],
     out: Path,
     registration_only: bool,
+    recordings: list[Recording] | None = None,
 ) -> dict[str, Any]:
     """`keo analyze`: one recording, or several (repeated --encoder/--tracker pairs: each with
     its own tracker registration, one robot model; the delay is the config's for each). Each
-    file is read once."""
+    file is read once (`recordings`: already read, e.g. by the library's `analyze`)."""
 
     def progress(msg: str) -> None:
         print(f"[analyze] {msg}", file=sys.stderr, flush=True)
@@ -233,7 +234,7 @@ def run_analysis(
     samples: dict[str, Any] = {}
     encoders = encoder if isinstance(encoder, list) else [encoder]
     trackers = tracker if isinstance(tracker, list) else [tracker]
-    recordings = _read_all(config, encoders, trackers, registration_only)
+    recordings = recordings or _read_all(config, encoders, trackers, registration_only)
     robot = robot_from_config(config)
     delay = delay_model(config.timing)
     delay_entry = None
