@@ -92,9 +92,9 @@ def correction_latency(
     joined to the estimate by stream time, which carries the tracker's device stamp."""
     device = {m.stamp: m.device_stamp for _a, m in estimates if m.device_stamp is not None}
     first: dict[float, tuple[int, float, int]] = {}
-    for arrived, c in corrections:
+    for at, c in corrections:
         if c.stamp in device and c.valid and (c.stamp not in first or c.seq < first[c.stamp][0]):
-            first[c.stamp] = (c.seq, arrived, c.host_ns)
+            first[c.stamp] = (c.seq, at, c.host_ns)
     stamps = list(first)
     sent = np.array([device[s] for s in stamps], dtype=float)
     arrived = np.array([first[s][1] for s in stamps], dtype=float)
@@ -313,7 +313,7 @@ def _percentiles(ms: np.ndarray) -> dict[str, float | None]:
 
 
 # the end-to-end kinds a round runs, and how `end_to_end` runs each
-E2E_KINDS: dict[str, dict[str, bool]] = {
+E2E_KINDS: dict[str, dict[str, Any]] = {
     "end_to_end": {},
     "transport_floor": {"relay_only": True},
     "end_to_end_rerun": {"rrd": True},
