@@ -7,7 +7,8 @@ than the service's own and tilted toward the stages with many small Python calls
 stages within one profile, and runs of the same kind, not a stage with the bench's CPU
 figure. Zenoh's own threads (receive, the hand-off, send) are not profiled: the relay pays
 them as well. Run as `python -m keo_service.bench.stages [--config C] [--seconds S]
-[--correction] [--out FILE.json] [--pstats FILE]`.
+[--correction] [--clock cpu|wall] [--out FILE.json] [--pstats FILE]`, or
+`--from-pstats FILE` for the stages of a profile kept before.
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ STAGES: dict[str, list[tuple[str, str]]] = {
 }
 # the whole data path on the event loop (its cumulative time)
 DATA_PATH = [("keo_service.live.service", "KeoService._consume")]
+PUBLISHED = [("keo_service.live.sinks", "EstimateBusSink.on_estimate")]
 # the event loop waiting for work (epoll): not work
 IDLE = [("~", "<method 'poll' of 'select.epoll' objects>")]
 
@@ -100,14 +102,24 @@ def _keys(wanted: list[tuple[str, str]]) -> list[tuple[str, int, str]]:
         if fn is None:
             continue
         code = inspect.unwrap(fn).__code__
-        out.append((code.co_filename, code.co_firstlineno, code.co_name))
+        out.append((_package_path(code.co_filename), code.co_firstlineno, code.co_name))
     return out
+
+
+def _package_path(filename: str) -> str:
+    """A source file's path from the package's folder on (the same in every checkout: a
+    profile taken in one may be read in another)."""
+    _head, sep, tail = filename.rpartition("keo_service/")
+    return sep + tail if sep else filename
 
 
 def stage_times(stats: pstats.Stats) -> dict[str, Any]:
     """Each stage's cumulative time (s) and call count in a profile of the service, and the
     data path's and the idle wait's, for shares."""
-    table: dict[Any, Any] = stats.stats  # type: ignore[attr-defined]
+    table: dict[Any, Any] = {
+        (_package_path(f), line, name): v
+        for (f, line, name), v in stats.stats.items()  # type: ignore[attr-defined]
+    }
 
     def cumulative(wanted: list[tuple[str, str]]) -> dict[str, float]:
         keys = [k for k in _keys(wanted) if k in table]
@@ -120,11 +132,19 @@ def stage_times(stats: pstats.Stats) -> dict[str, Any]:
     stages = {name: cumulative(funcs) for name, funcs in STAGES.items()}
     total = stats.total_tt  # type: ignore[attr-defined]
     idle = cumulative(IDLE)["s"]
+    found = {k: v for k, v in stages.items() if v["found"]}
+    # per estimate the service published (the bus sink's calls), not per estimate that
+    # reached the subscriber: a profiled service falls behind, and its backlog at the end
+    # is not delivered
+    published = int(cumulative(PUBLISHED)["calls"])
     return {
         "profiled_s": total,
         "idle_s": idle,
         "data_path": cumulative(DATA_PATH),
-        "stages": {k: v for k, v in stages.items() if v["found"]},
+        "stages": found,
+        "published": published,
+        "per_estimate_us": {k: 1e6 * v["s"] / max(1, published) for k, v in found.items()},
+        "data_path_per_estimate_us": 1e6 * cumulative(DATA_PATH)["s"] / max(1, published),
     }
 
 
@@ -179,12 +199,7 @@ def profile_service(
         if pstats_out is not None:
             stats.dump_stats(str(pstats_out))
     found = stage_times(stats)
-    estimates = res["estimates_received"]
-    found["estimates"] = estimates
-    found["per_estimate_us"] = {
-        name: 1e6 * v["s"] / max(1, estimates) for name, v in found["stages"].items()
-    }
-    found["data_path_per_estimate_us"] = 1e6 * found["data_path"]["s"] / max(1, estimates)
+    found["estimates"] = res["estimates_received"]
     keep = ("latency_ms", "processes", "machine", "correction_latency_ms", "service_counters")
     found["run"] = {k: res[k] for k in keep if k in res}
     found["clock"] = clock
@@ -211,7 +226,11 @@ def main() -> None:
     parser.add_argument("--out")
     parser.add_argument("--pstats")
     parser.add_argument("--clock", choices=("cpu", "wall"), default="cpu")
+    parser.add_argument("--from-pstats", help="the stages of a profile written before")
     args = parser.parse_args()
+    if args.from_pstats:
+        sys.stdout.write(stages_table(stage_times(pstats.Stats(args.from_pstats))))
+        return
     found = profile_service(
         args.seconds,
         args.correction,
