@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import os
 import shutil
 import tempfile
 import threading
@@ -179,9 +180,10 @@ def _end_to_end(
     ]
     set_args = [a for s in sets for a in ("--set", s)]
     # the mocks simulate the whole scenario before they listen (about 2 % of its length at
-    # 1 kHz, and seconds more on a loaded machine: 5 s were too few with a load of 14 on two
-    # cores): start the play late enough that no device data is skipped
-    startup = 10.0 + 0.04 * seconds * tracker_hz / 1000.0
+    # 1 kHz) after their imports, which take many times as long on a loaded machine (with a
+    # load of 15 on two cores, 5 s were too few by 10-20 s, and most of each run's samples
+    # were skipped): start the play late enough that no device data is skipped
+    startup = startup_s() + 0.04 * seconds * tracker_hz / 1000.0
     t0 = time.time() + startup
     play = ["--scenario", "path", "--seed", "1", "--t0", repr(t0), *set_args]
     names = ["service", "mock-robot", "mock-tracker", "adapter-encoder", "adapter-tracker"]
@@ -275,6 +277,13 @@ def _end_to_end(
             "mb": [round(f.stat().st_size / 2**20, 1) for f in files],
         }
     return out
+
+
+def startup_s() -> float:
+    """Seconds to give the chain's processes before the play starts: 5 on a quiet machine,
+    more with the machine's load (its 1-minute average, 1.5 s per runnable process), at most
+    40."""
+    return min(40.0, 5.0 + 1.5 * os.getloadavg()[0])
 
 
 def _latencies(
