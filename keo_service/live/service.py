@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import gc
 import json
 import logging
 import time
@@ -537,6 +538,11 @@ async def run_service(
                     await asyncio.sleep(period / 2)
 
             watchdog = asyncio.create_task(ping(), name="keo.service.watchdog")
+        # what start-up made (modules, the cell, the sessions) lives as long as the process:
+        # out of the cyclic collector's way, so that no collection on the data path walks it
+        # (the first ones after start-up took up to 30 ms; docs/performance.md)
+        gc.collect()
+        gc.freeze()
         systemd.notify(f"READY=1\nSTATUS=cell {config.cell} on {', '.join(config.bus.listen)}")
         if ready is not None:
             ready()
