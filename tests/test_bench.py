@@ -326,3 +326,56 @@ def test_the_analyze_benchs_files_are_the_recordings_first_seconds(demo_config, 
     np.testing.assert_array_equal(tracker.p, run.tracker.p[kept])
     np.testing.assert_array_equal(encoder.t, run.encoder.t[run.encoder.t < 1.25])
     np.testing.assert_array_equal(encoder.q, run.encoder.q[run.encoder.t < 1.25])
+
+
+def test_correction_latency_takes_each_estimates_first_valid_correction():
+    """Joined by stream time: the renewal (a later seq of the same stamp), an invalid one and
+    one of no estimate are not counted; the latency is from the tracker's device stamp."""
+    from keo_service.bench.end_to_end import correction_latency
+    from keo_service.live.messages import CorrectionMessage, EstimateMessage
+
+    def est(stamp: float, device: float) -> EstimateMessage:
+        return EstimateMessage(
+            stamp=stamp, host_ns=0, channels=[], measured=[], estimate=[], flags=[],
+            delay_s=0.0, seq=0, device_stamp=device,
+        )  # fmt: skip
+
+    def corr(stamp: float, seq: int, host_s: float, valid: bool = True) -> CorrectionMessage:
+        zero = [0.0] * 3
+        return CorrectionMessage(
+            stamp=stamp, host_ns=round(host_s * 1e9), seq=seq, translation=zero, rotation=zero,
+            feedback_translation=zero, feedback_rotation=zero, feedforward_translation=zero,
+            feedforward_rotation=zero, valid=valid,
+        )  # fmt: skip
+
+    estimates = [(0.0, est(10.0, 100.0)), (0.0, est(10.001, 100.001))]
+    corrections = [
+        (100.0030, corr(10.0, 7, 100.0020)),  # the first: 3 ms to arrive, 2 ms to publish
+        (100.0100, corr(10.0, 8, 100.0090)),  # its renewal: not counted
+        (100.0015, corr(10.001, 9, 100.0012, valid=False)),  # invalid: not counted
+        (100.0200, corr(55.0, 10, 100.0190)),  # no estimate of that stamp
+    ]
+    arrived, published = correction_latency(estimates, corrections)
+    assert arrived.tolist() == pytest.approx([3.0], abs=1e-6)
+    assert published.tolist() == pytest.approx([2.0], abs=1e-3)
+
+
+def test_bench_table_compares_the_correction_path_with_the_protocol_cycles():
+    rounds = []
+    for p99 in (1.5, 3.0):
+        corr = _e2e(1.0, p99, 40.0)
+        corr["correction_latency_ms"] = {"p50": 1.0, "p99": p99, "max": 2 * p99}
+        rounds.append(
+            {
+                "end_to_end": _e2e(1.0, 2.0, 30.0),
+                "transport_floor": _e2e(1.0, 2.0, 20.0),
+                "end_to_end_correction": corr,
+            }
+        )
+    report = {**_table_report(), "end_to_end_rounds": rounds, "round_ratios": round_ratios(rounds)}
+    text = bench_table(report)
+    row = next(line for line in text.splitlines() if line.startswith("| correction path"))
+    assert "p99 1.50, 3.00 ms" in row
+    assert "RSI/EGM 4 ms: within at p99" in row
+    assert "RTDE 2 ms: NOT within at p99" in row
+    assert "CPU x2.00" in text  # 40 % over the relay's 20 %

@@ -9,6 +9,7 @@ from __future__ import annotations
 import itertools
 import math
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -252,7 +253,10 @@ async def test_an_encoder_stall_invalidates_the_correction_within_one_cycle(demo
     from keo_service.bench.demo import loopback_config
     from keo_service.live.messages import encode
 
-    config = loopback_config(demo_config)
+    config = loopback_config(demo_config)  # with a correction output: the service runs it
+    config = msgspec.structs.replace(
+        config, robot=msgspec.structs.replace(config.robot, correction="rtde_registers")
+    )
     limit = config.compensation.stale_after_s
     cycle = 0.01  # the tracker's period: the observer's
     out = await _stall_run(demo_cell, config)

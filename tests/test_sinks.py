@@ -71,3 +71,58 @@ def test_a_failing_sink_is_counted_logged_and_raised_and_the_others_are_served(c
     assert first.closed
     assert last.closed
     assert "closing the ros2 output failed: OSError: cannot close" in caplog.text
+
+
+def test_samples_go_only_to_the_sinks_that_take_them():
+    """A sink that keeps `_Base`'s no-op `on_input` is not called per sample; one with its
+    own is, and a duck-typed sink (no `_Base`) always is."""
+    from keo_service.live.sinks import _Base
+
+    class Quiet(_Base):
+        name = "quiet"
+
+        def on_input(self, sample: object) -> None:  # must never run
+            raise AssertionError("called")
+
+    class NoInput(_Base):
+        name = "no_input"
+
+    class Takes(_Base):
+        name = "takes"
+
+        def __init__(self) -> None:
+            self.got: list[object] = []
+
+        def on_input(self, sample: object) -> None:
+            self.got.append(sample)
+
+    assert not Sinks([NoInput()]).takes_input
+    takes, duck = Takes(), _Recorder("duck")
+    sinks = Sinks([NoInput(), takes, duck])
+    assert sinks.takes_input
+    sinks.on_input("s1")
+    assert takes.got == ["s1"]
+    with pytest.raises(SinkFailedError, match="the quiet output failed on a sample"):
+        Sinks([Quiet()]).on_input("s2")  # its own on_input: called (and here it fails)
+
+
+def test_a_sink_failing_on_a_sample_is_counted_and_the_ones_after_it_still_get_it(caplog):
+    class Fails(_Recorder):
+        def on_input(self, sample: object) -> None:
+            raise ValueError("bad sample")
+
+    class Keeps(_Recorder):
+        def on_input(self, sample: object) -> None:
+            self.got.append(float(str(sample)))
+
+    first, bad, last = Keeps("a"), Fails("b"), Keeps("c")
+    sinks = Sinks([first, bad, last])
+    with caplog.at_level(logging.ERROR, logger="keo.service"):
+        with pytest.raises(SinkFailedError, match="the b output failed on a sample"):
+            sinks.on_input("1.0")
+        with pytest.raises(SinkFailedError):
+            sinks.on_input("2.0")
+    assert first.got == [1.0, 2.0]
+    assert last.got == [1.0, 2.0]
+    assert sinks.counters()["sink_failed_b"] == 2
+    assert "sink_failed_a" not in sinks.counters()

@@ -4,14 +4,18 @@ rounds that rotate the kinds of run, and capacity at rising rates."""
 
 from __future__ import annotations
 
+import functools
 import itertools
+import os
 import shutil
 import tempfile
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from keo_service.bench.demo import loopback_config
@@ -29,40 +33,74 @@ from keo_service.io.cell import cell_from_config
 from keo_service.io.config import Config, config_to_toml
 from keo_service.live.bus import session_for_client
 from keo_service.live.client import SyncClient
-from keo_service.live.messages import EstimateMessage, decode, topic
+from keo_service.live.messages import CorrectionMessage, EstimateMessage, decode, topic
 from keo_service.sim.simulate import make_scenario, simulate
+
+# the bench's correction output: the service publishes the corrections an RTDE adapter would
+# write to the controller's registers (the mock controller here speaks MotoROS: nothing reads
+# them but the bench's subscriber)
+CORRECTION_OUTPUT = "rtde_registers"
 
 
 class _Collector:
     """The subscriber at the end of the chain. It is the measuring instrument, so its callback
     keeps only an arrival time and the raw bytes (no object the garbage collector tracks: a
-    growing list of decoded messages cost a 30 ms gen-2 pause mid-run) and decodes afterwards."""
+    growing list of decoded messages cost a 30 ms gen-2 pause mid-run) and decodes afterwards.
+    It takes the estimates and, from a service with a correction output, the corrections."""
 
     def __init__(self, config: Config) -> None:
         self.session = session_for_client(config, retry_for=30)
-        self._arrived: list[float] = []
-        self._payloads: list[bytes] = []
+        self._arrived: dict[str, list[float]] = {"estimate": [], "correction": []}
+        self._payloads: dict[str, list[bytes]] = {"estimate": [], "correction": []}
         self._lock = threading.Lock()
-        self.sub = self.session.declare_subscriber(topic(config.cell, "estimate"), self._on)
+        self.subs = [
+            self.session.declare_subscriber(
+                topic(config.cell, name), functools.partial(self._on, name)
+            )
+            for name in self._arrived
+        ]
 
-    def _on(self, sample: Any) -> None:
+    def _on(self, name: str, sample: Any) -> None:
         arrived = time.time()
         payload = sample.payload.to_bytes()
         with self._lock:
-            self._arrived.append(arrived)
-            self._payloads.append(payload)
+            self._arrived[name].append(arrived)
+            self._payloads[name].append(payload)
 
-    def close(self) -> list[tuple[float, EstimateMessage]]:
-        self.sub.undeclare()
+    def close(self) -> tuple[list[tuple[float, EstimateMessage]], list[tuple[float, Any]]]:
+        """(arrival, estimate) and (arrival, correction) pairs, in arrival order."""
+        for sub in self.subs:
+            sub.undeclare()
         self.session.close()
-        with self._lock:
-            pairs = list(zip(self._arrived, self._payloads, strict=True))
-        out = []
-        for arrived, payload in pairs:
-            msg = decode(payload)
-            if isinstance(msg, EstimateMessage):
-                out.append((arrived, msg))
-        return out
+        out: dict[str, list[tuple[float, Any]]] = {}
+        for name, kind in (("estimate", EstimateMessage), ("correction", CorrectionMessage)):
+            with self._lock:
+                pairs = list(zip(self._arrived[name], self._payloads[name], strict=True))
+            out[name] = []
+            for arrived, payload in pairs:
+                msg = decode(payload)
+                if isinstance(msg, kind):
+                    out[name].append((arrived, msg))
+        return out["estimate"], out["correction"]
+
+
+def correction_latency(
+    estimates: list[tuple[float, EstimateMessage]], corrections: list[tuple[float, Any]]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The correction path's latency (ms), from the tracker line leaving the mock to the
+    correction arriving at a subscriber, and to the service's publish stamp: each estimate's
+    first correction (lowest `seq` of its stream time; later ones are the cycle's renewals)
+    joined to the estimate by stream time, which carries the tracker's device stamp."""
+    device = {m.stamp: m.device_stamp for _a, m in estimates if m.device_stamp is not None}
+    first: dict[float, tuple[int, float, int]] = {}
+    for at, c in corrections:
+        if c.stamp in device and c.valid and (c.stamp not in first or c.seq < first[c.stamp][0]):
+            first[c.stamp] = (c.seq, at, c.host_ns)
+    stamps = list(first)
+    sent = np.array([device[s] for s in stamps], dtype=float)
+    arrived = np.array([first[s][1] for s in stamps], dtype=float)
+    published = np.array([first[s][2] * 1e-9 for s in stamps], dtype=float)
+    return (arrived - sent) * 1e3, (published - sent) * 1e3
 
 
 def _service_counters(config: Config) -> dict[str, int]:
@@ -81,10 +119,15 @@ def end_to_end(
     rrd: bool = False,
     sample_every: float | None = None,
     relay_only: bool = False,
+    correction: bool = False,
+    service_python: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Each component its own process; latency from the tracker line leaving the mock to the
     estimate arriving at a subscriber, split at the service's publish stamp. `relay_only`: the
-    transport floor, with a pass-through relay in the service's place.
+    transport floor, with a pass-through relay in the service's place. `correction`: the
+    service with a correction output configured (`robot.correction`, no controller reading
+    it), and the correction path's latency measured. `service_python`: interpreter arguments
+    for the service (a profiler).
 
     The processes' logs (and the recording) go to a fresh folder, removed after the run; kept,
     and named in the error, when the run fails."""
@@ -99,6 +142,8 @@ def end_to_end(
             rrd=rrd,
             sample_every=sample_every,
             relay_only=relay_only,
+            correction=correction,
+            service_python=service_python,
         )
     except BaseException as exc:
         exc.add_note(f"the processes' logs: {work}")
@@ -117,7 +162,12 @@ def _end_to_end(
     rrd: bool,
     sample_every: float | None,
     relay_only: bool,
+    correction: bool = False,
+    service_python: Sequence[str] = (),
 ) -> dict[str, Any]:
+    if correction:  # the correction path runs only with an output configured
+        robot = msgspec.structs.replace(config.robot, correction=CORRECTION_OUTPUT)
+        config = msgspec.structs.replace(config, robot=robot)
     cfg = work / "bench.toml"
     cfg.write_text(config_to_toml(config))
     sets = [
@@ -130,8 +180,10 @@ def _end_to_end(
     ]
     set_args = [a for s in sets for a in ("--set", s)]
     # the mocks simulate the whole scenario before they listen (about 2 % of its length at
-    # 1 kHz): start the play late enough that no device data is skipped
-    startup = 5.0 + 0.04 * seconds * tracker_hz / 1000.0
+    # 1 kHz) after their imports, which take many times as long on a loaded machine (with a
+    # load of 15 on two cores, 5 s were too few by 10-20 s, and most of each run's samples
+    # were skipped): start the play late enough that no device data is skipped
+    startup = startup_s() + 0.04 * seconds * tracker_hz / 1000.0
     t0 = time.time() + startup
     play = ["--scenario", "path", "--seed", "1", "--t0", repr(t0), *set_args]
     names = ["service", "mock-robot", "mock-tracker", "adapter-encoder", "adapter-tracker"]
@@ -139,7 +191,12 @@ def _end_to_end(
         recording = work / "bench.rrd"
         extra = ["--rrd", str(recording)] if rrd else []
         procs.start_cell(
-            cfg, play, service=extra, tracker=["--wall-clock-device-time"], relay_only=relay_only
+            cfg,
+            play,
+            service=extra,
+            tracker=["--wall-clock-device-time"],
+            relay_only=relay_only,
+            service_python=service_python,
         )
         collector = _Collector(config)
         pids = {n: procs.procs[n].pid for n in names}
@@ -166,7 +223,7 @@ def _end_to_end(
         end_machine = machine_ticks()
         end_mem = {n: proc_mem_kb(p) for n, p in pids.items()}
         time.sleep(1.5)  # the last samples: encoder coverage, or the quiet-time flush
-        items = collector.close()
+        items, corrections = collector.close()
         counters = {} if relay_only else _service_counters(config)
     run_s = seconds - 0.5
     played = simulate(
@@ -177,16 +234,8 @@ def _end_to_end(
     # data that predates the subscription)
     # good estimates only: the held ones at the very end (tracker samples stamped after the
     # last encoder sample, answered by the quiet-time flush) say nothing about latency
-    in_window = [
-        (a, m)
-        for a, m in items
-        if m.device_stamp is not None and m.device_stamp > t0 + 0.5 and not m.flags
-    ]
-    device_stamp = np.array([m.device_stamp for _a, m in in_window], dtype=float)
-    lat = (np.array([a for a, _m in in_window]) - device_stamp) * 1e3
-    to_publish = (np.array([m.host_ns * 1e-9 for _a, m in in_window]) - device_stamp) * 1e3
-    to_subscriber = np.array([a - m.host_ns * 1e-9 for a, m in in_window]) * 1e3
-    held = sum(1 for _a, m in items if m.measured is None)
+    in_window, latencies = _latencies(items, t0)
+    corr_lat, corr_pub = correction_latency(in_window, corrections)
     procs_out = {
         n: {
             "cpu_pct": 100.0 * (end_cpu[n] - warm_cpu[n]) / run_s,
@@ -201,17 +250,22 @@ def _end_to_end(
         "seconds": seconds,
         "tracker_samples_sent": sent,
         "estimates_received": len(items),
-        "held": held,
+        "held": sum(1 for _a, m in items if m.measured is None),
         "lost": max(0, sent - len(items)),
-        "latency_ms": _percentiles(lat),
-        "latency_to_service_publish_ms": _percentiles(to_publish),
-        "latency_publish_to_subscriber_ms": _percentiles(to_subscriber),
+        **latencies,
+        "corrections_received": len(corrections),
         "processes": procs_out,
         "machine": machine_share(warm_machine, end_machine),
         "trace": trace,
         "rerun_dropped": counters.get("rerun_dropped", 0),
         "service_counters": counters,
     }
+    if correction:
+        out.update(
+            correction=config.robot.correction,
+            correction_latency_ms=_percentiles(corr_lat),
+            correction_to_service_publish_ms=_percentiles(corr_pub),
+        )
     if rrd:  # the recording rolls every 10 minutes: its files in the sink's own order
         from keo_service.live.rerun_logger import rolled_path  # imports Rerun: only here
 
@@ -225,6 +279,38 @@ def _end_to_end(
     return out
 
 
+def startup_s() -> float:
+    """Seconds to give the chain's processes before the play starts: 5 on a quiet machine,
+    more with the machine's load (its 1-minute average, 1.5 s per runnable process), at most
+    40."""
+    return min(40.0, 5.0 + 1.5 * os.getloadavg()[0])
+
+
+def _latencies(
+    items: list[tuple[float, EstimateMessage]], t0: float
+) -> tuple[list[tuple[float, EstimateMessage]], dict[str, Any]]:
+    """The estimates the latency is taken over, and its percentiles: end to end, to the
+    service's publish stamp, and from there to the subscriber."""
+    # latency after a warm-up of 0.5 s (connections settle, the first samples wait for encoder
+    # data that predates the subscription)
+    # good estimates only: the held ones at the very end (tracker samples stamped after the
+    # last encoder sample, answered by the quiet-time flush) say nothing about latency
+    in_window = [
+        (a, m)
+        for a, m in items
+        if m.device_stamp is not None and m.device_stamp > t0 + 0.5 and not m.flags
+    ]
+    device_stamp = np.array([m.device_stamp for _a, m in in_window], dtype=float)
+    lat = (np.array([a for a, _m in in_window]) - device_stamp) * 1e3
+    to_publish = (np.array([m.host_ns * 1e-9 for _a, m in in_window]) - device_stamp) * 1e3
+    to_subscriber = np.array([a - m.host_ns * 1e-9 for a, m in in_window]) * 1e3
+    return in_window, {
+        "latency_ms": _percentiles(lat),
+        "latency_to_service_publish_ms": _percentiles(to_publish),
+        "latency_publish_to_subscriber_ms": _percentiles(to_subscriber),
+    }
+
+
 def _percentiles(ms: np.ndarray) -> dict[str, float | None]:
     if not ms.size:
         return {"p50": None, "p99": None, "max": None}
@@ -236,19 +322,26 @@ def _percentiles(ms: np.ndarray) -> dict[str, float | None]:
 
 
 # the end-to-end kinds a round runs, and how `end_to_end` runs each
-E2E_KINDS: dict[str, dict[str, bool]] = {
+E2E_KINDS: dict[str, dict[str, Any]] = {
     "end_to_end": {},
     "transport_floor": {"relay_only": True},
     "end_to_end_rerun": {"rrd": True},
+    "end_to_end_correction": {"correction": True},
 }
 
 
 def end_to_end_rounds(
-    config: Config, seconds: float, rounds: int, with_rerun: bool
+    config: Config, seconds: float, rounds: int, with_rerun: bool, with_correction: bool = False
 ) -> list[dict[str, Any]]:
     """`rounds` runs of each end-to-end kind, the order rotated every round so that no kind
-    always runs first (a machine's load drifts over minutes; one run's p99 moves 1-5 ms)."""
-    kinds = [k for k in E2E_KINDS if with_rerun or k != "end_to_end_rerun"]
+    always runs first (a machine's load drifts over minutes; one run's p99 moves 1-5 ms).
+    `with_correction`: also the service with a correction output (its latency)."""
+    skip = set()
+    if not with_rerun:
+        skip.add("end_to_end_rerun")
+    if not with_correction:
+        skip.add("end_to_end_correction")
+    kinds = [k for k in E2E_KINDS if k not in skip]
     out = []
     for i in range(rounds):
         order = kinds[i % len(kinds) :] + kinds[: i % len(kinds)]
@@ -294,6 +387,10 @@ def round_ratios(rounds: list[dict[str, Any]]) -> dict[str, Any]:
         "p99_over_relay": ratio("end_to_end", "transport_floor", "latency_ms", "p99"),
         "rrd_p50_over_plain": ratio("end_to_end_rerun", "end_to_end", "latency_ms", "p50"),
         "rrd_p99_over_plain": ratio("end_to_end_rerun", "end_to_end", "latency_ms", "p99"),
+        "correction_cpu_over_relay": ratio("end_to_end_correction", "transport_floor", *cpu),
+        "correction_p99_over_relay": ratio(
+            "end_to_end_correction", "transport_floor", "latency_ms", "p99"
+        ),
     }
     return {name: spread for name, spread in found.items() if spread is not None}
 

@@ -46,13 +46,20 @@ class ProcessGroup:
         tracker: Sequence[str] = (),
         relay_only: bool = False,
         robot: Sequence[str] = (),
+        service_python: Sequence[str] = (),
     ) -> None:
         """The whole chain of one cell: service, mock robot and tracker playing `play`, and
         both adapters (names: service, mock-robot, mock-tracker, adapter-encoder/-tracker).
-        `relay_only`: the bench's pass-through relay stands where the service would."""
+        `relay_only`: the bench's pass-through relay stands where the service would.
+        `service_python`: the interpreter arguments that run keo's CLI in the service's
+        process instead of `-m keo_service.cli` (a profiler: `["-c", CODE, ...]`); `run` and
+        the service's arguments follow them."""
         cfg = ["--config", str(config)]
         if relay_only:
             self.start("service", cfg, module="keo_service.bench.relay")
+        elif service_python:
+            args = [*service_python, "run", *cfg, *service]
+            self.start("service", args, module=None)
         else:
             self.start("service", ["run", *cfg, *service])
         self.start("mock-robot", ["mock", "robot", *cfg, *play, *robot])

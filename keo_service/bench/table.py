@@ -81,7 +81,12 @@ def _round_rows(r: dict[str, Any]) -> list[str]:
         f"p50 {_ratio(ratios.get('p50_over_relay'))}; p99 {_ratio(ratios.get('p99_over_relay'))} |"
     ]
     if n > 1:
-        names = {"end_to_end": "service", "transport_floor": "relay", "end_to_end_rerun": "--rrd"}
+        names = {
+            "end_to_end": "service",
+            "transport_floor": "relay",
+            "end_to_end_rerun": "--rrd",
+            "end_to_end_correction": "with correction",
+        }
 
         def each_run(path: tuple[str, ...], digits: int) -> str:
             """A value of every run, kind by kind (a p99 of no samples is None: nan)."""
@@ -98,6 +103,8 @@ def _round_rows(r: dict[str, Any]) -> list[str]:
                 "| CPU time the hypervisor took in each run (% of all cores) | "
                 f"{each_run(('machine', 'steal_pct'), 1)} |"
             )
+    if "correction_cpu_over_relay" in ratios:
+        lines += _correction_rows(rounds, ratios)
     if "rrd_p99_over_plain" in ratios:
         drops = [x["end_to_end_rerun"].get("rerun_dropped", 0) for x in rounds]
         lines.append(
@@ -107,6 +114,35 @@ def _round_rows(r: dict[str, Any]) -> list[str]:
             f"{sum(drops)} |"
         )
     return lines
+
+
+# the controller cycles a live correction feeds (ms): KUKA RSI and ABB EGM 4 ms, UR RTDE 2 ms
+# (500 Hz, e-Series)
+PROTOCOL_CYCLES_MS = {"RSI/EGM": 4.0, "RTDE": 2.0}
+
+
+def _correction_rows(rounds: list[dict[str, Any]], ratios: dict[str, Any]) -> list[str]:
+    """The correction path (the service with a correction output): its latency against the
+    cycles it feeds, and its CPU and p99 against the relay of the same round."""
+    runs = [x["end_to_end_correction"] for x in rounds if "end_to_end_correction" in x]
+    lat = [x.get("correction_latency_ms", {}) for x in runs]
+    p50 = [v["p50"] for v in lat if v.get("p50") is not None]
+    p99 = [v["p99"] for v in lat if v.get("p99") is not None]
+    if not p99:
+        return ["| correction path latency | no correction arrived |"]
+    worst = max(p99)
+    within = ", ".join(
+        f"{name} {cycle:g} ms: {'within' if worst <= cycle else 'NOT within'} at p99"
+        for name, cycle in PROTOCOL_CYCLES_MS.items()
+    )
+    return [
+        f"| correction path: tracker line -> correction at a subscriber (service with "
+        f"`robot.correction` set; each round) | p50 {', '.join(f'{v:.2f}' for v in p50)} ms; "
+        f"p99 {', '.join(f'{v:.2f}' for v in p99)} ms; against the cycles it feeds: {within} |",
+        f"| service with a correction output over the transport floor, {len(runs)} rounds | "
+        f"CPU {_ratio(ratios.get('correction_cpu_over_relay'))}; "
+        f"p99 {_ratio(ratios.get('correction_p99_over_relay'))} |",
+    ]
 
 
 def bench_table(r: dict[str, Any]) -> str:
@@ -182,6 +218,7 @@ def bench_table(r: dict[str, Any]) -> str:
         ("end_to_end", "end to end"),
         ("transport_floor", "transport floor (pass-through relay in the service's place)"),
         ("end_to_end_rerun", "end to end, --rrd"),
+        ("end_to_end_correction", "end to end with a correction output"),
     )
     first_of = len(r.get("end_to_end_rounds", []))
     for key, kind in rows:

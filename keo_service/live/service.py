@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import gc
 import logging
 import time
 from pathlib import Path
@@ -199,10 +200,11 @@ class KeoService:
 
     def _add_sinks(self, session: zenoh.Session) -> None:
         """The configured outputs: the bus (with the latest estimate for a client that joins
-        late), the corrections (also on ROS 2 when enabled), ROS 2's estimate, Rerun when asked.
-        The ROS 2 node closes after the corrections that use it (sinks close in reverse)."""
-        from keo_service.live.compensation import CorrectionPublisher, CorrectionSink
-
+        late), the corrections when `robot.correction` names an output (also on ROS 2 when
+        enabled), ROS 2's estimate, Rerun when asked. The ROS 2 node closes after the
+        corrections that use it (sinks close in reverse). Without a correction output the
+        correction's filter, its messages and its cycle are not run at all: they were half
+        of the service's work per estimate (docs/performance.md)."""
         self.sinks.add(EstimateBusSink(session, self.cell))
         ros2 = None
         if self.config.ros2.enabled:
@@ -211,10 +213,13 @@ class KeoService:
 
             bridge = EstimateBridge(session, self.config)
             ros2 = Ros2EstimateSink(bridge, self.config, lambda: self.config.observer.gain)
-        node = None if ros2 is None else ros2.bridge.node
-        self.sinks.add(
-            CorrectionSink(CorrectionPublisher(self.config, session, node), self.estimator)
-        )
+        if self.config.robot.correction != "none":
+            from keo_service.live.compensation import CorrectionPublisher, CorrectionSink
+
+            node = None if ros2 is None else ros2.bridge.node
+            self.sinks.add(
+                CorrectionSink(CorrectionPublisher(self.config, session, node), self.estimator)
+            )
         if ros2 is not None:
             self.sinks.add(ros2)
         if self._viz is not None:
@@ -245,42 +250,48 @@ class KeoService:
     # ---- data path ------------------------------------------------------------------------
 
     async def _consume(self) -> None:
-        async for key, payload in self._sub:
-            now = time.monotonic()
-            try:
-                msg = decode(payload)
-            except msgspec.DecodeError as exc:
-                self.decode_errors += 1
-                self._messages.append(f"undecodable payload on {key}: {exc}")
-                continue
-            self.received += 1
-            self._last_arrival = now
-            self._progress_at = now
-            if isinstance(msg, JointSample):
-                self._note_sample("encoder", msg)
-                self._rates["encoder"].tick(now)
-                out = self.estimator.on_encoder(msg.stamp, msg.joints)
-                self.sinks.on_input(msg)
-                if self._delay_tracker is not None:
-                    self._track_delay(self._delay_tracker, msg)
-            elif isinstance(msg, TrackerSample):
-                self._note_sample("tracker", msg)
-                self._rates["tracker"].tick(now)
-                self.sinks.on_input(msg)  # before the estimates it may cause
-                out = self.estimator.on_tracker(
-                    msg.stamp,
-                    msg.position,
-                    msg.quaternion,
-                    ok=msg.status == "ok",
-                    device_stamp=msg.device_stamp,
-                )
-                if self._delay_tracker is not None:
-                    self._track_delay(self._delay_tracker, msg)
-            else:
-                self.estimator.counters["unexpected_message"] += 1
-                continue
-            for estimate in out:
-                self._publish(estimate, now)
+        """The data path: every sample that waited since the last wake-up, in arrival order,
+        each through the estimator and its estimates out before the next sample."""
+        sinks = self.sinks
+        async for batch in self._sub.batches():
+            inputs = sinks.takes_input
+            for key, payload in batch:
+                now = time.monotonic()
+                try:
+                    msg = decode(payload)
+                except msgspec.DecodeError as exc:
+                    self.decode_errors += 1
+                    self._messages.append(f"undecodable payload on {key}: {exc}")
+                    continue
+                self.received += 1
+                self._last_arrival = self._progress_at = now
+                if isinstance(msg, TrackerSample):
+                    self._note_sample("tracker", msg)
+                    self._rates["tracker"].tick(now)
+                    if inputs:
+                        sinks.on_input(msg)  # before the estimates it may cause
+                    out = self.estimator.on_tracker(
+                        msg.stamp,
+                        msg.position,
+                        msg.quaternion,
+                        ok=msg.status == "ok",
+                        device_stamp=msg.device_stamp,
+                    )
+                    if self._delay_tracker is not None:
+                        self._track_delay(self._delay_tracker, msg)
+                elif isinstance(msg, JointSample):
+                    self._note_sample("encoder", msg)
+                    self._rates["encoder"].tick(now)
+                    out = self.estimator.on_encoder(msg.stamp, msg.joints)
+                    if inputs:
+                        sinks.on_input(msg)
+                    if self._delay_tracker is not None:
+                        self._track_delay(self._delay_tracker, msg)
+                else:
+                    self.estimator.counters["unexpected_message"] += 1
+                    continue
+                for estimate in out:
+                    self._publish(estimate, now)
 
     async def _adapter_events(self) -> None:
         """The adapters' state changes (silent, back, reconnected, wrong protocol): into the
@@ -534,6 +545,11 @@ async def run_service(
                     await asyncio.sleep(period / 2)
 
             watchdog = asyncio.create_task(ping(), name="keo.service.watchdog")
+        # what start-up made (modules, the cell, the sessions) lives as long as the process:
+        # out of the cyclic collector's way, so that no collection on the data path walks it
+        # (the first ones after start-up took up to 30 ms; docs/performance.md)
+        gc.collect()
+        gc.freeze()
         systemd.notify(f"READY=1\nSTATUS=cell {config.cell} on {', '.join(config.bus.listen)}")
         if ready is not None:
             ready()

@@ -82,41 +82,87 @@ class Sink(Protocol):
 
 
 class Sinks:
-    """The fan-out over the configured sinks, in order (see the module)."""
+    """The fan-out over the configured sinks, in order (see the module). Per sample and per
+    estimate the sinks are called in a plain loop (no closure, one `try` around it); only
+    when one raises does the careful path take over, which still serves the sinks after it.
+    A sample goes only to the sinks that take samples (a sink built on `_Base` that keeps
+    its no-op `on_input` gets none)."""
 
     def __init__(self, sinks: Iterable[Sink] = ()) -> None:
-        self.sinks: list[Sink] = list(sinks)
+        self.sinks: list[Sink] = []
+        self._inputs: list[Sink] = []  # the sinks with an `on_input` of their own
         self.failures: collections.Counter[str] = collections.Counter()
+        for sink in sinks:
+            self.add(sink)
 
     def add(self, sink: Sink) -> None:
         self.sinks.append(sink)
+        if getattr(type(sink), "on_input", None) is not _Base.on_input:
+            self._inputs.append(sink)
 
-    def _call(self, what: str, sinks: Iterable[Sink], call: Callable[[Sink], None]) -> None:
-        first: tuple[Sink, BaseException] | None = None
+    @property
+    def takes_input(self) -> bool:
+        """Whether any sink takes the input samples (else `on_input` need not be called)."""
+        return bool(self._inputs)
+
+    def _failed(self, what: str, sink: Sink, exc: Exception) -> None:
+        self.failures[sink.name] += 1
+        log.error(
+            "the %s output failed on %s (%d so far): %s: %s",
+            sink.name,
+            what,
+            self.failures[sink.name],
+            type(exc).__name__,
+            exc,
+            exc_info=exc,
+        )
+
+    def _call(
+        self,
+        what: str,
+        sinks: Iterable[Sink],
+        call: Callable[[Sink], None],
+        first: tuple[Sink, Exception] | None = None,
+    ) -> None:
+        """Each of `sinks` called; a failure counted and logged, the others served, then the
+        first (`first`: one that happened before these) raised."""
         for sink in sinks:
             try:
                 call(sink)
             except Exception as exc:  # counted, logged, the others served, then raised
-                self.failures[sink.name] += 1
-                log.error(
-                    "the %s output failed on %s (%d so far): %s: %s",
-                    sink.name,
-                    what,
-                    self.failures[sink.name],
-                    type(exc).__name__,
-                    exc,
-                    exc_info=exc,
-                )
+                self._failed(what, sink, exc)
                 first = first or (sink, exc)
         if first is not None:
             failed, cause = first
             raise SinkFailedError(f"the {failed.name} output failed on {what}: {cause}") from cause
 
+    def _rest(
+        self, what: str, sinks: list[Sink], i: int, exc: Exception, call: Callable[[Sink], None]
+    ) -> None:
+        """sinks[i] raised `exc` on the fast path: count and log it, serve the ones after it,
+        raise."""
+        self._failed(what, sinks[i], exc)
+        self._call(what, sinks[i + 1 :], call, (sinks[i], exc))
+
     def on_input(self, sample: Sample) -> None:
-        self._call("a sample", self.sinks, lambda s: s.on_input(sample))
+        sinks = self._inputs
+        i = 0
+        try:
+            for sink in sinks:
+                sink.on_input(sample)
+                i += 1
+        except Exception as exc:
+            self._rest("a sample", sinks, i, exc, lambda s: s.on_input(sample))
 
     def on_estimate(self, estimate: Estimate, message: EstimateMessage) -> None:
-        self._call("an estimate", self.sinks, lambda s: s.on_estimate(estimate, message))
+        sinks = self.sinks
+        i = 0
+        try:
+            for sink in sinks:
+                sink.on_estimate(estimate, message)
+                i += 1
+        except Exception as exc:
+            self._rest("an estimate", sinks, i, exc, lambda s: s.on_estimate(estimate, message))
 
     def on_tick(self, sink: Sink) -> None:
         self._call("its cycle", [sink], lambda s: s.on_tick())
