@@ -159,7 +159,7 @@ def test_online_tracking_finds_the_delay_smoothly_and_leaves_rest_alone(demo_cel
 
     from keo_service.core.estimator import DELAY_SLEW, Estimator
     from keo_service.core.timing import DelayModel
-    from keo_service.fit.delay import OnlineDelayTracker
+    from keo_service.fit.delay_online import OnlineDelayTracker
 
     def drive(run, start_delay):
         settings = dataclasses.replace(

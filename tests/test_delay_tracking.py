@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from keo_service.bench.demo import loopback_config
-from keo_service.fit.delay import DelayMeasurement, OnlineDelayTracker
+from keo_service.fit.delay_online import DelayMeasurement, OnlineDelayTracker
 from keo_service.live.bus import session_for_client
 from keo_service.live.messages import (
     EstimateMessage,
@@ -282,7 +282,7 @@ import sys, time
 from keo_service.io.config import load_config
 from keo_service.io.cell import cell_from_config
 from keo_service.sim.simulate import make_scenario, simulate
-from keo_service.fit.delay import OnlineDelayTracker
+from keo_service.fit.delay_online import OnlineDelayTracker
 from tests.conftest import DEMO
 cell = cell_from_config(load_config(DEMO))
 run = simulate(cell, make_scenario("path", {"duration_s": "8"}), seed=4)

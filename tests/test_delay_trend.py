@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from keo_service.fit.delay import DelayMeasurement, DelayRefused, OnlineDelayTracker
+from keo_service.fit.delay_online import DelayMeasurement, DelayRefused, OnlineDelayTracker
 from keo_service.fit.delay_trend import LevelAndRate, SteadyOrMoving
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from keo_service.fit.delay import DelayMeasurement, OnlineDelayTracker
+from keo_service.fit.delay_online import DelayMeasurement, OnlineDelayTracker
 from keo_service.fit.stamp_lines import Anchor, moved
 from keo_service.sim.simulate import make_scenario, simulate
 

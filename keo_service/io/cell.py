@@ -151,6 +151,16 @@ def delay_model(timing: TimingConfig) -> DelayModel:
     )
 
 
+def delay_prior(timing: TimingConfig) -> tuple[float, float | None]:
+    """The configured delay and its standard uncertainty, the online tracker's prior: None
+    when nothing is known (delay_s = 0 with no delay_se_s), else delay_se_s or its default."""
+    from keo_service.io.config import DEFAULT_DELAY_SE_S
+
+    if timing.delay_se_s is not None:
+        return timing.delay_s, timing.delay_se_s
+    return timing.delay_s, None if timing.delay_s == 0.0 else DEFAULT_DELAY_SE_S
+
+
 def estimator_settings(config: Config) -> EstimatorSettings:
     """The estimator's settings from [observer] and [timing]."""
     timing, obs = config.timing, config.observer

@@ -23,7 +23,8 @@ import zenoh
 
 from keo_service.core.errors import KeoError
 from keo_service.core.estimator import Estimate, Estimator
-from keo_service.io.cell import cell_from_config, delay_model, estimator_settings
+from keo_service.core.timing import DelayModel
+from keo_service.io.cell import cell_from_config, delay_model, delay_prior, estimator_settings
 from keo_service.io.config import Config
 from keo_service.live.bus import AsyncSubscription, session_for_service
 from keo_service.live.messages import (
@@ -55,7 +56,7 @@ def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 if TYPE_CHECKING:
-    from keo_service.fit.delay import OnlineDelayTracker
+    from keo_service.fit.delay_online import OnlineDelayTracker
     from keo_service.live.sinks import Sink
 
 log = logging.getLogger("keo.service")
@@ -109,9 +110,11 @@ class KeoService:
         self._delay_tracker: OnlineDelayTracker | None = None
         self._delay_followed: float | None = None  # the delay last set from the tracker
         if config.timing.track_delay:
-            from keo_service.fit.delay import OnlineDelayTracker
+            from keo_service.fit.delay_online import OnlineDelayTracker
 
-            self._delay_tracker = OnlineDelayTracker(cell, max_gap_s=config.timing.max_gap_s)
+            self._delay_tracker = OnlineDelayTracker(
+                cell, None, *delay_prior(config.timing), max_gap_s=config.timing.max_gap_s
+            )
         # the outputs, in order: bus, corrections, ROS 2, Rerun (`keo_service.live.sinks`)
         self.sinks = Sinks()
         self._viz: RerunOutput | None = None
@@ -323,18 +326,32 @@ class KeoService:
         self.sinks.on_estimate(estimate, self.to_message(estimate))
 
     def to_message(self, estimate: Estimate) -> EstimateMessage:
-        return estimate_message(
+        msg = estimate_message(
             estimate,
             host_ns=time.time_ns(),
             seq=self._seq,
             delay_s=self.estimator.delay.at(estimate.stamp),
             delay_se_s=self.delay_se(),
         )
+        tracker = self._delay_tracker
+        if tracker is not None and not tracker.settled:
+            # the delay in use is not known yet (found from the motion): every estimate says so
+            msg = msgspec.structs.replace(msg, flags=[*msg.flags, "delay_unsettled"])
+        return msg
+
+    def _delay_line(self) -> str:
+        """The delay in use's source and the tracker's last decision, one line."""
+        tracker = self._delay_tracker
+        assert tracker is not None
+        state = "" if tracker.settled else ", unsettled"
+        return f"{tracker.source}{state}; {tracker.last_result}"
 
     def delay_se(self) -> float | None:
-        """The standard error of the delay in use: that of the online estimate last applied
-        (None before: the configured delay comes without one)."""
-        return None if self._delay_tracker is None else self._delay_tracker.applied_se
+        """The standard error of the delay in use: the tracker's (the configured prior's, or
+        that of the fits it came from); without tracking, the configured one, if any."""
+        if self._delay_tracker is None:
+            return delay_prior(self.config.timing)[1]
+        return self._delay_tracker.applied_se
 
     # ---- status -----------------------------------------------------------------------------
 
@@ -376,7 +393,7 @@ class KeoService:
             last_estimate=None if last is None else self.to_message(last),
             # the estimator's rejects, then the service's own findings: the newest ten
             messages=[*self.estimator.messages, *self._messages][-10:],
-            delay_tracking=None if self._delay_tracker is None else self._delay_tracker.last_result,
+            delay_tracking=None if self._delay_tracker is None else self._delay_line(),
             delay_se_s=self.delay_se(),
             adapters=dict(self._adapters),
         )
@@ -415,7 +432,12 @@ class KeoService:
         target = tracker.delay_now()
         if target is not None and target != self._delay_followed:
             self._delay_followed = target
-            self.estimator.set_delay_target(target)
+            if tracker.step:  # a confirmed change, or the delay found while unknown: at once
+                delay = self.estimator.delay
+                self.estimator.set_delay(DelayModel(target, delay.drift, delay.t_ref))
+                tracker.step = False
+            else:  # a refinement too small to matter at speed: no step in the estimates
+                self.estimator.set_delay_target(target)
 
     async def _delay_loop(self) -> None:
         """Online delay tracking: fit each stretch off the loop, fold the result into the
@@ -463,7 +485,8 @@ class KeoService:
             timing = new.timing
             self.estimator.set_delay(delay_model(timing))
             if self._delay_tracker is not None:
-                self._delay_tracker.forget()  # tracking goes on from the delay set by hand
+                # tracking goes on from the delay set by hand, a prior as at start
+                self._delay_tracker.forget(*delay_prior(timing))
         hot = {k: v for k, v in msgspec.structs.asdict(new).items() if k in ("observer", "timing")}
         self.config = msgspec.structs.replace(self.config, **hot) if applied else self.config
         self._refresh_status()
