@@ -262,7 +262,7 @@ class TrackedRun:
     t: np.ndarray
     delay: np.ndarray
     unsettled: np.ndarray
-    fits: list[tuple[float, float]]  # (value - truth, se) of each fit taken
+    fits: list[tuple[float, float, float]]  # each fit: value - truth, its se, with tau
     refused: int
     decisions: list[str]
 
@@ -284,7 +284,7 @@ def run_tracker(
     n_enc = streams.enc_t.size
     out_delay = np.empty(streams.trk_t.size)
     out_flag = np.empty(streams.trk_t.size, dtype=bool)
-    fits: list[tuple[float, float]] = []
+    fits: list[tuple[float, float, float]] = []
     refused = 0
     decisions: list[str] = []
     k = 0
@@ -298,7 +298,13 @@ def run_tracker(
             if tracker.due():
                 found = tracker.measure(tracker.snapshot(), in_use)
                 if isinstance(found, DelayMeasurement):
-                    fits.append((found.delay_s - streams.case.delay_s, found.se_s))
+                    fits.append(
+                        (
+                            found.delay_s - streams.case.delay_s,
+                            found.se_s,
+                            tracker.honest_se(found.se_s),
+                        )
+                    )
                 else:
                     refused += 1
                 tracker.combine(found)
