@@ -14,7 +14,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from keo_service.core.kinematics import Cell
-from keo_service.fit.delay import DelayFit, DelayNotIdentifiableError, fit_delay
+from keo_service.fit.delay import DelayFit, DelayNotIdentifiableError, _mad_sigma, fit_delay
 from keo_service.fit.delay_trend import LevelAndRate, SteadyOrMoving
 from keo_service.fit.stamp_lines import Anchor, moved
 
@@ -59,13 +59,13 @@ class DelayTrackerSettings:
     young_s: float = 10.0
     max_samples: int = 40_000  # bounded buffers, per stream
     max_gap_s: float = 0.05  # no joints interpolated across a wider encoder gap
-    max_position_se_m: float = 2.5e-6  # a refinement needs the estimate known to this at speed
+    max_position_se_m: float = 2.5e-6  # stretches lengthen until fits are known to this at speed
     max_se_s: float = 2e-3  # a fit rougher than this is refused
     outlier_sigmas: float = 4.0  # the running estimate's outlier gate (refinements only)
     settle_s: float = 4.0  # samples left out after a time base starts anew
     min_wander_s: float = 2e-6  # the least scatter of fits beyond their standard errors
     restart_sigma_s: float = 50e-6  # the delay in use's se grows by this at a restart
-    max_apply_m: float = 10e-6  # a refinement moves the delay by at most this at speed
+    max_apply_m: float = 10e-6  # a refinement needs the estimate known to this at speed
     steady_walk: float = 25e-12
     level_walk: float = 4e-12
     rate_walk: float = 1e-12
@@ -86,6 +86,7 @@ class _Fit:
     t: float  # the stream time it describes
     speed: float  # the tool's RMS speed over it (m/s)
     rms: float  # the residual scatter at the fitted delay (m, moving samples)
+    young: bool = False  # of a young clock mapping's stamps, which still move
 
 
 class OnlineDelayTracker:
@@ -211,6 +212,7 @@ class OnlineDelayTracker:
         self._recent: collections.deque[_Fit] = collections.deque(maxlen=16)
         self._segment = 0
         self._suspect: tuple[float, float, float] | None = None  # an outlier fit, to compare
+        self._trend_fits = 0  # fits the running estimate has taken since it started
         self.estimate: float | None = None  # the running estimate of the delay (s)
         self.se: float | None = None  # its standard error (s)
         known = prior_se_s is not None and math.isfinite(prior_se_s) and prior_se_s > 0
@@ -298,8 +300,9 @@ class OnlineDelayTracker:
         """How far the delay the stamps need at stream time `at` moved from the running
         estimate's lines to these (0 for a stream not mapped by a line)."""
         frame = self._frame
-        return moved(lines.get("tracker"), frame.get("tracker"), at) - moved(
-            lines.get("encoder"), frame.get("encoder"), at
+        where = None if math.isnan(at) else at  # a configured delay describes no instant
+        return moved(lines.get("tracker"), frame.get("tracker"), where) - moved(
+            lines.get("encoder"), frame.get("encoder"), where
         )
 
     def _move_to(self, lines: dict[str, Anchor] | None) -> None:
@@ -379,7 +382,11 @@ class OnlineDelayTracker:
 
     def _span(self) -> float:
         """The stretch to fit next: shorter while the clock mappings are young."""
-        young = bool(self._trk) and self._trk[0][0] + self.young_span_s <= self._young_until
+        young = (
+            bool(self._newest)  # only mapped stamps are young (receipt and shared ones are not)
+            and bool(self._trk)
+            and self._trk[0][0] + self.young_span_s <= self._young_until
+        )
         return self.young_span_s if young else self._stretch_s
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
@@ -494,7 +501,8 @@ class OnlineDelayTracker:
             return None
         self._move_to(lines)  # the fit is under the lines of its snapshot
         value, se, speed = found.delay_s, found.se_s, found.speed_rms
-        provisional = found.t <= self._young_until
+        # young mappings' stamps still move; receipt and shared-clock stamps have no mapping
+        provisional = found.t <= self._young_until and bool(lines)
         if not provisional:  # young stretches have their own length
             self._fit_stretch(se * speed)
         if not (math.isfinite(value) and math.isfinite(se) and se > 0) or se > self.max_se_s:
@@ -502,7 +510,9 @@ class OnlineDelayTracker:
             self.last_result = "kept: the fit gave no usable value"
             return None
         self.counters["fits"] += 1
-        self._recent.append(_Fit(value, se, found.described_t, speed, found.rms_m))
+        self._recent.append(
+            _Fit(value, se, found.described_t, speed, found.rms_m, young=provisional)
+        )
         before = self.applied
         decision = self._decide(found.t)
         if self.applied != before:
@@ -519,20 +529,31 @@ class OnlineDelayTracker:
         return math.sqrt(fit_se * fit_se + self._tau2())
 
     def _tau2(self) -> float:
-        """tau^2 from the recent fits: half the squared difference of successive fits, robustly
-        (median over 0.4549), less their own variance; `first_tau_s`^2 until three fits say."""
-        fits = list(self._recent)
+        """tau^2 from the recent fits (of settled mappings when there are three): their
+        scatter about their median, robustly (the median absolute deviation as a normal's
+        sigma, so that one wild fit among three does not make every fit look wild), less their
+        own variance; `first_tau_s`^2 until three fits say."""
+        fits = [f for f in self._recent if not f.young]
+        if len(fits) < 3:
+            fits = list(self._recent)
+        fits = fits[-self.settings.consensus_fits :]
         if len(fits) < 3:
             return self.settings.first_tau_s**2
-        d2 = [(b.value - a.value) ** 2 / 2.0 for a, b in itertools.pairwise(fits)]
-        s2 = [(a.se**2 + b.se**2) / 2.0 for a, b in itertools.pairwise(fits)]
-        return max(self.min_wander_s**2, float(np.median(d2)) / 0.4549 - float(np.median(s2)))
+        values = np.array([f.value for f in fits])
+        spread = _mad_sigma(values) ** 2
+        own = float(np.median([f.se**2 for f in fits]))
+        return max(self.min_wander_s**2, spread - own)
 
     def consensus(self) -> tuple[float, float, list[_Fit]] | None:
         """The recent fits' robust consensus: the weighted median, then the weighted mean of
         the fits within 3 sigma of it (at least two), its standard error scaled up by their
         own disagreement. Symmetric: it knows nothing of the delay in use."""
-        fits = list(self._recent)[-self.settings.consensus_fits :]
+        # a young clock mapping's fits describe stamps that moved since: once two fits of
+        # settled mappings are there, theirs only; until then the newest two
+        pool = [f for f in self._recent if not f.young]
+        if len(pool) < 2:
+            pool = list(self._recent)[-2:]
+        fits = pool[-self.settings.consensus_fits :]
         if len(fits) < 2:
             return None
         tau2 = self._tau2()
@@ -567,6 +588,12 @@ class OnlineDelayTracker:
             f"fit {newest.value * 1e6:.1f} +/- {self.honest_se(newest.se) * 1e6:.1f} us "
             f"at {newest.speed * 1e3:.0f} mm/s"
         )
+        first = cons is None and self.applied is None and len(self._recent) == 1
+        if first and newest.se * newest.speed <= self.max_apply_m:
+            # nothing is known: one precise fit beats nothing (flagged, and the fits that
+            # follow revise it by the consensus like any other)
+            self._take(newest.value, self.honest_se(newest.se), t, step=True)
+            return f"unsettled: {said}, the first fit, in use until fits agree"
         if cons is None:
             self.counters["fits_without_consensus"] += 1
             return f"kept: {said}; the recent fits do not agree yet"
@@ -574,14 +601,21 @@ class OnlineDelayTracker:
         speed = float(np.median([f.speed for f in members]))
         agreed = f"{len(members)} fits agree on {c * 1e6:.1f} +/- {se_c * 1e6:.1f} us"
         if not self.settled or self.applied is None:
+            if newest.young and newest in members:  # its stamps are the most settled
+                c, se_c = newest.value, self.honest_se(newest.se)
             self._take(c, se_c, t, step=True)
-            if len(members) >= 3 and se_c * speed <= self.settings.settle_m:
+            grown = len(members) >= 3 and not any(f.young for f in members)
+            if grown and se_c * speed <= self.settings.settle_m:
                 self.settled = True
                 self._trend.start(c, se_c * se_c, newest.t)
+                self._trend_fits = 0
                 return f"settled: {agreed}"
             to = self.settings.settle_m * 1e6
             return f"unsettled: {agreed}, in use until they agree to {to:g} um at speed"
-        applied, applied_se = self.applied, self.applied_se or 0.0
+        applied = self.applied
+        # the delay in use walks on since it was set (device clocks' stamps move with load)
+        since = 0.0 if math.isnan(self._applied_t) else max(0.0, t - self._applied_t)
+        applied_se = math.sqrt((self.applied_se or 0.0) ** 2 + self.settings.steady_walk * since)
         z = abs(c - applied) / math.sqrt(se_c**2 + applied_se**2)
         if z < self.settings.change_sigmas:
             self.counters["fits_agree"] += 1
@@ -604,6 +638,7 @@ class OnlineDelayTracker:
             return f"kept: {said}; scatter {new * 1e6:.1f} um with it, {old * 1e6:.1f} um without"
         self._take(c, se_c, t, step=True)
         self._trend.start(c, se_c * se_c, newest.t)
+        self._trend_fits = 0
         self.counters["changes"] += 1
         return (
             f"changed: {agreed} ({z:.1f} sigma from {applied * 1e6:.1f} us); scatter on the "
@@ -618,9 +653,9 @@ class OnlineDelayTracker:
 
     def _refine(self, found: DelayMeasurement, provisional: bool) -> str | None:
         """The running estimate (a Kalman filter over the fits, `delay_trend`), applied as a
-        refinement when it is known to `max_position_se_m` at the tool's speed and moves the
-        delay by at most `max_apply_m` there: a change no estimate could be harmed by. None
-        when it did not refine the delay in use."""
+        refinement when it is known to `max_apply_m` at the tool's speed and moves the delay
+        by at most three times that there (larger changes go through `_decide`). None when
+        it did not refine the delay in use."""
         value, se, speed = found.delay_s, found.se_s, found.speed_rms
         t_fit = found.described_t
         fresh = provisional or self._provisional or not self._trend.started
@@ -632,20 +667,28 @@ class OnlineDelayTracker:
         if not provisional:
             self._history.append((value, se, self._segment, t_fit))
         tau2 = self._wander2()
-        if fresh:
+        if fresh and self.applied is not None and self.applied_se is not None:
+            # the filter starts from the delay in use with its uncertainty (a configured
+            # prior, or the consensus it came from), never from one fit alone
+            self._trend.start(self.applied, self.applied_se**2, t_fit)
+            self._trend_fits = 0
+        elif fresh:
             self._trend.start(value, se * se + tau2, t_fit)
-        else:
-            if isinstance(moved, tuple):
-                self._trend.start(moved[0], moved[1] ** 2 + tau2, moved[2])
-            self._trend.update(value, se * se + tau2, t_fit)
+            self._trend_fits = 0
+        elif isinstance(moved, tuple):
+            self._trend.start(moved[0], moved[1] ** 2 + tau2, moved[2])
+            self._trend_fits = 1
+        self._trend.update(value, se * se + tau2, t_fit)
+        self._trend_fits += 1
         estimate, estimate_var = self._trend.predict(found.t)
         self.estimate, self.se = estimate, math.sqrt(estimate_var)
         self._estimate_t = found.t
         if (
             provisional
+            or self._trend_fits < 3  # a refinement is the work of several fits, never one
             or self.applied is None
-            or self.se * speed > self.max_position_se_m
-            or abs(self.estimate - self.applied) * speed > self.max_apply_m
+            or self.se * speed > self.max_apply_m
+            or abs(self.estimate - self.applied) * speed > 3.0 * self.max_apply_m
         ):
             return None
         self.applied_se = self.se
