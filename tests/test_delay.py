@@ -280,3 +280,35 @@ def test_tool_states_over_arrays_match_pinocchio_sample_by_sample(demo_cell):
         assert np.allclose(R[i], T.rotation, atol=1e-12)
         assert np.allclose(v[i], (Tp.translation - Tm.translation) / (2 * h), atol=1e-8)
         assert np.allclose(w[i], pin.log3(Tp.rotation @ Tm.rotation.T) / (2 * h), atol=1e-8)
+
+
+def test_a_short_recording_of_undrifted_clocks_claims_no_drift(demo_cell, tmp_path):
+    """Issue 45: 20 s of the demo cell printed -316.4 +/- 63.0 ppm and a paste-ready
+    drift_ppm. Here 20 s without drift: no drift claimed, none to paste, and the note says the
+    recording is too short (with the smallest drift it could show)."""
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "20"}), seed=5)
+    write_run(run, tmp_path)
+    files = ["--encoder", str(tmp_path / "encoder.csv"), "--tracker", str(tmp_path / "tracker.csv")]
+    res = keo("calibrate-delay", "--config", str(DEMO), *files, "--json")
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert "drift_ppm" not in doc
+    assert "timing.drift_ppm" not in doc["config"]
+    assert doc["config"]["timing.delay_se_s"] == doc["delay_se_s"]
+    assert any("too short" in n for n in doc["notes"]), doc["notes"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("ppm", [200.0, 0.0])
+def test_ten_minutes_show_a_200_ppm_drift_and_none_where_there_is_none(demo_cell, ppm):
+    """A 10-minute recording: 200 ppm injected is found within its uncertainty; without a
+    drift none is claimed (measured: 199.9 +/- 0.1 ppm)."""
+    sets = {"duration_s": "600", "drift_ppm": repr(ppm)}
+    run = simulate(demo_cell, make_scenario("path", sets), seed=5)
+    fit = fit_run(demo_cell, run)
+    if ppm:
+        assert fit.drift_significant, fit.notes
+        assert abs(fit.drift * 1e6 - ppm) < 3 * fit.drift_se * 1e6 + 0.5
+    else:
+        assert not fit.drift_significant, (fit.drift, fit.drift_se)
+        assert fit.drift == 0.0
