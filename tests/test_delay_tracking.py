@@ -88,7 +88,7 @@ def test_a_settled_delay_changes_only_when_a_later_stretch_confirms(demo_cell):
     tracker = OnlineDelayTracker(demo_cell, prior_s=50e-6, prior_se_s=5e-6)
     tracker.combine(DelayMeasurement(400e-6, 5e-6, SPEED, 5.0))
     assert tracker.delay_now() == pytest.approx(50e-6)
-    assert tracker.last_result.startswith("kept")
+    assert "; kept:" in tracker.last_result
     after = feed(tracker, [(400e-6, 5e-6)] * 2, t0=5.0)
     assert after[0] == pytest.approx(50e-6)
     assert after[1] == pytest.approx(400e-6, abs=2e-6)
@@ -241,7 +241,7 @@ async def test_service_reconverges_after_a_clock_epoch_change(demo_config):
             sub.undeclare()
             peer.close()
     assert status.counters["delay_restarts"] == 1, status.delay_tracking
-    assert status.counters["delay_fits"] >= 4, status.delay_tracking
+    assert status.counters["delay_fits_accepted"] >= 4, status.delay_tracking
     assert status.counters.get("delay_changes", 0) >= 1, (status.delay_tracking, status.counters)
     assert status.delay_tracking is not None
     assert status.delay_tracking.startswith("fit at"), status.delay_tracking
@@ -260,7 +260,8 @@ async def test_service_reconverges_after_a_clock_epoch_change(demo_config):
     delays = np.array([e.delay_s for e in estimates])
     stamps = np.array([e.stamp for e in estimates])
     before = stamps < half
-    assert np.all(delays[before] == pytest.approx(0.028, abs=1e-9))  # the calibration held
+    # the calibration held (refinements too small to matter at speed aside)
+    assert np.all(delays[before] == pytest.approx(0.028, abs=10e-6))
     assert np.all(np.abs(delays - 0.028) < shift + 50e-6)  # never wandered off
     assert not any("delay_unsettled" in e.flags for e in estimates)  # configured: settled
 

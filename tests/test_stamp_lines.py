@@ -171,6 +171,6 @@ def test_a_turned_line_carries_the_estimate_where_it_describes(demo_cell, run):
     assert first.delay_s == pytest.approx(DELAY, abs=15e-6), tracker.last_result
     _feed(tracker, run, 6.6, 9.2)
     tracker.combine(tracker.measure(tracker.snapshot(), DELAY))
-    assert tracker.counters["fits"] == 2, tracker.last_result
+    assert tracker.counters["fits_accepted"] == 2, tracker.last_result
     # the two fits, the first carried onto the new line where it describes, agree on it
     assert tracker.delay_now() == pytest.approx(DELAY, abs=8e-6), tracker.last_result

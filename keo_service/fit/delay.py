@@ -180,6 +180,7 @@ class _Round:
     nch: int
     inflate: float  # variance inflation for the residual's autocorrelation
     speed_rms: float  # m/s
+    turning: float = 0.0  # the tool velocity's second singular value over its first
 
 
 def _linearised_round(
@@ -205,6 +206,8 @@ def _linearised_round(
             f"moving {100 * moving.mean():.0f} % of the time): a delay only shows while it "
             "moves; record motion with changes of speed or direction"
         )
+    sv = np.linalg.svd(v, compute_uv=False)
+    turning = float(sv[1] / sv[0]) if sv[0] > 0 else 0.0  # 0: one direction of motion
     vel = np.hstack([v, w]) if R_bs is not None else v
     if features == "tool":  # errors and velocities in the tool frame: R_bt^T x
         for part in (slice(0, 3), slice(3, 6))[: err.shape[1] // 3]:
@@ -242,7 +245,7 @@ def _linearised_round(
         bread = np.full((X_p.shape[1], X_p.shape[1]), np.inf)
     cov, inflate = _block_covariance(X_p, resid, trk_t, nch, bread)
     speed_rms = float(np.sqrt(np.mean(speed**2)))
-    return _Round(beta, cov, resid, scale, moving, X_p, y_p, nch, inflate, speed_rms)
+    return _Round(beta, cov, resid, scale, moving, X_p, y_p, nch, inflate, speed_rms, turning)
 
 
 def _judge_drift(
@@ -348,11 +351,18 @@ def fit_delay(
     rms_rest = float(np.sqrt(np.mean(res_pos[~moving] ** 2))) if (~moving).any() else math.nan
     notes: list[str] = []
     if not se < MAX_SE_S:
+        # the advice follows the motion measured: only a motion along one direction is told
+        # that it moves along one direction
+        advice = (
+            "a move at constant velocity along one direction is not enough: include rests, "
+            "changes of speed or of direction"
+            if last.turning < 0.2
+            else f"the motion turns, but {float(trk_t[-1] - trk_t[0]):.1f} s of it are too "
+            "few for this error model: a longer stretch (or recording) helps"
+        )
         raise DelayNotIdentifiableError(
             f"the motion cannot separate a delay from a configuration-dependent error "
-            f"(standard error {se * 1e3:.1f} ms > {MAX_SE_S * 1e3:.0f} ms); a move at constant "
-            "velocity along one direction is not enough: include rests, changes of speed or of "
-            "direction"
+            f"(standard error {se * 1e3:.1f} ms > {MAX_SE_S * 1e3:.0f} ms); {advice}"
         )
     significant, drift_se = _judge_drift(
         last, trk_t, drift, drift_se, with_drift, check_windows, notes

@@ -227,6 +227,9 @@ class OnlineDelayTracker:
         self._estimate_t = math.nan  # the stream time `estimate` describes
         self.counters: collections.Counter[str] = collections.Counter()
         self.last_result: str = "waiting for motion"
+        # the kind of the last decision (kept, unsettled, settled, changed, refined, or why a
+        # stretch gave no fit): the service says a decision when its kind changes
+        self.state = "waiting"
 
     # ---- samples (on the event loop: cheap) ---------------------------------------------
 
@@ -509,17 +512,19 @@ class OnlineDelayTracker:
             self.counters["fits_refused_imprecise"] += 1
             self.last_result = "kept: the fit gave no usable value"
             return None
-        self.counters["fits"] += 1
+        self.counters["fits_accepted"] += 1  # usable: they join the recent fits
         self._recent.append(
             _Fit(value, se, found.described_t, speed, found.rms_m, young=provisional)
         )
         before = self.applied
         decision = self._decide(found.t)
+        self.state = decision.split("; ", 1)[-1].split(":")[0]
         if self.applied != before:
             self.last_result = decision
             return self.delay_now()
         refined = self._refine(found, provisional) if self.settled else None
-        self.last_result = decision if refined is None else refined
+        self.last_result = decision if refined is None else f"{decision.split(';')[0]}; {refined}"
+        self.state = "refined" if refined is not None else self.state
         return None if refined is None else self.delay_now()
 
     def honest_se(self, fit_se: float) -> float:
@@ -593,10 +598,10 @@ class OnlineDelayTracker:
             # nothing is known: one precise fit beats nothing (flagged, and the fits that
             # follow revise it by the consensus like any other)
             self._take(newest.value, self.honest_se(newest.se), t, step=True)
-            return f"unsettled: {said}, the first fit, in use until fits agree"
+            return f"{said}; unsettled: the first fit, in use until fits agree"
         if cons is None:
             self.counters["fits_without_consensus"] += 1
-            return f"kept: {said}; the recent fits do not agree yet"
+            return f"{said}; kept: the recent fits do not agree yet"
         c, se_c, members = cons
         speed = float(np.median([f.speed for f in members]))
         agreed = f"{len(members)} fits agree on {c * 1e6:.1f} +/- {se_c * 1e6:.1f} us"
@@ -609,9 +614,9 @@ class OnlineDelayTracker:
                 self.settled = True
                 self._trend.start(c, se_c * se_c, newest.t)
                 self._trend_fits = 0
-                return f"settled: {agreed}"
+                return f"{said}; settled: {agreed}"
             to = self.settings.settle_m * 1e6
-            return f"unsettled: {agreed}, in use until they agree to {to:g} um at speed"
+            return f"{said}; unsettled: {agreed}, in use until they agree to {to:g} um at speed"
         applied = self.applied
         # the delay in use walks on since it was set (device clocks' stamps move with load)
         since = 0.0 if math.isnan(self._applied_t) else max(0.0, t - self._applied_t)
@@ -619,7 +624,7 @@ class OnlineDelayTracker:
         z = abs(c - applied) / math.sqrt(se_c**2 + applied_se**2)
         if z < self.settings.change_sigmas:
             self.counters["fits_agree"] += 1
-            return f"kept: {said}; {agreed}, {z:.1f} sigma from the delay in use"
+            return f"{said}; kept: {agreed}, {z:.1f} sigma from the delay in use"
         side = math.copysign(1.0, c - applied)
         tau2 = self._tau2()
         confirming = [
@@ -630,19 +635,19 @@ class OnlineDelayTracker:
         ]
         if len(confirming) < 2 or confirming[-1] is not newest:
             self.counters["changes_unconfirmed"] += 1
-            return f"kept: {said}; {agreed}, waiting for a later stretch to confirm"
+            return f"{said}; kept: {agreed}, waiting for a later stretch to confirm"
         old = math.hypot(newest.rms, (applied - newest.value) * newest.speed)
         new = math.hypot(newest.rms, (c - newest.value) * newest.speed)
         if not new < old:
             self.counters["changes_not_better"] += 1
-            return f"kept: {said}; scatter {new * 1e6:.1f} um with it, {old * 1e6:.1f} um without"
+            return f"{said}; kept: scatter {new * 1e6:.1f} um with it, {old * 1e6:.1f} um without"
         self._take(c, se_c, t, step=True)
         self._trend.start(c, se_c * se_c, newest.t)
         self._trend_fits = 0
         self.counters["changes"] += 1
         return (
-            f"changed: {agreed} ({z:.1f} sigma from {applied * 1e6:.1f} us); scatter on the "
-            f"newest stretch {old * 1e6:.1f} -> {new * 1e6:.1f} um"
+            f"{said}; changed: {agreed} ({z:.1f} sigma from {applied * 1e6:.1f} us), scatter "
+            f"on the newest stretch {old * 1e6:.1f} -> {new * 1e6:.1f} um"
         )
 
     def _take(self, value: float, se: float, t: float, step: bool) -> None:
@@ -707,6 +712,7 @@ class OnlineDelayTracker:
             self._fit_stretch(math.inf)
         self.counters[found.counter] += 1
         self.last_result = f"kept: {found.reason}"
+        self.state = found.counter
 
     def _fit_stretch(self, precision_m: float) -> None:
         """The settled stretch as short as gives fits known to `max_position_se_m` at the

@@ -152,13 +152,9 @@ def delay_model(timing: TimingConfig) -> DelayModel:
 
 
 def delay_prior(timing: TimingConfig) -> tuple[float, float | None]:
-    """The configured delay and its standard uncertainty, the online tracker's prior: None
-    when nothing is known (delay_s = 0 with no delay_se_s), else delay_se_s or its default."""
-    from keo_service.io.config import DEFAULT_DELAY_SE_S
-
-    if timing.delay_se_s is not None:
-        return timing.delay_s, timing.delay_se_s
-    return timing.delay_s, None if timing.delay_s == 0.0 else DEFAULT_DELAY_SE_S
+    """The configured delay and its standard uncertainty, the online tracker's prior; None
+    when nothing is known (delay_s = 0, the default)."""
+    return timing.delay_s, None if timing.delay_s == 0.0 else timing.delay_se_s
 
 
 def estimator_settings(config: Config) -> EstimatorSettings:

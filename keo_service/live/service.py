@@ -109,6 +109,7 @@ class KeoService:
         self.estimator = Estimator(cell, estimator_settings(config))
         self._delay_tracker: OnlineDelayTracker | None = None
         self._delay_followed: float | None = None  # the delay last set from the tracker
+        self._delay_said = ""  # the kind of the tracker's decision last logged
         if config.timing.track_delay:
             from keo_service.fit.delay_online import OnlineDelayTracker
 
@@ -456,7 +457,11 @@ class KeoService:
             if tracker.counters["restarts"] == restarts:
                 tracker.combine(found)
                 self._follow_tracked_delay(tracker)
-            log.info("delay tracking: %s", tracker.last_result)
+            # said when the kind of decision changes (a refusal's advice once, not at every
+            # stretch); every decision stays in the status line and at debug level
+            said, self._delay_said = self._delay_said, tracker.state
+            level = logging.INFO if tracker.state != said else logging.DEBUG
+            log.log(level, "delay tracking: %s", tracker.last_result)
 
     async def _sink_loop(self, sink: Sink) -> None:
         """A sink's own cycle (the corrections' validity, Rerun's status snapshots), its
