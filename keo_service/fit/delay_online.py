@@ -393,9 +393,14 @@ class OnlineDelayTracker:
         return self.young_span_s if young else self._stretch_s
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-        """Copies of the stretch to fit (call on the loop, then fit anywhere), its stamps
-        under each stream's newest line, which the next `combine` takes the fit to be under;
-        the stretch is consumed: the next fit sees only newer samples."""
+        """The stretch to fit as arrays (`take`, then `stretch_arrays`, in one call)."""
+        return stretch_arrays(self.take())
+
+    def take(self) -> Stretch:
+        """The stretch to fit, consumed from the buffers (on the loop: list copies only, the
+        arrays are built by `stretch_arrays` in the worker), with each stream's newest line,
+        which the next `combine` takes the fit to be under: the next fit sees only newer
+        samples."""
         first = self._trk[0][0]
         trk = [s for s in self._trk if s[0] <= first + self._span()]
         end = trk[-1][0]
@@ -406,24 +411,7 @@ class OnlineDelayTracker:
             self._enc.popleft()
         # the whole stretch under each stream's newest line (see fit/stamp_lines.py)
         self._fitting_frame = dict(self._newest)
-        enc_t = self._on_line("encoder", [(s[0], s[2]) for s in enc])
-        enc_q = np.array([s[1] for s in enc]) if enc else np.empty((0, 0))
-        trk_t = self._on_line("tracker", [(s[0], s[3]) for s in trk])
-        trk_p = np.array([s[1] for s in trk])
-        quats = [s[2] for s in trk]
-        trk_q = None if any(q is None for q in quats) else np.array(quats)
-        return enc_t, enc_q, trk_t, trk_p, trk_q
-
-    def _on_line(self, stream: str, stamps: list[tuple[float, float | None]]) -> np.ndarray:
-        """The stamps (stamp, device stamp) of a stream under its newest line: a sample's
-        device stamp carried by the line, its own stamp when it has none."""
-        t = np.array([s for s, _ in stamps], dtype=float)
-        anchor = self._newest.get(stream)
-        if anchor is not None and t.size:
-            device = np.array([math.nan if d is None else d for _, d in stamps])
-            mapped = ~np.isnan(device)
-            t[mapped] = anchor.at(device[mapped])
-        return t
+        return Stretch(enc, trk, self._newest.get("encoder"), self._newest.get("tracker"))
 
     def fit(
         self,
@@ -690,7 +678,11 @@ class OnlineDelayTracker:
         self._estimate_t = found.t
         if (
             provisional
-            or self._trend_fits < 3  # a refinement is the work of several fits, never one
+            # a refinement is the work of several fits, never one, and only once their
+            # scatter beyond their se is measured (fits biased alike by the robot's geometry
+            # refined a right delay by 14 um at speed while it was still assumed)
+            or self._trend_fits < 3
+            or not self._wander_known()
             or self.applied is None
             or self.se * speed > self.max_apply_m
             or abs(self.estimate - self.applied) * speed > 3.0 * self.max_apply_m
@@ -760,6 +752,11 @@ class OnlineDelayTracker:
             return self.se
         return math.sqrt(self._trend.predict(t)[1])
 
+    def _wander_known(self) -> bool:
+        """Have three triples of the current segment's fits measured their scatter?"""
+        hist = [h for h in self._history if h[2] == self._segment]
+        return len(hist) >= 5
+
     def _wander2(self) -> float:
         """tau^2: the scatter of accepted fits beyond their standard errors, within each
         segment (between restarts), from how far each fit lies off the straight line
@@ -825,3 +822,39 @@ def _covered(
     k = np.clip(k, 1, enc_t.size - 1)
     keep = inside & (enc_t[k] - enc_t[k - 1] <= max_gap_s)
     return enc_t, enc_q, trk_t[keep], trk_p[keep], None if trk_q is None else trk_q[keep]
+
+
+@dataclass(frozen=True)
+class Stretch:
+    """A stretch taken from the buffers: (stamp, joints, device stamp) and (stamp, position,
+    quaternion, device stamp) rows, and each stream's line then (None: not mapped)."""
+
+    enc: list[tuple[float, np.ndarray, float | None]]
+    trk: list[tuple[float, np.ndarray, np.ndarray | None, float | None]]
+    enc_line: Anchor | None
+    trk_line: Anchor | None
+
+
+def stretch_arrays(
+    stretch: Stretch,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """A stretch's arrays, its mapped stamps under the stream's line (anywhere: a worker)."""
+    enc, trk = stretch.enc, stretch.trk
+    enc_t = _on_line(stretch.enc_line, [(s[0], s[2]) for s in enc])
+    enc_q = np.array([s[1] for s in enc]) if enc else np.empty((0, 0))
+    trk_t = _on_line(stretch.trk_line, [(s[0], s[3]) for s in trk])
+    trk_p = np.array([s[1] for s in trk])
+    quats = [s[2] for s in trk]
+    trk_q = None if any(q is None for q in quats) else np.array(quats)
+    return enc_t, enc_q, trk_t, trk_p, trk_q
+
+
+def _on_line(anchor: Anchor | None, stamps: list[tuple[float, float | None]]) -> np.ndarray:
+    """The stamps (stamp, device stamp) of a stream under its line: a sample's device stamp
+    carried by the line, its own stamp when it has none."""
+    t = np.array([s for s, _ in stamps], dtype=float)
+    if anchor is not None and t.size:
+        device = np.array([math.nan if d is None else d for _, d in stamps])
+        mapped = ~np.isnan(device)
+        t[mapped] = anchor.at(device[mapped])
+    return t

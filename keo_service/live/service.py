@@ -56,7 +56,12 @@ def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 if TYPE_CHECKING:
-    from keo_service.fit.delay_online import OnlineDelayTracker
+    from keo_service.fit.delay_online import (
+        DelayMeasurement,
+        DelayRefused,
+        OnlineDelayTracker,
+        Stretch,
+    )
     from keo_service.live.sinks import Sink
 
 log = logging.getLogger("keo.service")
@@ -66,6 +71,17 @@ STATUS_PERIOD_S = 0.1
 # waits at most this long (its stretches are 2-2.5 s)
 DELAY_POLL_S = 0.25
 STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "stale"
+
+
+def _measure(
+    tracker: OnlineDelayTracker, stretch: Stretch, current: float
+) -> DelayMeasurement | DelayRefused:
+    """In the worker: the stretch's arrays, then its fit."""
+    from keo_service.fit.delay_online import stretch_arrays
+
+    return tracker.measure(stretch_arrays(stretch), current)
+
+
 MAX_ADAPTERS = 16  # adapters whose newest state change the service keeps (bounded)
 MAX_MESSAGES = 16  # the service's own newest messages kept for its status (bounded)
 # adapter states that are trouble (logged as warnings; the others at info)
@@ -441,19 +457,21 @@ class KeoService:
                 self.estimator.set_delay_target(target)
 
     async def _delay_loop(self) -> None:
-        """Online delay tracking: fit each stretch off the loop, fold the result into the
-        running estimate on the loop, and slew the estimator's delay to it (never a step).
-        A fit of data from before a time base started anew is dropped."""
+        """Online delay tracking: take each stretch from the tracker's bounded buffers on the
+        loop (list copies), build its arrays and fit it in a worker thread (one fit at a
+        time), fold the result in on the loop, between samples, and set the estimator's
+        delay (a step for a confirmed change, a slew for a refinement). A fit of data from
+        before a time base started anew is dropped."""
         tracker = self._delay_tracker
         assert tracker is not None
         while not self._stop.is_set():
             if not tracker.due():  # else a stretch is waiting already (a slow fit, a replay)
                 await asyncio.sleep(DELAY_POLL_S)
                 continue
-            window = tracker.snapshot()
+            stretch = tracker.take()
             restarts = tracker.counters["restarts"]
             current = self.estimator.delay.offset_s
-            found = await asyncio.to_thread(tracker.measure, window, current)
+            found = await asyncio.to_thread(_measure, tracker, stretch, current)
             if tracker.counters["restarts"] == restarts:
                 tracker.combine(found)
                 self._follow_tracked_delay(tracker)
