@@ -32,6 +32,7 @@ from keo_service.core.rotations import log3_many, quaternion_matrices
 VELOCITY_STEP_S = 0.005  # central differences for the tool's velocity
 STATE_ROWS = 4 * CHUNK  # samples whose tool states are computed at once
 MIN_SPEED = 0.005  # m/s: slower than this is "at rest"
+LEVER_M = 1.0  # m per rad: how a turn counts in the tool's speed
 MAX_SE_S = 0.002  # refuse when the delay's standard error is larger than this
 
 
@@ -198,7 +199,11 @@ def _linearised_round(
     trk_t, p_bs, R_bs = tracker
     q, p_bt, R_bt, v, w = _tool_states(cell, enc_t, enc_q, enc_times)
     err = _measured_base_errors(p_bt, R_bt, p_bs, R_bs)
-    speed = np.linalg.norm(v, axis=1)
+    # a turn shows a delay too (in the orientation): one radian counts as one metre, as the
+    # targets weigh a micrometre and a microradian alike (a wrist turning about a still tool
+    # point was refused as "hardly moving")
+    motion = v if R_bs is None else np.hstack([v, w * LEVER_M])
+    speed = np.linalg.norm(motion, axis=1)
     moving = speed > MIN_SPEED
     if moving.mean() < 0.05 or np.sqrt(np.mean(speed**2)) < 2 * MIN_SPEED:
         raise DelayNotIdentifiableError(
@@ -206,7 +211,7 @@ def _linearised_round(
             f"moving {100 * moving.mean():.0f} % of the time): a delay only shows while it "
             "moves; record motion with changes of speed or direction"
         )
-    sv = np.linalg.svd(v, compute_uv=False)
+    sv = np.linalg.svd(motion, compute_uv=False)
     turning = float(sv[1] / sv[0]) if sv[0] > 0 else 0.0  # 0: one direction of motion
     vel = np.hstack([v, w]) if R_bs is not None else v
     if features == "tool":  # errors and velocities in the tool frame: R_bt^T x
