@@ -202,6 +202,7 @@ def _linearised_round(
     # a turn shows a delay too (in the orientation): one radian counts as one metre, as the
     # targets weigh a micrometre and a microradian alike (a wrist turning about a still tool
     # point was refused as "hardly moving")
+    v_point = v
     motion = v if R_bs is None else np.hstack([v, w * LEVER_M])
     speed = np.linalg.norm(motion, axis=1)
     moving = speed > MIN_SPEED
@@ -241,7 +242,7 @@ def _linearised_round(
         rows = slice(c * n, (c + 1) * n)
         for out, a in ((y_p, err[:, c] / scale[c]), (X_p, np.column_stack(cols))):
             out[rows] = a - Qf @ (Qf.T @ a)
-    del Qf, q, p_bt, R_bt, v, w, vel, err
+    del Qf, q, p_bt, R_bt, w, vel, err
     beta, *_ = np.linalg.lstsq(X_p, y_p, rcond=None)
     resid = y_p - X_p @ beta
     try:
@@ -249,7 +250,9 @@ def _linearised_round(
     except np.linalg.LinAlgError:
         bread = np.full((X_p.shape[1], X_p.shape[1]), np.inf)
     cov, inflate = _block_covariance(X_p, resid, trk_t, nch, bread)
-    speed_rms = float(np.sqrt(np.mean(speed**2)))
+    # the speed a delay error is weighed at: the tool point's, unless only the tool turns
+    point_rms = float(np.sqrt(np.mean(np.sum(v_point**2, axis=1))))
+    speed_rms = point_rms if point_rms >= 2 * MIN_SPEED else float(np.sqrt(np.mean(speed**2)))
     return _Round(beta, cov, resid, scale, moving, X_p, y_p, nch, inflate, speed_rms, turning)
 
 
