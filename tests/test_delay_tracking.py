@@ -314,3 +314,22 @@ print(time.perf_counter() - start, "scipy.stats" in sys.modules, type(found).__n
     assert kind == "DelayMeasurement"
     assert stats_loaded == "False"
     assert seconds < 1.0  # measured 0.04-0.07 s
+
+
+async def test_estimates_are_flagged_until_an_unknown_delay_settles(demo_config):
+    """delay_s = 0 (not known): every estimate the service sends carries delay_unsettled and
+    the status line says so; a configured delay is settled from the start (no flag)."""
+    from keo_service.core.estimator import Estimate
+
+    record = Estimate(1.0, [0.0] * 6, [0.0] * 6, (), 1.0, ("px", "py", "pz", "rx", "ry", "rz"))
+    for delay_s, flagged in ((0.0, True), (0.028, False)):
+        timing = msgspec.structs.replace(demo_config.timing, delay_s=delay_s)
+        config = loopback_config(msgspec.structs.replace(demo_config, timing=timing))
+        async with KeoService(config) as service:
+            msg = service.to_message(record)
+            status = service.status()
+        assert ("delay_unsettled" in msg.flags) == flagged
+        assert status.delay_tracking is not None
+        assert status.delay_tracking.startswith("unknown, unsettled" if flagged else "configured")
+        if not flagged:
+            assert msg.delay_se_s == pytest.approx(0.0005)  # the configured prior's default
