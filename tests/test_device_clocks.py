@@ -24,6 +24,7 @@ judged against the injected constant tool error, known from the simulator."""
 from __future__ import annotations
 
 import json
+import math
 import signal
 import threading
 import time
@@ -190,7 +191,8 @@ def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
     k_inst, k_err, k_rcv = _stamp_errors(trk, t0, TRACKER_CLOCK)
     stamps = np.array([m.stamp for m in est])
     delays = np.array([m.delay_s for m in est])
-    good = [m for m in est if not m.flags]
+    # judged whatever the delay tracker says of itself (delay_unsettled): stricter, not looser
+    good = [m for m in est if not set(m.flags) - {"delay_unsettled"}]
     g_stamps = np.array([m.stamp for m in good])
     err = np.array([m.estimate for m in good]) - truth
     # judged: from SETTLE_S after the start and after each restart until the next kill
@@ -242,6 +244,13 @@ def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
     def phase(a: float, b: float) -> dict[str, float]:
         """The judged estimates' error in one mapping's life [um, urad]."""
         w = (g_stamps > a) & (g_stamps < b)
+        if not w.any():  # no estimate judged in this phase: reported, and the asserts fail
+            return {
+                "max_um": math.inf,
+                "p95_um": math.inf,
+                "max_urad": math.inf,
+                "p95_urad": math.inf,
+            }
         pos, rot = np.abs(err[w, :3]).max(axis=1) * 1e6, np.abs(err[w, 3:]).max(axis=1) * 1e6
         return {
             "max_um": round(float(pos.max()), 1),

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from keo_service.fit.delay import DelayMeasurement, OnlineDelayTracker
+from keo_service.fit.delay_online import DelayMeasurement, OnlineDelayTracker
 from keo_service.fit.stamp_lines import Anchor, moved
 from keo_service.sim.simulate import make_scenario, simulate
 
@@ -113,11 +113,16 @@ def test_the_delay_in_use_follows_the_lines_without_a_fit(demo_cell, run):
     delay in use lagged such moves by a stretch and its fit before (15-40 us in the
     device-clock test). The running estimate moves with them: the next fit, under the
     moved lines, is combined with the first as it is now, not as it was fitted."""
-    tracker = OnlineDelayTracker(demo_cell, span_s=2.5, young_span_s=2.5, young_s=0.0)
+    tracker = OnlineDelayTracker(
+        demo_cell, span_s=2.5, young_span_s=2.5, young_s=0.0, prior_s=DELAY, prior_se_s=5e-6
+    )
     _feed(tracker, run, 4.0, 6.6)
-    applied = tracker.combine(tracker.measure(tracker.snapshot(), DELAY))
-    assert applied == pytest.approx(DELAY, abs=10e-6), tracker.last_result
-    assert tracker.delay_now() == pytest.approx(applied, abs=1e-12)
+    found = tracker.measure(tracker.snapshot(), DELAY)
+    assert isinstance(found, DelayMeasurement)
+    assert found.delay_s == pytest.approx(DELAY, abs=10e-6)
+    assert tracker.combine(found) is None  # agrees with the configured delay: kept
+    applied = tracker.delay_now()
+    assert applied == pytest.approx(DELAY, abs=1e-12)
     _feed(tracker, run, 6.6, 7.0, trk_jump=(6.7, 40e-6))
     assert tracker.delay_now() == pytest.approx(applied + 40e-6, abs=0.5e-6)
     _feed(tracker, run, 7.0, 7.5, enc_jump=(7.0, 25e-6), trk_jump=(0.0, 40e-6))
@@ -127,17 +132,24 @@ def test_the_delay_in_use_follows_the_lines_without_a_fit(demo_cell, run):
     # as it was fitted, 8.2 us)
     _feed(tracker, run, 7.5, 9.6, enc_jump=(0.0, 25e-6), trk_jump=(0.0, 40e-6))
     assert tracker.due()
-    again = tracker.combine(tracker.measure(tracker.snapshot(), tracker.delay_now()))
-    assert "provisional" not in tracker.last_result
-    assert again == pytest.approx(applied + 15e-6, abs=3e-6), tracker.last_result
+    again = tracker.measure(tracker.snapshot(), tracker.delay_now())
+    tracker.combine(again)
+    assert isinstance(again, DelayMeasurement)
+    assert again.delay_s == pytest.approx(applied + 15e-6, abs=3e-6)
+    consensus = tracker.consensus()
+    assert consensus is not None
+    assert consensus[0] == pytest.approx(applied + 15e-6, abs=3e-6), tracker.last_result
+    assert tracker.delay_now() == pytest.approx(applied + 15e-6, abs=0.5e-6)
 
 
 def test_streams_without_lines_change_nothing(demo_cell, run):
     """Shared-clock or receipt stamps come without a line: the delay applied stays as it
     was fitted."""
-    tracker = OnlineDelayTracker(demo_cell, span_s=2.5, young_span_s=2.5)
+    tracker = OnlineDelayTracker(demo_cell, span_s=2.5, young_span_s=2.5, prior_s=DELAY)
+    tracker.forget(DELAY, 5e-6)
     _feed(tracker, run, 4.0, 6.6, lines=False)
-    applied = tracker.combine(tracker.measure(tracker.snapshot(), DELAY))
+    tracker.combine(tracker.measure(tracker.snapshot(), DELAY))
+    applied = tracker.delay_now()
     assert applied is not None
     _feed(tracker, run, 6.6, 7.5, trk_jump=(6.7, 40e-6), lines=False)
     assert tracker.delay_now() == applied
@@ -153,9 +165,12 @@ def test_a_turned_line_carries_the_estimate_where_it_describes(demo_cell, run):
     (measured: 0.7 us off the truth, that version 16.1 us)."""
     tracker = OnlineDelayTracker(demo_cell, span_s=2.5, young_span_s=2.5, young_s=0.0)
     _feed(tracker, run, 4.0, 6.6, trk_slope=(20e-6, 5.3))
-    tracker.combine(tracker.measure(tracker.snapshot(), DELAY))
-    assert tracker.estimate == pytest.approx(DELAY, abs=15e-6), tracker.last_result
+    first = tracker.measure(tracker.snapshot(), DELAY)
+    tracker.combine(first)
+    assert isinstance(first, DelayMeasurement)
+    assert first.delay_s == pytest.approx(DELAY, abs=15e-6), tracker.last_result
     _feed(tracker, run, 6.6, 9.2)
-    second = tracker.combine(tracker.measure(tracker.snapshot(), DELAY))
+    tracker.combine(tracker.measure(tracker.snapshot(), DELAY))
     assert tracker.counters["fits_accepted"] == 2, tracker.last_result
-    assert second == pytest.approx(DELAY, abs=8e-6), tracker.last_result
+    # the two fits, the first carried onto the new line where it describes, agree on it
+    assert tracker.delay_now() == pytest.approx(DELAY, abs=8e-6), tracker.last_result

@@ -149,7 +149,7 @@ def test_status_table_against_a_running_service(tmp_path):
     # the delay in ms with its standard error (or said to be the configured one)
     delay = re.fullmatch(
         r"(-?\d+\.\d\d) ms(?: ± (\d+\.\d\d) ms| \(configured, no standard error yet\))"
-        r"(?:, drift [-+]\d+\.\d ppm)?",
+        r"(?:, drift [-+]\d+\.\d ppm)?(?:; .+)?",  # then its source and the last decision
         _line(table, "delay"),
     )
     assert delay is not None, table

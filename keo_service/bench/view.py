@@ -55,7 +55,7 @@ def view_recording(config: Config, directory: Path, out: Path) -> ViewResult:
     """Estimate over the recording and write every estimate, the robot and the measured error
     to `out` (one Rerun file, not rolled)."""
     from keo_service.io.cell import estimator_settings
-    from keo_service.live.rerun_sink import RerunSink
+    from keo_service.live.rerun_logger import RerunLogger
     from keo_service.offline.library import delay_warning
     from keo_service.offline.recording import read_recording
 
@@ -66,7 +66,7 @@ def view_recording(config: Config, directory: Path, out: Path) -> ViewResult:
     if not estimates:
         raise KeoError(f"{directory}: the recording gives no estimate (no tracker samples?)")
     channels = next((e.channels for e in estimates if e.channels), ("px", "py", "pz"))
-    sink = RerunSink(
+    sink = RerunLogger(
         recording.cell, rrd=out, channels=channels, roll_after_s=math.inf, urdf=config.robot.urdf
     )
     next_status = -math.inf

@@ -8,21 +8,18 @@ changes only with the configuration, so we model it with smooth features of the 
 
     e(t; d) = F(q) a + v(t) delta + v(t) (t - t_ref) rho
 
-then move the guess by -delta (Gauss-Newton, a few rounds). The standard errors come from the
-residual, inflated for its autocorrelation. If the motion cannot separate delta from the
-configuration features (too little motion, a single constant-velocity direction), the
-standard error is large and we refuse to give a number.
+then move the guess by -delta (Gauss-Newton, a few rounds). The standard errors come from
+the residual, clustered in short blocks of time (see `_block_covariance`). If the motion
+cannot separate delta from the configuration features (too little motion, a single
+constant-velocity direction), the standard error is large and we refuse to give a number.
+The online tracker, which fits short stretches of this, is fit/delay_online.py.
 """
 
 from __future__ import annotations
 
-import collections
-import dataclasses
 import itertools
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TypeVar
 
 import numpy as np
 
@@ -31,14 +28,11 @@ from keo_service.core.chain import Chain
 from keo_service.core.errors import KeoError
 from keo_service.core.kinematics import Cell
 from keo_service.core.rotations import log3_many, quaternion_matrices
-from keo_service.fit.delay_trend import LevelAndRate, SteadyOrMoving
-from keo_service.fit.stamp_lines import Anchor, moved
-
-_T = TypeVar("_T")
 
 VELOCITY_STEP_S = 0.005  # central differences for the tool's velocity
 STATE_ROWS = 4 * CHUNK  # samples whose tool states are computed at once
 MIN_SPEED = 0.005  # m/s: slower than this is "at rest"
+LEVER_M = 1.0  # m per rad: how a turn counts in the tool's speed
 MAX_SE_S = 0.002  # refuse when the delay's standard error is larger than this
 
 
@@ -124,15 +118,42 @@ def _features(q: np.ndarray, p: np.ndarray, kind: str) -> np.ndarray:
     return np.hstack([ones, np.sin(q), np.cos(q)])
 
 
-def _effective_factor(residual: np.ndarray) -> float:
-    """Variance inflation (1 + rho)/(1 - rho) for lag-1 autocorrelated residuals."""
-    r = residual - residual.mean()
-    denom = float(r @ r)
-    if denom <= 0:
-        return 1.0
-    rho = float(r[1:] @ r[:-1]) / denom
-    rho = min(max(rho, 0.0), 0.98)
-    return (1 + rho) / (1 - rho)
+BLOCK_S = 0.25  # residuals are taken as independent between blocks this long, not within
+
+
+def _block_covariance(
+    X: np.ndarray, resid: np.ndarray, t: np.ndarray, nch: int, bread: np.ndarray
+) -> tuple[np.ndarray, float]:
+    """The coefficients' covariance with the samples clustered in blocks of BLOCK_S of time,
+    all channels of a block together, and the block scores' own lag-1 autocorrelation
+    inflating it; and how much larger that is than the per-row (heteroscedasticity-robust)
+    covariance. Why blocks: every channel of a sample sees the same timing error (the
+    tracker's stamp, the encoder stamps it is interpolated between), and a receipt-stamped
+    encoder's jitter reaches all tracker samples between two of its stamps, so rows are
+    correlated across channels and over tens of milliseconds; a per-row estimate that treats
+    them as independent gave standard errors several times too small. Blocks of a quarter
+    second hold that correlation; what is left between blocks (a slowly wrong error model)
+    is measured by the scores' autocorrelation. The small-sample factor G/(G-1) keeps a
+    stretch of few blocks from claiming too much."""
+    n = t.size
+    k = X.shape[1]
+    if not np.all(np.isfinite(bread)):
+        return np.full((k, k), np.inf), 1.0
+    rows = (X * resid[:, None]).reshape(nch, n, k).sum(axis=0)  # per-sample scores
+    hc = (X * (resid**2)[:, None]).T @ X
+    block = np.floor((t - t[0]) / BLOCK_S).astype(np.int64)
+    starts = np.flatnonzero(np.r_[True, np.diff(block) != 0])
+    scores = np.add.reduceat(rows, starts, axis=0)
+    g = scores.shape[0]
+    meat = scores.T @ scores * (g / (g - 1) if g > 1 else math.inf)
+    s0 = scores[:, 0] - scores[:, 0].mean()
+    denom = float(s0 @ s0)
+    rho = float(s0[1:] @ s0[:-1]) / denom if denom > 0 and g > 2 else 0.0
+    rho = min(max(rho, 0.0), 0.9)
+    cov = bread @ meat @ bread * ((1 + rho) / (1 - rho))
+    per_row = float((bread @ hc @ bread)[0, 0])
+    inflate = max(1.0, float(cov[0, 0]) / per_row) if per_row > 0 else 1.0
+    return cov, inflate
 
 
 def _refuse_stop_and_measure(enc_t: np.ndarray, trk_t: np.ndarray) -> None:
@@ -160,6 +181,7 @@ class _Round:
     nch: int
     inflate: float  # variance inflation for the residual's autocorrelation
     speed_rms: float  # m/s
+    turning: float = 0.0  # the tool velocity's second singular value over its first
 
 
 def _linearised_round(
@@ -177,7 +199,12 @@ def _linearised_round(
     trk_t, p_bs, R_bs = tracker
     q, p_bt, R_bt, v, w = _tool_states(cell, enc_t, enc_q, enc_times)
     err = _measured_base_errors(p_bt, R_bt, p_bs, R_bs)
-    speed = np.linalg.norm(v, axis=1)
+    # a turn shows a delay too (in the orientation): one radian counts as one metre, as the
+    # targets weigh a micrometre and a microradian alike (a wrist turning about a still tool
+    # point was refused as "hardly moving")
+    v_point = v
+    motion = v if R_bs is None else np.hstack([v, w * LEVER_M])
+    speed = np.linalg.norm(motion, axis=1)
     moving = speed > MIN_SPEED
     if moving.mean() < 0.05 or np.sqrt(np.mean(speed**2)) < 2 * MIN_SPEED:
         raise DelayNotIdentifiableError(
@@ -185,6 +212,8 @@ def _linearised_round(
             f"moving {100 * moving.mean():.0f} % of the time): a delay only shows while it "
             "moves; record motion with changes of speed or direction"
         )
+    sv = np.linalg.svd(motion, compute_uv=False)
+    turning = float(sv[1] / sv[0]) if sv[0] > 0 else 0.0  # 0: one direction of motion
     vel = np.hstack([v, w]) if R_bs is not None else v
     if features == "tool":  # errors and velocities in the tool frame: R_bt^T x
         for part in (slice(0, 3), slice(3, 6))[: err.shape[1] // 3]:
@@ -213,19 +242,48 @@ def _linearised_round(
         rows = slice(c * n, (c + 1) * n)
         for out, a in ((y_p, err[:, c] / scale[c]), (X_p, np.column_stack(cols))):
             out[rows] = a - Qf @ (Qf.T @ a)
-    del Qf, q, p_bt, R_bt, v, w, vel, err
+    del Qf, q, p_bt, R_bt, w, vel, err
     beta, *_ = np.linalg.lstsq(X_p, y_p, rcond=None)
     resid = y_p - X_p @ beta
-    inflate = float(np.mean([_effective_factor(resid[c * n : (c + 1) * n]) for c in range(nch)]))
-    # heteroscedasticity-robust (timing noise grows with speed), inflated for correlation
     try:
         bread = np.linalg.inv(X_p.T @ X_p)
-        meat = (X_p * (resid**2)[:, None]).T @ X_p
-        cov = bread @ meat @ bread * inflate
     except np.linalg.LinAlgError:
-        cov = np.full((X_p.shape[1], X_p.shape[1]), np.inf)
-    speed_rms = float(np.sqrt(np.mean(speed**2)))
-    return _Round(beta, cov, resid, scale, moving, X_p, y_p, nch, inflate, speed_rms)
+        bread = np.full((X_p.shape[1], X_p.shape[1]), np.inf)
+    cov, inflate = _block_covariance(X_p, resid, trk_t, nch, bread)
+    # the speed a delay error is weighed at: the tool point's, unless only the tool turns
+    point_rms = float(np.sqrt(np.mean(np.sum(v_point**2, axis=1))))
+    speed_rms = point_rms if point_rms >= 2 * MIN_SPEED else float(np.sqrt(np.mean(speed**2)))
+    return _Round(beta, cov, resid, scale, moving, X_p, y_p, nch, inflate, speed_rms, turning)
+
+
+def _judge_drift(
+    last: _Round,
+    trk_t: np.ndarray,
+    drift: float,
+    drift_se: float,
+    with_drift: bool,
+    check_windows: bool,
+    notes: list[str],
+) -> tuple[bool, float]:
+    """Is the drift shown, and its standard error. A drift is claimed only when stretches of
+    the recording show it beyond their own scatter (`_drift_from_windows`): the samples'
+    standard error alone takes a delay that wanders with the load, or jumps, for a drift (a
+    20 s recording of undrifted clocks "showed" -316 +/- 63 ppm)."""
+    if not with_drift:
+        return False, drift_se
+    claimed = abs(drift) > 3 * drift_se
+    if not check_windows:
+        if not claimed:
+            notes.append(
+                f"no significant clock drift ({drift * 1e6:.1f} +/- {drift_se * 1e6:.1f} ppm)"
+            )
+        return claimed, drift_se
+    slope_se, note = _drift_from_windows(last.X_p[:, 0], last.y_p, trk_t, last.nch, drift, claimed)
+    drift_se = max(drift_se, slope_se)
+    shown = claimed and abs(drift) > 3 * drift_se
+    if not shown:
+        notes.append(note)
+    return shown, drift_se
 
 
 def fit_delay(
@@ -301,15 +359,22 @@ def fit_delay(
     rms_rest = float(np.sqrt(np.mean(res_pos[~moving] ** 2))) if (~moving).any() else math.nan
     notes: list[str] = []
     if not se < MAX_SE_S:
+        # the advice follows the motion measured: only a motion along one direction is told
+        # that it moves along one direction
+        advice = (
+            "a move at constant velocity along one direction is not enough: include rests, "
+            "changes of speed or of direction"
+            if last.turning < 0.2
+            else f"the motion turns, but {float(trk_t[-1] - trk_t[0]):.1f} s of it are too "
+            "few for this error model: a longer stretch (or recording) helps"
+        )
         raise DelayNotIdentifiableError(
             f"the motion cannot separate a delay from a configuration-dependent error "
-            f"(standard error {se * 1e3:.1f} ms > {MAX_SE_S * 1e3:.0f} ms); a move at constant "
-            "velocity along one direction is not enough: include rests, changes of speed or of "
-            "direction"
+            f"(standard error {se * 1e3:.1f} ms > {MAX_SE_S * 1e3:.0f} ms); {advice}"
         )
-    significant = with_drift and abs(drift) > 3 * drift_se
-    if with_drift and not significant:
-        notes.append(f"no significant clock drift ({drift * 1e6:.1f} +/- {drift_se * 1e6:.1f} ppm)")
+    significant, drift_se = _judge_drift(
+        last, trk_t, drift, drift_se, with_drift, check_windows, notes
+    )
     # a constant delay (and drift) explains the data if separate stretches of time agree on it
     windows: list[tuple[float, float]] = []
     explained = True
@@ -345,24 +410,81 @@ def fit_delay(
 
 WINDOWS = 6
 PRACTICAL_SPREAD_S = 0.001
+DRIFT_WINDOW_S = 5.0  # a drift is judged on windows this long (6 to 30 of them)
+SHOWN_PPM = 100.0  # the drift the minimum span is stated for
+
+
+def _drift_from_windows(
+    x: np.ndarray, y: np.ndarray, t: np.ndarray, nch: int, drift: float, claimed: bool
+) -> tuple[float, str]:
+    """The drift's standard error from the recording's windows: each window's delay (with
+    its clustered se), a weighted line through them, its slope's se scaled by the windows'
+    scatter about the line beyond their own se (chi^2 per degree of freedom, when above one).
+    And, for a drift not shown, a note with the smallest drift this recording can show (3
+    se) and the span that would show SHOWN_PPM (the slope's se falls as the span to the power
+    1.5 at a fixed window count and sample rate)."""
+    span = float(t[-1] - t[0])
+    n = int(min(30, max(WINDOWS, span // DRIFT_WINDOW_S)))
+    bounds = np.linspace(t[0], t[-1] + 1e-9, n + 1)
+    mids, vals, ses = [], [], []
+    for a, b in itertools.pairwise(bounds):
+        inside = (t >= a) & (t < b)
+        rows = np.tile(inside, nch)[: x.size]
+        xx = float(x[rows] @ x[rows])
+        if xx <= 0 or rows.sum() < 20 * nch:
+            continue
+        est = float(x[rows] @ y[rows]) / xx
+        r = np.where(rows, y - est * x, 0.0)
+        cov, _ = _block_covariance(x[:, None] * rows[:, None], r, t, nch, np.array([[1 / xx]]))
+        if not np.isfinite(cov[0, 0]) or cov[0, 0] <= 0:
+            continue
+        mids.append(0.5 * (a + b))
+        vals.append(-est)  # the window's delay against the fitted line (s)
+        ses.append(math.sqrt(float(cov[0, 0])))
+    if len(vals) < 4:
+        return math.inf, (
+            f"too short to show a clock drift ({span:.0f} s; a drift is judged on at least 4 "
+            f"stretches of {DRIFT_WINDOW_S:g} s)"
+        )
+    m, v, w = np.array(mids), np.array(vals), 1.0 / np.array(ses) ** 2
+    A = np.column_stack([np.ones_like(m), m - m.mean()])
+    cov_line = np.linalg.inv((A * w[:, None]).T @ A)
+    coef = cov_line @ (A * w[:, None]).T @ v
+    chi2 = float(np.sum(w * (v - A @ coef) ** 2))
+    slope_se = math.sqrt(float(cov_line[1, 1]) * max(1.0, chi2 / (len(v) - 2)))
+    if claimed and abs(drift) > 3 * slope_se:
+        return slope_se, ""
+    needed = span * (3 * slope_se / (SHOWN_PPM * 1e-6)) ** (2 / 3)
+    return slope_se, (
+        f"no clock drift shown: this {span:.0f} s recording is too short to show one below "
+        f"{3 * slope_se * 1e6:.3g} ppm ({drift * 1e6:.1f} +/- {slope_se * 1e6:.1f} ppm from "
+        f"the scatter of {len(v)} stretches); about {needed:.0f} s of such motion would show "
+        f"{SHOWN_PPM:g} ppm"
+    )
 
 
 def _window_delays(
     x: np.ndarray, y: np.ndarray, t: np.ndarray, nch: int, inflate: float
 ) -> list[tuple[float, float]]:
-    """The delay correction fitted on each of WINDOWS stretches of time: (value, se)."""
-    n = t.size
-    bounds = np.linspace(t[0], t[-1] + 1e-9, WINDOWS + 1)
+    """The delay correction fitted on each stretch of DRIFT_WINDOW_S (WINDOWS to 30 of them):
+    (value, se), the se
+    clustered in blocks of time within the window as the whole fit's (`_block_covariance`;
+    the whole fit's inflation is not carried over: a delay that changes half-way inflates
+    the whole fit's residual, not each window's)."""
+    del inflate
+    n = int(min(30, max(WINDOWS, (t[-1] - t[0]) // DRIFT_WINDOW_S)))
+    bounds = np.linspace(t[0], t[-1] + 1e-9, n + 1)
     out = []
     for a, b in itertools.pairwise(bounds):
-        rows = np.tile((t >= a) & (t < b), nch)[: x.size]
+        inside = (t >= a) & (t < b)
+        rows = np.tile(inside, nch)[: x.size]
         xx = float(x[rows] @ x[rows])
         if xx <= 0 or rows.sum() < 20 * nch:
             continue
         est = float(x[rows] @ y[rows]) / xx
-        r = y[rows] - est * x[rows]
-        robust = float((x[rows] ** 2) @ (r**2)) / (xx * xx)
-        out.append((est, math.sqrt(robust * inflate)))
+        r = np.where(rows, y - est * x, 0.0)
+        cov, _ = _block_covariance(x[:, None] * rows[:, None], r, t, nch, np.array([[1.0 / xx]]))
+        out.append((est, math.sqrt(float(cov[0, 0]))))
     del n
     return out
 
@@ -382,8 +504,9 @@ def _consistent(windows: list[tuple[float, float]]) -> tuple[bool, str]:
     mean = float(np.sum(w * est) / np.sum(w))
     stat = float(np.sum(((est - mean) / se) ** 2))
     p = float(chi2.sf(stat, est.size - 1))
-    # statistically and practically different: within 1 ms a constant delay serves
-    if p >= 1e-3 or np.ptp(est) < PRACTICAL_SPREAD_S:
+    # statistically (at 1 %, with the windows clustered se) and practically different:
+    # within 1 ms a constant delay serves
+    if p >= 0.01 or np.ptp(est) < PRACTICAL_SPREAD_S:
         return True, ""
     return False, (
         f"no constant delay (and drift) explains these streams: stretches of the "
@@ -467,597 +590,3 @@ def _stroke_end(v: np.ndarray, fast: np.ndarray, i: int, tolerance: float) -> in
             return lo + int(np.argmin(same)) - 1
         lo, block = hi, block * 2
     return n - 1
-
-
-@dataclass(frozen=True)
-class DelayMeasurement:
-    """One stretch's fitted delay, its standard error, the tool's RMS speed over it and the
-    stream time it ends at."""
-
-    delay_s: float
-    se_s: float
-    speed_rms: float
-    t: float
-    current_s: float = math.nan  # the delay in use when the stretch was fitted
-    t_mid: float = math.nan  # the stream time the fit describes (its stretch's middle; nan: t)
-
-    @property
-    def described_t(self) -> float:
-        return self.t if math.isnan(self.t_mid) else self.t_mid
-
-
-@dataclass(frozen=True)
-class DelayRefused:
-    """A stretch without a delay: the counter it counts under and why, in words."""
-
-    counter: str
-    reason: str
-    t: float = math.nan  # the stream time the stretch ends at (nan: not known)
-
-
-class OnlineDelayTracker:
-    """The delay found online from the motion, trusted only as far as it is known.
-
-    Samples go into bounded buffers (on the event loop); when a stretch of clean data has
-    gathered since the last fit (`span_s`, up to `max_span_s` while its fits are rough),
-    the service takes that stretch (`snapshot`) and fits it off the loop (`measure`:
-    `fit_delay` over that stretch only, so successive fits see disjoint data), then folds
-    the result in on the loop (`combine`). A fit is accepted only when
-
-    - the tool moved (`fit_delay` refuses otherwise: at rest nothing changes),
-    - its standard error is small against what it changes at the tool's speed there:
-      `se * v_rms <= max_position_se_m` (a delay only matters through `v * delay`), or the
-      delay in use is not known that well yet (then a rougher fit still helps: it is
-      weighted by its variance); and always `se <= max_se_s`,
-    - it agrees with the running estimate (within `outlier_sigmas` combined standard
-      errors), unless the next fit agrees with it too (then the delay really moved).
-
-    The running estimate is a Kalman filter over the delay's level in two views
-    (`SteadyOrMoving`): "steady", whose level walks (`steady_walk`), and "moving", whose
-    level walks (`level_walk`) with a rate that walks too (`rate_walk`, relaxing to zero over
-    `rate_relax_s`); the one that has been predicting the fits better gives the estimate.
-    Each accepted fit says the delay at its stretch's middle, with the variance se^2 +
-    tau^2, where tau^2 is the scatter of fits beyond their own standard errors (a fit's
-    standard error cannot know how its stretch's error model fits the robot), from how far
-    each fit lies off the line through its neighbours, at least `min_wander_s`^2. The delay
-    the stamps need moves as the mapped clocks' floors move with the load and their drifts
-    converge, often steadily (3-5 us/s for 10-20 s in the device-clock test), so an older
-    fit says less about it now, and a steady walk is followed, not lagged. (An equal-weight
-    mean of the last 8 fits lagged the walk by 20 s: 40-60 us behind; a mean weighted by
-    age, 15-20 us at the end of a run.) The estimate is the level at the newest stretch's
-    end, its standard error the filter's. The service
-    slews the estimator's delay to it, never jumps, when it is known to `max_apply_m` at the
-    tool's speed or is more than three standard errors away from the delay in use; otherwise
-    (fits scattering widely, as when the robot's geometry makes an error the stretches'
-    model does not hold) it is shown but not applied.
-
-    Fits of stretches that end within `young_s` of the first samples or of a restart are
-    provisional: a young clock mapping's stamps move while its drift converges (in the
-    device-clock test the first 5 s fit lay 60-160 us below the delay the stamps needed from
-    10 s on). So while young the stretches are shorter (`young_span_s`) and the newest fit
-    alone is the delay, each replacing the one before (its stamps are the most settled),
-    applied only when known to `max_apply_m` at the tool's speed; the first fit of a later
-    stretch replaces them too. (With 5 s stretches averaged, the delay in use at 10 s after
-    the start was 50 us short of what the settled stamps needed: 28 urad at that tool's
-    turning speed.)
-
-    Mapped samples ("device" clocks) come with their line's drift: each stretch is fitted
-    under each stream's newest line, and the delay applied is carried along as the lines
-    move (`delay_now`), the running estimate with it (see fit/stamp_lines.py): a line's move
-    needs no fit to be followed.
-
-    Samples a source flagged (its clock re-learning, a stamp ahead of its receipt or too
-    old) are left out. When either stream's time base starts anew (its `clock_epoch`
-    changes, or its `seq` goes back while it gives no epoch: an adapter restarted; one that
-    went on on its saved clock mapping keeps its epoch), the data before it is dropped,
-    the first `settle_s` seconds after it too (the new mapping learns its drift), and so are
-    the fits before it (a new mapping carries a new transport floor): the next accepted fit
-    decides the delay; until then the delay in use stays as it was, its standard error grown
-    by `restart_sigma_s`.
-    """
-
-    def __init__(
-        self,
-        cell: Cell,
-        span_s: float = 2.5,
-        max_span_s: float = 10.0,
-        young_span_s: float = 2.0,
-        max_samples: int = 40_000,
-        max_gap_s: float = 0.05,
-        max_position_se_m: float = 2.5e-6,
-        max_se_s: float = 2e-3,
-        outlier_sigmas: float = 4.0,
-        settle_s: float = 4.0,
-        min_wander_s: float = 2e-6,
-        restart_sigma_s: float = 50e-6,
-        max_apply_m: float = 10e-6,
-        steady_walk: float = 25e-12,
-        level_walk: float = 4e-12,
-        rate_walk: float = 1e-12,
-        rate_relax_s: float = 30.0,
-        rate_prior: float = 2e-6,
-        young_s: float = 10.0,
-    ) -> None:
-        # fits run off the event loop: give them their own scratch data for gravity torques
-        self.cell = (
-            cell
-            if cell.nominal_model is None
-            else dataclasses.replace(cell, gravity_data=cell.nominal_model.createData())
-        )
-        self.span_s = span_s
-        self.max_span_s = max(max_span_s, span_s)
-        self._stretch_s = span_s  # the settled stretch now: lengthened while fits are rough
-        self.young_span_s = young_span_s
-        self.max_gap_s = max_gap_s
-        self.max_position_se_m = max_position_se_m
-        self.max_se_s = max_se_s
-        self.outlier_sigmas = outlier_sigmas
-        self.settle_s = settle_s
-        self.min_wander_s = min_wander_s
-        self.restart_sigma_s = restart_sigma_s
-        self.max_apply_m = max_apply_m
-        # (stamp, joints, device stamp or None)
-        self._enc: collections.deque[tuple[float, np.ndarray, float | None]] = collections.deque(
-            maxlen=max_samples
-        )
-        # (stamp, position, quaternion or None, device stamp or None)
-        self._trk: collections.deque[tuple[float, np.ndarray, np.ndarray | None, float | None]] = (
-            collections.deque(maxlen=max_samples)
-        )
-        # each mapped stream's newest sample on its clock mapping's line; the lines the
-        # running estimate is expressed under; those of the stretch being fitted
-        self._newest: dict[str, Anchor] = {}
-        self._frame: dict[str, Anchor] = {}
-        self._fitting_frame: dict[str, Anchor] | None = None
-        self._start = -math.inf  # stream time from which samples count
-        self.young_s = young_s
-        self._young_until = math.nan  # fits of stretches ending before this are provisional
-        self._provisional = 0  # how many of the fits kept are provisional
-        self._sources: dict[str, tuple[int, int]] = {}  # stream -> (epoch, last seq)
-        self._trend = SteadyOrMoving(
-            LevelAndRate(steady_walk, 0.0, rate_relax_s, 0.0),
-            LevelAndRate(level_walk, rate_walk, rate_relax_s, rate_prior),
-        )
-        # accepted settled fits (value, se, segment, stream time described): a segment ends
-        # when a time base starts anew
-        self._history: collections.deque[tuple[float, float, int, float]] = collections.deque(
-            maxlen=32
-        )
-        self._segment = 0
-        self._suspect: tuple[float, float, float] | None = None  # an outlier fit, to compare
-        self.estimate: float | None = None  # the running estimate of the delay (s)
-        self.se: float | None = None  # its standard error (s)
-        self.applied_se: float | None = None  # that of the estimate last applied (s)
-        self.applied: float | None = None  # the estimate last applied, under `_frame` (s)
-        self._applied_t = math.nan  # the stream time it describes
-        self._estimate_t = math.nan  # the stream time `estimate` describes
-        self.counters: collections.Counter[str] = collections.Counter()
-        self.last_result: str = "waiting for motion"
-
-    # ---- samples (on the event loop: cheap) ---------------------------------------------
-
-    def add_encoder(
-        self,
-        t: float,
-        q: Sequence[float],
-        epoch: int = 0,
-        seq: int = 0,
-        flagged: bool = False,
-        device_stamp: float | None = None,
-        clock_drift: float | None = None,
-    ) -> None:
-        """One joint sample; a mapped one ("device" clock) with its device stamp and its
-        line's drift (`JointSample.clock_drift`)."""
-        self._source("encoder", t, epoch, seq)
-        device = self._line("encoder", t, device_stamp, clock_drift)
-        if flagged or t < self._start:
-            self.counters["encoder_left_out"] += 1
-            return
-        q_arr = np.asarray(q, dtype=float)
-        newer = not self._enc or t > self._enc[-1][0]
-        if math.isfinite(t) and np.isfinite(q_arr).all() and newer:
-            self._enc.append((t, q_arr, device))
-
-    def add_tracker(
-        self,
-        t: float,
-        p: Sequence[float],
-        quat: Sequence[float] | None,
-        epoch: int = 0,
-        seq: int = 0,
-        flagged: bool = False,
-        device_stamp: float | None = None,
-        clock_drift: float | None = None,
-    ) -> None:
-        """One pose; a mapped one as in `add_encoder`."""
-        self._source("tracker", t, epoch, seq)
-        device = self._line("tracker", t, device_stamp, clock_drift)
-        if flagged or t < self._start:
-            self.counters["tracker_left_out"] += 1
-            return
-        p_arr = np.asarray(p, dtype=float)
-        q_arr = None if quat is None else np.asarray(quat, dtype=float)
-        finite = np.isfinite(p_arr).all() and (q_arr is None or np.isfinite(q_arr).all())
-        if math.isfinite(t) and finite and (not self._trk or t > self._trk[-1][0]):
-            self._trk.append((t, p_arr, q_arr, device))
-
-    def _line(
-        self, stream: str, t: float, device_stamp: float | None, drift: float | None
-    ) -> float | None:
-        """Keep a mapped stream's newest sample on its line (a stamp off the line comes
-        without a drift); the device stamp to keep with the sample, None when the stream's
-        stamps are not mapped by a line (a shared clock, receipt times)."""
-        if device_stamp is None or not math.isfinite(device_stamp):
-            return None
-        if drift is not None and math.isfinite(drift) and math.isfinite(t):
-            self._newest[stream] = Anchor(t, device_stamp, drift)
-        return device_stamp if stream in self._newest else None
-
-    def delay_now(self) -> float | None:
-        """The delay to use now: the estimate last applied, carried along as the mapped
-        streams' lines moved since the stretch it was fitted under (a tracker stamp that moved
-        later needs a longer delay, an encoder stamp a shorter one; the move where the
-        estimate describes). None before one was applied."""
-        if self.applied is None:
-            return None
-        return self.applied + self._moved(self._newest, self._applied_t)
-
-    def _moved(self, lines: dict[str, Anchor], at: float) -> float:
-        """How far the delay the stamps need at stream time `at` moved from the running
-        estimate's lines to these (0 for a stream not mapped by a line)."""
-        frame = self._frame
-        return moved(lines.get("tracker"), frame.get("tracker"), at) - moved(
-            lines.get("encoder"), frame.get("encoder"), at
-        )
-
-    def _move_to(self, lines: dict[str, Anchor] | None) -> None:
-        """Express the running estimate under these lines (None: a measurement that came
-        without its snapshot's lines): each value (the filter's level and rate, the fits
-        kept, the estimate applied) moved as the lines differ where it describes. By
-        construction, no fit is needed to follow a line's move."""
-        if lines is None:
-            return
-        if not self._frame or not self._trend.started:
-            self._frame = dict(lines)
-            return
-        at = self._trend.t
-        level = self._moved(lines, at)
-        rate = self._moved(lines, at + 1.0) - level  # the lines' drifts differ
-        self._trend.shift(level, rate)
-        self._history = collections.deque(
-            (
-                (v + self._moved(lines, t) if seg == self._segment else v, se, seg, t)
-                for v, se, seg, t in self._history
-            ),
-            maxlen=self._history.maxlen,
-        )
-        if self._suspect is not None:
-            value, se, t = self._suspect
-            self._suspect = (value + self._moved(lines, t), se, t)
-        if self.estimate is not None:
-            self.estimate += self._moved(lines, self._estimate_t)
-        if self.applied is not None:
-            self.applied += self._moved(lines, self._applied_t)
-        self._frame = dict(lines)
-
-    def _source(self, stream: str, t: float, epoch: int, seq: int) -> None:
-        known = self._sources.get(stream)
-        if math.isnan(self._young_until) and math.isfinite(t):
-            self._young_until = t + self.young_s  # the first samples: young clock mappings
-        self._sources[stream] = (epoch, seq)
-        # a seq going back is a restarted publisher: a new time base unless the publisher
-        # says otherwise by its epoch (an adapter that went on on its saved clock mapping
-        # keeps it); one that gives no epoch (0) says nothing
-        if known is not None and (epoch != known[0] or (seq < known[1] and epoch == 0)):
-            self.restart(t, f"the {stream} time base started anew")
-
-    def restart(self, t: float, why: str) -> None:
-        """A stream's time base started anew at stream time t: drop what came before."""
-        self.applied = self.delay_now()  # as in use now; the new mapping's lines are new
-        self._newest.clear()
-        self._frame = {}
-        self._fitting_frame = None
-        self._enc.clear()
-        self._trk.clear()
-        self._trend.reset()
-        self._provisional = 0
-        self._suspect = None
-        self._segment += 1
-        if self.se is not None:  # the delay in use is less sure under the new mapping
-            self.se = math.hypot(self.se, self.restart_sigma_s)
-        if self.applied_se is not None:
-            self.applied_se = math.hypot(self.applied_se, self.restart_sigma_s)
-        if math.isfinite(t):
-            self._start = t + self.settle_s
-            self._young_until = t + self.young_s
-        self.counters["restarts"] += 1
-        self.last_result = f"restarted: {why}; fitting again after {self.settle_s:g} s"
-
-    # ---- fits ---------------------------------------------------------------------------
-
-    def due(self) -> bool:
-        return bool(self._trk) and self._trk[-1][0] - self._trk[0][0] >= self._span()
-
-    def _span(self) -> float:
-        """The stretch to fit next: shorter while the clock mappings are young."""
-        young = bool(self._trk) and self._trk[0][0] + self.young_span_s <= self._young_until
-        return self.young_span_s if young else self._stretch_s
-
-    def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-        """Copies of the stretch to fit (call on the loop, then fit anywhere), its stamps
-        under each stream's newest line, which the next `combine` takes the fit to be under;
-        the stretch is consumed: the next fit sees only newer samples."""
-        first = self._trk[0][0]
-        trk = [s for s in self._trk if s[0] <= first + self._span()]
-        end = trk[-1][0]
-        enc = [s for s in self._enc if first - 1.0 <= s[0] <= end + 1.0]
-        while self._trk and self._trk[0][0] <= end:
-            self._trk.popleft()
-        while self._enc and self._enc[0][0] < end - 1.0:
-            self._enc.popleft()
-        # the whole stretch under each stream's newest line (see fit/stamp_lines.py)
-        self._fitting_frame = dict(self._newest)
-        enc_t = self._on_line("encoder", [(s[0], s[2]) for s in enc])
-        enc_q = np.array([s[1] for s in enc]) if enc else np.empty((0, 0))
-        trk_t = self._on_line("tracker", [(s[0], s[3]) for s in trk])
-        trk_p = np.array([s[1] for s in trk])
-        quats = [s[2] for s in trk]
-        trk_q = None if any(q is None for q in quats) else np.array(quats)
-        return enc_t, enc_q, trk_t, trk_p, trk_q
-
-    def _on_line(self, stream: str, stamps: list[tuple[float, float | None]]) -> np.ndarray:
-        """The stamps (stamp, device stamp) of a stream under its newest line: a sample's
-        device stamp carried by the line, its own stamp when it has none."""
-        t = np.array([s for s, _ in stamps], dtype=float)
-        anchor = self._newest.get(stream)
-        if anchor is not None and t.size:
-            device = np.array([math.nan if d is None else d for _, d in stamps])
-            mapped = ~np.isnan(device)
-            t[mapped] = anchor.at(device[mapped])
-        return t
-
-    def fit(
-        self,
-        window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
-        current: float,
-    ) -> float | None:
-        """Fit one stretch and fold it in: the running estimate if this fit moved it."""
-        return self.combine(self.measure(window, current))
-
-    def measure(
-        self,
-        window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
-        current: float,
-    ) -> DelayMeasurement | DelayRefused:
-        """The delay over one stretch, or why there is none. Runs anywhere (a worker
-        thread): it reads the tracker's settings only and changes nothing."""
-        enc_t, enc_q, trk_t, trk_p, trk_q = _covered(window, current, self.max_gap_s)
-        if enc_t.size < 20 or trk_t.size < 50:
-            return DelayRefused("fits_without_data", "not enough data in the stretch")
-        # the error model of a short stretch: linear in the tool position, with the errors in
-        # the tool frame (where the tool's own calibration error is constant) or in the base
-        # frame (closer for a robot's geometric errors); the one that leaves less residual
-        fits: list[DelayFit] = []
-        for features in ("tool", "position"):
-            try:
-                fits.append(
-                    fit_delay(
-                        self.cell,
-                        enc_t,
-                        enc_q,
-                        trk_t,
-                        trk_p,
-                        trk_q,
-                        initial=current,
-                        with_drift=False,
-                        features=features,
-                        # one stretch is one window; and scipy.stats, which the check
-                        # imports, would cost the service seconds at its first fit
-                        check_windows=False,
-                    )
-                )
-            except DelayNotIdentifiableError as exc:
-                reason = exc
-        if not fits:
-            return DelayRefused("fits_not_identifiable", str(reason), float(trk_t[-1]))
-        fit = min(fits, key=lambda f: f.residual_rms_moving)
-        middle = 0.5 * float(trk_t[0] + trk_t[-1])
-        return DelayMeasurement(
-            fit.delay_s, fit.delay_se_s, fit.speed_rms, float(trk_t[-1]), current, middle
-        )
-
-    def combine(self, found: DelayMeasurement | DelayRefused) -> float | None:
-        """Accept or refuse one measurement (on the loop) and fold it into the running
-        estimate: the estimate to apply, else None (and why, in `last_result`)."""
-        lines, self._fitting_frame = self._fitting_frame, None
-        if isinstance(found, DelayRefused):
-            self._refused(found)
-            return None
-        self._move_to(lines)  # the fit is under the lines of its snapshot
-        value, se, speed = found.delay_s, found.se_s, found.speed_rms
-        provisional = found.t <= self._young_until
-        if not provisional:  # young stretches have their own length
-            self._fit_stretch(se * speed)
-        said = f"{value * 1e6:.1f} +/- {se * 1e6:.1f} us at {speed * 1e3:.0f} mm/s"
-        if not (math.isfinite(value) and math.isfinite(se) and se > 0):
-            self.counters["fits_refused_imprecise"] += 1
-            self.last_result = "kept: the fit gave no finite value"
-            return None
-        # welcome while the delay in use is provisional or not known to max_position_se_m at
-        # this speed (as sure as it is now: the delay walks on since its newest fit); once it
-        # is, only fits that are themselves that precise count
-        se_now = self._se_at(found.t)
-        known = not provisional and se_now is not None and se_now * speed <= self.max_position_se_m
-        if se > self.max_se_s or (known and se * speed > self.max_position_se_m):
-            self.counters["fits_refused_imprecise"] += 1
-            self.last_result = (
-                f"kept: fit {said} not precise enough ({se * speed * 1e6:.1f} um at that "
-                f"speed; trusted below {self.max_position_se_m * 1e6:g} um)"
-            )
-            return None
-        t_fit = found.described_t
-        # provisional fits described stamps that have moved since: the newest replaces them,
-        # a later stretch's first fit too (it is not held against them); after a restart the
-        # first fit starts the filter
-        fresh = provisional or self._provisional or not self._trend.started
-        moved = None if fresh else self._outlier(value, se, t_fit)
-        if moved is False:
-            self.counters["fits_refused_outlier"] += 1
-            self.last_result = f"kept: fit {said} {self.last_result}"
-            return None
-        self._suspect = None
-        self._provisional = int(provisional)
-        if not provisional:  # the scatter of fits is judged from settled mappings' only
-            self._history.append((value, se, self._segment, t_fit))
-        tau2 = self._wander2()  # with this fit: its own scatter counts against it too
-        if fresh:
-            self._trend.start(value, se * se + tau2, t_fit)
-        else:
-            if isinstance(moved, tuple):  # two in a row: the delay moved
-                self._trend.start(moved[0], moved[1] ** 2 + tau2, moved[2])
-            self._trend.update(value, se * se + tau2, t_fit)
-        estimate, estimate_var = self._trend.predict(found.t)
-        self.estimate, self.se = estimate, math.sqrt(estimate_var)
-        self._estimate_t = found.t
-        self.counters["fits_accepted"] += 1
-        self.last_result = (
-            f"fit {said}; delay {self.estimate * 1e6:.1f} +/- {self.se * 1e6:.1f} us "
-            f"({self._trend.chosen}, {self._trend.rate * 1e6:+.1f} us/s; "
-            f"scatter {math.sqrt(tau2) * 1e6:.1f} us"
-            f"{', provisional' if provisional else ''})"
-        )
-        # applied when known well enough at this speed, or clearly better than the delay in
-        # use; otherwise the fits scatter too much (an error the short stretches' model does
-        # not hold, e.g. a robot's geometry) and the delay in use is left alone
-        # a provisional fit is the delay alone, judged by its own standard error (the scatter
-        # of fits is not known yet), and never as merely "better": replaced within seconds, a
-        # rough one could only step the delay far the wrong way (a 2 s stretch of a robot with
-        # geometry errors fitted 29.08 +/- 0.34 ms where 28.40 was right)
-        current = found.current_s
-        better = (
-            not provisional
-            and math.isfinite(current)
-            and abs(self.estimate - current) > 3 * self.se
-        )
-        judged_se = se if provisional else self.se
-        if judged_se * speed > self.max_apply_m and not better:
-            self.counters["estimates_not_applied"] += 1
-            self.last_result += f"; not applied ({judged_se * speed * 1e6:.0f} um at that speed)"
-            return None
-        self.applied_se = self.se
-        self.applied, self._applied_t = self.estimate, self._estimate_t
-        return self.delay_now()
-
-    def _refused(self, found: DelayRefused) -> None:
-        """Count a stretch without a delay; one too short to separate a delay at all (a
-        settled one) lengthens the stretch, as a rough fit does."""
-        if found.counter == "fits_not_identifiable" and not found.t <= self._young_until:
-            self._fit_stretch(math.inf)
-        self.counters[found.counter] += 1
-        self.last_result = f"kept: {found.reason}"
-
-    def _fit_stretch(self, precision_m: float) -> None:
-        """The settled stretch as short as gives fits known to `max_position_se_m` at the
-        tool's speed: twice as long after a rougher fit, up to `max_span_s`; half as long
-        after one precise enough to stay so at half the length (a fit's standard error
-        grows about as the length to the power -1.5), down to `span_s`. (2.5 s stretches
-        follow the delay's walk, measured at 3-5 us/s; a robot whose geometry the
-        stretches' linear error model does not hold needs 5-10 s for a fit worth taking.)"""
-        if not math.isfinite(precision_m) or precision_m > self.max_position_se_m:
-            self._stretch_s = min(2.0 * self._stretch_s, self.max_span_s)
-        elif precision_m * 2.0**1.5 <= self.max_position_se_m:
-            self._stretch_s = max(0.5 * self._stretch_s, self.span_s)
-
-    def _outlier(
-        self, value: float, se: float, t_fit: float
-    ) -> tuple[float, float, float] | bool | None:
-        """Is a fit far off the running estimate (`outlier_sigmas` combined standard
-        errors)? None: no. False: yes, and refused (why, in `last_result`). Else the fit
-        before it, which was just as far off and agrees with it: the delay moved."""
-        tau2 = self._wander2()
-        level, level_var = self._trend.predict(t_fit)
-        spread = math.sqrt(level_var + se * se + tau2)
-        if abs(value - level) <= self.outlier_sigmas * spread:
-            return None
-        suspect, self._suspect = self._suspect, (value, se, t_fit)
-        if suspect is not None:
-            # the two agree as far as the delay may have walked between them
-            walked = self._trend.views["steady"].level_walk * abs(t_fit - suspect[2])
-            together = math.sqrt(se * se + suspect[1] ** 2 + tau2 + walked)
-            if abs(value - suspect[0]) <= self.outlier_sigmas * together:
-                return suspect
-        self.last_result = (
-            f"disagrees with {level * 1e6:.1f} +/- {spread * 1e6:.1f} us "
-            "(one more like it and it is taken)"
-        )
-        return False
-
-    def _se_at(self, t: float) -> float | None:
-        """The running estimate's standard error at stream time t: grown by the walk since
-        its newest fit. Judged against it, a new fit is neither refused as less precise than
-        an estimate that has gone stale nor as an outlier from it (the delay the device-clock
-        test needed walked 50 us in 30 s; fits against the unaged estimate were refused four
-        times in a row, the delay in use 30 us behind)."""
-        if not self._trend.started:
-            return self.se
-        return math.sqrt(self._trend.predict(t)[1])
-
-    def _wander2(self) -> float:
-        """tau^2: the scatter of accepted fits beyond their standard errors, within each
-        segment (between restarts), from how far each fit lies off the straight line
-        through its neighbours (a steady walk of the delay is not scatter): the median over
-        0.4549 (a normal variable's squared median), so that one wild fit does not make every
-        fit look wild. Until 3 such triples say, from the differences of successive fits
-        (which count a walk as scatter too: modest while little is known), and (10
-        min_wander_s)^2 until 3 of those say. At least min_wander_s^2."""
-        floor = self.min_wander_s**2
-        hist = list(self._history)
-        off2: list[float] = []
-        se2: list[float] = []
-        for a, b, c in _triples(hist):
-            if a[2] == b[2] == c[2] and a[3] < b[3] < c[3]:
-                w = (b[3] - a[3]) / (c[3] - a[3])  # b's place between its neighbours
-                factor = 1.0 + (1.0 - w) ** 2 + w * w  # white scatter's variance, times this
-                off2.append((b[0] - (1.0 - w) * a[0] - w * c[0]) ** 2 / factor)
-                se2.append((b[1] ** 2 + ((1.0 - w) * a[1]) ** 2 + (w * c[1]) ** 2) / factor)
-        if len(off2) < 3:
-            off2, se2 = [], []
-            for a, b in itertools.pairwise(hist):
-                if a[2] == b[2]:
-                    off2.append((b[0] - a[0]) ** 2 / 2.0)
-                    se2.append((a[1] ** 2 + b[1] ** 2) / 2.0)
-        if len(off2) < 3:
-            return max(floor, (10 * self.min_wander_s) ** 2)  # unknown yet: be modest
-        return max(floor, float(np.median(off2)) / 0.4549 - float(np.median(se2)))
-
-    def forget(self) -> None:
-        """The delay was set by hand (a reload): start the running estimate afresh."""
-        self._trend.reset()
-        self._provisional = 0
-        self._suspect = None
-        self._frame = {}
-        self.estimate = self.se = self.applied_se = self.applied = None
-
-
-def _triples(items: list[_T]) -> list[tuple[_T, _T, _T]]:
-    """Each item with its two neighbours: (a, b, c) for every b between them."""
-    return list(zip(items, items[1:], items[2:], strict=False))
-
-
-def _covered(
-    window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
-    delay: float,
-    max_gap_s: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """The window without tracker samples whose encoder time (under `delay`) falls outside
-    the encoder samples or between two further apart than `max_gap_s` (a stalled or restarted
-    adapter): interpolating the joints across such a gap would read a made-up motion."""
-    enc_t, enc_q, trk_t, trk_p, trk_q = window
-    if enc_t.size < 2 or trk_t.size == 0:
-        return window
-    at = trk_t - delay
-    k = np.searchsorted(enc_t, at)
-    inside = (k > 0) & (k < enc_t.size)
-    k = np.clip(k, 1, enc_t.size - 1)
-    keep = inside & (enc_t[k] - enc_t[k - 1] <= max_gap_s)
-    return enc_t, enc_q, trk_t[keep], trk_p[keep], None if trk_q is None else trk_q[keep]

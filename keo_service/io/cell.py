@@ -233,6 +233,12 @@ def delay_model(timing: TimingConfig) -> DelayModel:
     )
 
 
+def delay_prior(timing: TimingConfig) -> tuple[float, float | None]:
+    """The configured delay and its standard uncertainty, the online tracker's prior; None
+    when nothing is known (delay_s = 0, the default)."""
+    return timing.delay_s, None if timing.delay_s == 0.0 else timing.delay_se_s
+
+
 def estimator_settings(config: Config) -> EstimatorSettings:
     """The estimator's settings from [observer] and [timing].
 

@@ -148,8 +148,15 @@ class ObserverConfig(_Section):
     max_dt_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = _DEFAULTS.max_dt_s
 
 
+DEFAULT_DELAY_SE_S = 0.0005  # a delay configured without its uncertainty (docs/timing-delay.md)
+
+
 class TimingConfig(_Section):
     delay_s: Annotated[float, msgspec.Meta(ge=-1.0, le=1.0)] = 0.0
+    # the standard uncertainty of delay_s (keo calibrate-delay writes it): the online fit
+    # takes delay_s as a prior with it; delay_s = 0 (the default) means "not known" whatever
+    # this says (found from the motion, estimates flagged until it settles)
+    delay_se_s: Annotated[float, msgspec.Meta(gt=0.0, le=1.0)] = DEFAULT_DELAY_SE_S
     drift_ppm: Annotated[float, msgspec.Meta(ge=-10000.0, le=10000.0)] = 0.0
     # stream time (s) at which delay_s holds when drift_ppm is not zero
     drift_ref_s: float = 0.0

@@ -154,6 +154,13 @@ KEYS: dict[str, tuple[str, str]] = {
         "the tracker stream lags the encoder stream by this much "
         "(`keo calibrate-delay` measures it)",
     ),
+    "timing.delay_se_s": (
+        "s",
+        "the standard uncertainty of timing.delay_s (`keo calibrate-delay` writes it): the "
+        "online fit takes delay_s as a prior with it and changes it only when the fits are "
+        "incompatible with it at high confidence; with delay_s = 0 the delay is not known, "
+        "whatever this says (found from the motion, estimates flagged until it settles)",
+    ),
     "timing.drift_ppm": (
         "ppm",
         "the tracker's clock runs fast by this much relative to the encoder's",

@@ -107,6 +107,9 @@ class CorrectionPublisher:
         self.seq = 0
         self.failures = 0
         self.stale_events = 0  # times the freshness check turned the correction invalid
+        # with robot.correction = "none" no correction reaches a robot: its validity is
+        # counted, not logged (issue 45: 19 warnings about corrections nobody sends)
+        self._quiet = config.robot.correction == "none"
         self.latest: CorrectionMessage | None = None
         # the newest estimate: (monotonic time, its values, why not valid ("" if valid))
         self._estimate: tuple[float, list[float], str] | None = None
@@ -176,7 +179,8 @@ class CorrectionPublisher:
                 "estimate_stale": None if self._estimate is None else self._estimate[0],
             }
             since = ages.get(reason)
-            level = logging.WARNING if now - self._warned_at >= WARN_EVERY_S else logging.DEBUG
+            due = now - self._warned_at >= WARN_EVERY_S and not self._quiet
+            level = logging.WARNING if due else logging.DEBUG
             self._warned_at = now if level == logging.WARNING else self._warned_at
             log.log(
                 level,
@@ -188,7 +192,11 @@ class CorrectionPublisher:
                 self.stale_events,
             )
         elif changed and not reason:
-            log.info("correction inputs fresh again (was %s)", self._stale)
+            log.log(
+                logging.DEBUG if self._quiet else logging.INFO,
+                "correction inputs fresh again (was %s)",
+                self._stale,
+            )
         self._stale = reason
         return reason, changed
 

@@ -23,7 +23,8 @@ import zenoh
 
 from keo_service.core.errors import KeoError
 from keo_service.core.estimator import Estimate, Estimator
-from keo_service.io.cell import cell_from_config, delay_model, estimator_settings
+from keo_service.core.timing import DelayModel
+from keo_service.io.cell import cell_from_config, delay_model, delay_prior, estimator_settings
 from keo_service.io.config import Config
 from keo_service.live.bus import AsyncSubscription, session_for_service
 from keo_service.live.messages import (
@@ -56,7 +57,12 @@ def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 if TYPE_CHECKING:
-    from keo_service.fit.delay import OnlineDelayTracker
+    from keo_service.fit.delay_online import (
+        DelayMeasurement,
+        DelayRefused,
+        OnlineDelayTracker,
+        Stretch,
+    )
     from keo_service.live.sinks import Sink
 
 log = logging.getLogger("keo.service")
@@ -66,6 +72,17 @@ STATUS_PERIOD_S = 0.1
 # waits at most this long (its stretches are 2-2.5 s)
 DELAY_POLL_S = 0.25
 STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "stale"
+
+
+def _measure(
+    tracker: OnlineDelayTracker, stretch: Stretch, current: float
+) -> DelayMeasurement | DelayRefused:
+    """In the worker: the stretch's arrays, then its fit."""
+    from keo_service.fit.delay_online import stretch_arrays
+
+    return tracker.measure(stretch_arrays(stretch), current)
+
+
 MAX_ADAPTERS = 16  # adapters whose newest state change the service keeps (bounded)
 MAX_MESSAGES = 16  # the service's own newest messages kept for its status (bounded)
 
@@ -107,10 +124,13 @@ class KeoService:
         self.estimator = Estimator(cell, estimator_settings(config))
         self._delay_tracker: OnlineDelayTracker | None = None
         self._delay_followed: float | None = None  # the delay last set from the tracker
+        self._delay_said = ""  # the kind of the tracker's decision last logged
         if config.timing.track_delay:
-            from keo_service.fit.delay import OnlineDelayTracker
+            from keo_service.fit.delay_online import OnlineDelayTracker
 
-            self._delay_tracker = OnlineDelayTracker(cell, max_gap_s=config.timing.max_gap_s)
+            self._delay_tracker = OnlineDelayTracker(
+                cell, None, *delay_prior(config.timing), max_gap_s=config.timing.max_gap_s
+            )
         # the outputs, in order: bus, corrections, ROS 2, Rerun (`keo_service.live.sinks`)
         self.sinks = Sinks()
         self._viz: RerunSink | None = None
@@ -341,18 +361,32 @@ class KeoService:
         self.sinks.on_estimate(estimate, self.to_message(estimate))
 
     def to_message(self, estimate: Estimate) -> EstimateMessage:
-        return estimate_message(
+        msg = estimate_message(
             estimate,
             host_ns=time.time_ns(),
             seq=self._seq,
             delay_s=self.estimator.delay.at(estimate.stamp),
             delay_se_s=self.delay_se(),
         )
+        tracker = self._delay_tracker
+        if tracker is not None and not tracker.settled:
+            # the delay in use is not known yet (found from the motion): every estimate says so
+            msg = msgspec.structs.replace(msg, flags=[*msg.flags, "delay_unsettled"])
+        return msg
+
+    def _delay_line(self) -> str:
+        """The delay in use's source and the tracker's last decision, one line."""
+        tracker = self._delay_tracker
+        assert tracker is not None
+        state = "" if tracker.settled else ", unsettled"
+        return f"{tracker.source}{state}; {tracker.last_result}"
 
     def delay_se(self) -> float | None:
-        """The standard error of the delay in use: that of the online estimate last applied
-        (None before: the configured delay comes without one)."""
-        return None if self._delay_tracker is None else self._delay_tracker.applied_se
+        """The standard error of the delay in use: the tracker's (the configured prior's, or
+        that of the fits it came from); without tracking, the configured one, if any."""
+        if self._delay_tracker is None:
+            return delay_prior(self.config.timing)[1]
+        return self._delay_tracker.applied_se
 
     # ---- status -----------------------------------------------------------------------------
 
@@ -394,7 +428,7 @@ class KeoService:
             last_estimate=None if last is None else self.to_message(last),
             # the estimator's rejects, then the service's own findings: the newest ten
             messages=[*self.estimator.messages, *self._messages][-10:],
-            delay_tracking=None if self._delay_tracker is None else self._delay_tracker.last_result,
+            delay_tracking=None if self._delay_tracker is None else self._delay_line(),
             delay_se_s=self.delay_se(),
             adapters=dict(self._adapters),
         )
@@ -433,26 +467,37 @@ class KeoService:
         target = tracker.delay_now()
         if target is not None and target != self._delay_followed:
             self._delay_followed = target
-            self.estimator.set_delay_target(target)
+            if tracker.step:  # a confirmed change, or the delay found while unknown: at once
+                delay = self.estimator.delay
+                self.estimator.set_delay(DelayModel(target, delay.drift, delay.t_ref))
+                tracker.step = False
+            else:  # a refinement too small to matter at speed: no step in the estimates
+                self.estimator.set_delay_target(target)
 
     async def _delay_loop(self) -> None:
-        """Online delay tracking: fit each stretch off the loop, fold the result into the
-        running estimate on the loop, and slew the estimator's delay to it (never a step).
-        A fit of data from before a time base started anew is dropped."""
+        """Online delay tracking: take each stretch from the tracker's bounded buffers on the
+        loop (list copies), build its arrays and fit it in a worker thread (one fit at a
+        time), fold the result in on the loop, between samples, and set the estimator's
+        delay (a step for a confirmed change, a slew for a refinement). A fit of data from
+        before a time base started anew is dropped."""
         tracker = self._delay_tracker
         assert tracker is not None
         while not self._stop.is_set():
             if not tracker.due():  # else a stretch is waiting already (a slow fit, a replay)
                 await asyncio.sleep(DELAY_POLL_S)
                 continue
-            window = tracker.snapshot()
+            stretch = tracker.take()
             restarts = tracker.counters["restarts"]
             current = self.estimator.delay.offset_s
-            found = await asyncio.to_thread(tracker.measure, window, current)
+            found = await asyncio.to_thread(_measure, tracker, stretch, current)
             if tracker.counters["restarts"] == restarts:
                 tracker.combine(found)
                 self._follow_tracked_delay(tracker)
-            log.info("delay tracking: %s", tracker.last_result)
+            # said when the kind of decision changes (a refusal's advice once, not at every
+            # stretch); every decision stays in the status line and at debug level
+            said, self._delay_said = self._delay_said, tracker.state
+            level = logging.INFO if tracker.state != said else logging.DEBUG
+            log.log(level, "delay tracking: %s", tracker.last_result)
 
     async def _sink_loop(self, sink: Sink) -> None:
         """A sink's own cycle (the corrections' validity, Rerun's status snapshots), its
@@ -481,7 +526,8 @@ class KeoService:
             timing = new.timing
             self.estimator.set_delay(delay_model(timing))
             if self._delay_tracker is not None:
-                self._delay_tracker.forget()  # tracking goes on from the delay set by hand
+                # tracking goes on from the delay set by hand, a prior as at start
+                self._delay_tracker.forget(*delay_prior(timing))
         hot = {k: v for k, v in msgspec.structs.asdict(new).items() if k in ("observer", "timing")}
         self.config = msgspec.structs.replace(self.config, **hot) if applied else self.config
         self._refresh_status()

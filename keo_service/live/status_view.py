@@ -124,9 +124,10 @@ def service_lines(doc: dict[str, Any]) -> list[str]:
     rates = doc.get("rates_hz")
     if isinstance(rates, dict):
         lines += _wrap("rates", [f"{k} {_hz(v)}" for k, v in rates.items()])
-    lines += _wrap("delay", [_delay(doc)])
-    if doc.get("delay_tracking"):
-        lines += _wrap("delay tracking", [str(doc["delay_tracking"])])
+    # one delay, shown once: the delay in use, its uncertainty, its source and the tracker's
+    # last decision (the source leads the tracker's line)
+    tracking = doc.get("delay_tracking")
+    lines += _wrap("delay", [_delay(doc) + (f"; {tracking}" if tracking else "")])
     domains = doc.get("clock_domains")
     if isinstance(domains, dict):
         lines += _wrap("clock domains", [f"{k} {v}" for k, v in sorted(domains.items())])

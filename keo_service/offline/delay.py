@@ -3,6 +3,7 @@ with the reference method's number beside it, as a document and as lines to prin
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -29,12 +30,20 @@ class DelayCalibration:
     def document(self) -> dict[str, Any]:
         """What `--json` prints."""
         fit = self.fit
+        drift = {"drift_ppm": fit.drift * 1e6} if fit.drift_significant else {}
+        config: dict[str, Any] = {
+            "timing.delay_s": fit.delay_s,
+            "timing.delay_se_s": fit.delay_se_s,
+        }
+        if fit.drift_significant:  # only a drift shown beyond the windows' scatter
+            config["timing.drift_ppm"] = fit.drift * 1e6
+            config["timing.drift_ref_s"] = fit.t_ref
         return {
             "verdict": "ok" if fit.explained else "unexplained",
             "delay_s": fit.delay_s,
             "delay_se_s": fit.delay_se_s,
-            "drift_ppm": fit.drift * 1e6,
-            "drift_se_ppm": fit.drift_se * 1e6,
+            **drift,
+            "drift_se_ppm": fit.drift_se * 1e6 if math.isfinite(fit.drift_se) else None,
             "drift_significant": fit.drift_significant,
             "t_ref_s": fit.t_ref,
             "samples": fit.samples,
@@ -45,11 +54,7 @@ class DelayCalibration:
             "notes": fit.notes,
             "reference_method": [s.__dict__ for s in self.segments],
             "clocks": dict(self.clocks),
-            "config": {
-                "timing.delay_s": fit.delay_s,
-                "timing.drift_ppm": fit.drift * 1e6,
-                "timing.drift_ref_s": fit.t_ref if fit.drift_significant else 0.0,
-            },
+            "config": config,
         }
 
     def lines(self) -> list[str]:
@@ -80,6 +85,7 @@ class DelayCalibration:
             )
         out.append("config:")
         out.append(f"  [timing] delay_s = {fit.delay_s:.6f}")
+        out.append(f"           delay_se_s = {fit.delay_se_s:.6f}")
         if fit.drift_significant:
             out.append(f"           drift_ppm = {fit.drift * 1e6:.3f}")
             out.append(f"           drift_ref_s = {fit.t_ref!r}")

@@ -4,10 +4,14 @@ does to the estimate's error against the truth (README table)."""
 from __future__ import annotations
 
 import dataclasses
+import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 
+from keo_service.core.kinematics import Cell
 from keo_service.core.timing import DelayModel
 from keo_service.fit.delay import DelayNotIdentifiableError, fit_delay
 from keo_service.fit.evaluate import estimate_error_rms, estimate_run
@@ -110,3 +114,214 @@ def as_jsonable(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [
         {k: (float(v) if isinstance(v, np.floating) else v) for k, v in r.items()} for r in rows
     ]
+
+
+# ---- the online tracker's scenario matrix (issue 45) -------------------------------------------
+#
+# Streams as the adapters stamp them, with the delay injected, so that each fit and the delay in
+# use can be judged against the truth in-process (fast): a MotoROS encoder stamped on receipt
+# (through the adapters' own `ReceiptStamps`), a device-clock or shared-clock one, and trackers
+# at 100 Hz or 1 kHz. The stamps' own errors are zero-mean, so the delay each sample needs is the
+# injected one.
+
+ENCODERS = {  # name: (device period s, stamp error: "receipt" send jitter half-width or noise s)
+    "motoros": (0.025, 0.003),
+    "rtde": (0.002, 20e-6),
+    "ros2": (0.01, 50e-6),
+}
+TRACKERS = {"line100": (0.01, 20e-6), "line1k": (0.001, 20e-6), "ros2": (0.01, 50e-6)}
+MOTIONS = ("all_slow", "one_joint", "stop_go", "wrist")
+
+
+@dataclass(frozen=True)
+class StreamCase:
+    encoder: str = "motoros"
+    tracker: str = "line100"
+    motion: str = "all_slow"
+    geometry: bool = False  # configuration-dependent geometric errors (else a constant tool error)
+    delay_s: float = 0.030
+    seconds: float = 30.0
+    noise_m: float = 10e-6
+    noise_rad: float = 10e-6
+
+    @property
+    def label(self) -> str:
+        geo = "geometry" if self.geometry else "tool error"
+        return f"{self.encoder}/{self.tracker}/{self.motion}/{geo}"
+
+
+@dataclass
+class CaseStreams:
+    case: StreamCase
+    enc_t: np.ndarray
+    enc_q: np.ndarray
+    trk_t: np.ndarray
+    trk_p: np.ndarray
+    trk_quat: np.ndarray
+    tool_v: np.ndarray  # (n_trk, 3) true tool velocity at each tracker sample (base frame)
+    tool_w: np.ndarray  # (n_trk, 3) true angular velocity
+    motion_start: float  # stream time the motion starts (stamp of the first moving sample)
+
+
+def case_motion(cell: Cell, motion: str, rng: np.random.Generator) -> Any:
+    """Joint trajectories of an MH180-style arm for the matrix's motions."""
+    from keo_service.sim.simulate import _mh_style_home
+    from keo_service.sim.trajectories import Segment, piecewise_joint_moves, sinusoid_path
+
+    home = _mh_style_home(cell)
+    nq = home.size
+    if motion == "all_slow":  # every joint, slowly (tool ~0.1-0.3 m/s, as in issue 45)
+        freq = rng.uniform(0.04, 0.1, (nq, 2))
+        amp = rng.uniform(0.07, 0.18, (nq, 2))
+        phase = rng.uniform(0, 2 * np.pi, (nq, 2))
+        return sinusoid_path(home, amp, freq, phase)
+    if motion == "one_joint":  # joint 1 at a constant 0.1 rad/s after a 1 s ramp
+
+        def one(t: np.ndarray) -> np.ndarray:
+            t = np.asarray(t, dtype=float)
+            s = np.where(t < 1.0, 0.05 * np.clip(t, 0, 1) ** 2, 0.1 * (t - 0.5))
+            q = np.repeat(home[None, :], t.size, axis=0)
+            q[:, 0] = home[0] + s - 1.5
+            return q
+
+        return one
+    if motion == "stop_go":  # all joints to random targets, 1.5 s moves with 1.5 s rests
+        segments, q_prev, t = [], home.copy(), 1.0
+        for _ in range(40):
+            q_next = home + rng.uniform(-0.12, 0.12, nq)
+            segments.append(Segment(t, 1.5, 0.4, q_prev, q_next))
+            t += 3.0
+            q_prev = q_next
+        return piecewise_joint_moves(segments, home)
+    if motion == "wrist":  # the last joint turns, the tool point (on its axis) stays
+
+        def wrist(t: np.ndarray) -> np.ndarray:
+            t = np.asarray(t, dtype=float)
+            x = np.clip(t, 0.0, 1.0)
+            q = np.repeat(home[None, :], t.size, axis=0)
+            q[:, nq - 1] = home[nq - 1] + x * x * (3 - 2 * x) * 0.6 * np.sin(0.9 * t)
+            return q
+
+        return wrist
+    raise ValueError(f"unknown motion {motion!r}")
+
+
+def case_streams(cell: Cell, case: StreamCase, seed: int = 0) -> CaseStreams:
+    """The encoder and tracker streams of one case, stamped as the adapters stamp them."""
+    from keo_service.core.clock import ReceiptStamps
+    from keo_service.core.kinematics import flange_pose, quat_wxyz
+    from keo_service.sim.simulate import make_true_robot
+
+    rng = np.random.default_rng(seed)
+    true_robot = make_true_robot(cell, rng, True, tool_only=not case.geometry)
+    traj = case_motion(cell, case.motion, rng)
+    period, err = ENCODERS[case.encoder]
+    t_dev = np.arange(0.0, case.seconds, period) + rng.uniform(0, period)
+    enc_q = traj(t_dev)
+    if case.encoder == "motoros":  # sent 25 +/- 3 ms apart, stamped on receipt
+        receipt = t_dev + rng.uniform(-err, err, t_dev.size)
+        stamps = ReceiptStamps()
+        enc_t = np.array([stamps.place(float(r), 1)[0] for r in receipt])
+    else:
+        enc_t = t_dev + rng.normal(0.0, err, t_dev.size)
+        enc_t = np.maximum.accumulate(enc_t + np.arange(t_dev.size) * 1e-9)
+    tperiod, terr = TRACKERS[case.tracker]
+    tau = np.arange(0.2, case.seconds - 0.2, tperiod) + rng.uniform(0, tperiod)
+    trk_t = tau + case.delay_s + rng.normal(0.0, terr, tau.size)
+    q_phys = traj(tau)
+    T_kb = true_robot.T_bk.inverse()
+    p = np.empty((tau.size, 3))
+    quat = np.empty((tau.size, 4))
+    pos = np.empty((tau.size, 3))
+    rots = []
+    data = cell.robot.create_data()
+    for i in range(tau.size):
+        T_ks = T_kb * true_robot.sensor_pose(q_phys[i])
+        noise = pin.exp3(rng.normal(0.0, case.noise_rad, 3))
+        p[i] = T_ks.translation + rng.normal(0.0, case.noise_m, 3)
+        quat[i] = quat_wxyz(T_ks.rotation @ noise)
+        T_bt = flange_pose(cell.robot, data, q_phys[i]) * cell.T_nt
+        pos[i] = T_bt.translation
+        rots.append(T_bt.rotation)
+    h = np.gradient(tau)
+    v = np.gradient(pos, axis=0) / h[:, None]
+    R = np.array(rots)
+    w = np.zeros((tau.size, 3))
+    for i in range(1, tau.size - 1):
+        w[i] = pin.log3(R[i + 1] @ R[i - 1].T) / (tau[i + 1] - tau[i - 1])
+    moving = np.max(np.abs(traj(tau + 1e-3) - q_phys), axis=1) > 1e-7
+    start = float(trk_t[np.argmax(moving)]) if moving.any() else math.inf
+    return CaseStreams(case, enc_t, enc_q, trk_t, p, quat, v, w, start)
+
+
+@dataclass
+class TrackedRun:
+    """What the online tracker made of one case: the delay in use at each tracker sample,
+    whether the estimate then carried the unsettled flag, and each fit against the truth."""
+
+    t: np.ndarray
+    delay: np.ndarray
+    unsettled: np.ndarray
+    fits: list[tuple[float, float, float]]  # each fit: value - truth, its se, with tau
+    refused: int
+    decisions: list[str]
+
+
+def run_tracker(
+    cell: Cell,
+    streams: CaseStreams,
+    configured_s: float,
+    configured_se_s: float | None,
+    track: bool = True,
+) -> TrackedRun:
+    """Feed a case's samples in stamp order into the online tracker as the service does; the
+    fits run in line here (the service runs them on a worker and applies them between
+    samples, which is the same order of events)."""
+    from keo_service.fit.delay_online import DelayMeasurement, OnlineDelayTracker
+
+    tracker = OnlineDelayTracker(cell, prior_s=configured_s, prior_se_s=configured_se_s)
+    in_use = configured_s
+    n_enc = streams.enc_t.size
+    out_delay = np.empty(streams.trk_t.size)
+    out_flag = np.empty(streams.trk_t.size, dtype=bool)
+    fits: list[tuple[float, float, float]] = []
+    refused = 0
+    decisions: list[str] = []
+    k = 0
+    for i, t in enumerate(streams.trk_t):
+        while k < n_enc and streams.enc_t[k] <= t:
+            if track:
+                tracker.add_encoder(float(streams.enc_t[k]), streams.enc_q[k])
+            k += 1
+        if track:
+            tracker.add_tracker(float(t), streams.trk_p[i], streams.trk_quat[i])
+            if tracker.due():
+                found = tracker.measure(tracker.snapshot(), in_use)
+                if isinstance(found, DelayMeasurement):
+                    fits.append(
+                        (
+                            found.delay_s - streams.case.delay_s,
+                            found.se_s,
+                            tracker.honest_se(found.se_s),
+                        )
+                    )
+                else:
+                    refused += 1
+                tracker.combine(found)
+                decisions.append(tracker.last_result)
+                target = tracker.delay_now()
+                if target is not None:
+                    in_use = target
+        out_delay[i] = in_use
+        out_flag[i] = track and not tracker.settled
+    return TrackedRun(streams.trk_t, out_delay, out_flag, fits, refused, decisions)
+
+
+def delay_harm(streams: CaseStreams, run: TrackedRun, at: float) -> tuple[float, float]:
+    """What the delay in use at stream time `at` does to the measured error then: |v| and |w|
+    times its error against the injected delay, RMS over the second before `at` (m, rad)."""
+    sel = (run.t > at - 1.0) & (run.t <= at)
+    err = run.delay[sel] - streams.case.delay_s
+    v = np.linalg.norm(streams.tool_v[sel], axis=1)
+    w = np.linalg.norm(streams.tool_w[sel], axis=1)
+    return float(np.sqrt(np.mean((err * v) ** 2))), float(np.sqrt(np.mean((err * w) ** 2)))

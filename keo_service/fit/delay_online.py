@@ -1,0 +1,860 @@
+"""The delay followed online, a stretch of samples at a time: which fits are trusted and when
+the delay in use may change. The offline fit itself is fit/delay.py."""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import numpy as np
+
+from keo_service.core.kinematics import Cell
+from keo_service.fit.delay import DelayFit, DelayNotIdentifiableError, _mad_sigma, fit_delay
+from keo_service.fit.delay_trend import LevelAndRate, SteadyOrMoving
+from keo_service.fit.stamp_lines import Anchor, moved
+
+_T = TypeVar("_T")
+
+
+@dataclass(frozen=True)
+class DelayMeasurement:
+    """One stretch's fitted delay, its standard error, the tool's RMS speed over it and the
+    stream time it ends at."""
+
+    delay_s: float
+    se_s: float
+    speed_rms: float
+    t: float
+    current_s: float = math.nan  # the delay in use when the stretch was fitted
+    t_mid: float = math.nan  # the stream time the fit describes (its stretch's middle; nan: t)
+    rms_m: float = 0.0  # the residual scatter at the fitted delay (m, moving samples)
+
+    @property
+    def described_t(self) -> float:
+        return self.t if math.isnan(self.t_mid) else self.t_mid
+
+
+@dataclass(frozen=True)
+class DelayRefused:
+    """A stretch without a delay: the counter it counts under and why, in words."""
+
+    counter: str
+    reason: str
+    t: float = math.nan  # the stream time the stretch ends at (nan: not known)
+
+
+@dataclass(frozen=True)
+class DelayTrackerSettings:
+    """The online tracker's settings (plain data; the defaults are what the scenario matrix
+    of docs/timing-delay.md was run with)."""
+
+    span_s: float = 2.5  # a settled stretch, lengthened up to max_span_s while fits are rough
+    max_span_s: float = 10.0
+    young_span_s: float = 2.0  # stretches while the clock mappings are young (young_s)
+    young_s: float = 10.0
+    max_samples: int = 40_000  # bounded buffers, per stream
+    max_gap_s: float = 0.05  # no joints interpolated across a wider encoder gap
+    max_position_se_m: float = 2.5e-6  # stretches lengthen until fits are known to this at speed
+    max_se_s: float = 2e-3  # a fit rougher than this is refused
+    outlier_sigmas: float = 4.0  # the running estimate's outlier gate (refinements only)
+    settle_s: float = 4.0  # samples left out after a time base starts anew
+    min_wander_s: float = 2e-6  # the least scatter of fits beyond their standard errors
+    restart_sigma_s: float = 50e-6  # the delay in use's se grows by this at a restart
+    max_apply_m: float = 10e-6  # a refinement needs the estimate known to this at speed
+    steady_walk: float = 25e-12
+    level_walk: float = 4e-12
+    rate_walk: float = 1e-12
+    rate_relax_s: float = 30.0
+    rate_prior: float = 2e-6
+    # the gate for a change of the delay in use (issue 45)
+    consensus_fits: int = 5  # the consensus is over this many recent fits
+    change_sigmas: float = 4.0  # consensus vs delay in use: incompatible at this many sigma
+    confirm_sigmas: float = 2.5  # each confirming fit off the delay in use by this many
+    first_tau_s: float = 300e-6  # a fit's scatter beyond its se, until 3 fits measure it
+    settle_m: float = 20e-6  # settled when the consensus is known to this at the tool's speed
+
+
+@dataclass(frozen=True)
+class _Fit:
+    value: float
+    se: float  # the fit's own standard error
+    t: float  # the stream time it describes
+    speed: float  # the tool's RMS speed over it (m/s)
+    rms: float  # the residual scatter at the fitted delay (m, moving samples)
+    young: bool = False  # of a young clock mapping's stamps, which still move
+
+
+class OnlineDelayTracker:
+    """The delay found online from the motion, trusted only as far as it is known.
+
+    Samples go into bounded buffers (on the event loop); when a stretch of clean data has
+    gathered since the last fit (`span_s`, up to `max_span_s` while its fits are rough),
+    the service takes that stretch (`snapshot`) and fits it off the loop (`measure`:
+    `fit_delay` over that stretch only, so successive fits see disjoint data), then folds
+    the result in on the loop (`combine`). A fit is accepted only when
+
+    - the tool moved (`fit_delay` refuses otherwise: at rest nothing changes),
+    - its standard error is small against what it changes at the tool's speed there:
+      `se * v_rms <= max_position_se_m` (a delay only matters through `v * delay`), or the
+      delay in use is not known that well yet (then a rougher fit still helps: it is
+      weighted by its variance); and always `se <= max_se_s`,
+    - it agrees with the running estimate (within `outlier_sigmas` combined standard
+      errors), unless the next fit agrees with it too (then the delay really moved).
+
+    The running estimate is a Kalman filter over the delay's level in two views
+    (`SteadyOrMoving`): "steady", whose level walks (`steady_walk`), and "moving", whose
+    level walks (`level_walk`) with a rate that walks too (`rate_walk`, relaxing to zero over
+    `rate_relax_s`); the one that has been predicting the fits better gives the estimate.
+    Each accepted fit says the delay at its stretch's middle, with the variance se^2 +
+    tau^2, where tau^2 is the scatter of fits beyond their own standard errors (a fit's
+    standard error cannot know how its stretch's error model fits the robot), from how far
+    each fit lies off the line through its neighbours, at least `min_wander_s`^2. The delay
+    the stamps need moves as the mapped clocks' floors move with the load and their drifts
+    converge, often steadily (3-5 us/s for 10-20 s in the device-clock test), so an older
+    fit says less about it now, and a steady walk is followed, not lagged. (An equal-weight
+    mean of the last 8 fits lagged the walk by 20 s: 40-60 us behind; a mean weighted by
+    age, 15-20 us at the end of a run.) The estimate is the level at the newest stretch's
+    end, its standard error the filter's. The service
+    slews the estimator's delay to it, never jumps, when it is known to `max_apply_m` at the
+    tool's speed or is more than three standard errors away from the delay in use; otherwise
+    (fits scattering widely, as when the robot's geometry makes an error the stretches'
+    model does not hold) it is shown but not applied.
+
+    Fits of stretches that end within `young_s` of the first samples or of a restart are
+    provisional: a young clock mapping's stamps move while its drift converges (in the
+    device-clock test the first 5 s fit lay 60-160 us below the delay the stamps needed from
+    10 s on). So while young the stretches are shorter (`young_span_s`) and the newest fit
+    alone is the delay, each replacing the one before (its stamps are the most settled),
+    applied only when known to `max_apply_m` at the tool's speed; the first fit of a later
+    stretch replaces them too. (With 5 s stretches averaged, the delay in use at 10 s after
+    the start was 50 us short of what the settled stamps needed: 28 urad at that tool's
+    turning speed.)
+
+    Mapped samples ("device" clocks) come with their line's drift: each stretch is fitted
+    under each stream's newest line, and the delay applied is carried along as the lines
+    move (`delay_now`), the running estimate with it (see fit/stamp_lines.py): a line's move
+    needs no fit to be followed.
+
+    Samples a source flagged (its clock re-learning, a stamp ahead of its receipt or too
+    old) are left out. When either stream's time base starts anew (its `clock_epoch`
+    changes, or its `seq` goes back while it gives no epoch: an adapter restarted; one that
+    went on on its saved clock mapping keeps its epoch), the data before it is dropped,
+    the first `settle_s` seconds after it too (the new mapping learns its drift), and so are
+    the fits before it (a new mapping carries a new transport floor): the next accepted fit
+    decides the delay; until then the delay in use stays as it was, its standard error grown
+    by `restart_sigma_s`.
+    """
+
+    def __init__(
+        self,
+        cell: Cell,
+        settings: DelayTrackerSettings | None = None,
+        prior_s: float = 0.0,
+        prior_se_s: float | None = None,
+        **changes: Any,
+    ) -> None:
+        """`prior_s` and `prior_se_s`: the configured delay and its standard uncertainty
+        (None: nothing is known, the delay is found from the motion and estimates are flagged
+        until it settles); `changes`: settings by name, over `settings`."""
+        st = dataclasses.replace(settings or DelayTrackerSettings(), **changes)
+        self.settings = st
+        # fits run off the event loop: give them their own scratch data for gravity torques
+        self.cell = (
+            cell
+            if cell.nominal_model is None
+            else dataclasses.replace(cell, gravity_data=cell.nominal_model.createData())
+        )
+        self.span_s = st.span_s
+        self.max_span_s = max(st.max_span_s, st.span_s)
+        self._stretch_s = st.span_s  # the settled stretch now: lengthened while fits are rough
+        self.young_span_s = st.young_span_s
+        self.max_gap_s = st.max_gap_s
+        self.max_position_se_m = st.max_position_se_m
+        self.max_se_s = st.max_se_s
+        self.outlier_sigmas = st.outlier_sigmas
+        self.settle_s = st.settle_s
+        self.min_wander_s = st.min_wander_s
+        self.restart_sigma_s = st.restart_sigma_s
+        self.max_apply_m = st.max_apply_m
+        # (stamp, joints, device stamp or None)
+        self._enc: collections.deque[tuple[float, np.ndarray, float | None]] = collections.deque(
+            maxlen=st.max_samples
+        )
+        # (stamp, position, quaternion or None, device stamp or None)
+        self._trk: collections.deque[tuple[float, np.ndarray, np.ndarray | None, float | None]] = (
+            collections.deque(maxlen=st.max_samples)
+        )
+        # each mapped stream's newest sample on its clock mapping's line; the lines the
+        # running estimate is expressed under; those of the stretch being fitted
+        self._newest: dict[str, Anchor] = {}
+        self._frame: dict[str, Anchor] = {}
+        self._fitting_frame: dict[str, Anchor] | None = None
+        self._start = -math.inf  # stream time from which samples count
+        self.young_s = st.young_s
+        self._young_until = math.nan  # fits of stretches ending before this are provisional
+        self._provisional = 0  # how many of the fits kept are provisional
+        self._sources: dict[str, tuple[int, int]] = {}  # stream -> (epoch, last seq)
+        self._trend = SteadyOrMoving(
+            LevelAndRate(st.steady_walk, 0.0, st.rate_relax_s, 0.0),
+            LevelAndRate(st.level_walk, st.rate_walk, st.rate_relax_s, st.rate_prior),
+        )
+        # accepted settled fits (value, se, segment, stream time described): a segment ends
+        # when a time base starts anew
+        self._history: collections.deque[tuple[float, float, int, float]] = collections.deque(
+            maxlen=32
+        )
+        # every fit of the current segment, whatever became of it: the consensus is theirs
+        self._recent: collections.deque[_Fit] = collections.deque(maxlen=16)
+        self._segment = 0
+        self._suspect: tuple[float, float, float] | None = None  # an outlier fit, to compare
+        self._trend_fits = 0  # fits the running estimate has taken since it started
+        self.estimate: float | None = None  # the running estimate of the delay (s)
+        self.se: float | None = None  # its standard error (s)
+        known = prior_se_s is not None and math.isfinite(prior_se_s) and prior_se_s > 0
+        # the delay in use, under `_frame` (s), and its standard error: the configured one
+        # is a prior (the user's calibration), not a starting guess
+        self.applied: float | None = prior_s if known else None
+        self.applied_se: float | None = prior_se_s if known else None
+        self.settled = known  # False: every estimate is flagged until the fits agree
+        self.source = "configured" if known else "unknown"  # where the delay in use comes from
+        self.step = False  # the last change is a step (confirmed), not a refinement to slew to
+        self._applied_t = math.nan  # the stream time it describes
+        self._estimate_t = math.nan  # the stream time `estimate` describes
+        self.counters: collections.Counter[str] = collections.Counter()
+        self.last_result: str = "waiting for motion"
+        # the kind of the last decision (kept, unsettled, settled, changed, refined, or why a
+        # stretch gave no fit): the service says a decision when its kind changes
+        self.state = "waiting"
+
+    # ---- samples (on the event loop: cheap) ---------------------------------------------
+
+    def add_encoder(
+        self,
+        t: float,
+        q: Sequence[float],
+        epoch: int = 0,
+        seq: int = 0,
+        flagged: bool = False,
+        device_stamp: float | None = None,
+        clock_drift: float | None = None,
+    ) -> None:
+        """One joint sample; a mapped one ("device" clock) with its device stamp and its
+        line's drift (`JointSample.clock_drift`)."""
+        self._source("encoder", t, epoch, seq)
+        device = self._line("encoder", t, device_stamp, clock_drift)
+        if flagged or t < self._start:
+            self.counters["encoder_left_out"] += 1
+            return
+        q_arr = np.asarray(q, dtype=float)
+        newer = not self._enc or t > self._enc[-1][0]
+        if math.isfinite(t) and np.isfinite(q_arr).all() and newer:
+            self._enc.append((t, q_arr, device))
+
+    def add_tracker(
+        self,
+        t: float,
+        p: Sequence[float],
+        quat: Sequence[float] | None,
+        epoch: int = 0,
+        seq: int = 0,
+        flagged: bool = False,
+        device_stamp: float | None = None,
+        clock_drift: float | None = None,
+    ) -> None:
+        """One pose; a mapped one as in `add_encoder`."""
+        self._source("tracker", t, epoch, seq)
+        device = self._line("tracker", t, device_stamp, clock_drift)
+        if flagged or t < self._start:
+            self.counters["tracker_left_out"] += 1
+            return
+        p_arr = np.asarray(p, dtype=float)
+        q_arr = None if quat is None else np.asarray(quat, dtype=float)
+        finite = np.isfinite(p_arr).all() and (q_arr is None or np.isfinite(q_arr).all())
+        if math.isfinite(t) and finite and (not self._trk or t > self._trk[-1][0]):
+            self._trk.append((t, p_arr, q_arr, device))
+
+    def _line(
+        self, stream: str, t: float, device_stamp: float | None, drift: float | None
+    ) -> float | None:
+        """Keep a mapped stream's newest sample on its line (a stamp off the line comes
+        without a drift); the device stamp to keep with the sample, None when the stream's
+        stamps are not mapped by a line (a shared clock, receipt times)."""
+        if device_stamp is None or not math.isfinite(device_stamp):
+            return None
+        if drift is not None and math.isfinite(drift) and math.isfinite(t):
+            self._newest[stream] = Anchor(t, device_stamp, drift)
+        return device_stamp if stream in self._newest else None
+
+    def delay_now(self) -> float | None:
+        """The delay to use now: the estimate last applied, carried along as the mapped
+        streams' lines moved since the stretch it was fitted under (a tracker stamp that moved
+        later needs a longer delay, an encoder stamp a shorter one; the move where the
+        estimate describes). None before one was applied."""
+        if self.applied is None:
+            return None
+        return self.applied + self._moved(self._newest, self._applied_t)
+
+    def _moved(self, lines: dict[str, Anchor], at: float) -> float:
+        """How far the delay the stamps need at stream time `at` moved from the running
+        estimate's lines to these (0 for a stream not mapped by a line)."""
+        frame = self._frame
+        where = None if math.isnan(at) else at  # a configured delay describes no instant
+        return moved(lines.get("tracker"), frame.get("tracker"), where) - moved(
+            lines.get("encoder"), frame.get("encoder"), where
+        )
+
+    def _move_to(self, lines: dict[str, Anchor] | None) -> None:
+        """Express the running estimate under these lines (None: a measurement that came
+        without its snapshot's lines): each value (the filter's level and rate, the fits
+        kept, the estimate applied) moved as the lines differ where it describes. By
+        construction, no fit is needed to follow a line's move."""
+        if lines is None:
+            return
+        if not self._frame or not self._trend.started:
+            self._frame = dict(lines)
+            return
+        at = self._trend.t
+        level = self._moved(lines, at)
+        rate = self._moved(lines, at + 1.0) - level  # the lines' drifts differ
+        self._trend.shift(level, rate)
+        self._history = collections.deque(
+            (
+                (v + self._moved(lines, t) if seg == self._segment else v, se, seg, t)
+                for v, se, seg, t in self._history
+            ),
+            maxlen=self._history.maxlen,
+        )
+        self._recent = collections.deque(
+            (dataclasses.replace(f, value=f.value + self._moved(lines, f.t)) for f in self._recent),
+            maxlen=self._recent.maxlen,
+        )
+        if self._suspect is not None:
+            value, se, t = self._suspect
+            self._suspect = (value + self._moved(lines, t), se, t)
+        if self.estimate is not None:
+            self.estimate += self._moved(lines, self._estimate_t)
+        if self.applied is not None:
+            self.applied += self._moved(lines, self._applied_t)
+        self._frame = dict(lines)
+
+    def _source(self, stream: str, t: float, epoch: int, seq: int) -> None:
+        known = self._sources.get(stream)
+        if math.isnan(self._young_until) and math.isfinite(t):
+            self._young_until = t + self.young_s  # the first samples: young clock mappings
+        self._sources[stream] = (epoch, seq)
+        # a seq going back is a restarted publisher: a new time base unless the publisher
+        # says otherwise by its epoch (an adapter that went on on its saved clock mapping
+        # keeps it); one that gives no epoch (0) says nothing
+        if known is not None and (epoch != known[0] or (seq < known[1] and epoch == 0)):
+            self.restart(t, f"the {stream} time base started anew")
+
+    def restart(self, t: float, why: str) -> None:
+        """A stream's time base started anew at stream time t: drop what came before."""
+        self.applied = self.delay_now()  # as in use now; the new mapping's lines are new
+        self._newest.clear()
+        self._frame = {}
+        self._fitting_frame = None
+        self._enc.clear()
+        self._trk.clear()
+        self._trend.reset()
+        self._provisional = 0
+        self._suspect = None
+        self._segment += 1
+        self._recent.clear()
+        if self.source != "configured":  # found under the old mapping: found again
+            self.settled = False
+        if self.se is not None:  # the delay in use is less sure under the new mapping
+            self.se = math.hypot(self.se, self.restart_sigma_s)
+        if self.applied_se is not None:
+            self.applied_se = math.hypot(self.applied_se, self.restart_sigma_s)
+        if math.isfinite(t):
+            self._start = t + self.settle_s
+            self._young_until = t + self.young_s
+        self.counters["restarts"] += 1
+        self.last_result = f"restarted: {why}; fitting again after {self.settle_s:g} s"
+
+    # ---- fits ---------------------------------------------------------------------------
+
+    def due(self) -> bool:
+        return bool(self._trk) and self._trk[-1][0] - self._trk[0][0] >= self._span()
+
+    def _span(self) -> float:
+        """The stretch to fit next: shorter while the clock mappings are young."""
+        young = (
+            bool(self._newest)  # only mapped stamps are young (receipt and shared ones are not)
+            and bool(self._trk)
+            and self._trk[0][0] + self.young_span_s <= self._young_until
+        )
+        return self.young_span_s if young else self._stretch_s
+
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """The stretch to fit as arrays (`take`, then `stretch_arrays`, in one call)."""
+        return stretch_arrays(self.take())
+
+    def take(self) -> Stretch:
+        """The stretch to fit, consumed from the buffers (on the loop: list copies only, the
+        arrays are built by `stretch_arrays` in the worker), with each stream's newest line,
+        which the next `combine` takes the fit to be under: the next fit sees only newer
+        samples."""
+        first = self._trk[0][0]
+        trk = [s for s in self._trk if s[0] <= first + self._span()]
+        end = trk[-1][0]
+        enc = [s for s in self._enc if first - 1.0 <= s[0] <= end + 1.0]
+        while self._trk and self._trk[0][0] <= end:
+            self._trk.popleft()
+        while self._enc and self._enc[0][0] < end - 1.0:
+            self._enc.popleft()
+        # the whole stretch under each stream's newest line (see fit/stamp_lines.py)
+        self._fitting_frame = dict(self._newest)
+        return Stretch(enc, trk, self._newest.get("encoder"), self._newest.get("tracker"))
+
+    def fit(
+        self,
+        window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
+        current: float,
+    ) -> float | None:
+        """Fit one stretch and fold it in: the running estimate if this fit moved it."""
+        return self.combine(self.measure(window, current))
+
+    def measure(
+        self,
+        window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
+        current: float,
+    ) -> DelayMeasurement | DelayRefused:
+        """The delay over one stretch, or why there is none. Runs anywhere (a worker
+        thread): it reads the tracker's settings only and changes nothing."""
+        # fitted from the best guess there is: the delay in use once settled, else the
+        # recent fits' (a Gauss-Newton fit from far off, e.g. 0 where 30 ms is right, can
+        # stop in a wrong minimum)
+        guess = current
+        if not self.settled and self._recent:
+            cons = self.consensus()
+            guess = cons[0] if cons is not None else self._recent[-1].value
+        enc_t, enc_q, trk_t, trk_p, trk_q = _covered(window, guess, self.max_gap_s)
+        if enc_t.size < 20 or trk_t.size < 50:
+            return DelayRefused("fits_without_data", "not enough data in the stretch")
+        # the error model of a short stretch: linear in the tool position, with the errors in
+        # the tool frame (where the tool's own calibration error is constant) or in the base
+        # frame (closer for a robot's geometric errors); the one that leaves less residual
+        fits: list[DelayFit] = []
+        for features in ("tool", "position"):
+            try:
+                fits.append(
+                    fit_delay(
+                        self.cell,
+                        enc_t,
+                        enc_q,
+                        trk_t,
+                        trk_p,
+                        trk_q,
+                        initial=guess,
+                        with_drift=False,
+                        features=features,
+                        # one stretch is one window; and scipy.stats, which the check
+                        # imports, would cost the service seconds at its first fit
+                        check_windows=False,
+                    )
+                )
+            except DelayNotIdentifiableError as exc:
+                reason = exc
+        if not fits:
+            return DelayRefused("fits_not_identifiable", str(reason), float(trk_t[-1]))
+        fit = min(fits, key=lambda f: f.residual_rms_moving)
+        middle = 0.5 * float(trk_t[0] + trk_t[-1])
+        return DelayMeasurement(
+            fit.delay_s,
+            fit.delay_se_s,
+            fit.speed_rms,
+            float(trk_t[-1]),
+            current,
+            middle,
+            fit.residual_rms_moving if math.isfinite(fit.residual_rms_moving) else 0.0,
+        )
+
+    def combine(self, found: DelayMeasurement | DelayRefused) -> float | None:
+        """Fold one measurement in (on the loop, between samples): the delay to use now if
+        it changed, else None; what was decided and why in `last_result`, and whether the
+        change is a confirmed step (`step`) or a refinement to slew to.
+
+        Every finite fit joins the recent fits, whatever the delay in use; the delay in use
+        changes only through them (`_decide`): no single fit, taken or refused, stands in
+        the way of the fits that follow. Once settled, the running estimate may still refine
+        the delay in use by steps too small to matter at the tool's speed (a device clock's
+        stamps walk by microseconds), and only when it is itself known that well."""
+        lines, self._fitting_frame = self._fitting_frame, None
+        if isinstance(found, DelayRefused):
+            self._refused(found)
+            return None
+        self._move_to(lines)  # the fit is under the lines of its snapshot
+        value, se, speed = found.delay_s, found.se_s, found.speed_rms
+        # young mappings' stamps still move; receipt and shared-clock stamps have no mapping
+        provisional = found.t <= self._young_until and bool(lines)
+        if not provisional:  # young stretches have their own length
+            self._fit_stretch(se * speed)
+        if not (math.isfinite(value) and math.isfinite(se) and se > 0) or se > self.max_se_s:
+            self.counters["fits_refused_imprecise"] += 1
+            self.last_result = "kept: the fit gave no usable value"
+            return None
+        self.counters["fits_accepted"] += 1  # usable: they join the recent fits
+        self._recent.append(
+            _Fit(value, se, found.described_t, speed, found.rms_m, young=provisional)
+        )
+        before = self.applied
+        decision = self._decide(found.t)
+        self.state = decision.split("; ", 1)[-1].split(":")[0]
+        if self.applied != before:
+            self.last_result = decision
+            return self.delay_now()
+        refined = self._refine(found, provisional) if self.settled else None
+        self.last_result = decision if refined is None else f"{decision.split(';')[0]}; {refined}"
+        self.state = "refined" if refined is not None else self.state
+        return None if refined is None else self.delay_now()
+
+    def honest_se(self, fit_se: float) -> float:
+        """A fit's standard error with the scatter of fits beyond their own standard errors:
+        within a stretch the residual cannot show how far the stretch's error model is off,
+        between stretches it does."""
+        return math.sqrt(fit_se * fit_se + self._tau2())
+
+    def _tau2(self) -> float:
+        """tau^2 from the recent fits (of settled mappings when there are three): their
+        scatter about their median, robustly (the median absolute deviation as a normal's
+        sigma, so that one wild fit among three does not make every fit look wild), less their
+        own variance; `first_tau_s`^2 until three fits say."""
+        fits = [f for f in self._recent if not f.young]
+        if len(fits) < 3:
+            fits = list(self._recent)
+        fits = fits[-self.settings.consensus_fits :]
+        if len(fits) < 3:
+            return self.settings.first_tau_s**2
+        values = np.array([f.value for f in fits])
+        spread = _mad_sigma(values) ** 2
+        own = float(np.median([f.se**2 for f in fits]))
+        return max(self.min_wander_s**2, spread - own)
+
+    def consensus(self) -> tuple[float, float, list[_Fit]] | None:
+        """The recent fits' robust consensus: the weighted median, then the weighted mean of
+        the fits within 3 sigma of it (at least two), its standard error scaled up by their
+        own disagreement. Symmetric: it knows nothing of the delay in use."""
+        # a young clock mapping's fits describe stamps that moved since: once two fits of
+        # settled mappings are there, theirs only; until then the newest two
+        pool = [f for f in self._recent if not f.young]
+        if len(pool) < 2:
+            pool = list(self._recent)[-2:]
+        fits = pool[-self.settings.consensus_fits :]
+        if len(fits) < 2:
+            return None
+        tau2 = self._tau2()
+        sig = np.array([math.sqrt(f.se**2 + tau2) for f in fits])
+        val = np.array([f.value for f in fits])
+        order = np.argsort(val)
+        cw = np.cumsum(1.0 / sig[order] ** 2)
+        median = float(val[order][np.searchsorted(cw, 0.5 * cw[-1])])
+        inside = np.abs(val - median) <= 3.0 * sig
+        if inside.sum() < 2:
+            return None
+        w = 1.0 / sig[inside] ** 2
+        mean = float(np.sum(w * val[inside]) / np.sum(w))
+        chi2 = float(np.sum(w * (val[inside] - mean) ** 2))
+        se = math.sqrt(1.0 / float(np.sum(w)) * max(1.0, chi2 / (inside.sum() - 1)))
+        return mean, se, [f for f, k in zip(fits, inside, strict=True) if k]
+
+    def _decide(self, t: float) -> str:
+        """The gate of a change of the delay in use. Unknown (nothing configured): the
+        consensus is taken as soon as two fits agree (a step: anything measured beats
+        nothing), and the delay is settled once three agree to `settle_m` at the tool's
+        speed; estimates are flagged until then. Settled (configured, or found): it changes
+        only when (a) the consensus is incompatible with the delay in use at
+        `change_sigmas`, the delay in use's own uncertainty counted (a configured delay's
+        is `timing.delay_se_s`), (b) at least two of the fits behind it, the newest among
+        them, are each off the delay in use by `confirm_sigmas` on the same side (a later,
+        independent stretch confirms the earlier), and (c) on the newest stretch's samples
+        the residual scatter is lower with the consensus than with the delay in use."""
+        cons = self.consensus()
+        newest = self._recent[-1]
+        said = (
+            f"fit {newest.value * 1e6:.1f} +/- {self.honest_se(newest.se) * 1e6:.1f} us "
+            f"at {newest.speed * 1e3:.0f} mm/s"
+        )
+        first = cons is None and self.applied is None and len(self._recent) == 1
+        if first and newest.se * newest.speed <= self.max_apply_m:
+            # nothing is known: one precise fit beats nothing (flagged, and the fits that
+            # follow revise it by the consensus like any other)
+            self._take(newest.value, self.honest_se(newest.se), t, step=True)
+            return f"{said}; unsettled: the first fit, in use until fits agree"
+        if cons is None:
+            self.counters["fits_without_consensus"] += 1
+            return f"{said}; kept: the recent fits do not agree yet"
+        c, se_c, members = cons
+        speed = float(np.median([f.speed for f in members]))
+        agreed = f"{len(members)} fits agree on {c * 1e6:.1f} +/- {se_c * 1e6:.1f} us"
+        if not self.settled or self.applied is None:
+            if newest.young and newest in members:  # its stamps are the most settled
+                c, se_c = newest.value, self.honest_se(newest.se)
+            self._take(c, se_c, t, step=True)
+            grown = len(members) >= 3 and not any(f.young for f in members)
+            if grown and se_c * speed <= self.settings.settle_m:
+                self.settled = True
+                self._trend.start(c, se_c * se_c, newest.t)
+                self._trend_fits = 0
+                return f"{said}; settled: {agreed}"
+            to = self.settings.settle_m * 1e6
+            return f"{said}; unsettled: {agreed}, in use until they agree to {to:g} um at speed"
+        applied = self.applied
+        # the delay in use walks on since it was set (device clocks' stamps move with load)
+        since = 0.0 if math.isnan(self._applied_t) else max(0.0, t - self._applied_t)
+        applied_se = math.sqrt((self.applied_se or 0.0) ** 2 + self.settings.steady_walk * since)
+        z = abs(c - applied) / math.sqrt(se_c**2 + applied_se**2)
+        if z < self.settings.change_sigmas:
+            self.counters["fits_agree"] += 1
+            return f"{said}; kept: {agreed}, {z:.1f} sigma from the delay in use"
+        side = math.copysign(1.0, c - applied)
+        tau2 = self._tau2()
+        confirming = [
+            f
+            for f in members
+            if side * (f.value - applied)
+            > self.settings.confirm_sigmas * math.sqrt(f.se**2 + tau2 + applied_se**2)
+        ]
+        if len(confirming) < 2 or confirming[-1] is not newest:
+            self.counters["changes_unconfirmed"] += 1
+            return f"{said}; kept: {agreed}, waiting for a later stretch to confirm"
+        old = math.hypot(newest.rms, (applied - newest.value) * newest.speed)
+        new = math.hypot(newest.rms, (c - newest.value) * newest.speed)
+        if not new < old:
+            self.counters["changes_not_better"] += 1
+            return f"{said}; kept: scatter {new * 1e6:.1f} um with it, {old * 1e6:.1f} um without"
+        self._take(c, se_c, t, step=True)
+        self._trend.start(c, se_c * se_c, newest.t)
+        self._trend_fits = 0
+        self.counters["changes"] += 1
+        return (
+            f"{said}; changed: {agreed} ({z:.1f} sigma from {applied * 1e6:.1f} us), scatter "
+            f"on the newest stretch {old * 1e6:.1f} -> {new * 1e6:.1f} um"
+        )
+
+    def _take(self, value: float, se: float, t: float, step: bool) -> None:
+        self.applied, self.applied_se, self._applied_t = value, se, t
+        self.estimate, self.se, self._estimate_t = value, se, t
+        self.source = f"fit at {t:.1f} s"
+        self.step = step
+
+    def _refine(self, found: DelayMeasurement, provisional: bool) -> str | None:
+        """The running estimate (a Kalman filter over the fits, `delay_trend`), applied as a
+        refinement when it is known to `max_apply_m` at the tool's speed and moves the delay
+        by at most three times that there (larger changes go through `_decide`). None when
+        it did not refine the delay in use."""
+        value, se, speed = found.delay_s, found.se_s, found.speed_rms
+        t_fit = found.described_t
+        fresh = provisional or self._provisional or not self._trend.started
+        moved = None if fresh else self._outlier(value, se, t_fit)
+        if moved is False:
+            return None
+        self._suspect = None
+        self._provisional = int(provisional)
+        if not provisional:
+            self._history.append((value, se, self._segment, t_fit))
+        tau2 = self._wander2()
+        if fresh and self.applied is not None and self.applied_se is not None:
+            # the filter starts from the delay in use with its uncertainty (a configured
+            # prior, or the consensus it came from), never from one fit alone
+            self._trend.start(self.applied, self.applied_se**2, t_fit)
+            self._trend_fits = 0
+        elif fresh:
+            self._trend.start(value, se * se + tau2, t_fit)
+            self._trend_fits = 0
+        elif isinstance(moved, tuple):
+            self._trend.start(moved[0], moved[1] ** 2 + tau2, moved[2])
+            self._trend_fits = 1
+        self._trend.update(value, se * se + tau2, t_fit)
+        self._trend_fits += 1
+        estimate, estimate_var = self._trend.predict(found.t)
+        self.estimate, self.se = estimate, math.sqrt(estimate_var)
+        self._estimate_t = found.t
+        if (
+            provisional
+            # a refinement is the work of several fits, never one, and only once their
+            # scatter beyond their se is measured (fits biased alike by the robot's geometry
+            # refined a right delay by 14 um at speed while it was still assumed)
+            or self._trend_fits < 3
+            or not self._wander_known()
+            or self.applied is None
+            or self.se * speed > self.max_apply_m
+            or abs(self.estimate - self.applied) * speed > 3.0 * self.max_apply_m
+        ):
+            return None
+        self.applied_se = self.se
+        self.applied, self._applied_t = self.estimate, self._estimate_t
+        self.step = False
+        self.counters["refinements"] += 1
+        return (
+            f"refined: delay {self.estimate * 1e6:.1f} +/- {self.se * 1e6:.1f} us "
+            f"({self._trend.chosen}, {self._trend.rate * 1e6:+.1f} us/s)"
+        )
+
+    def _refused(self, found: DelayRefused) -> None:
+        """Count a stretch without a delay; one too short to separate a delay at all (a
+        settled one) lengthens the stretch, as a rough fit does."""
+        if found.counter == "fits_not_identifiable" and not found.t <= self._young_until:
+            self._fit_stretch(math.inf)
+        self.counters[found.counter] += 1
+        self.last_result = f"kept: {found.reason}"
+        self.state = found.counter
+
+    def _fit_stretch(self, precision_m: float) -> None:
+        """The settled stretch as short as gives fits known to `max_position_se_m` at the
+        tool's speed: twice as long after a rougher fit, up to `max_span_s`; half as long
+        after one precise enough to stay so at half the length (a fit's standard error
+        grows about as the length to the power -1.5), down to `span_s`. (2.5 s stretches
+        follow the delay's walk, measured at 3-5 us/s; a robot whose geometry the
+        stretches' linear error model does not hold needs 5-10 s for a fit worth taking.)"""
+        if not math.isfinite(precision_m) or precision_m > self.max_position_se_m:
+            self._stretch_s = min(2.0 * self._stretch_s, self.max_span_s)
+        elif precision_m * 2.0**1.5 <= self.max_position_se_m:
+            self._stretch_s = max(0.5 * self._stretch_s, self.span_s)
+
+    def _outlier(
+        self, value: float, se: float, t_fit: float
+    ) -> tuple[float, float, float] | bool | None:
+        """Is a fit far off the running estimate (`outlier_sigmas` combined standard
+        errors)? None: no. False: yes, and refused (why, in `last_result`). Else the fit
+        before it, which was just as far off and agrees with it: the delay moved."""
+        tau2 = self._wander2()
+        level, level_var = self._trend.predict(t_fit)
+        spread = math.sqrt(level_var + se * se + tau2)
+        if abs(value - level) <= self.outlier_sigmas * spread:
+            return None
+        suspect, self._suspect = self._suspect, (value, se, t_fit)
+        if suspect is not None:
+            # the two agree as far as the delay may have walked between them
+            walked = self._trend.views["steady"].level_walk * abs(t_fit - suspect[2])
+            together = math.sqrt(se * se + suspect[1] ** 2 + tau2 + walked)
+            if abs(value - suspect[0]) <= self.outlier_sigmas * together:
+                return suspect
+        self.last_result = (
+            f"disagrees with {level * 1e6:.1f} +/- {spread * 1e6:.1f} us "
+            "(one more like it and it is taken)"
+        )
+        return False
+
+    def _se_at(self, t: float) -> float | None:
+        """The running estimate's standard error at stream time t: grown by the walk since
+        its newest fit. Judged against it, a new fit is neither refused as less precise than
+        an estimate that has gone stale nor as an outlier from it (the delay the device-clock
+        test needed walked 50 us in 30 s; fits against the unaged estimate were refused four
+        times in a row, the delay in use 30 us behind)."""
+        if not self._trend.started:
+            return self.se
+        return math.sqrt(self._trend.predict(t)[1])
+
+    def _wander_known(self) -> bool:
+        """Have three triples of the current segment's fits measured their scatter?"""
+        hist = [h for h in self._history if h[2] == self._segment]
+        return len(hist) >= 5
+
+    def _wander2(self) -> float:
+        """tau^2: the scatter of accepted fits beyond their standard errors, within each
+        segment (between restarts), from how far each fit lies off the straight line
+        through its neighbours (a steady walk of the delay is not scatter): the median over
+        0.4549 (a normal variable's squared median), so that one wild fit does not make every
+        fit look wild. Until 3 such triples say, from the differences of successive fits
+        (which count a walk as scatter too: modest while little is known), and (10
+        min_wander_s)^2 until 3 of those say. At least min_wander_s^2."""
+        floor = self.min_wander_s**2
+        hist = list(self._history)
+        off2: list[float] = []
+        se2: list[float] = []
+        for a, b, c in _triples(hist):
+            if a[2] == b[2] == c[2] and a[3] < b[3] < c[3]:
+                w = (b[3] - a[3]) / (c[3] - a[3])  # b's place between its neighbours
+                factor = 1.0 + (1.0 - w) ** 2 + w * w  # white scatter's variance, times this
+                off2.append((b[0] - (1.0 - w) * a[0] - w * c[0]) ** 2 / factor)
+                se2.append((b[1] ** 2 + ((1.0 - w) * a[1]) ** 2 + (w * c[1]) ** 2) / factor)
+        if len(off2) < 3:
+            off2, se2 = [], []
+            for a, b in itertools.pairwise(hist):
+                if a[2] == b[2]:
+                    off2.append((b[0] - a[0]) ** 2 / 2.0)
+                    se2.append((a[1] ** 2 + b[1] ** 2) / 2.0)
+        if len(off2) < 3:
+            return max(floor, (10 * self.min_wander_s) ** 2)  # unknown yet: be modest
+        return max(floor, float(np.median(off2)) / 0.4549 - float(np.median(se2)))
+
+    def forget(self, prior_s: float = 0.0, prior_se_s: float | None = None) -> None:
+        """The delay was set by hand (a reload): start afresh from it, a prior as at start."""
+        self._trend.reset()
+        self._provisional = 0
+        self._suspect = None
+        self._frame = {}
+        self._recent.clear()
+        self.estimate = self.se = None
+        known = prior_se_s is not None and math.isfinite(prior_se_s) and prior_se_s > 0
+        self.applied = prior_s if known else None
+        self.applied_se = prior_se_s if known else None
+        self.settled = known
+        self.source = "configured" if known else "unknown"
+
+
+def _triples(items: list[_T]) -> list[tuple[_T, _T, _T]]:
+    """Each item with its two neighbours: (a, b, c) for every b between them."""
+    return list(zip(items, items[1:], items[2:], strict=False))
+
+
+def _covered(
+    window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
+    delay: float,
+    max_gap_s: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """The window without tracker samples whose encoder time (under `delay`) falls outside
+    the encoder samples or between two further apart than `max_gap_s` (a stalled or restarted
+    adapter): interpolating the joints across such a gap would read a made-up motion."""
+    enc_t, enc_q, trk_t, trk_p, trk_q = window
+    if enc_t.size < 2 or trk_t.size == 0:
+        return window
+    at = trk_t - delay
+    k = np.searchsorted(enc_t, at)
+    inside = (k > 0) & (k < enc_t.size)
+    k = np.clip(k, 1, enc_t.size - 1)
+    keep = inside & (enc_t[k] - enc_t[k - 1] <= max_gap_s)
+    return enc_t, enc_q, trk_t[keep], trk_p[keep], None if trk_q is None else trk_q[keep]
+
+
+@dataclass(frozen=True)
+class Stretch:
+    """A stretch taken from the buffers: (stamp, joints, device stamp) and (stamp, position,
+    quaternion, device stamp) rows, and each stream's line then (None: not mapped)."""
+
+    enc: list[tuple[float, np.ndarray, float | None]]
+    trk: list[tuple[float, np.ndarray, np.ndarray | None, float | None]]
+    enc_line: Anchor | None
+    trk_line: Anchor | None
+
+
+def stretch_arrays(
+    stretch: Stretch,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """A stretch's arrays, its mapped stamps under the stream's line (anywhere: a worker)."""
+    enc, trk = stretch.enc, stretch.trk
+    enc_t = _on_line(stretch.enc_line, [(s[0], s[2]) for s in enc])
+    enc_q = np.array([s[1] for s in enc]) if enc else np.empty((0, 0))
+    trk_t = _on_line(stretch.trk_line, [(s[0], s[3]) for s in trk])
+    trk_p = np.array([s[1] for s in trk])
+    quats = [s[2] for s in trk]
+    trk_q = None if any(q is None for q in quats) else np.array(quats)
+    return enc_t, enc_q, trk_t, trk_p, trk_q
+
+
+def _on_line(anchor: Anchor | None, stamps: list[tuple[float, float | None]]) -> np.ndarray:
+    """The stamps (stamp, device stamp) of a stream under its line: a sample's device stamp
+    carried by the line, its own stamp when it has none."""
+    t = np.array([s for s, _ in stamps], dtype=float)
+    if anchor is not None and t.size:
+        device = np.array([math.nan if d is None else d for _, d in stamps])
+        mapped = ~np.isnan(device)
+        t[mapped] = anchor.at(device[mapped])
+    return t

@@ -1,0 +1,57 @@
+"""Issue 45: the online delay never turns a right setup wrong, and finds an unknown delay
+while saying it is not settled. In-process streams stamped as the adapters stamp them (a
+MotoROS encoder stamped on receipt through `ReceiptStamps`, 40 Hz, sent 25 +/- 3 ms apart; a
+line-protocol tracker at 100 Hz with 10 um / 10 urad noise; an MH180 moving all joints
+slowly), the delay injected (30 ms), so every number is judged against the truth.
+
+The harm a delay does is |v| |delay in use - injected| (and |w| for the orientation), RMS over
+the last second: the offset the delay adds to the measured error there (docs/design.md §3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from keo_service.sim.delay_study import StreamCase, case_streams, delay_harm, run_tracker
+
+TRUTH = 0.030
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_right_configured_delay_is_never_made_worse(demo_cell, seed):
+    """The issue's first run: delay_s = 0.030 configured right; a fit 4.7 se off was taken at
+    once and the right ones refused (0.76 mm / 1.29 mrad after 25 s). Before this change the
+    delay in use left 30 ms here too (seed 0: 28.3 ms at the end, 176 um at speed)."""
+    streams = case_streams(demo_cell, StreamCase("motoros", "line100", "all_slow"), seed)
+    run = run_tracker(demo_cell, streams, TRUTH, 0.0005)
+    off = run_tracker(demo_cell, streams, TRUTH, 0.0005, track=False)
+    on_m, on_rad = delay_harm(streams, run, float(streams.trk_t[-1]))
+    off_m, off_rad = delay_harm(streams, off, float(streams.trk_t[-1]))
+    assert on_m <= off_m + 10e-6, run.decisions
+    assert on_rad <= off_rad + 10e-6, run.decisions
+    assert not run.unsettled.any()  # a configured delay is settled from the start
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_from_an_unknown_delay_every_estimate_is_flagged_until_settled(demo_cell, seed):
+    """delay_s = 0 and no delay_se_s: the delay is found from the motion, a step (no slew at
+    1 ms/s: 30 s of 1-7 mm errors in the issue), and every estimate before it is settled is
+    flagged."""
+    streams = case_streams(demo_cell, StreamCase("motoros", "line100", "all_slow"), seed)
+    run = run_tracker(demo_cell, streams, 0.0, None)
+    at20 = streams.motion_start + 20.0
+    harm_m, harm_rad = delay_harm(streams, run, at20)
+    good = (harm_m <= 50e-6) and (harm_rad <= 50e-6)
+    sel = run.t <= at20
+    # either within 50 um / 50 urad 20 s after the motion starts, or every estimate up to then
+    # carries the flag (the fits of this slow, receipt-stamped motion scatter by ~1 ms)
+    assert good or run.unsettled[sel].all(), (harm_m, harm_rad, run.decisions)
+    # the flag never lies: an unflagged estimate's delay is within 50 um at speed
+    settled = ~run.unsettled
+    if settled.any():
+        first = float(run.t[np.argmax(settled)])
+        assert delay_harm(streams, run, first + 1.0)[0] <= 50e-6, run.decisions
+    # it got near the truth at once, not at 1 ms/s: the delay in use 10 s after the motion
+    # starts is within 3 ms (a slew from 0 would still be 20 ms short)
+    k = np.searchsorted(run.t, streams.motion_start + 10.0)
+    assert abs(run.delay[k] - TRUTH) < 3e-3, run.decisions
