@@ -42,6 +42,10 @@ class Corrections:
     # couplings across joints: (j, k, slope, knots, values): joint j's angle error moves with
     # joint k's angle, slope x (q_k - centre of the knots) + a piecewise-linear map of q_k
     couplings: tuple[tuple[int, int, float, np.ndarray, np.ndarray], ...] = ()
+    # periodic joint errors (a strain-wave gear's kinematic error is periodic in the joint
+    # angle): (joint, period rad, a, b): joint's angle error a sin(2 pi q / period) +
+    # b cos(2 pi q / period); defined at every angle, so it extrapolates where a map cannot
+    ripple: tuple[tuple[int, float, float, float], ...] = ()
 
     def __post_init__(self) -> None:
         zero = {
@@ -58,6 +62,8 @@ class Corrections:
     @property
     def is_zero(self) -> bool:
         if any(slope or np.any(v) for _j, _k, slope, _kn, v in self.couplings):
+            return False
+        if any(a or b for _j, _p, a, b in self.ripple):
             return False
         return not any(v.size and np.any(v) for _k, v in self.maps) and all(
             not np.any(getattr(self, n))
@@ -93,7 +99,17 @@ class Corrections:
             q_eff = q_eff + self.map_error(q)
         if self.couplings:
             q_eff = q_eff + self.coupling_error(q)
+        if self.ripple:
+            q_eff = q_eff + self.ripple_error(q)
         return q_eff
+
+    def ripple_error(self, q: np.ndarray) -> np.ndarray:
+        """The periodic joint errors at joints q (..., nq)."""
+        out = np.zeros(np.shape(q))
+        for j, period, a, b in self.ripple:
+            phase = 2 * np.pi * q[..., j] / period
+            out[..., j] += a * np.sin(phase) + b * np.cos(phase)
+        return out
 
     def coupling_error(self, q: np.ndarray) -> np.ndarray:
         """The couplings' angle error at joints q (..., nq): per coupling, on joint j, the

@@ -252,6 +252,14 @@ def analyze(
         if not effect.usable(data):
             continue
         say(f"trying {name}")
+        found: dict[str, Any] | None = None
+        prepare = getattr(effect, "prepare", None)
+        if prepare is not None:  # an effect whose structure comes from the data (its terms)
+            effect, found = prepare(model, x, train, tau_tr, noise)
+            if not effect.size(chain.nq):
+                say(f"{name}: nothing significant in the residual's spectra")
+                report.setdefault("spectra", {})[name] = found
+                continue
         trial_basis = dict(model.basis)
         if effect.reduce:  # never fit what the data cannot tell apart from what is there
             B, rank, full, null = identifiable_basis(model, train, tau_tr, x, effect)
@@ -291,6 +299,9 @@ def analyze(
             "validation": val_stats.as_dict(),
             "description": effect.description,
         }
+        if found is not None:
+            entry["spectra"] = found
+            report.setdefault("spectra", {})[name] = found
         band_ok = True
         if choice is not None:
             entry["prior"] = choice.as_dict()

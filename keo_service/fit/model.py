@@ -313,6 +313,7 @@ def _corrections_key(corr: Corrections) -> bytes:
         parts += [knots.tobytes(), b"|", values.tobytes(), b"|"]
     for j, k, slope, knots, values in corr.couplings:
         parts += [repr((j, k, slope)).encode(), knots.tobytes(), b"|", values.tobytes(), b"|"]
+    parts.append(repr(corr.ripple).encode())
     return b"/".join(parts)
 
 

@@ -231,6 +231,10 @@ KEYS: dict[str, tuple[str, str]] = {
     "model.coupling_slopes": ("rad/rad", "per coupling: the linear term in joint k's angle"),
     "model.coupling_knots": ("rad", "per coupling: knots of the map of joint k's angle"),
     "model.coupling_values": ("rad", "per coupling: joint j's angle error at each knot"),
+    "model.ripple_joints": ("", "per periodic joint error term: the joint (0-based)"),
+    "model.ripple_periods_rad": ("rad", "per term: the period in that joint's angle"),
+    "model.ripple_sin": ("rad", "per term: amplitude of sin(2 pi q / period)"),
+    "model.ripple_cos": ("rad", "per term: amplitude of cos(2 pi q / period)"),
     "ros2.enabled": (
         "",
         "keo run also publishes each estimate as "
