@@ -38,8 +38,8 @@ def _quiet(fn: Any, *args: Any, **kw: Any) -> Any:
 
 
 def run(data_dir: Path, work: Path) -> dict[str, Any]:
-    from keo_service.io.importers import import_dataset
     from keo_service.io.config import load_config
+    from keo_service.io.importers import import_dataset
     from keo_service.offline.analyze import run_analysis
 
     config = load_config(CONFIG)
@@ -102,7 +102,8 @@ def main() -> int:
             f"({r['held_out_pos_max_mm']:.2f}) | {r['nominal_pos_rms_mm']:.3f} | "
             f"{r['own_model_pos_rms_mm']:.3f} |"
         )
-    print("within session, held out:", {k: round(v, 4) for k, v in result["within_session"].items()})
+    within = {k: round(v, 4) for k, v in result["within_session"].items()}
+    print("within session, held out:", within)
     print("seconds:", {k: round(v, 1) for k, v in result["seconds"].items()}, file=sys.stderr)
     return 0
 

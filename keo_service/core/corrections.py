@@ -17,7 +17,8 @@ def taper_weight(q: np.ndarray, lo: float, hi: float, taper: float = MAP_TAPER_R
     """1 inside [lo, hi], falling linearly to 0 at `taper` rad outside, 0 beyond."""
     outside = np.maximum(lo - q, 0.0) + np.maximum(q - hi, 0.0)
     if taper <= 0:
-        return (outside == 0).astype(float)
+        inside: np.ndarray = (outside == 0).astype(float)
+        return inside
     out: np.ndarray = np.clip(1.0 - outside / taper, 0.0, 1.0)
     return out
 

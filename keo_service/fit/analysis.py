@@ -334,8 +334,7 @@ def analyze(
             say(f"kept {name}: held-out position RMS {val_stats.pos_rms_mm:.4f} mm")
         else:
             entry["reason"] = (
-                f"held-out change {100 * gain:+.1f} %, below the {100 * KEEP_MARGIN:.0f} % "
-                "needed"
+                f"held-out change {100 * gain:+.1f} %, below the {100 * KEEP_MARGIN:.0f} % needed"
                 if gain < KEEP_MARGIN
                 else f"held-out change {100 * gain:+.1f} %, but the extrapolation bands rose "
                 f"({entry['bands']['pos_rms_mm_without']:.4f} -> "
@@ -447,15 +446,14 @@ def _judge_carried_maps(
     def with_joints(keep: list[int]) -> tuple[Model, np.ndarray]:
         """The model with only the maps of joints `keep` (the others dropped)."""
         parts = list(model.parts(x))
-        effects, values = [], []
+        effects: list[Effect] = []
+        values: list[np.ndarray] = []
         for effect, part in parts:
             if effect is maps:
                 pieces = split_maps(maps.knots, part)
                 if not keep:
                     continue
-                knots = tuple(
-                    kn if j in keep else np.empty(0) for j, (kn, _v) in enumerate(pieces)
-                )
+                knots = tuple(kn if j in keep else np.empty(0) for j, (kn, _v) in enumerate(pieces))
                 effects.append(JointMaps(knots))
                 values.append(np.concatenate([v for j, (_k, v) in enumerate(pieces) if j in keep]))
             else:
@@ -487,7 +485,7 @@ def _judge_carried_maps(
         if rms < current:
             joints, current = rest, rms
             dropped.append({"joint": names[j], "fitted_rows_pos_rms_mm_without": rms})
-    kept_model, kept_x = with_joints(joints) if len(dropped) else (model, x)
+    kept_model, kept_x = with_joints(joints) if dropped else (model, x)
     without, x_without = with_joints([])
     with_maps_tr = stats(kept_model, kept_x, train, tau_tr).judged_mm
     without_tr = stats(without, x_without, train, tau_tr).judged_mm

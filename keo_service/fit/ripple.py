@@ -61,22 +61,8 @@ def find_terms(
     r = r0 * w
     r = r - Q @ (Q.T @ r)
     dof = max(1, r.size - Q.shape[1])
-    grads = []
-    h = 1e-6
-    for j in range(model.chain.nq):
-        q = data.q.copy()
-        q[:, j] += h
-        shifted = dataclasses.replace(data, q=q)
-        g = (model.residuals(x, shifted, tau) - r0) / h
-        grads.append((g * w).reshape(data.n, width))
-    grids = {}
-    for j in range(model.chain.nq):
-        span = float(np.ptp(data.q[:, j]))
-        longest = min(MAX_PERIOD_RAD, span / MIN_CYCLES)
-        if longest <= MIN_PERIOD_RAD:
-            continue
-        step = 2 * np.pi / span / OVERSAMPLE
-        grids[j] = np.arange(2 * np.pi / longest, 2 * np.pi / MIN_PERIOD_RAD + step, step)
+    grads = _joint_gradients(model, x, data, tau, r0, w)
+    grids = _frequency_grids(data.q)
     terms: list[tuple[int, float]] = []
     spectra: dict[str, Any] = {}
     names = model.chain.robot.joint_names
@@ -116,6 +102,37 @@ def find_terms(
         Q = np.column_stack([Q, _orth(cols)])
         r = r - Q[:, -2:] @ (Q[:, -2:].T @ r)
     return terms, spectra
+
+
+def _joint_gradients(
+    model: Model, x: np.ndarray, data: Data, tau: np.ndarray, r0: np.ndarray, w: np.ndarray
+) -> list[np.ndarray]:
+    """Per joint (poses, width): the weighted residual's derivative by that joint's angle
+    (one evaluation per joint: each pose depends on its own joints only)."""
+    width = r0.size // data.n
+    out = []
+    h = 1e-6
+    for j in range(model.chain.nq):
+        q = data.q.copy()
+        q[:, j] += h
+        shifted = dataclasses.replace(data, q=q)
+        g = (model.residuals(x, shifted, tau) - r0) / h
+        out.append((g * w).reshape(data.n, width))
+    return out
+
+
+def _frequency_grids(q: np.ndarray) -> dict[int, np.ndarray]:
+    """Per joint whose range holds MIN_CYCLES of a period in the scanned band: its angular
+    frequencies (per rad), OVERSAMPLE steps per resolution element."""
+    grids = {}
+    for j in range(q.shape[1]):
+        span = float(np.ptp(q[:, j]))
+        longest = min(MAX_PERIOD_RAD, span / MIN_CYCLES)
+        if longest <= MIN_PERIOD_RAD:
+            continue
+        step = 2 * np.pi / span / OVERSAMPLE
+        grids[j] = np.arange(2 * np.pi / longest, 2 * np.pi / MIN_PERIOD_RAD + step, step)
+    return grids
 
 
 def _columns(grad: np.ndarray, qj: np.ndarray, omega: float) -> np.ndarray:

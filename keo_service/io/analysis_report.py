@@ -17,6 +17,7 @@ import pinocchio as pin
 
 from keo_service.core.chain import Chain
 from keo_service.core.errors import KeoError
+from keo_service.fit.accuracy import Accuracy
 from keo_service.fit.analysis import Analysis
 from keo_service.fit.effects import JointMaps, config_fields, effect_from_config
 from keo_service.fit.model import Data, Model
@@ -69,13 +70,38 @@ def saved_model(config: Config, chain: Chain, position_only: bool) -> Model:
     return model
 
 
+def saved_accuracy(config: Config) -> Accuracy | None:
+    """The accuracy a model.toml states (None: written before keo stated one)."""
+    m = config.model
+    if not m.accuracy_mm or not m.calibrated_lower:
+        return None
+    return Accuracy(
+        m.accuracy_mm,
+        m.accuracy_outside_mm,
+        np.asarray(m.calibrated_lower, dtype=float),
+        np.asarray(m.calibrated_upper, dtype=float),
+    )
+
+
 def model_config(result: Analysis, base: Config) -> Config:
     """The config with the identified registration and every kept effect."""
     model, x = result.model, result.x
     T_bk, T_ns, _corr = model.unpack(x)
+    acc = result.report.get("accuracy", {})
+    stated = (
+        {
+            "accuracy_mm": acc["inside_mm"],
+            "accuracy_outside_mm": acc["outside_mm"],
+            "calibrated_lower": acc["lower_rad"],
+            "calibrated_upper": acc["upper_rad"],
+        }
+        if "inside_mm" in acc
+        else {}
+    )
     m = msgspec.convert(
         {
             **config_fields(model, x),
+            **stated,
             "temperature_ref_c": model.temperature_ref,
             "time_ref_s": model.time_ref,
         },

@@ -99,7 +99,13 @@ def _ripple_from_config(
         )
     out = []
     for i, (j, period, a, b) in enumerate(
-        zip(model.ripple_joints, model.ripple_periods_rad, model.ripple_sin, model.ripple_cos)
+        zip(
+            model.ripple_joints,
+            model.ripple_periods_rad,
+            model.ripple_sin,
+            model.ripple_cos,
+            strict=True,
+        )
     ):
         if not 0 <= j < nq:
             raise ConfigError(source, f"model.ripple_joints[{i}]", f"a joint 0..{nq - 1}")

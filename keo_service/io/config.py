@@ -231,6 +231,12 @@ class ModelConfig(_Section):
     ripple_periods_rad: list[float] = msgspec.field(default_factory=list)
     ripple_sin: list[float] = msgspec.field(default_factory=list)
     ripple_cos: list[float] = msgspec.field(default_factory=list)
+    # the model's stated accuracy (fit.accuracy): held-out position RMS within the calibrated
+    # joint ranges and on extrapolation bands (mm), and those ranges (rad, per joint)
+    accuracy_mm: float = 0.0
+    accuracy_outside_mm: float = 0.0
+    calibrated_lower: list[float] = msgspec.field(default_factory=list)
+    calibrated_upper: list[float] = msgspec.field(default_factory=list)
     temperature_m_per_c: list[float] = msgspec.field(default_factory=list)
     temperature_ref_c: float = 0.0
     time_drift_m_per_s: list[float] = msgspec.field(default_factory=list)
