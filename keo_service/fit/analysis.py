@@ -113,12 +113,14 @@ def _effect_parameters(
                 B = model.basis[effect.name]
                 values = B @ part
                 std = np.sqrt((B**2) @ (part_se**2))
+                records = effect.records(values, std, names)
                 return {
                     "identifiable": int(B.shape[1]),
                     "of": int(B.shape[0]),
                     "values": values.tolist(),
                     "se": std.tolist(),
-                    "records": effect.records(values, std, names),
+                    "records": records,
+                    "combinations": _combinations(B, records),
                 }
             return {
                 "values": part.tolist(),
@@ -127,6 +129,48 @@ def _effect_parameters(
             }
         k += size
     raise KeyError(effect.name)
+
+
+def _combinations(B: np.ndarray, records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Parameters the data see only together: rows of the identifiable basis B that are
+    parallel (each member's value a fixed multiple of the others', so any split of their sum
+    fits alike). Each group once: its members with their ratios, and the value of the
+    combination sum(ratio_i x member_i) / sum(ratio_i^2) (the first member's value, with the
+    others at their ratio). The members' records are marked, so a report shows the group once
+    instead of an arbitrary split as separate findings."""
+    norms = np.linalg.norm(B, axis=1)
+    unit = np.where(norms[:, None] > 1e-12, B / np.maximum(norms, 1e-300)[:, None], 0.0)
+    seen = np.zeros(B.shape[0], dtype=bool)
+    out: list[dict[str, Any]] = []
+    for i in range(B.shape[0]):
+        if seen[i] or norms[i] <= 1e-12:
+            continue
+        same = np.flatnonzero((np.abs(unit @ unit[i]) > 1 - 1e-6) & ~seen)
+        seen[same] = True
+        if same.size < 2:
+            continue
+        ratios = (B[same] @ B[i]) / (B[i] @ B[i])
+        group = len(out)
+        members = []
+        for k, ratio in zip(same, ratios, strict=True):
+            records[k]["combination"] = group
+            members.append(
+                {
+                    "joint": records[k]["joint"],
+                    "parameter": records[k]["parameter"],
+                    "ratio": float(ratio),
+                }
+            )
+        out.append(
+            {
+                "members": members,
+                "unit": records[i]["unit"],
+                "value": records[i]["value"],
+                "se": records[i]["se"],
+                "sum": float(sum(records[k]["value"] for k in same)),
+            }
+        )
+    return out
 
 
 def correlations(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> list[dict[str, Any]]:

@@ -53,6 +53,7 @@ if TYPE_CHECKING:
 
 SIGMA_COLUMNS = ("sx", "sy", "sz")  # optional tracker.csv columns: per-point std (m)
 SPEED_STEP_S = 0.01  # s either side of a tracker sample for the joints' speed
+OUTLIER_FACTOR = 4.0  # a pose whose position error exceeds this x the held-out RMS is listed
 
 
 def is_static(recording: Recording) -> bool:
@@ -311,12 +312,21 @@ def _state_accuracy(
     model states its own from this analysis; a carried one (`carried`: its config,
     --registration-only) is judged on this session against what it stated."""
     report = result.report
-    _train_idx, val_idx = split_data(data)
+    train_idx, val_idx = split_data(data)
     val = data.subset(val_idx)
     chain = result.model.chain
     width = 3 if result.model.position_only or data.R_ks is None else 6
-    r = result.model.residuals(result.x, val, chain.gravity_torques(val.q)).reshape(-1, width)
-    error_mm = np.linalg.norm(r[:, :3], axis=1) * 1e3
+    r = result.model.residuals(result.x, data, chain.gravity_torques(data.q)).reshape(-1, width)
+    all_mm = np.linalg.norm(r[:, :3], axis=1) * 1e3
+    error_mm = all_mm[val_idx]
+    threshold = OUTLIER_FACTOR * float(np.sqrt(np.mean(error_mm**2)))
+    report["outliers"] = {"threshold_mm": threshold}
+    for label, idx in (("fitted", train_idx), ("held_out", val_idx)):
+        rows = idx[all_mm[idx] > threshold]
+        rows = rows[np.argsort(-all_mm[rows])]
+        report["outliers"][label] = [
+            {"row": int(i), "t": float(data.t[i]), "pos_mm": float(all_mm[i])} for i in rows
+        ]
     if carried is None:
         acc = stated_accuracy(report, data.q)
         report["accuracy"] = acc.as_dict()
