@@ -256,7 +256,7 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
             f"{carried['held_out_pos_rms_mm_without']:.4f} mm without: "
             + ("kept" if carried["kept"] else "dropped, the model is written without them")
             + f"; {carried['poses_outside_calibrated_range_pct']:.0f} % of these poses lie "
-            "outside the angles the maps were calibrated on on some joint (there that joint's "
+            "outside the angles the maps were calibrated on, on some joint (there that joint's "
             f"map fades to zero over {MAP_TAPER_RAD:g} rad; the other joints' maps apply)"
             + (
                 "; maps of "
@@ -458,7 +458,8 @@ def _registration_markdown(report: dict[str, Any]) -> list[str]:
         "",
         f"- tracker in the robot base frame (T_bk): {_xyz_rpy_text(reg['T_bk'])}",
         f"- probe mount in the flange frame (T_ns): {_xyz_rpy_text(reg['T_ns'])}",
-        f"- noise of the residuals (robust estimate): {reg['noise_estimate_mm']:.4f} mm",
+        "- noise of the nominal registration's residuals (robust estimate): "
+        f"{reg['noise_estimate_mm']:.4f} mm",
     ]
 
 
