@@ -387,6 +387,18 @@ def analyze(
             report["rejected"].append(entry)
             say(f"not kept {name}: {entry['reason']}")
     report["prior_weights"] = weights
+    judged = [e for e in (*report["effects"], *report["rejected"]) if "prior" in e]
+    if judged:  # one session: the extrapolation bands stand for a session not seen
+        banded = [e for e in report["effects"] if "bands" in e]
+        report["transfer"] = {
+            "kind": "held-out bands at the ends of each joint's range (one session)",
+            "nominal_bands_pos_rms_mm": judged[0]["prior"]["without_effect"]["bands_pos_rms_mm"],
+            "model_bands_pos_rms_mm": (
+                banded[-1]["bands"]["pos_rms_mm_with"]
+                if banded
+                else judged[0]["prior"]["without_effect"]["bands_pos_rms_mm"]
+            ),
+        }
     # refit the registration with everything on all rows? no: final numbers stay held-out
     report["final"] = {
         "train": stats(model, x, train, tau_tr).as_dict(),

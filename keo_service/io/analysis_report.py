@@ -274,6 +274,14 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
             f"calibrated joint ranges) and measured {predicted['measured_rms_mm']:.4f} mm; "
             f"{predicted['within_95_pct']:.0f} % of the poses lie within its 95 % band"
         )
+    transfer = report.get("transfer")
+    if transfer and not report.get("registration_only"):
+        lines.append(
+            "- extrapolation (standing in for a session not seen: held-out bands at the ends "
+            "of each joint's range, linearized, physical effects only; the maps fade there): "
+            f"{transfer['model_bands_pos_rms_mm']:.4f} mm RMS against the nominal "
+            f"{transfer['nominal_bands_pos_rms_mm']:.4f} mm"
+        )
     lines.append(f"- final: {_stats_line(report['final']['validation'])}")
     lines.append(f"- (final on the fitted poses: {_stats_line(report['final']['train'])})")
     if report.get("sessions"):
