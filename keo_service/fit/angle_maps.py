@@ -40,10 +40,11 @@ RIDGE = 1e-9  # relative to the mean diagonal of the normal equations
 CONSTRAINT = 1e3  # weight that keeps each map's mean and slope at zero
 FOLDS = 4
 # True: the kept effects are solved again beside the maps, each held by its prior
-# (fit.prior); False: only the registration is, the maps the residual on top of the effects.
-# Measured on UR10 B carried to A (docs/analyze.md): the effects re-solved with the maps
-# lower B's own held-out error a little and carry worse, so they stay as identified
-EFFECTS_WITH_MAPS = False
+# (fit.prior); False: only the registration is, the maps the residual on top of the effects
+# as identified. False leaves the geometry biased by what only the maps carry (a simulated
+# ripple then shows in the maps of joints without one); on the UR10 data both carry about
+# equally (docs/analyze.md gives both)
+EFFECTS_WITH_MAPS = True
 MIN_POSES_PER_KNOT = 2.0  # a joint whose range gives fewer poses per knot gets no map
 MIN_SUPPORT = 2  # poses within one spacing of a knot, else the knot is left out (a gap)
 
@@ -476,7 +477,13 @@ def session_rms(model: Model, x: np.ndarray, data: Data, idx: np.ndarray) -> lis
     return out
 
 
-def own_tools(model: Model, x: np.ndarray, train: Data, noise: float) -> tuple[Model, np.ndarray]:
+def own_tools(
+    model: Model,
+    x: np.ndarray,
+    train: Data,
+    noise: float,
+    weights: dict[str, float] | None = None,
+) -> tuple[Model, np.ndarray]:
     """`model` with a sensor mount per session (each starting from the shared one), fitted
     robustly on the training rows with everything else it holds."""
     k = 6 * model.sessions
@@ -494,7 +501,9 @@ def own_tools(model: Model, x: np.ndarray, train: Data, noise: float) -> tuple[M
         model.sessions,
         model.sessions,
     )
-    return own, robust_fit(own, train, model.chain.gravity_torques(train.q), x0, noise).x
+    prior = prior_rows(own, weights or {}, noise)  # the effects' priors, as in their own fit
+    tau = model.chain.gravity_torques(train.q)
+    return own, robust_fit(own, train, tau, x0, noise, prior=prior).x
 
 
 def _session_tools(
@@ -513,8 +522,12 @@ def _session_tools(
     model, x = analysis.model, analysis.x
     train = data.subset(train_idx)
     noise = analysis.report["registration"]["noise_estimate_mm"] * 1e-3
-    own, x_own = own_tools(model, x, train, noise)
-    fit = fit_maps(own, x_own, train, own.chain.gravity_torques(train.q))
+    weights = analysis.report.get("prior_weights", {})
+    own, x_own = own_tools(model, x, train, noise, weights)
+    prior = None
+    if EFFECTS_WITH_MAPS:
+        prior = prior_rows(own, weights, noise)
+    fit = fit_maps(own, x_own, train, own.chain.gravity_torques(train.q), prior=prior)
     before = session_rms(shared.model, shared.x, data, val_idx)
     after = before if fit is None else session_rms(fit.model, fit.x, data, val_idx)
     gains = [1 - a / b for a, b in zip(after, before, strict=True)]
