@@ -135,25 +135,31 @@ def choose_weight(
         out: np.ndarray = (idx[:, None] * width + np.arange(width)).ravel()
         return out
 
-    def solve(fit_rows: np.ndarray, weight: float) -> np.ndarray:
-        A, b = Jw[fit_rows], rw[fit_rows]
-        M = A.T @ A + weight * PtP + ridge * max(1.0, float(np.trace(A.T @ A)))
-        step: np.ndarray = -np.linalg.lstsq(M, A.T @ b, rcond=None)[0]
+    def normal(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        A, b = Jw[rows_of(idx)], rw[rows_of(idx)]
+        return A.T @ A, A.T @ b
+
+    def solve(M: np.ndarray, g: np.ndarray, weight: float) -> np.ndarray:
+        lhs = M + weight * PtP + ridge * max(1.0, float(np.trace(M)))
+        step: np.ndarray = -np.linalg.lstsq(lhs, g, rcond=None)[0]
         return step
 
     def rms(test_rows: np.ndarray, step: np.ndarray) -> float:
         r = (r0[test_rows] + J[test_rows] @ step).reshape(-1, width)[:, :3]
         return float(np.sqrt(np.mean(np.sum(r**2, axis=1))) * 1e3)
 
+    # each split's normal equations once (a band's fit: the training rows minus the band's)
     bands = extrapolation_bands(data.q)
-    tr_rows, va_rows = rows_of(train_idx), rows_of(val_idx)
+    M_tr, g_tr = normal(train_idx)
+    va_rows = rows_of(val_idx)
+    splits = []
+    for _label, band in bands:
+        M_b, g_b = normal(np.intersect1d(train_idx, band))
+        splits.append((M_tr - M_b, g_tr - g_b, rows_of(band)))
     table = []
     for weight in (*WEIGHTS, WITHOUT):
-        blocks = rms(va_rows, solve(tr_rows, weight))
-        band_rms = []
-        for _label, band in bands:
-            outside = np.setdiff1d(train_idx, band)
-            band_rms.append(rms(rows_of(band), solve(rows_of(outside), weight)))
+        blocks = rms(va_rows, solve(M_tr, g_tr, weight))
+        band_rms = [rms(rows, solve(M, g, weight)) for M, g, rows in splits]
         band_ms = float(np.mean(np.square(band_rms))) if band_rms else blocks**2
         table.append(
             {
