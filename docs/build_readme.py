@@ -82,7 +82,8 @@ def ur10_table(folder: Path) -> str:
             lines += [
                 f"Series {fit_on}'s maps on Series {reg_on}: "
                 f"{carried['poses_outside_calibrated_range_pct']:.0f} % of its poses lie outside "
-                "the angles they were calibrated on (there a map holds its edge value).",
+                "the angles they were calibrated on, on some joint (there that joint's map "
+                "fades to zero over 0.1 rad; the other joints' maps apply).",
                 "",
             ]
     for series in ("A", "B"):

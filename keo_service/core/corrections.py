@@ -6,6 +6,28 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# Outside its calibrated angles a joint-angle map (and a coupling's map) fades linearly from
+# its edge value to zero over this distance (rad): a table says nothing about angles it never
+# saw, and holding its edge value there made a model carried to new angles worse than the
+# nominal robot. About a quarter of the strain-wave ripple's period seen in the UR10 maps.
+MAP_TAPER_RAD = 0.1
+
+
+def taper_weight(q: np.ndarray, lo: float, hi: float, taper: float = MAP_TAPER_RAD) -> np.ndarray:
+    """1 inside [lo, hi], falling linearly to 0 at `taper` rad outside, 0 beyond."""
+    outside = np.maximum(lo - q, 0.0) + np.maximum(q - hi, 0.0)
+    if taper <= 0:
+        inside: np.ndarray = (outside == 0).astype(float)
+        return inside
+    out: np.ndarray = np.clip(1.0 - outside / taper, 0.0, 1.0)
+    return out
+
+
+def tapered_interp(q: np.ndarray, knots: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Linear interpolation between knots, the edge value fading to zero outside them."""
+    out: np.ndarray = np.interp(q, knots, values) * taper_weight(q, knots[0], knots[-1])
+    return out
+
 
 @dataclass(frozen=True)
 class Corrections:
@@ -16,11 +38,15 @@ class Corrections:
     cyclic: np.ndarray = field(default=None)  # type: ignore[arg-type]  # (nq, H, 2): a, b
     placement: np.ndarray = field(default=None)  # type: ignore[arg-type]  # (nq, 6)
     # joint-angle error maps: per joint (knots [rad], values [rad]), piecewise linear in the
-    # joint's own angle, holding the edge value outside the knots; empty: no map
+    # joint's own angle, fading to zero over MAP_TAPER_RAD outside the knots; empty: no map
     maps: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
     # couplings across joints: (j, k, slope, knots, values): joint j's angle error moves with
     # joint k's angle, slope x (q_k - centre of the knots) + a piecewise-linear map of q_k
     couplings: tuple[tuple[int, int, float, np.ndarray, np.ndarray], ...] = ()
+    # periodic joint errors (a strain-wave gear's kinematic error is periodic in the joint
+    # angle): (joint, period rad, a, b): joint's angle error a sin(2 pi q / period) +
+    # b cos(2 pi q / period); defined at every angle, so it extrapolates where a map cannot
+    ripple: tuple[tuple[int, float, float, float], ...] = ()
 
     def __post_init__(self) -> None:
         zero = {
@@ -37,6 +63,8 @@ class Corrections:
     @property
     def is_zero(self) -> bool:
         if any(slope or np.any(v) for _j, _k, slope, _kn, v in self.couplings):
+            return False
+        if any(a or b for _j, _p, a, b in self.ripple):
             return False
         return not any(v.size and np.any(v) for _k, v in self.maps) and all(
             not np.any(getattr(self, n))
@@ -72,28 +100,39 @@ class Corrections:
             q_eff = q_eff + self.map_error(q)
         if self.couplings:
             q_eff = q_eff + self.coupling_error(q)
+        if self.ripple:
+            q_eff = q_eff + self.ripple_error(q)
         return q_eff
+
+    def ripple_error(self, q: np.ndarray) -> np.ndarray:
+        """The periodic joint errors at joints q (..., nq)."""
+        out = np.zeros(np.shape(q))
+        for j, period, a, b in self.ripple:
+            phase = 2 * np.pi * q[..., j] / period
+            out[..., j] += a * np.sin(phase) + b * np.cos(phase)
+        return out
 
     def coupling_error(self, q: np.ndarray) -> np.ndarray:
         """The couplings' angle error at joints q (..., nq): per coupling, on joint j, the
         slope times joint k's angle from the knots' centre plus the map of joint k's angle
-        (its edge value beyond the knots)."""
+        (fading to zero beyond the knots, as the maps)."""
         out = np.zeros(np.shape(q))
         for j, k, slope, knots, values in self.couplings:
             qk = q[..., k]
             centre = 0.5 * (knots[0] + knots[-1]) if knots.size else 0.0
             out[..., j] += slope * (qk - centre)
             if knots.size:
-                out[..., j] += np.interp(qk, knots, values)
+                out[..., j] += tapered_interp(qk, knots, values)
         return out
 
     def map_error(self, q: np.ndarray) -> np.ndarray:
-        """The maps' angle error at joints q (..., nq): linear between knots, the edge value
-        beyond them (never extrapolated)."""
+        """The maps' angle error at joints q (..., nq): linear between knots, fading to zero
+        over MAP_TAPER_RAD beyond them (never extrapolated, never held). Each joint's map on
+        its own: a pose outside one joint's range keeps the other joints' maps."""
         out = np.zeros(np.shape(q))
         for j, (knots, values) in enumerate(self.maps):
             if knots.size:
-                out[..., j] = np.interp(q[..., j], knots, values)
+                out[..., j] = tapered_interp(q[..., j], knots, values)
         return out
 
 

@@ -25,6 +25,7 @@ from keo_service.fit.effects import (
     JointMaps,
     Temperature,
     TimeDrift,
+    split_maps,
 )
 from keo_service.fit.model import (
     ROT_WEIGHT,
@@ -38,6 +39,7 @@ from keo_service.fit.model import (
     numeric_jacobian,
     stats,
 )
+from keo_service.fit.prior import choose_weight, prior_rows, scales_of
 from keo_service.fit.uncertainty import NOISE_RATIO, TrackerUncertainty, floor_report
 
 __all__ = [
@@ -111,12 +113,14 @@ def _effect_parameters(
                 B = model.basis[effect.name]
                 values = B @ part
                 std = np.sqrt((B**2) @ (part_se**2))
+                records = effect.records(values, std, names)
                 return {
                     "identifiable": int(B.shape[1]),
                     "of": int(B.shape[0]),
                     "values": values.tolist(),
                     "se": std.tolist(),
-                    "records": effect.records(values, std, names),
+                    "records": records,
+                    "combinations": _combinations(B, records),
                 }
             return {
                 "values": part.tolist(),
@@ -125,6 +129,48 @@ def _effect_parameters(
             }
         k += size
     raise KeyError(effect.name)
+
+
+def _combinations(B: np.ndarray, records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Parameters the data see only together: rows of the identifiable basis B that are
+    parallel (each member's value a fixed multiple of the others', so any split of their sum
+    fits alike). Each group once: its members with their ratios, and the value of the
+    combination sum(ratio_i x member_i) / sum(ratio_i^2) (the first member's value, with the
+    others at their ratio). The members' records are marked, so a report shows the group once
+    instead of an arbitrary split as separate findings."""
+    norms = np.linalg.norm(B, axis=1)
+    unit = np.where(norms[:, None] > 1e-12, B / np.maximum(norms, 1e-300)[:, None], 0.0)
+    seen = np.zeros(B.shape[0], dtype=bool)
+    out: list[dict[str, Any]] = []
+    for i in range(B.shape[0]):
+        if seen[i] or norms[i] <= 1e-12:
+            continue
+        same = np.flatnonzero((np.abs(unit @ unit[i]) > 1 - 1e-6) & ~seen)
+        seen[same] = True
+        if same.size < 2:
+            continue
+        ratios = (B[same] @ B[i]) / (B[i] @ B[i])
+        group = len(out)
+        members = []
+        for k, ratio in zip(same, ratios, strict=True):
+            records[k]["combination"] = group
+            members.append(
+                {
+                    "joint": records[k]["joint"],
+                    "parameter": records[k]["parameter"],
+                    "ratio": float(ratio),
+                }
+            )
+        out.append(
+            {
+                "members": members,
+                "unit": records[i]["unit"],
+                "value": records[i]["value"],
+                "se": records[i]["se"],
+                "sum": float(sum(records[k]["value"] for k in same)),
+            }
+        )
+    return out
 
 
 def correlations(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> list[dict[str, Any]]:
@@ -244,11 +290,20 @@ def analyze(
             kept = model.find(JointMaps) is not None
             say(f"carried joint maps {'kept' if kept else 'dropped'}")
     current_val = stats(model, x, val, tau_va).judged_mm
+    weights: dict[str, float] = {}  # the prior's weight of each kept effect (fit.prior)
     for name in candidates:
         effect = EFFECTS[name]
         if not effect.usable(data):
             continue
         say(f"trying {name}")
+        found: dict[str, Any] | None = None
+        prepare = getattr(effect, "prepare", None)
+        if prepare is not None:  # an effect whose structure comes from the data (its terms)
+            effect, found = prepare(model, x, train, tau_tr, noise)
+            if not effect.size(chain.nq):
+                say(f"{name}: nothing significant in the residual's spectra")
+                report.setdefault("spectra", {})[name] = found
+                continue
         trial_basis = dict(model.basis)
         if effect.reduce:  # never fit what the data cannot tell apart from what is there
             B, rank, full, null = identifiable_basis(model, train, tau_tr, x, effect)
@@ -273,7 +328,13 @@ def analyze(
         size = trial.sizes(chain.nq)[-1]
         x0 = np.concatenate([x, np.zeros(size)])
         trial.x = x0
-        res = fit(trial, train, tau_tr, x0, noise)
+        trial_weights = dict(weights)
+        choice = None
+        if scales_of(effect, chain.nq) is not None:  # its weight from blocks and bands
+            choice = choose_weight(trial, x0, data, tau_all, train_idx, val_idx, noise, name)
+            trial_weights[name] = choice.weight
+        prior = prior_rows(trial, trial_weights, noise)
+        res = fit(trial, train, tau_tr, x0, noise, prior=prior)
         val_stats = stats(trial, res.x, val, tau_va)
         entry: dict[str, Any] = {
             "name": name,
@@ -282,6 +343,18 @@ def analyze(
             "validation": val_stats.as_dict(),
             "description": effect.description,
         }
+        if found is not None:
+            entry["spectra"] = found
+            report.setdefault("spectra", {})[name] = found
+        band_ok = True
+        if choice is not None:
+            entry["prior"] = choice.as_dict()
+            chosen = next(c for c in choice.table if c["weight"] == choice.weight)
+            entry["bands"] = {
+                "pos_rms_mm_without": choice.without_bands_mm,
+                "pos_rms_mm_with": chosen["bands_pos_rms_mm"],
+            }
+            band_ok = chosen["bands_pos_rms_mm"] <= choice.without_bands_mm
         if null.size:
             zeros = np.zeros(null.shape[0])
             labels = [
@@ -297,14 +370,35 @@ def analyze(
                     rec["held"] = True
         gain = 1 - val_stats.judged_mm / current_val
         entry["held_out_improvement_pct"] = 100 * gain
-        if gain >= KEEP_MARGIN:
+        if gain >= KEEP_MARGIN and band_ok:
             model, x = trial, res.x
+            weights = trial_weights
             current_val = val_stats.judged_mm
             report["effects"].append(entry)
             say(f"kept {name}: held-out position RMS {val_stats.pos_rms_mm:.4f} mm")
         else:
+            entry["reason"] = (
+                f"held-out change {100 * gain:+.1f} %, below the {100 * KEEP_MARGIN:.0f} % needed"
+                if gain < KEEP_MARGIN
+                else f"held-out change {100 * gain:+.1f} %, but the extrapolation bands rose "
+                f"({entry['bands']['pos_rms_mm_without']:.4f} -> "
+                f"{entry['bands']['pos_rms_mm_with']:.4f} mm)"
+            )
             report["rejected"].append(entry)
-            say(f"not kept {name}: held-out change {100 * gain:+.1f} %")
+            say(f"not kept {name}: {entry['reason']}")
+    report["prior_weights"] = weights
+    judged = [e for e in (*report["effects"], *report["rejected"]) if "prior" in e]
+    if judged:  # one session: the extrapolation bands stand for a session not seen
+        banded = [e for e in report["effects"] if "bands" in e]
+        report["transfer"] = {
+            "kind": "held-out bands at the ends of each joint's range (one session)",
+            "nominal_bands_pos_rms_mm": judged[0]["prior"]["without_effect"]["bands_pos_rms_mm"],
+            "model_bands_pos_rms_mm": (
+                banded[-1]["bands"]["pos_rms_mm_with"]
+                if banded
+                else judged[0]["prior"]["without_effect"]["bands_pos_rms_mm"]
+            ),
+        }
     # refit the registration with everything on all rows? no: final numbers stay held-out
     report["final"] = {
         "train": stats(model, x, train, tau_tr).as_dict(),
@@ -390,46 +484,84 @@ def _judge_carried_maps(
     noise: float,
     report: dict[str, Any],
 ) -> tuple[Model, np.ndarray]:
-    """Angle maps carried to new data (registration refitted, model fixed) are judged like
-    any effect: on the new data's held-out blocks, against the same model without them, and
-    dropped unless they lower the held-out error by KEEP_MARGIN. Part of what a map absorbs
-    belongs to the setup it was identified in (the tracker's own angle error moves with the
-    tracker), and outside its calibrated angles a map only holds its edge value."""
-    k = model.n_reg
-    sizes = model.sizes(model.chain.nq)
+    """Angle maps carried to new data (registration refitted, model fixed) are judged per
+    joint: part of what a map absorbs belongs to the setup it was identified in (the
+    tracker's own angle error moves with the tracker), so each joint's map is kept only where
+    it helps here. The choice is made on the new data's registration rows (the maps never saw
+    them; the held-out blocks stay untouched for the figures): joint by joint, a map whose
+    removal lowers the error is dropped; then the maps left must lower the error by
+    KEEP_MARGIN against the same model without any. Outside its calibrated angles each map
+    fades to zero (core.corrections.MAP_TAPER_RAD), so a pose outside on one joint keeps the
+    other joints' maps."""
     maps = model.find(JointMaps)
     assert maps is not None
-    at = model.effects.index(maps)
-    start = k + sum(sizes[:at])
-    keep = np.r_[0:start, start + sizes[at] : x.size]
-    without = Model(
-        model.chain,
-        model.position_only,
-        [e for e in model.effects if e is not maps],
-        x[keep],
-        dict(model.basis),
-        model.temperature_ref,
-        model.time_ref,
-        model.sessions,
-        model.tools,
-    )
-    fixed = np.zeros(without.x.size, dtype=bool)
-    fixed[without.n_reg :] = True
-    tau_tr = without.chain.gravity_torques(train.q)
-    tau_va = without.chain.gravity_torques(val.q)
-    x_without = fit(without, train, tau_tr, without.x, noise, fixed=fixed).x
-    with_maps = stats(model, x, val, tau_va).judged_mm
-    without_maps = stats(without, x_without, val, tau_va).judged_mm
+    tau_tr = model.chain.gravity_torques(train.q)
+    tau_va = model.chain.gravity_torques(val.q)
+    names = model.chain.robot.joint_names
+
+    def with_joints(keep: list[int]) -> tuple[Model, np.ndarray]:
+        """The model with only the maps of joints `keep` (the others dropped)."""
+        parts = list(model.parts(x))
+        effects: list[Effect] = []
+        values: list[np.ndarray] = []
+        for effect, part in parts:
+            if effect is maps:
+                pieces = split_maps(maps.knots, part)
+                if not keep:
+                    continue
+                knots = tuple(kn if j in keep else np.empty(0) for j, (kn, _v) in enumerate(pieces))
+                effects.append(JointMaps(knots))
+                values.append(np.concatenate([v for j, (_k, v) in enumerate(pieces) if j in keep]))
+            else:
+                effects.append(effect)
+                values.append(part)
+        x_new = np.concatenate([x[: model.n_reg], *values])
+        trial = Model(
+            model.chain,
+            model.position_only,
+            effects,
+            x_new,
+            {},
+            model.temperature_ref,
+            model.time_ref,
+            model.sessions,
+            model.tools,
+        )
+        fixed = np.zeros(x_new.size, dtype=bool)
+        fixed[trial.n_reg :] = True
+        return trial, fit(trial, train, tau_tr, x_new, noise, fixed=fixed).x
+
+    joints = [j for j, kn in enumerate(maps.knots) if kn.size]
+    current = stats(model, x, train, tau_tr).judged_mm
+    dropped: list[dict[str, Any]] = []
+    for j in list(joints):
+        rest = [i for i in joints if i != j]
+        trial, x_trial = with_joints(rest)
+        rms = stats(trial, x_trial, train, tau_tr).judged_mm
+        if rms < current:
+            joints, current = rest, rms
+            dropped.append({"joint": names[j], "fitted_rows_pos_rms_mm_without": rms})
+    kept_model, kept_x = with_joints(joints) if dropped else (model, x)
+    without, x_without = with_joints([])
+    with_maps_tr = stats(kept_model, kept_x, train, tau_tr).judged_mm
+    without_tr = stats(without, x_without, train, tau_tr).judged_mm
+    kept = bool(joints) and 1 - with_maps_tr / without_tr >= KEEP_MARGIN
     lo, hi = maps.ranges()
-    outside = np.any((data.q < lo) | (data.q > hi), axis=1)
-    kept = 1 - with_maps / without_maps >= KEEP_MARGIN
+    outside = (data.q < lo) | (data.q > hi)
     report["carried_maps"] = {
-        "held_out_pos_rms_mm_with": with_maps,
-        "held_out_pos_rms_mm_without": without_maps,
-        "kept": bool(kept),
-        "poses_outside_calibrated_range_pct": 100.0 * float(np.mean(outside)),
+        "held_out_pos_rms_mm_with": stats(kept_model, kept_x, val, tau_va).judged_mm,
+        "held_out_pos_rms_mm_without": stats(without, x_without, val, tau_va).judged_mm,
+        "fitted_rows_pos_rms_mm_with": with_maps_tr,
+        "fitted_rows_pos_rms_mm_without": without_tr,
+        "kept": kept,
+        "joints_kept": [names[j] for j in joints] if kept else [],
+        "joints_dropped": dropped,
+        "poses_outside_calibrated_range_pct": 100.0 * float(np.mean(np.any(outside, axis=1))),
+        "outside_pct_per_joint": {
+            names[j]: 100.0 * float(np.mean(outside[:, j])) for j in range(outside.shape[1])
+        },
     }
-    return (model, x) if kept else (without, x_without)
+    return (kept_model, kept_x) if kept else (without, x_without)
 
 
 def _repeatability_entry(data: Data) -> dict[str, Any] | None:

@@ -8,8 +8,9 @@ other kept parameter are solved together with the maps in the same linear system
 Jacobian columns beside the maps'), with a penalty on the maps' second differences
 (smoothness) and a tiny ridge (a constant or linear map is the same as a joint offset or a
 scale and would otherwise be undetermined). Knot spacing and smoothing weight are chosen by
-cross-validation over blocks of the training poses. Outside its knots a map holds its edge
-value; the live estimator flags such samples (`outside_calibrated_range`).
+cross-validation over blocks of the training poses. Outside its knots a map fades to zero over
+core.corrections.MAP_TAPER_RAD (each joint on its own); the live estimator flags such samples
+(`outside_calibrated_range`).
 
 One residual evaluation per joint gives every pose's derivative at once (each pose depends
 only on its own joints), so building the system costs a few evaluations, and each solve is a
@@ -26,16 +27,24 @@ import numpy as np
 from scipy import sparse
 from scipy.linalg import block_diag, cho_factor, cho_solve
 
+from keo_service.core.corrections import taper_weight
 from keo_service.fit.analysis import describe_remaining
 from keo_service.fit.effects import JointMaps
 from keo_service.fit.model import Data, Model, numeric_jacobian, stats
 from keo_service.fit.model import fit as robust_fit
+from keo_service.fit.prior import prior_rows
 
 SPACINGS = (0.02, 0.03, 0.05, 0.075, 0.1)  # rad between knots
 SMOOTHING = (1e-3, 1e-2, 1e-1, 1.0, 10.0)  # weight of the second-difference penalty
 RIDGE = 1e-9  # relative to the mean diagonal of the normal equations
 CONSTRAINT = 1e3  # weight that keeps each map's mean and slope at zero
 FOLDS = 4
+# True: the kept effects are solved again beside the maps, each held by its prior
+# (fit.prior); False: only the registration is, the maps the residual on top of the effects
+# as identified. False leaves the geometry biased by what only the maps carry (a simulated
+# ripple then shows in the maps of joints without one); on the UR10 data both carry about
+# equally (docs/analyze.md gives both)
+EFFECTS_WITH_MAPS = True
 MIN_POSES_PER_KNOT = 2.0  # a joint whose range gives fewer poses per knot gets no map
 MIN_SUPPORT = 2  # poses within one spacing of a knot, else the knot is left out (a gap)
 
@@ -73,15 +82,23 @@ def knots_for(q: np.ndarray, spacing: float) -> tuple[np.ndarray, ...]:
     return tuple(out)
 
 
-def hat_basis(q: np.ndarray, knots: np.ndarray) -> np.ndarray:
-    """(N, K) weights of linear interpolation between knots (the edge value outside)."""
+def hat_weights(q: np.ndarray, knots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per angle the left knot's index and the two knots' weights of linear interpolation,
+    both scaled by the taper outside the knots (as core.corrections.tapered_interp)."""
     qc = np.clip(q, knots[0], knots[-1])
     i = np.clip(np.searchsorted(knots, qc) - 1, 0, knots.size - 2)
     w = (qc - knots[i]) / (knots[i + 1] - knots[i])
+    fade = taper_weight(q, float(knots[0]), float(knots[-1]))
+    return i, (1.0 - w) * fade, w * fade
+
+
+def hat_basis(q: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    """(N, K) weights of linear interpolation between knots (fading to zero outside)."""
+    i, left, right = hat_weights(q, knots)
     out = np.zeros((q.size, knots.size))
     rows = np.arange(q.size)
-    out[rows, i] = 1.0 - w
-    out[rows, i + 1] = w
+    out[rows, i] = left
+    out[rows, i + 1] = right
     return out
 
 
@@ -92,7 +109,12 @@ class _Linearized:
     J: np.ndarray  # (N * width, P) Jacobian of the model's own parameters
 
 
-def linearize(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> _Linearized:
+def linearize(
+    model: Model, x: np.ndarray, data: Data, tau: np.ndarray, effects_free: bool = False
+) -> _Linearized:
+    """The residual, its derivative by each joint's angle, and its Jacobian by the
+    registration (by every parameter with `effects_free`; else the effects' columns are
+    zero, so a solve leaves them where they are)."""
     r0 = model.residuals(x, data, tau)
     width = r0.size // data.n
     grads = []
@@ -102,7 +124,16 @@ def linearize(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> _Line
         q[:, j] += h
         shifted = dataclasses.replace(data, q=q)
         grads.append(((model.residuals(x, shifted, tau) - r0) / h).reshape(data.n, width))
-    J = numeric_jacobian(lambda z: model.residuals(z, data, tau), x, r0)
+    # the maps are the residual on top of the physical effects: only the registration is
+    # solved with them (the effects' columns left zero, so their step is zero); solving the
+    # effects beside the maps let both grow and cancel (UR10 Series B: 11 mrad maps against
+    # 5-10 mm placement offsets, where the whole error is 1.06 mm)
+    k = x.size if effects_free else model.n_reg
+    J_reg = numeric_jacobian(
+        lambda z: model.residuals(np.concatenate([z, x[k:]]), data, tau), x[:k], r0
+    )
+    J = np.zeros((r0.size, x.size))
+    J[:, :k] = J_reg
     row_w = data.row_weights(width)
     if row_w is not None:  # weighted rows: the linear system and its errors weighted alike
         r0, J = r0 * row_w, J * row_w[:, None]
@@ -153,11 +184,9 @@ def _design(lin: _Linearized, q: np.ndarray, knots: Sequence[np.ndarray]) -> _De
     for j, kn in enumerate(knots):
         if not kn.size:
             continue
-        qc = np.clip(q[:, j], kn[0], kn[-1])
-        i = np.clip(np.searchsorted(kn, qc) - 1, 0, kn.size - 2)
-        w = (qc - kn[i]) / (kn[i + 1] - kn[i])
+        i, left, right = hat_weights(q[:, j], kn)
         grad = lin.joint_grad[j]  # (n, width)
-        for col, weight in ((i, 1.0 - w), (i + 1, w)):
+        for col, weight in ((i, left), (i + 1, right)):
             rows.append(row_of)
             cols.append(np.repeat(offset + col, width))
             vals.append((grad * weight[:, None]).ravel())
@@ -236,6 +265,20 @@ def cv_folds(n: int, session: np.ndarray | None = None) -> np.ndarray:
     return fold
 
 
+def _prior_terms(
+    prior: np.ndarray | None, x: np.ndarray, size: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The prior's part of the normal equations of [x step; map values] (size square): the
+    prior residual P (x + dx) adds P^T P to the matrix and P^T P x to the gradient."""
+    M = np.zeros((size, size))
+    g = np.zeros(size)
+    if prior is not None:
+        PtP = prior.T @ prior
+        M[: x.size, : x.size] = PtP
+        g[: x.size] = PtP @ x
+    return M, g
+
+
 def fit_maps(
     model: Model,
     x: np.ndarray,
@@ -244,10 +287,14 @@ def fit_maps(
     spacings: Sequence[float] = SPACINGS,
     smoothings: Sequence[float] = SMOOTHING,
     joints: Sequence[int] | None = None,
+    prior: np.ndarray | None = None,
 ) -> MapFit | None:
     """Maps for every joint that moved (or `joints`), spacing and smoothing chosen by
-    cross-validation over blocks of the training poses; None when no joint can carry one."""
-    lin = linearize(model, x, train, tau)
+    cross-validation over blocks of the training poses; None when no joint can carry one.
+    `prior`: the kept effects' prior rows (fit.prior, on x): with it the effects are solved
+    beside the maps, each held near its physical size by its prior; without it only the
+    registration is solved with the maps."""
+    lin = linearize(model, x, train, tau, effects_free=prior is not None)
     width = lin.r0.shape[1]
     fold = cv_folds(train.n, train.session)
     best: tuple[float, float, float, tuple[np.ndarray, ...]] | None = None
@@ -260,6 +307,7 @@ def fit_maps(
         P = _penalty(x.size, knots)
         PtP = P.T @ P
         design = _design(lin, train.q, knots)
+        fixed_M, fixed_g = _prior_terms(prior, x, PtP.shape[0])
         # each fold's normal equations once; a fold's training set is the total minus it
         parts = [design.rows(np.flatnonzero(fold == f), width) for f in range(FOLDS)]
         normals = [part.normal() for part in parts]
@@ -268,7 +316,9 @@ def fit_maps(
         for smoothing in smoothings:
             errors = []
             for f in range(FOLDS):
-                step = _solve(M_all - normals[f][0], g_all - normals[f][1], PtP, smoothing)
+                step = _solve(
+                    M_all - normals[f][0] + fixed_M, g_all - normals[f][1] + fixed_g, PtP, smoothing
+                )
                 errors.append(parts[f].apply(step).reshape(-1, width))
             cv = _pos_rms_mm(np.vstack(errors))
             if best is None or cv < best[0]:
@@ -280,6 +330,8 @@ def fit_maps(
     P = _penalty(x.size, knots)
     PtP = P.T @ P
     AtA, g = design.normal()
+    fixed_M, fixed_g = _prior_terms(prior, x, PtP.shape[0])
+    AtA, g = AtA + fixed_M, g + fixed_g
     step = _solve(AtA, g, PtP, smoothing)
     n_maps = sum(k.size for k in knots)
     trial = dataclasses.replace(model, effects=[*model.effects, JointMaps(knots)])
@@ -351,7 +403,11 @@ def try_maps(
     train, val = data.subset(train_idx), data.subset(val_idx)
     tau_tr, tau_va = chain.gravity_torques(train.q), chain.gravity_torques(val.q)
     say("trying joint_maps (cross-validating knot spacing and smoothing)")
-    fit = fit_maps(model, x, train, tau_tr)
+    prior = None
+    if EFFECTS_WITH_MAPS:
+        noise = analysis.report["registration"]["noise_estimate_mm"] * 1e-3
+        prior = prior_rows(model, analysis.report.get("prior_weights", {}), noise)
+    fit = fit_maps(model, x, train, tau_tr, prior=prior)
     if fit is None:
         say("joint_maps: no joint moves enough to carry a map")
         return
@@ -421,7 +477,13 @@ def session_rms(model: Model, x: np.ndarray, data: Data, idx: np.ndarray) -> lis
     return out
 
 
-def own_tools(model: Model, x: np.ndarray, train: Data, noise: float) -> tuple[Model, np.ndarray]:
+def own_tools(
+    model: Model,
+    x: np.ndarray,
+    train: Data,
+    noise: float,
+    weights: dict[str, float] | None = None,
+) -> tuple[Model, np.ndarray]:
     """`model` with a sensor mount per session (each starting from the shared one), fitted
     robustly on the training rows with everything else it holds."""
     k = 6 * model.sessions
@@ -439,7 +501,9 @@ def own_tools(model: Model, x: np.ndarray, train: Data, noise: float) -> tuple[M
         model.sessions,
         model.sessions,
     )
-    return own, robust_fit(own, train, model.chain.gravity_torques(train.q), x0, noise).x
+    prior = prior_rows(own, weights or {}, noise)  # the effects' priors, as in their own fit
+    tau = model.chain.gravity_torques(train.q)
+    return own, robust_fit(own, train, tau, x0, noise, prior=prior).x
 
 
 def _session_tools(
@@ -458,8 +522,12 @@ def _session_tools(
     model, x = analysis.model, analysis.x
     train = data.subset(train_idx)
     noise = analysis.report["registration"]["noise_estimate_mm"] * 1e-3
-    own, x_own = own_tools(model, x, train, noise)
-    fit = fit_maps(own, x_own, train, own.chain.gravity_torques(train.q))
+    weights = analysis.report.get("prior_weights", {})
+    own, x_own = own_tools(model, x, train, noise, weights)
+    prior = None
+    if EFFECTS_WITH_MAPS:
+        prior = prior_rows(own, weights, noise)
+    fit = fit_maps(own, x_own, train, own.chain.gravity_torques(train.q), prior=prior)
     before = session_rms(shared.model, shared.x, data, val_idx)
     after = before if fit is None else session_rms(fit.model, fit.x, data, val_idx)
     gains = [1 - a / b for a, b in zip(after, before, strict=True)]

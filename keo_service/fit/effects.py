@@ -402,6 +402,86 @@ class Couplings:
         return Couplings(tuple(pairs)), np.asarray(values, dtype=float)
 
 
+@dataclass(frozen=True, eq=False)
+class JointRipple:
+    """Periodic joint errors: per term a joint and a period (rad of that joint's angle), the
+    joint's angle error a sin(2 pi q / period) + b cos(2 pi q / period). A strain-wave gear's
+    kinematic error is periodic in the joint angle, so unlike a map this extrapolates. The
+    terms (joints and periods) come from the data: `prepare` reads them off each joint's
+    periodogram of the residual (fit.ripple); values per term: a, b (rad)."""
+
+    terms: tuple[tuple[int, float], ...] = ()
+    name: ClassVar[str] = "joint_ripple"
+    description: ClassVar[str] = (
+        "periodic joint error (strain-wave gear ripple): sine and cosine of each joint's angle "
+        "at the periods its residual's spectrum shows (rad)"
+    )
+    reduce: ClassVar[bool] = True
+
+    def size(self, nq: int) -> int:
+        return 2 * len(self.terms)
+
+    def usable(self, data: Data) -> bool:
+        return True
+
+    def prepare(
+        self, model: Model, x: np.ndarray, data: Data, tau: np.ndarray, noise: float
+    ) -> tuple[JointRipple, dict[str, Any]]:
+        """The terms the residual's spectra show (fit.ripple), and the spectra."""
+        from keo_service.fit.ripple import find_terms
+
+        terms, spectra = find_terms(model, x, data, tau, noise)
+        return JointRipple(tuple(terms)), spectra
+
+    def correct(self, corr: Corrections, values: np.ndarray) -> Corrections:
+        ripple = tuple(
+            (j, p, float(values[2 * i]), float(values[2 * i + 1]))
+            for i, (j, p) in enumerate(self.terms)
+        )
+        return dataclasses.replace(corr, ripple=corr.ripple + ripple)
+
+    def sensor_offset(self, values: np.ndarray, data: Data, model: Model) -> np.ndarray | None:
+        return None
+
+    def records(
+        self, values: np.ndarray, se: np.ndarray, joint_names: Sequence[str]
+    ) -> list[dict[str, Any]]:
+        out = []
+        for i, (j, period) in enumerate(self.terms):
+            joint = joint_names[j] if j < len(joint_names) else f"joint_{j + 1}"
+            for k, part in enumerate(("sin", "cos")):
+                out.append(
+                    {
+                        "joint": joint,
+                        "parameter": f"ripple {part}, period {period:.4f} rad",
+                        "unit": "rad",
+                        "value": float(values[2 * i + k]),
+                        "se": float(se[2 * i + k]),
+                        "period_rad": float(period),
+                        "per_revolution": float(2 * np.pi / period),
+                    }
+                )
+        return out
+
+    def to_config(self, values: np.ndarray, nq: int) -> dict[str, Any]:
+        return {
+            "ripple_joints": [j for j, _p in self.terms],
+            "ripple_periods_rad": [p for _j, p in self.terms],
+            "ripple_sin": [float(v) for v in values[0::2]],
+            "ripple_cos": [float(v) for v in values[1::2]],
+        }
+
+    def from_config(self, section: Mapping[str, Any]) -> tuple[Effect, np.ndarray]:
+        terms = tuple(
+            (int(j), float(p))
+            for j, p in zip(section["ripple_joints"], section["ripple_periods_rad"], strict=True)
+        )
+        values = np.column_stack(
+            [np.asarray(section["ripple_sin"], float), np.asarray(section["ripple_cos"], float)]
+        ).ravel()
+        return JointRipple(terms), values
+
+
 # every effect by its name; the analysis tries CANDIDATES in this order, then the maps
 EFFECTS: dict[str, Effect] = {
     e.name: e
@@ -415,6 +495,7 @@ EFFECTS: dict[str, Effect] = {
         TimeDrift(),
         JointMaps(),
         Couplings(),
+        JointRipple(),
     )
 }
 CANDIDATES = (
@@ -425,6 +506,7 @@ CANDIDATES = (
     "cyclic",
     "temperature",
     "time_drift",
+    "joint_ripple",
 )
 MAPS = JointMaps.name
 

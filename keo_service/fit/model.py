@@ -313,6 +313,7 @@ def _corrections_key(corr: Corrections) -> bytes:
         parts += [knots.tobytes(), b"|", values.tobytes(), b"|"]
     for j, k, slope, knots, values in corr.couplings:
         parts += [repr((j, k, slope)).encode(), knots.tobytes(), b"|", values.tobytes(), b"|"]
+    parts.append(repr(corr.ripple).encode())
     return b"/".join(parts)
 
 
@@ -426,22 +427,27 @@ def fit(
     noise_m: float,
     fixed: np.ndarray | None = None,
     iterations: int = 20,
+    prior: np.ndarray | None = None,
 ) -> FitResult:
     """Robust least squares over the free parameters: scipy's trust-region reflective solver
     with a Huber loss at 3 noise sigmas, parameters scaled by the Jacobian's columns (so
     metres and radians weigh alike). Standard errors from the Huber-weighted Jacobian at the
     solution. `iterations` bounds the Jacobian evaluations (the model is close to linear in
-    these small parameters)."""
+    these small parameters). `prior`: rows P (m x x0.size) appended to the residuals as
+    P @ x (fit.prior: each term's size against its physical size)."""
     free = np.ones(x0.size, dtype=bool) if fixed is None else ~fixed
     x = x0.copy()
 
     width = 3 if model.position_only or data.R_ks is None else 6
     row_w = data.row_weights(width)
+    if prior is not None and row_w is not None:
+        row_w = np.concatenate([row_w, np.ones(prior.shape[0])])
 
     def fun(z: np.ndarray) -> np.ndarray:
         xx = x.copy()
         xx[free] = z
-        return model.residuals(xx, data, tau)
+        r = model.residuals(xx, data, tau)
+        return r if prior is None else np.concatenate([r, prior @ xx])
 
     k_huber = 3.0 * noise_m
     if data.n * width > LARGE_ROWS or data.velocity is not None:  # many rows, or motion

@@ -16,7 +16,9 @@ import numpy as np
 import pinocchio as pin
 
 from keo_service.core.chain import Chain
+from keo_service.core.corrections import MAP_TAPER_RAD
 from keo_service.core.errors import KeoError
+from keo_service.fit.accuracy import Accuracy
 from keo_service.fit.analysis import Analysis
 from keo_service.fit.effects import JointMaps, config_fields, effect_from_config
 from keo_service.fit.model import Data, Model
@@ -69,13 +71,38 @@ def saved_model(config: Config, chain: Chain, position_only: bool) -> Model:
     return model
 
 
+def saved_accuracy(config: Config) -> Accuracy | None:
+    """The accuracy a model.toml states (None: written before keo stated one)."""
+    m = config.model
+    if not m.accuracy_mm or not m.calibrated_q_min:
+        return None
+    return Accuracy(
+        m.accuracy_mm,
+        m.accuracy_outside_mm,
+        np.asarray(m.calibrated_q_min, dtype=float),
+        np.asarray(m.calibrated_q_max, dtype=float),
+    )
+
+
 def model_config(result: Analysis, base: Config) -> Config:
     """The config with the identified registration and every kept effect."""
     model, x = result.model, result.x
     T_bk, T_ns, _corr = model.unpack(x)
+    acc = result.report.get("accuracy", {})
+    stated = (
+        {
+            "accuracy_mm": acc["inside_mm"],
+            "accuracy_outside_mm": acc["outside_mm"],
+            "calibrated_q_min": acc["lower_rad"],
+            "calibrated_q_max": acc["upper_rad"],
+        }
+        if "inside_mm" in acc
+        else {}
+    )
     m = msgspec.convert(
         {
             **config_fields(model, x),
+            **stated,
             "temperature_ref_c": model.temperature_ref,
             "time_ref_s": model.time_ref,
         },
@@ -130,6 +157,22 @@ def _plots(
         fig.savefig(out / name, dpi=110)
         plt.close(fig)
         files.append(name)
+    for effect_name, spectra in result.report.get("spectra", {}).items():
+        for joint, sp in spectra.items():
+            fig, ax = plt.subplots(figsize=(6, 2.5))
+            ax.plot(sp["periods_rad"], sp["amplitude_mrad"], lw=0.8)
+            for term in sp["terms"]:
+                ax.axvline(term["period_rad"], color="C3", lw=0.6, ls="--")
+            ax.set_xscale("log")
+            ax.set_xlabel(f"period in {joint} angle (rad)")
+            ax.set_ylabel("amplitude (mrad)")
+            ax.set_title("residual periodogram (dashed: terms taken)", fontsize=8)
+            fig.tight_layout()
+            name = f"spectrum_{joint}.png"
+            fig.savefig(out / name, dpi=110)
+            plt.close(fig)
+            files.append(name)
+        del effect_name
     fig, ax = plt.subplots(figsize=(6, 3.5))
     bins = np.linspace(0, max(np.linalg.norm(before, axis=1).max(), 1e-3), 50).tolist()
     ax.hist(np.linalg.norm(before, axis=1), bins=bins, alpha=0.6, label="nominal model")
@@ -195,12 +238,18 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
         "",
         f"- nominal model, registration fitted: {_stats_line(report['baseline']['validation'])}",
     ]
+    previous_max = report["baseline"]["validation"]["pos_max_mm"]
     for e in report["effects"]:
         count = _parameter_count(e)
-        lines.append(
+        line = (
             f"- + {e['name']} ({e['description']}): {_stats_line(e['validation'])} "
             f"({e['held_out_improvement_pct']:+.1f} %, {count} parameters)"
         )
+        new_max = e["validation"]["pos_max_mm"]
+        if new_max > previous_max:
+            line += f"; **the held-out maximum rose** from {previous_max:.3f} to {new_max:.3f} mm"
+        previous_max = new_max
+        lines.append(line)
     carried = report.get("carried_maps")
     if carried:
         lines.append(
@@ -209,7 +258,31 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
             f"{carried['held_out_pos_rms_mm_without']:.4f} mm without: "
             + ("kept" if carried["kept"] else "dropped, the model is written without them")
             + f"; {carried['poses_outside_calibrated_range_pct']:.0f} % of these poses lie "
-            "outside the angles the maps were calibrated on (there a map holds its edge value)"
+            "outside the angles the maps were calibrated on, on some joint (there that joint's "
+            f"map fades to zero over {MAP_TAPER_RAD:g} rad; the other joints' maps apply)"
+            + (
+                "; maps of "
+                + ", ".join(d["joint"] for d in carried.get("joints_dropped", []))
+                + " dropped (they raised the error on this session's registration poses)"
+                if carried.get("joints_dropped")
+                else ""
+            )
+        )
+    predicted = report.get("predicted_vs_measured")
+    if predicted:
+        lines.append(
+            f"- the model predicted {predicted['predicted_rms_mm']:.4f} mm RMS on these "
+            f"held-out poses ({predicted['outside_calibrated_range_pct']:.0f} % outside its "
+            f"calibrated joint ranges) and measured {predicted['measured_rms_mm']:.4f} mm; "
+            f"{predicted['within_95_pct']:.0f} % of the poses lie within its 95 % band"
+        )
+    transfer = report.get("transfer")
+    if transfer and not report.get("registration_only"):
+        lines.append(
+            "- extrapolation (standing in for a session not seen: held-out bands at the ends "
+            "of each joint's range, linearized, physical effects only; the maps fade there): "
+            f"{transfer['model_bands_pos_rms_mm']:.4f} mm RMS against the nominal "
+            f"{transfer['nominal_bands_pos_rms_mm']:.4f} mm"
         )
     lines.append(f"- final: {_stats_line(report['final']['validation'])}")
     lines.append(f"- (final on the fitted poses: {_stats_line(report['final']['train'])})")
@@ -222,10 +295,13 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
                 f"; tracker at [{t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}] m in the base frame"
             )
         lines += _mounts_markdown(report["registration"])
+    lines += _accuracy_markdown(report)
+    lines += _registration_markdown(report)
     if report["rejected"]:
-        lines += ["", "Tried and not kept (held-out change below 5 %):", ""]
+        lines += ["", "Tried and not kept, with the reason:", ""]
         for e in report["rejected"]:
-            lines.append(f"- {e['name']}: {e['held_out_improvement_pct']:+.1f} %")
+            lines.append(f"- {e['name']}: {_rejection_reason(e)}")
+    lines += _outliers_markdown(report)
     lines += ["", "## What remains", ""]
     lines += _floor_markdown(report)
     if "against_repeatability" in report:
@@ -259,12 +335,38 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
             lines += _maps_markdown(e)
             continue
         head = f"### {e['name']}"
+        if e.get("spectra"):
+            lines += _spectra_markdown(e)
         if "identifiable" in p:
             head += f" ({p['identifiable']} of {p['of']} combinations identifiable)"
         if p.get("records"):
             lines += [head, ""]
-            lines += [_record_line(rec) for rec in p["records"]]
+            lines += [_record_line(rec) for rec in p["records"] if "combination" not in rec]
             lines.append("")
+            for c in p.get("combinations", []):
+                scale, unit = _DISPLAY.get(c["unit"], (1.0, c["unit"]))
+                members = " + ".join(
+                    f"{m['ratio']:.3g} x {m['joint']} {m['parameter']}" for m in c["members"]
+                )
+                lines.append(
+                    f"    only their combination is identified: {members} (each at "
+                    f"{c['value'] * scale:+.4g} +/- {c['se'] * scale:.2g} {unit} times its "
+                    "ratio; any other split fits alike)"
+                )
+            if p.get("combinations"):
+                lines.append("")
+            small = [
+                r
+                for r in p["records"]
+                if "combination" not in r and not r.get("held") and abs(r["value"]) < r["se"]
+            ]
+            if small:
+                lines.append(
+                    f"{len(small)} of these values are smaller than their standard error: "
+                    "not distinguishable from zero on their own; kept because the effect as a "
+                    "whole lowered the held-out error (above)"
+                )
+                lines.append("")
             lines += [f"- {text}" for text in p.get("couplings", [])]
             if p.get("couplings"):
                 lines.append("")
@@ -305,6 +407,106 @@ def _record_line(rec: dict[str, Any]) -> str:
         f"    {rec['joint']:<22} {rec['parameter']:<18} {rec['value'] * scale:+.4g} +/- "
         f"{rec['se'] * scale:.2g} {unit}"
     )
+
+
+def _spectra_markdown(entry: dict[str, Any]) -> list[str]:
+    """The periodic terms found in each joint's residual spectrum (plots: spectrum_*.png)."""
+    lines = [
+        f"### {entry['name']}: the residual's spectrum against each joint's angle",
+        "",
+        "| joint | period (rad) | per revolution | explained / residual variance |",
+        "|---|---|---|---|",
+    ]
+    for joint, sp in entry["spectra"].items():
+        for t in sp["terms"]:
+            lines.append(
+                f"| {joint} | {t['period_rad']:.4f} | {t['per_revolution']:.2f} | "
+                f"{t['explained_variance_ratio']:.0f} |"
+            )
+    return [*lines, ""]
+
+
+def _rejection_reason(entry: dict[str, Any]) -> str:
+    """The actual reason an effect was not kept, in words."""
+    if entry.get("reason"):
+        return str(entry["reason"])
+    gain = entry.get("held_out_improvement_pct", 0.0)
+    band = entry.get("band_split")
+    if band is not None and gain >= 5.0:
+        return (
+            f"held-out change {gain:+.1f} %, but on the held-out band of "
+            f"{band.get('joint', 'a joint')}'s angle {band['improvement_pct']:+.1f} % "
+            "(needs 5 % on both)"
+        )
+    if band is not None:
+        return (
+            f"held-out change {gain:+.1f} % (band {band['improvement_pct']:+.1f} %), below "
+            "the 5 % needed"
+        )
+    return f"held-out change {gain:+.1f} %, below the 5 % needed"
+
+
+def _xyz_rpy_text(T: Any) -> str:
+    M = np.asarray(T)
+    xyz = M[:3, 3] * 1e3
+    rpy = pin.rpy.matrixToRpy(M[:3, :3]) * 1e3
+    return (
+        f"xyz [{xyz[0]:+.3f}, {xyz[1]:+.3f}, {xyz[2]:+.3f}] mm, "
+        f"rpy [{rpy[0]:+.3f}, {rpy[1]:+.3f}, {rpy[2]:+.3f}] mrad"
+    )
+
+
+def _registration_markdown(report: dict[str, Any]) -> list[str]:
+    """The tracker in the base frame and the probe mount in the flange frame (model.toml
+    writes the probe to [tool] as the measured frame)."""
+    reg = report.get("registration")
+    if not reg:
+        return []
+    return [
+        "",
+        "Registration (identified with the model; the frames the numbers above are in):",
+        "",
+        f"- tracker in the robot base frame (T_bk): {_xyz_rpy_text(reg['T_bk'])}",
+        f"- probe mount in the flange frame (T_ns): {_xyz_rpy_text(reg['T_ns'])}",
+        "- noise of the nominal registration's residuals (robust estimate): "
+        f"{reg['noise_estimate_mm']:.4f} mm",
+    ]
+
+
+def _accuracy_markdown(report: dict[str, Any]) -> list[str]:
+    acc = report.get("accuracy")
+    if not acc:
+        return []
+    lines = [
+        "",
+        f"Stated accuracy (model.toml; `predicted_position_sigma`): {acc['inside_mm']:.4f} mm "
+        f"RMS within the calibrated joint ranges, {acc['outside_mm']:.4f} mm at "
+        f"{acc['taper_rad']:g} rad or more outside (the extrapolation bands' figure).",
+    ]
+    cov = acc.get("held_out_coverage")
+    if cov and cov.get("n"):
+        lines.append(
+            f"On the held-out poses it predicted {cov['predicted_rms_mm']:.4f} mm RMS, measured "
+            f"{cov['measured_rms_mm']:.4f} mm; {cov['within_95_pct']:.1f} % of them lie within "
+            "its 95 % band."
+        )
+    return lines
+
+
+def _outliers_markdown(report: dict[str, Any]) -> list[str]:
+    out = report.get("outliers")
+    if not out:
+        return []
+    lines = ["", f"Outliers (position error above {out['threshold_mm']:.3f} mm, 4x the RMS):", ""]
+    for label in ("fitted", "held_out"):
+        rows = out.get(label, [])
+        if not rows:
+            lines.append(f"- {label.replace('_', ' ')} poses: none")
+            continue
+        text = ", ".join(f"row {r['row']} ({r['pos_mm']:.3f} mm)" for r in rows[:10])
+        more = f" and {len(rows) - 10} more" if len(rows) > 10 else ""
+        lines.append(f"- {label.replace('_', ' ')} poses: {len(rows)}: {text}{more}")
+    return lines
 
 
 def _floor_markdown(report: dict[str, Any]) -> list[str]:
@@ -382,17 +584,21 @@ def _maps_markdown(entry: dict[str, Any]) -> list[str]:
         f"### {JointMaps.name}: knots every {entry['knot_spacing_rad']:g} rad, smoothing "
         f"{entry['smoothing']:g} (chosen by cross-validation), {entry['parameter_count']} values",
         "",
-        "Outside its calibrated range a map holds its edge value and `keo run` flags the "
-        "estimate `outside_calibrated_range`.",
+        f"Outside its calibrated range each joint's map fades to zero over {MAP_TAPER_RAD:g} "
+        "rad (the other joints' maps still apply) and `keo run` flags the estimate "
+        "`outside_calibrated_range`. A map whose peak is below its median standard error is "
+        "marked: its shape is not resolved by these poses.",
         "",
         "| joint | calibrated range (rad) | knots | peak (mrad) | median se (mrad) |",
         "|---|---|---|---|---|",
     ]
     for m in entry["parameters"]["maps"]:
         lo, hi = m["range_rad"]
+        median_se = float(np.median(m["se"])) * 1e3
+        mark = " (below its se)" if m["peak_mrad"] < median_se else ""
         lines.append(
             f"| {m['joint']} | {lo:+.3f} .. {hi:+.3f} | {len(m['knots'])} | "
-            f"{m['peak_mrad']:.3f} | {float(np.median(m['se'])) * 1e3:.4f} |"
+            f"{m['peak_mrad']:.3f}{mark} | {median_se:.4f} |"
         )
     lines += [
         "",

@@ -160,11 +160,41 @@ def corrections_from_config(model: ModelConfig, nq: int, source: str) -> Correct
         values[key] = np.asarray(v, dtype=float) if v else None
     maps = _maps_from_config(model, nq, source)
     couplings = _couplings_from_config(model, nq, source)
-    if all(v is None for v in values.values()) and not maps and not couplings:
+    ripple = _ripple_from_config(model, nq, source)
+    if all(v is None for v in values.values()) and not maps and not couplings and not ripple:
         return None
     shapes = {"cyclic": (nq, 2, 2), "placement": (nq, 6)}
     given = {k: v.reshape(shapes.get(k, (nq,))) for k, v in values.items() if v is not None}
-    return Corrections(nq, **given, maps=maps, couplings=couplings)
+    return Corrections(nq, **given, maps=maps, couplings=couplings, ripple=ripple)
+
+
+def _ripple_from_config(
+    model: ModelConfig, nq: int, source: str
+) -> tuple[tuple[int, float, float, float], ...]:
+    n = len(model.ripple_joints)
+    lengths = (len(model.ripple_periods_rad), len(model.ripple_sin), len(model.ripple_cos))
+    if any(m != n for m in lengths):
+        raise ConfigError(
+            source,
+            "model.ripple_joints",
+            "one entry per term in ripple_joints, ripple_periods_rad, ripple_sin and ripple_cos",
+        )
+    out = []
+    for i, (j, period, a, b) in enumerate(
+        zip(
+            model.ripple_joints,
+            model.ripple_periods_rad,
+            model.ripple_sin,
+            model.ripple_cos,
+            strict=True,
+        )
+    ):
+        if not 0 <= j < nq:
+            raise ConfigError(source, f"model.ripple_joints[{i}]", f"a joint 0..{nq - 1}")
+        if not period > 0:
+            raise ConfigError(source, f"model.ripple_periods_rad[{i}]", "a period > 0 (rad)")
+        out.append((int(j), float(period), float(a), float(b)))
+    return tuple(out)
 
 
 def _couplings_from_config(

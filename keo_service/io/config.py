@@ -251,6 +251,15 @@ class ModelConfig(_Section):
     coupling_slopes: list[float] = msgspec.field(default_factory=list)
     coupling_knots: list[list[float]] = msgspec.field(default_factory=list)
     coupling_values: list[list[float]] = msgspec.field(default_factory=list)
+    # periodic joint errors (keo analyze's joint_ripple): per term the joint (0-based), the
+    # period (rad of that joint's angle) and the sine and cosine amplitudes (rad)
+    ripple_joints: list[int] = msgspec.field(default_factory=list)
+    ripple_periods_rad: list[float] = msgspec.field(default_factory=list)
+    ripple_sin: list[float] = msgspec.field(default_factory=list)
+    ripple_cos: list[float] = msgspec.field(default_factory=list)
+    # the model's stated accuracy off its calibrated joint ranges (fit.accuracy: held-out
+    # position RMS on extrapolation bands, mm); inside them it is accuracy_mm below
+    accuracy_outside_mm: float = 0.0
     temperature_m_per_c: list[float] = msgspec.field(default_factory=list)
     temperature_ref_c: float = 0.0
     time_drift_m_per_s: list[float] = msgspec.field(default_factory=list)

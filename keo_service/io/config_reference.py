@@ -271,6 +271,11 @@ KEYS: dict[str, tuple[str, str]] = {
     ),
     "model.accuracy_mm": ("mm", "the model's held-out position RMS (keo compensate's accuracy)"),
     "model.accuracy_mrad": ("mrad", "and its orientation RMS"),
+    "model.accuracy_outside_mm": ("mm", "held-out position RMS on extrapolation bands"),
+    "model.ripple_joints": ("", "per periodic joint error term: the joint (0-based)"),
+    "model.ripple_periods_rad": ("rad", "per term: the period in that joint's angle"),
+    "model.ripple_sin": ("rad", "per term: amplitude of sin(2 pi q / period)"),
+    "model.ripple_cos": ("rad", "per term: amplitude of cos(2 pi q / period)"),
     "ros2.enabled": (
         "",
         "keo run also publishes each estimate as "

@@ -17,6 +17,12 @@ from keo_service.core.corrections import approach_directions, persist_directions
 from keo_service.core.errors import KeoError
 from keo_service.core.rules import DIRECTION_DEADBAND
 from keo_service.core.timing import DelayModel
+from keo_service.fit.accuracy import (
+    coverage,
+    distance_outside,
+    predicted_position_sigma,
+    stated_accuracy,
+)
 from keo_service.fit.analysis import (
     KEEP_MARGIN,
     Analysis,
@@ -32,6 +38,7 @@ from keo_service.fit.sampling import MAX_ROWS, informative_rows, selection_repor
 from keo_service.fit.uncertainty import iso_path_figures, iso_pose_figures
 from keo_service.io.analysis_report import (
     model_config,
+    saved_accuracy,
     saved_model,
     tracker_uncertainty,
     with_delay,
@@ -46,6 +53,7 @@ if TYPE_CHECKING:
 
 SIGMA_COLUMNS = ("sx", "sy", "sz")  # optional tracker.csv columns: per-point std (m)
 SPEED_STEP_S = 0.01  # s either side of a tracker sample for the joints' speed
+OUTLIER_FACTOR = 4.0  # a pose whose position error exceeds this x the held-out RMS is listed
 
 
 def is_static(recording: Recording) -> bool:
@@ -266,6 +274,7 @@ def run_analysis(
         train_idx, val_idx = split_data(data)
         try_maps(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
         try_couplings(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
+    _state_accuracy(result, data, config if fixed is not None else None, progress)
     sessions, tools = result.model.sessions, result.model.tools
     baseline = Model(
         chain, position_only, [], result.x[: result.model.n_reg], {}, 0.0, 0.0, sessions, tools
@@ -295,6 +304,52 @@ def run_analysis(
         report["samples"] = samples
     write_analysis(out, report, result, data, base_x, baseline, improved)
     return report
+
+
+def _state_accuracy(
+    result: Analysis, data: Data, carried: Config | None, say: Callable[[str], None]
+) -> None:
+    """The model's stated accuracy (fit.accuracy) and how it covers the held-out poses: a new
+    model states its own from this analysis; a carried one (`carried`: its config,
+    --registration-only) is judged on this session against what it stated."""
+    report = result.report
+    train_idx, val_idx = split_data(data)
+    val = data.subset(val_idx)
+    chain = result.model.chain
+    width = 3 if result.model.position_only or data.R_ks is None else 6
+    r = result.model.residuals(result.x, data, chain.gravity_torques(data.q)).reshape(-1, width)
+    all_mm = np.linalg.norm(r[:, :3], axis=1) * 1e3
+    error_mm = all_mm[val_idx]
+    threshold = OUTLIER_FACTOR * float(np.sqrt(np.mean(error_mm**2)))
+    report["outliers"] = {"threshold_mm": threshold}
+    for label, idx in (("fitted", train_idx), ("held_out", val_idx)):
+        rows = idx[all_mm[idx] > threshold]
+        rows = rows[np.argsort(-all_mm[rows])]
+        report["outliers"][label] = [
+            {"row": int(i), "t": float(data.t[i]), "pos_mm": float(all_mm[i])} for i in rows
+        ]
+    if carried is None:
+        acc = stated_accuracy(report, data.q)
+        report["accuracy"] = acc.as_dict()
+        report["accuracy"]["held_out_coverage"] = coverage(
+            predicted_position_sigma(acc, val.q), error_mm
+        )
+        return
+    saved = saved_accuracy(carried)
+    if saved is None:
+        say("the model states no accuracy (written by an older keo): nothing to compare")
+        return
+    sigma = predicted_position_sigma(saved, val.q)
+    cov = coverage(sigma, error_mm)
+    outside = distance_outside(val.q, saved.lower, saved.upper) > 0
+    cov["outside_calibrated_range_pct"] = 100.0 * float(np.mean(outside))
+    report["predicted_vs_measured"] = cov
+    say(
+        f"the model predicted {cov['predicted_rms_mm']:.4f} mm RMS on this session's "
+        f"held-out poses ({cov['outside_calibrated_range_pct']:.0f} % outside its calibrated "
+        f"joint ranges); measured {cov['measured_rms_mm']:.4f} mm, "
+        f"{cov['within_95_pct']:.0f} % of the poses within its 95 % band"
+    )
 
 
 def add_diagnostics(

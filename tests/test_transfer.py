@@ -1,0 +1,138 @@
+"""What makes a model travel (issue 46): maps that fade outside their range, the periodic joint
+error found from a residual's spectrum and applied live, the stated accuracy, and the report's
+combinations. Expected values are analytic or the injected simulation truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+from keo_service.core.chain import Chain
+from keo_service.core.corrections import MAP_TAPER_RAD, Corrections, taper_weight
+from keo_service.fit.accuracy import BAND_95, Accuracy, coverage, predicted_position_sigma
+from keo_service.fit.analysis import _combinations
+from keo_service.fit.effects import JointRipple, effect_from_config
+from keo_service.fit.model import Data, Model
+from keo_service.fit.ripple import find_terms
+from keo_service.io.cell import corrections_from_config, robot_from_config
+from keo_service.io.config import ModelConfig, load_config
+
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "ur10_lasertracker.toml"
+
+
+def test_a_map_fades_to_zero_outside_its_range_joint_by_joint():
+    knots = np.array([0.0, 0.5, 1.0])
+    values = np.array([1e-3, -1e-3, 2e-3])
+    corr = Corrections(nq=2, maps=((knots, values), (knots, values)))
+    q = np.array(
+        [
+            [0.25, 1.0 + 0.5 * MAP_TAPER_RAD],  # joint 2 half the taper outside
+            [0.25, 1.0 + 2 * MAP_TAPER_RAD],  # joint 2 beyond the taper
+        ]
+    )
+    out = corr.map_error(q)
+    # joint 1 inside on both rows: its map applies whatever joint 2 does
+    assert out[:, 0] == pytest.approx([0.0, 0.0], abs=1e-18)
+    assert out[0, 1] == pytest.approx(0.5 * 2e-3)
+    assert out[1, 1] == 0.0
+    assert taper_weight(np.array([-MAP_TAPER_RAD / 4]), 0.0, 1.0)[0] == pytest.approx(0.75)
+
+
+def test_ripple_is_applied_as_written_in_the_config():
+    section = msgspec.structs.asdict(
+        ModelConfig(
+            effects=["joint_ripple"],
+            ripple_joints=[1, 1],
+            ripple_periods_rad=[0.37, 0.8],
+            ripple_sin=[3e-4, 0.0],
+            ripple_cos=[-1e-4, 2e-4],
+        )
+    )
+    effect, values = effect_from_config("joint_ripple", section)
+    assert isinstance(effect, JointRipple)
+    assert effect.to_config(values, 6)["ripple_periods_rad"] == [0.37, 0.8]
+    corr = corrections_from_config(ModelConfig(**section), 6, "test")
+    assert corr is not None
+    q = np.zeros((1, 6))
+    q[0, 1] = 0.3
+    expected = (
+        3e-4 * np.sin(2 * np.pi * 0.3 / 0.37)
+        - 1e-4 * np.cos(2 * np.pi * 0.3 / 0.37)
+        + 2e-4 * np.cos(2 * np.pi * 0.3 / 0.8)
+    )
+    got = corr.joint_angles(q)[0]
+    assert got[1] - 0.3 == pytest.approx(expected, abs=1e-15)
+    assert np.all(got[[0, 2, 3, 4, 5]] == 0.0)
+    # the same as the fit's own application of the effect
+    via_effect = effect.correct(Corrections(nq=6), values).joint_angles(q)[0]
+    assert via_effect == pytest.approx(got, abs=1e-15)
+
+
+def test_the_spectrum_finds_an_injected_ripple():
+    """Poses of a UR10 whose elbow has a 0.37 rad ripple of 0.4 mrad: the periodogram's
+    strongest term is on the elbow at that period."""
+    robot = robot_from_config(load_config(CONFIG))
+    chain = Chain(robot)
+    rng = np.random.default_rng(3)
+    n = 600
+    q = rng.uniform(-1.5, 1.5, size=(n, 6))
+    q[:, 1] = rng.uniform(-2.0, -0.6, n)
+    q[:, 2] = rng.uniform(-2.0, 2.0, n)
+    truth = Corrections(nq=6, ripple=((2, 0.37, 4e-4, 0.0),))
+    tau = chain.gravity_torques(q)
+    R, p = chain.flange_frames(q, corr=truth, tau=tau)
+    noise = 10e-6
+    data = Data(
+        q,
+        p.T + rng.normal(0, noise, size=(n, 3)),
+        R.transpose(2, 0, 1),
+        np.arange(n, dtype=float),
+    )
+    model = Model(chain, False, [], np.zeros(12))
+    terms, spectra = find_terms(model, np.zeros(12), data, tau, noise)
+    assert terms, "nothing found"
+    joint, period = terms[0]
+    assert joint == 2
+    assert period == pytest.approx(0.37, rel=0.03)
+    assert spectra[robot.joint_names[2]]["terms"][0]["period_rad"] == pytest.approx(period)
+
+
+def test_no_spectrum_terms_without_a_ripple():
+    robot = robot_from_config(load_config(CONFIG))
+    chain = Chain(robot)
+    rng = np.random.default_rng(5)
+    n = 400
+    q = rng.uniform(-1.5, 1.5, size=(n, 6))
+    tau = chain.gravity_torques(q)
+    R, p = chain.flange_frames(q, tau=tau)
+    noise = 10e-6
+    data = Data(q, p.T + rng.normal(0, noise, size=(n, 3)), R.transpose(2, 0, 1), np.arange(n))
+    terms, _spectra = find_terms(
+        Model(chain, False, [], np.zeros(12)), np.zeros(12), data, tau, noise
+    )
+    assert terms == []
+
+
+def test_stated_accuracy_rises_from_inside_to_outside_over_the_taper():
+    acc = Accuracy(0.1, 0.3, np.array([0.0, -1.0]), np.array([1.0, 1.0]))
+    q = np.array([[0.5, 0.0], [1.0 + 0.5 * MAP_TAPER_RAD, 0.0], [0.5, -1.0 - 5 * MAP_TAPER_RAD]])
+    sigma = predicted_position_sigma(acc, q)
+    assert sigma == pytest.approx([0.1, 0.2, 0.3])
+    cov = coverage(np.array([1.0, 1.0]), np.array([0.5 * BAND_95, 2 * BAND_95]))
+    assert cov["within_95_pct"] == pytest.approx(50.0)
+
+
+def test_parameters_seen_only_together_are_one_combination():
+    B = np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, -2.0]])
+    records = [
+        {"joint": f"j{i}", "parameter": "link x", "unit": "m", "value": v, "se": 0.1}
+        for i, v in enumerate([0.5, 0.5, 0.2, -0.4])
+    ]
+    groups = _combinations(B, records)
+    assert len(groups) == 2
+    assert [m["joint"] for m in groups[0]["members"]] == ["j0", "j1"]
+    assert [m["ratio"] for m in groups[1]["members"]] == pytest.approx([1.0, -2.0])
+    assert all("combination" in r for r in records)
