@@ -273,7 +273,7 @@ def test_flags(analyzed):
 
     model = tool_model(analyzed["model_config"])
     base = analyzed["program"][0]
-    _lo, hi = model.calibrated_ranges()[1]  # joint 2 carries a map (the injected ripple)
+    _lo, hi = model.calibrated_ranges()[1]  # joint 2: its map's knots, or the poses' range
     outside = base.copy()
     outside[1] = hi + 0.05
     singular = base.copy()

@@ -146,9 +146,24 @@ class ToolModel:
         return p[0], r[0]
 
     def calibrated_ranges(self) -> list[tuple[float, float] | None]:
-        """Each joint's calibrated range: its map's knots, beyond which the map holds its
-        edge value (None: no map, the model is defined everywhere)."""
-        return [None] * self.nq if self.corrections is None else self.corrections.map_ranges()
+        """Each joint's calibrated range: its map's knots, beyond which the map fades out;
+        for a joint without a map the calibration poses' range widened by the fade's width
+        (`MAP_TAPER_RAD`), beyond which nothing identified there was seen (None: neither is
+        known, the model is taken as defined everywhere)."""
+        from keo_service.core.corrections import MAP_TAPER_RAD
+
+        maps = [None] * self.nq if self.corrections is None else self.corrections.map_ranges()
+        if self.region is None or self.region.q_min.size != self.nq:
+            return maps
+        return [
+            rng
+            if rng is not None
+            else (
+                float(self.region.q_min[j]) - MAP_TAPER_RAD,
+                float(self.region.q_max[j]) + MAP_TAPER_RAD,
+            )
+            for j, rng in enumerate(maps)
+        ]
 
     def beyond_ranges(self, q: np.ndarray) -> list[list[tuple[int, float]]]:
         """Per row of q (N, nq): each joint outside its calibrated range and by how far (rad,
