@@ -152,7 +152,9 @@ class ToolModel:
         known, the model is taken as defined everywhere)."""
         from keo_service.core.corrections import MAP_TAPER_RAD
 
-        maps = [None] * self.nq if self.corrections is None else self.corrections.map_ranges()
+        maps: list[tuple[float, float] | None] = (
+            [None] * self.nq if self.corrections is None else self.corrections.map_ranges()
+        )
         if self.region is None or self.region.q_min.size != self.nq:
             return maps
         return [
