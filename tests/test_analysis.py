@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from keo_service.core.corrections import approach_directions
+from keo_service.core.model_corrections import approach_directions
 from keo_service.fit.analysis import Data, NotIdentifiableError, analyze
 from keo_service.fit.uncertainty import TrackerUncertainty
 from keo_service.io.interchange import read_estimates

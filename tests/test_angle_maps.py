@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from keo_service.core.corrections import MAP_TAPER_RAD, approach_directions
 from keo_service.core.estimator import Estimator
+from keo_service.core.model_corrections import MAP_TAPER_RAD, approach_directions
 from keo_service.fit.analysis import KEEP_MARGIN, MAPS, Data, analyze, split
 from keo_service.fit.angle_maps import hat_basis, try_maps
 from keo_service.fit.uncertainty import TrackerUncertainty

@@ -19,9 +19,9 @@ from keo_service.core.batch import (
     measured_errors,
 )
 from keo_service.core.chain import Chain
-from keo_service.core.corrections import Corrections
 from keo_service.core.estimator import Estimator, run_offline
 from keo_service.core.kinematics import Cell, measured_error
+from keo_service.core.model_corrections import ModelCorrections
 from keo_service.core.rules import first_beyond
 from keo_service.core.timing import DelayModel
 from keo_service.io.cell import estimator_settings
@@ -152,7 +152,7 @@ def test_a_corrected_model_with_backlash_compliance_and_maps(demo_cell, demo_con
     run = simulate(demo_cell, make_scenario("path", {"duration_s": "6"}), seed=9)
     lo, hi = np.percentile(run.encoder.q[:, 0], [25, 75])
     knots = np.linspace(lo, hi, 11)  # joint 1 leaves this range: flagged there
-    corr = Corrections(
+    corr = ModelCorrections(
         nq,
         joint_offsets=rng.normal(0, 1e-4, nq),
         compliance=np.full(nq, 1e-7),

@@ -11,8 +11,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from keo_service.core.chain import Chain
-from keo_service.core.corrections import Corrections
 from keo_service.core.kinematics import flange_pose, load_robot
+from keo_service.core.model_corrections import ModelCorrections
 from keo_service.core.rotations import log3_many
 from keo_service.fit.analysis import EFFECTS, ROT_WEIGHT, Data, Model
 from tests.conftest import CONFIGS
@@ -31,7 +31,7 @@ def _poses(robot, n, seed):
 
 def _corrections(nq, rng):
     """Every joint-angle effect and a geometry error on every joint, at sizes a real arm has."""
-    corr = Corrections(nq=nq)
+    corr = ModelCorrections(nq=nq)
     return dataclasses.replace(
         corr,
         joint_offsets=rng.normal(0, 1e-3, nq),
@@ -78,7 +78,7 @@ def test_uncorrected_flange_frames_are_the_nominal_chain():
     robot = _robot("ur10.urdf")
     q, _rng = _poses(robot, 200, seed=2)
     chain = Chain(robot)
-    R, p = chain.flange_frames(q, corr=Corrections(nq=robot.nq))
+    R, p = chain.flange_frames(q, corr=ModelCorrections(nq=robot.nq))
     data = robot.create_data()
     for k in range(q.shape[0]):
         T = flange_pose(robot, data, q[k])

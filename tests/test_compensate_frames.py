@@ -27,8 +27,8 @@ from keo_service.core.compensation import (
     compensate,
     pinning,
 )
-from keo_service.core.corrections import Corrections
 from keo_service.core.kinematics import load_robot, se3_from_xyz_rpy
+from keo_service.core.model_corrections import ModelCorrections
 from keo_service.io.cell import cell_from_config, probe_in_tool
 from keo_service.io.config import load_config
 from tests.conftest import CONFIGS, REPO, UR10_DATA, keo
@@ -73,7 +73,7 @@ def test_a_model_that_only_moves_base_and_flange_rigidly_corrects_nothing():
     maps = tuple(
         (np.array([-np.pi, np.pi]), np.full(2, v)) for v in (0.004, 0.0, 0.0, 0.0, 0.0, 0.002)
     )
-    corr = Corrections(robot.nq, joint_offsets=offsets, maps=maps)
+    corr = ModelCorrections(robot.nq, joint_offsets=offsets, maps=maps)
     unpinned = ToolModel(robot, corr, TOOL)
     before = compensate_program(unpinned, q[:20])
     assert np.sqrt(np.mean(before.correction_rad**2)) > 10e-3  # what the issue saw
@@ -93,10 +93,10 @@ def test_rigid_motions_added_to_a_model_leave_its_corrections_unchanged():
     q = calibration_joints(robot)
     placement = np.zeros((6, 6))
     placement[3] = [0.4e-3, -0.3e-3, 0.2e-3, 0.5e-3, 0.0, -0.3e-3]
-    genuine = Corrections(
+    genuine = ModelCorrections(
         robot.nq, joint_offsets=np.array([0.0, 1e-3, -0.8e-3, 0.0, 0.0, 0.0]), placement=placement
     )
-    gauge = Corrections(
+    gauge = ModelCorrections(
         robot.nq,
         joint_offsets=genuine.joint_offsets + np.array([7e-3, 0, 0, 0, 0, -5e-3]),
         placement=placement,

@@ -426,11 +426,11 @@ def test_feedforward_is_the_models_inverse_and_invalid_outside_its_range(demo_ce
     tool pose times C_ff is the nominal one, checked with Pinocchio), and joints beyond a
     joint map's knots make the correction not valid."""
     from keo_service.core.compensation import ToolModel
-    from keo_service.core.corrections import Corrections
     from keo_service.core.kinematics import flange_pose
+    from keo_service.core.model_corrections import ModelCorrections
 
     empty = (np.array([]), np.array([]))
-    corr = Corrections(
+    corr = ModelCorrections(
         6,
         joint_offsets=np.array([1e-3, -2e-3, 5e-4, 1e-3, -1e-3, 2e-3]),
         maps=(empty, (np.array([0.0, 0.5, 1.0]), np.array([0.0, 8e-4, 0.0])), *[empty] * 4),

@@ -1,4 +1,4 @@
-"""Corrections that fail safe: the correction stream's reaction to a beam break, an encoder
+"""ModelCorrections that fail safe: the correction stream's reaction to a beam break, an encoder
 stall, a step in the estimate and a NaN from a decoder. The service's own path runs here in
 one process: the estimator fed sample by sample as the service feeds it, each estimate turned
 into a correction by the service's CorrectionPublisher (published on a Zenoh session with no

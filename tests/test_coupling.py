@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from keo_service.core.chain import Chain
-from keo_service.core.corrections import approach_directions
+from keo_service.core.model_corrections import approach_directions
 from keo_service.fit.analysis import KEEP_MARGIN, Data, analyze, split
 from keo_service.fit.angle_maps import try_maps
 from keo_service.fit.coupling import try_couplings

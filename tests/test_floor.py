@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from keo_service.core.corrections import approach_directions
+from keo_service.core.model_corrections import approach_directions
 from keo_service.fit.analysis import Data, analyze, split
 from keo_service.fit.uncertainty import TrackerUncertainty, iso_path_figures, iso_pose_figures
 from keo_service.sim.simulate import make_scenario, simulate

@@ -16,7 +16,7 @@ from tests.conftest import CONFIGS, REPO
 CORE_MODULES = [
     "keo_service.core",
     "keo_service.core.chain",
-    "keo_service.core.corrections",
+    "keo_service.core.model_corrections",
     "keo_service.core.errors",
     "keo_service.core.estimator",
     "keo_service.core.kinematics",

@@ -182,7 +182,7 @@ def test_latest_alignment_runs_at_the_fixed_rate(demo_cell, run):
 
 
 def test_persisted_directions_equal_a_row_by_row_forward_fill():
-    from keo_service.core.corrections import persist_directions
+    from keo_service.core.model_corrections import persist_directions
 
     rng = np.random.default_rng(1)
     for _ in range(50):

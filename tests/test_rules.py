@@ -11,7 +11,7 @@ from collections import deque
 import numpy as np
 import pytest
 
-from keo_service.core.corrections import Corrections
+from keo_service.core.model_corrections import ModelCorrections
 from keo_service.core.rules import (
     CAP_MIN_INTERVALS,
     HELD_REASONS,
@@ -222,7 +222,7 @@ def test_calibrated_ranges_per_row_equal_the_array_form():
     maps = [(np.empty(0), np.empty(0))] * nq
     maps[1] = (knots, np.zeros(5))
     maps[4] = (knots + 1.0, np.zeros(5))
-    ranges = CalibratedRanges(Corrections(nq, maps=tuple(maps)))
+    ranges = CalibratedRanges(ModelCorrections(nq, maps=tuple(maps)))
     assert ranges.joints == [1, 4]
     q = np.random.default_rng(0).uniform(-1.0, 2.0, (500, nq))
     rows = ranges.outside_rows(q)

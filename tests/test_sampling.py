@@ -69,7 +69,7 @@ def test_the_fit_for_many_rows_reaches_the_exact_solvers_minimum(demo_cell, monk
     from scipy.spatial.transform import Rotation
 
     from keo_service.core.chain import Chain
-    from keo_service.core.corrections import approach_directions
+    from keo_service.core.model_corrections import approach_directions
     from keo_service.fit import model as fit_model
     from keo_service.fit.effects import EFFECTS
     from keo_service.fit.model import Data, Model, fit, initial_registration

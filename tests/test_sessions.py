@@ -11,7 +11,7 @@ import pinocchio as pin
 import pytest
 from scipy.spatial.transform import Rotation
 
-from keo_service.core.corrections import approach_directions
+from keo_service.core.model_corrections import approach_directions
 from keo_service.fit.analysis import Data, analyze, split_data
 from keo_service.sim.simulate import make_scenario, simulate
 from tests.conftest import REPO, UR10_DATA, keo

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from keo_service.core.chain import Chain
-from keo_service.core.corrections import MAP_TAPER_RAD, Corrections, taper_weight
+from keo_service.core.model_corrections import MAP_TAPER_RAD, ModelCorrections, taper_weight
 from keo_service.fit.accuracy import BAND_95, Accuracy, coverage, predicted_position_sigma
 from keo_service.fit.analysis import _combinations
 from keo_service.fit.effects import JointRipple, effect_from_config
@@ -26,7 +26,7 @@ CONFIG = Path(__file__).resolve().parents[1] / "configs" / "ur10_lasertracker.to
 def test_a_map_fades_to_zero_outside_its_range_joint_by_joint():
     knots = np.array([0.0, 0.5, 1.0])
     values = np.array([1e-3, -1e-3, 2e-3])
-    corr = Corrections(nq=2, maps=((knots, values), (knots, values)))
+    corr = ModelCorrections(nq=2, maps=((knots, values), (knots, values)))
     q = np.array(
         [
             [0.25, 1.0 + 0.5 * MAP_TAPER_RAD],  # joint 2 half the taper outside
@@ -67,7 +67,7 @@ def test_ripple_is_applied_as_written_in_the_config():
     assert got[1] - 0.3 == pytest.approx(expected, abs=1e-15)
     assert np.all(got[[0, 2, 3, 4, 5]] == 0.0)
     # the same as the fit's own application of the effect
-    via_effect = effect.correct(Corrections(nq=6), values).joint_angles(q)[0]
+    via_effect = effect.correct(ModelCorrections(nq=6), values).joint_angles(q)[0]
     assert via_effect == pytest.approx(got, abs=1e-15)
 
 
@@ -81,7 +81,7 @@ def test_the_spectrum_finds_an_injected_ripple():
     q = rng.uniform(-1.5, 1.5, size=(n, 6))
     q[:, 1] = rng.uniform(-2.0, -0.6, n)
     q[:, 2] = rng.uniform(-2.0, 2.0, n)
-    truth = Corrections(nq=6, ripple=((2, 0.37, 4e-4, 0.0),))
+    truth = ModelCorrections(nq=6, ripple=((2, 0.37, 4e-4, 0.0),))
     tau = chain.gravity_torques(q)
     R, p = chain.flange_frames(q, corr=truth, tau=tau)
     noise = 10e-6

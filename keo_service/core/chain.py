@@ -2,7 +2,7 @@
 `keo analyze` identifies. No I/O.
 
 The chain is read from the Pinocchio model (fixed placement, then a rotation about the joint's
-own axis, per joint). Corrections:
+own axis, per joint). ModelCorrections:
     joint angle:   q_eff = q + offsets + compliance * tau_gravity(q) + backlash * direction
                          + sum over harmonics (a sin(h q_j) + b cos(h q_j))
     geometry:      each joint placement M_j -> M_j exp6(delta_j)   (delta_j: 6-vector)
@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from keo_service.core.corrections import Corrections
 from keo_service.core.kinematics import RobotModel
+from keo_service.core.model_corrections import ModelCorrections
 
 
 def _skew(axis: np.ndarray) -> np.ndarray:
@@ -97,7 +97,7 @@ class Chain:
             carried[:3, :3] = S[:3, :3].T
         return steps, carried
 
-    def corrected_placements(self, corr: Corrections | None) -> list[np.ndarray]:
+    def corrected_placements(self, corr: ModelCorrections | None) -> list[np.ndarray]:
         """Each joint's placement with the geometry correction: M_j exp6(delta_j)."""
         if corr is None or not np.any(corr.placement):
             return self.placements
@@ -113,7 +113,7 @@ class Chain:
     def effective_joints(
         self,
         q: np.ndarray,
-        corr: Corrections,
+        corr: ModelCorrections,
         tau: np.ndarray | None = None,
         direction: np.ndarray | None = None,
     ) -> np.ndarray:
@@ -124,7 +124,7 @@ class Chain:
     def flange_poses(
         self,
         q: np.ndarray,
-        corr: Corrections | None = None,
+        corr: ModelCorrections | None = None,
         tau: np.ndarray | None = None,
         direction: np.ndarray | None = None,
     ) -> np.ndarray:
@@ -153,7 +153,7 @@ class Chain:
         q: np.ndarray,
         head: np.ndarray | None = None,
         tail: np.ndarray | None = None,
-        corr: Corrections | None = None,
+        corr: ModelCorrections | None = None,
         tau: np.ndarray | None = None,
         direction: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:

@@ -3,7 +3,7 @@
 One home for both uses of the identified model: the live correction (the command transform,
 its limits and filter) and the offline solve (`keo compensate`). "Correction" here always
 means the transform applied to a commanded tool pose; the identified model's own parameters
-are `keo_service.core.corrections.Corrections`.
+are `keo_service.core.model_corrections.ModelCorrections`.
 
 Frames (docs/design.md §1). The controller moves its *nominal* model: commanded tool pose
 T_cmd, it turns the joints to q with T_bt(q) = T_cmd, and the real tool lands at
@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from keo_service.core.corrections import Corrections
+from keo_service.core.model_corrections import ModelCorrections
 from keo_service.core.rotations import log3_many
 
 if TYPE_CHECKING:
@@ -85,14 +85,14 @@ def _apply(
 class ToolModel:
     """The tool pose of the nominal robot and of the identified model, for many joint
     configurations at once: the `Chain` over the nominal URDF, with the identified
-    `Corrections` (joint offsets, placement, compliance, backlash, cyclic terms, joint maps)
+    `ModelCorrections` (joint offsets, placement, compliance, backlash, cyclic terms, joint maps)
     applied exactly as `keo analyze` fitted them, the pinning (`base`, `flange`: 4x4, see the
     module text) and the flange -> tool transform T_nt (the user's TCP)."""
 
     def __init__(
         self,
         robot: RobotModel,
-        corrections: Corrections | None,
+        corrections: ModelCorrections | None,
         T_nt: np.ndarray,
         base: np.ndarray | None = None,
         flange: np.ndarray | None = None,
@@ -150,7 +150,7 @@ class ToolModel:
         for a joint without a map the calibration poses' range widened by the fade's width
         (`MAP_TAPER_RAD`), beyond which nothing identified there was seen (None: neither is
         known, the model is taken as defined everywhere)."""
-        from keo_service.core.corrections import MAP_TAPER_RAD
+        from keo_service.core.model_corrections import MAP_TAPER_RAD
 
         maps: list[tuple[float, float] | None] = (
             [None] * self.nq if self.corrections is None else self.corrections.map_ranges()
@@ -248,7 +248,7 @@ class Pinning:
 
 def pinning(
     robot: RobotModel,
-    corrections: Corrections | None,
+    corrections: ModelCorrections | None,
     q: np.ndarray,
     T_bk: np.ndarray,
     T_np: np.ndarray,

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from keo_service.core.corrections import Corrections
 from keo_service.core.errors import ConfigError
+from keo_service.core.model_corrections import ModelCorrections
 
 POSE_CHANNELS = ("px", "py", "pz", "rx", "ry", "rz")
 POSITION_CHANNELS = ("px", "py", "pz")
@@ -115,7 +115,7 @@ class Cell:
     robot: RobotModel
     T_nt: pin.SE3  # flange -> nominal tool
     T_bk: pin.SE3  # base -> tracker
-    corrections: Corrections | None = None  # an identified model (keo analyze), if any
+    corrections: ModelCorrections | None = None  # an identified model (keo analyze), if any
     nominal_model: pin.Model | None = None  # for gravity torques when robot.model is corrected
     gravity_data: pin.Data | None = None  # scratch for those torques (not per sample)
 

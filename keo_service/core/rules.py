@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from keo_service.core.corrections import Corrections
+from keo_service.core.model_corrections import ModelCorrections
 from keo_service.core.observer import finite_numbers
 from keo_service.core.settings import EstimatorSettings, encoder_capacity
 from keo_service.core.timing import Coverage
@@ -431,7 +431,7 @@ class CalibratedRanges:
 
     __slots__ = ("high", "joints", "low")
 
-    def __init__(self, corrections: Corrections | None) -> None:
+    def __init__(self, corrections: ModelCorrections | None) -> None:
         ranges = corrections.map_ranges() if corrections is not None else []
         spans = [(j, r) for j, r in enumerate(ranges) if r is not None]
         self.joints = [j for j, _r in spans]

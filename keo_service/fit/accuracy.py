@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from keo_service.core.corrections import MAP_TAPER_RAD
+from keo_service.core.model_corrections import MAP_TAPER_RAD
 
 BAND_95 = 2.795 / np.sqrt(3.0)  # 95 % quantile of |e| / RMS(|e|) for a 3-D Gaussian
 

@@ -491,7 +491,7 @@ def _judge_carried_maps(
     them; the held-out blocks stay untouched for the figures): joint by joint, a map whose
     removal lowers the error is dropped; then the maps left must lower the error by
     KEEP_MARGIN against the same model without any. Outside its calibrated angles each map
-    fades to zero (core.corrections.MAP_TAPER_RAD), so a pose outside on one joint keeps the
+    fades to zero (core.model_corrections.MAP_TAPER_RAD), so a pose outside on one joint keeps the
     other joints' maps."""
     maps = model.find(JointMaps)
     assert maps is not None

@@ -9,7 +9,7 @@ Jacobian columns beside the maps'), with a penalty on the maps' second differenc
 (smoothness) and a tiny ridge (a constant or linear map is the same as a joint offset or a
 scale and would otherwise be undetermined). Knot spacing and smoothing weight are chosen by
 cross-validation over blocks of the training poses. Outside its knots a map fades to zero over
-core.corrections.MAP_TAPER_RAD (each joint on its own); the live estimator flags such samples
+core.model_corrections.MAP_TAPER_RAD (each joint on its own); the live estimator flags such samples
 (`outside_calibrated_range`).
 
 One residual evaluation per joint gives every pose's derivative at once (each pose depends
@@ -27,7 +27,7 @@ import numpy as np
 from scipy import sparse
 from scipy.linalg import block_diag, cho_factor, cho_solve
 
-from keo_service.core.corrections import taper_weight
+from keo_service.core.model_corrections import taper_weight
 from keo_service.fit.analysis import describe_remaining
 from keo_service.fit.effects import JointMaps
 from keo_service.fit.model import Data, Model, numeric_jacobian, stats
@@ -84,7 +84,7 @@ def knots_for(q: np.ndarray, spacing: float) -> tuple[np.ndarray, ...]:
 
 def hat_weights(q: np.ndarray, knots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per angle the left knot's index and the two knots' weights of linear interpolation,
-    both scaled by the taper outside the knots (as core.corrections.tapered_interp)."""
+    both scaled by the taper outside the knots (as core.model_corrections.tapered_interp)."""
     qc = np.clip(q, knots[0], knots[-1])
     i = np.clip(np.searchsorted(knots, qc) - 1, 0, knots.size - 2)
     w = (qc - knots[i]) / (knots[i + 1] - knots[i])

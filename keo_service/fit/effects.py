@@ -1,6 +1,6 @@
 """The effects `keo analyze` can add to the nominal model: one class per effect, all behind the
 `Effect` protocol (fit.model: what the model needs of an effect). An effect knows its
-parameter count, how its values change the joints (through `Corrections`) or the sensor's
+parameter count, how its values change the joints (through `ModelCorrections`) or the sensor's
 position, how its numbers read (records with joint, parameter and unit), whether the fit
 reduces it to the directions the data identifies, and how it is written to and read from the
 config's [model] section. Nothing outside this module compares an effect's name: a new effect
@@ -16,18 +16,18 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from keo_service.core.corrections import Corrections
+from keo_service.core.model_corrections import ModelCorrections
 from keo_service.fit.model import Data, Effect, Model
 
 
-def _set(corr: Corrections, **kw: np.ndarray) -> Corrections:
+def _set(corr: ModelCorrections, **kw: np.ndarray) -> ModelCorrections:
     fields: dict[str, Any] = kw
     return dataclasses.replace(corr, **fields)
 
 
 @dataclass(frozen=True)
 class _PerJoint:
-    """An effect with the same few numbers for every joint, applied through Corrections."""
+    """An effect with the same few numbers for every joint, applied through ModelCorrections."""
 
     name: ClassVar[str]
     description: ClassVar[str]
@@ -41,7 +41,7 @@ class _PerJoint:
     def usable(self, data: Data) -> bool:
         return True
 
-    def correct(self, corr: Corrections, values: np.ndarray) -> Corrections:
+    def correct(self, corr: ModelCorrections, values: np.ndarray) -> ModelCorrections:
         raise NotImplementedError
 
     def sensor_offset(self, values: np.ndarray, data: Data, model: Model) -> np.ndarray | None:
@@ -80,7 +80,7 @@ class JointOffsets(_PerJoint):
     labels: ClassVar[tuple[tuple[str, str], ...]] = (("zero offset", "rad"),)
     config_key: ClassVar[str] = "joint_offsets"
 
-    def correct(self, corr: Corrections, values: np.ndarray) -> Corrections:
+    def correct(self, corr: ModelCorrections, values: np.ndarray) -> ModelCorrections:
         return _set(corr, joint_offsets=corr.joint_offsets + values)
 
 
@@ -98,7 +98,7 @@ class Geometry(_PerJoint):
     )
     config_key: ClassVar[str] = "placement"
 
-    def correct(self, corr: Corrections, values: np.ndarray) -> Corrections:
+    def correct(self, corr: ModelCorrections, values: np.ndarray) -> ModelCorrections:
         return _set(corr, placement=corr.placement + values.reshape(-1, 6))
 
 
@@ -109,7 +109,7 @@ class Compliance(_PerJoint):
     labels: ClassVar[tuple[tuple[str, str], ...]] = (("compliance", "rad/(N m)"),)
     config_key: ClassVar[str] = "compliance"
 
-    def correct(self, corr: Corrections, values: np.ndarray) -> Corrections:
+    def correct(self, corr: ModelCorrections, values: np.ndarray) -> ModelCorrections:
         return _set(corr, compliance=corr.compliance + values)
 
 
@@ -123,7 +123,7 @@ class Backlash(_PerJoint):
     def usable(self, data: Data) -> bool:
         return data.direction is not None
 
-    def correct(self, corr: Corrections, values: np.ndarray) -> Corrections:
+    def correct(self, corr: ModelCorrections, values: np.ndarray) -> ModelCorrections:
         return _set(corr, backlash=corr.backlash + values)
 
 
@@ -139,7 +139,7 @@ class Cyclic(_PerJoint):
     )
     config_key: ClassVar[str] = "cyclic"
 
-    def correct(self, corr: Corrections, values: np.ndarray) -> Corrections:
+    def correct(self, corr: ModelCorrections, values: np.ndarray) -> ModelCorrections:
         return _set(corr, cyclic=corr.cyclic + values.reshape(-1, 2, 2))
 
 
@@ -160,7 +160,7 @@ class _SensorDrift:
     def usable(self, data: Data) -> bool:
         return True
 
-    def correct(self, corr: Corrections, values: np.ndarray) -> Corrections:
+    def correct(self, corr: ModelCorrections, values: np.ndarray) -> ModelCorrections:
         return corr
 
     def variable(self, data: Data, model: Model) -> np.ndarray:
@@ -260,7 +260,7 @@ class JointMaps:
     def usable(self, data: Data) -> bool:
         return True
 
-    def correct(self, corr: Corrections, values: np.ndarray) -> Corrections:
+    def correct(self, corr: ModelCorrections, values: np.ndarray) -> ModelCorrections:
         return dataclasses.replace(corr, maps=split_maps(self.knots, values))
 
     def sensor_offset(self, values: np.ndarray, data: Data, model: Model) -> np.ndarray | None:
@@ -337,7 +337,7 @@ class Couplings:
             i += 1 + kn.size
         return out
 
-    def correct(self, corr: Corrections, values: np.ndarray) -> Corrections:
+    def correct(self, corr: ModelCorrections, values: np.ndarray) -> ModelCorrections:
         return dataclasses.replace(corr, couplings=tuple(self.split(values)))
 
     def sensor_offset(self, values: np.ndarray, data: Data, model: Model) -> np.ndarray | None:
@@ -433,7 +433,7 @@ class JointRipple:
         terms, spectra = find_terms(model, x, data, tau, noise)
         return JointRipple(tuple(terms)), spectra
 
-    def correct(self, corr: Corrections, values: np.ndarray) -> Corrections:
+    def correct(self, corr: ModelCorrections, values: np.ndarray) -> ModelCorrections:
         ripple = tuple(
             (j, p, float(values[2 * i]), float(values[2 * i + 1]))
             for i, (j, p) in enumerate(self.terms)

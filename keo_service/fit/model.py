@@ -19,8 +19,8 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from keo_service.core.chain import Chain, times_constant_frames
-from keo_service.core.corrections import Corrections
 from keo_service.core.errors import KeoError
+from keo_service.core.model_corrections import ModelCorrections
 from keo_service.core.rotations import log3_many, transposed_times
 
 ROT_WEIGHT = 0.5  # m per rad: 20 um of position ~ 40 urad of orientation
@@ -59,7 +59,7 @@ class Effect(Protocol):
         """Whether these data carry what the effect needs (a column, a direction)."""
         ...
 
-    def correct(self, corr: Corrections, values: np.ndarray) -> Corrections:
+    def correct(self, corr: ModelCorrections, values: np.ndarray) -> ModelCorrections:
         """The joint-level corrections with this effect's values added."""
         ...
 
@@ -201,9 +201,9 @@ class Model:
                 part = self.basis[effect.name] @ part
             yield effect, part
 
-    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, Corrections]:
+    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, ModelCorrections]:
         """The first session's T_bk, the mount T_ns and the corrections."""
-        corr = Corrections(nq=self.chain.nq)
+        corr = ModelCorrections(nq=self.chain.nq)
         for effect, part in self.parts(x):
             corr = effect.correct(corr, part)
         return self.registrations(x)[0], self.mount(x), corr
@@ -290,7 +290,7 @@ class Model:
         return out.ravel()
 
     def flange_frames(
-        self, corr: Corrections, data: Data, tau: np.ndarray
+        self, corr: ModelCorrections, data: Data, tau: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """Base -> flange of every pose (copies), the chain reused when the corrections and
         the data are the same as the last call's: a finite-difference Jacobian moves the
@@ -304,7 +304,7 @@ class Model:
         return cached[3].copy(), cached[4].copy()
 
 
-def _corrections_key(corr: Corrections) -> bytes:
+def _corrections_key(corr: ModelCorrections) -> bytes:
     parts = [
         getattr(corr, name).tobytes()
         for name in ("joint_offsets", "compliance", "backlash", "cyclic", "placement")

@@ -16,8 +16,8 @@ import numpy as np
 import pinocchio as pin
 
 from keo_service.core.chain import Chain
-from keo_service.core.corrections import MAP_TAPER_RAD
 from keo_service.core.errors import KeoError
+from keo_service.core.model_corrections import MAP_TAPER_RAD
 from keo_service.fit.accuracy import Accuracy
 from keo_service.fit.analysis import Analysis
 from keo_service.fit.effects import JointMaps, config_fields, effect_from_config

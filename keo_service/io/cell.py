@@ -7,9 +7,9 @@ import numpy as np
 import pinocchio as pin
 
 from keo_service.core.compensation import CalibratedRegion, RegionBand, ToolModel
-from keo_service.core.corrections import Corrections
 from keo_service.core.errors import ConfigError
 from keo_service.core.kinematics import Cell, RobotModel, load_robot, se3_from_xyz_rpy
+from keo_service.core.model_corrections import ModelCorrections
 from keo_service.core.settings import EstimatorSettings
 from keo_service.core.timing import DelayModel
 from keo_service.io.config import Config, ModelConfig, TimingConfig
@@ -141,8 +141,8 @@ def _with_pinning(
     )
 
 
-def corrections_from_config(model: ModelConfig, nq: int, source: str) -> Corrections | None:
-    """The [model] section as Corrections (None when empty); lengths checked per key."""
+def corrections_from_config(model: ModelConfig, nq: int, source: str) -> ModelCorrections | None:
+    """The [model] section as ModelCorrections (None when empty); lengths checked per key."""
     sizes = {
         "joint_offsets": nq,
         "compliance": nq,
@@ -165,7 +165,7 @@ def corrections_from_config(model: ModelConfig, nq: int, source: str) -> Correct
         return None
     shapes = {"cyclic": (nq, 2, 2), "placement": (nq, 6)}
     given = {k: v.reshape(shapes.get(k, (nq,))) for k, v in values.items() if v is not None}
-    return Corrections(nq, **given, maps=maps, couplings=couplings, ripple=ripple)
+    return ModelCorrections(nq, **given, maps=maps, couplings=couplings, ripple=ripple)
 
 
 def _ripple_from_config(

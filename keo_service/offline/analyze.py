@@ -13,8 +13,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from keo_service.core.chain import Chain
-from keo_service.core.corrections import approach_directions, persist_directions
 from keo_service.core.errors import KeoError
+from keo_service.core.model_corrections import approach_directions, persist_directions
 from keo_service.core.rules import DIRECTION_DEADBAND
 from keo_service.core.timing import DelayModel
 from keo_service.fit.accuracy import (

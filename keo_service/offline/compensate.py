@@ -28,7 +28,7 @@ from keo_service.core.compensation import (
 from keo_service.core.compensation import (
     compensate as solve_targets,
 )
-from keo_service.core.corrections import approach_directions
+from keo_service.core.model_corrections import approach_directions
 from keo_service.core.rotations import quaternion_matrices
 from keo_service.io.cell import tool_model
 from keo_service.io.config import Config, load_config

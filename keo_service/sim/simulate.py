@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from keo_service.core.corrections import approach_directions
 from keo_service.core.errors import ConfigError
 from keo_service.core.kinematics import (
     Cell,
@@ -25,6 +24,7 @@ from keo_service.core.kinematics import (
     position_error,
     quat_wxyz,
 )
+from keo_service.core.model_corrections import approach_directions
 from keo_service.io.interchange import (
     EncoderData,
     TrackerData,

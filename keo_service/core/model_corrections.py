@@ -1,4 +1,4 @@
-"""Corrections to the nominal kinematic model that `keo analyze` identifies (data only)."""
+"""ModelCorrections to the nominal kinematic model that `keo analyze` identifies (data only)."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ def tapered_interp(q: np.ndarray, knots: np.ndarray, values: np.ndarray) -> np.n
 
 
 @dataclass(frozen=True)
-class Corrections:
+class ModelCorrections:
     nq: int
     joint_offsets: np.ndarray = field(default=None)  # type: ignore[arg-type]
     compliance: np.ndarray = field(default=None)  # type: ignore[arg-type]  # rad/(N m)
