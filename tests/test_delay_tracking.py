@@ -333,3 +333,52 @@ async def test_estimates_are_flagged_until_an_unknown_delay_settles(demo_config)
         assert status.delay_tracking.startswith("unknown, unsettled" if flagged else "configured")
         if not flagged:
             assert msg.delay_se_s == pytest.approx(0.0005)  # the configured prior's default
+
+
+def _rigid_stream(
+    speed_of_t, seconds: float = 4.0, rate: float = 100.0, noise: float = 10e-6, seed: int = 0
+):
+    """A tool point moving along x at speed_of_t(t), its orientation turning about z at
+    speed/radius (so that, for a constant speed, it goes round a circle of that radius and its
+    velocity in its own frame is constant), sampled with white position noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, seconds, 1.0 / rate)
+    radius = 1.5
+    v = speed_of_t(t)
+    angle = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))]) / radius
+    p = np.column_stack([radius * np.sin(angle), radius * (1 - np.cos(angle)), np.zeros_like(t)])
+    # the turn, then a small rotation of white noise (noise rad about each axis)
+    c, s = np.cos(angle / 2), np.sin(angle / 2)
+    n = 0.5 * rng.normal(0.0, noise, (t.size, 3))  # half-angles, in m read as rad
+    quat = np.column_stack(
+        [c - s * n[:, 2], c * n[:, 0] - s * n[:, 1], c * n[:, 1] + s * n[:, 0], c * n[:, 2] + s]
+    )
+    return t, p + rng.normal(0.0, noise, p.shape), quat, v
+
+
+def test_separable_se_says_a_constant_turn_cannot_separate_a_delay():
+    """Round a circle at constant speed, the tool-frame velocity is constant: no delay can
+    be told from a constant tool error (the analytic information is zero)."""
+    from keo_service.fit.delay_online import separable_se
+
+    t, p, quat, _ = _rigid_stream(lambda t: np.full_like(t, 0.2))
+    assert separable_se(t, p, quat) > 1e-3  # 1 ms at 0.2 m/s is 200 um: nothing said
+
+
+def test_separable_se_matches_the_analytic_information_of_a_varying_speed():
+    """With the speed varying, the se is the noise over the root sum of squares of the
+    velocity's part beyond a constant and a straight line (computed here from the true,
+    noise-free speed), position and orientation each with its noise."""
+    from keo_service.fit.delay_online import separable_se
+
+    def speed(t):
+        return 0.2 + 0.05 * np.sin(2 * np.pi * 0.5 * t)
+
+    t, p, quat, _ = _rigid_stream(speed)
+    tm = 0.5 * (t[1:] + t[:-1])
+    vm = speed(tm)
+    line = np.polyval(np.polyfit(tm, vm, 1), tm)
+    # the position's share (noise 10 um) and the orientation's: w = v / radius (10 urad)
+    info = float(np.sum((vm - line) ** 2)) * (1.0 + 1.0 / 1.5**2) / (10e-6) ** 2
+    expected = 1.0 / math.sqrt(info)
+    assert separable_se(t, p, quat) == pytest.approx(expected, rel=0.3)

@@ -33,6 +33,9 @@ class DelayMeasurement:
     current_s: float = math.nan  # the delay in use when the stretch was fitted
     t_mid: float = math.nan  # the stream time the fit describes (its stretch's middle; nan: t)
     rms_m: float = 0.0  # the residual scatter at the fitted delay (m, moving samples)
+    # how well the stretch's motion alone separates a delay from a constant error in the
+    # tool frame and a slow drift (`separable_se`); nan: not measured (no orientation)
+    sep_se_s: float = math.nan
 
     @property
     def described_t(self) -> float:
@@ -87,6 +90,7 @@ class _Fit:
     speed: float  # the tool's RMS speed over it (m/s)
     rms: float  # the residual scatter at the fitted delay (m, moving samples)
     young: bool = False  # of a young clock mapping's stamps, which still move
+    sep_se: float = math.nan  # `separable_se` of its stretch (nan: not measured)
 
 
 class OnlineDelayTracker:
@@ -474,6 +478,7 @@ class OnlineDelayTracker:
             current,
             middle,
             fit.residual_rms_moving if math.isfinite(fit.residual_rms_moving) else 0.0,
+            separable_se(trk_t, trk_p, trk_q),
         )
 
     def combine(self, found: DelayMeasurement | DelayRefused) -> float | None:
@@ -502,7 +507,15 @@ class OnlineDelayTracker:
             return None
         self.counters["fits_accepted"] += 1  # usable: they join the recent fits
         self._recent.append(
-            _Fit(value, se, found.described_t, speed, found.rms_m, young=provisional)
+            _Fit(
+                value,
+                se,
+                found.described_t,
+                speed,
+                found.rms_m,
+                young=provisional,
+                sep_se=found.sep_se_s,
+            )
         )
         before = self.applied
         decision = self._decide(found.t)
@@ -598,7 +611,13 @@ class OnlineDelayTracker:
                 c, se_c = newest.value, self.honest_se(newest.se)
             self._take(c, se_c, t, step=True)
             grown = len(members) >= 3 and not any(f.young for f in members)
-            if grown and se_c * speed <= self.settings.settle_m:
+            # and the motion itself separates a delay (not so for one joint at constant
+            # speed, whose fits agree on a value the motion cannot tell from a tool error)
+            separates = not newest.sep_se * newest.speed > self.settings.settle_m
+            # fits of one motion are biased alike (the stamps' errors and the stretches'
+            # error model change slowly): their mean is known no better than the best of them
+            se_settle = max(se_c, min(self.honest_se(f.se) for f in members))
+            if grown and separates and se_settle * speed <= self.settings.settle_m:
                 self.settled = True
                 self._trend.start(c, se_c * se_c, newest.t)
                 self._trend_fits = 0
@@ -624,6 +643,14 @@ class OnlineDelayTracker:
         if len(confirming) < 2 or confirming[-1] is not newest:
             self.counters["changes_unconfirmed"] += 1
             return f"{said}; kept: {agreed}, waiting for a later stretch to confirm"
+        if self.settings.change_sigmas * newest.sep_se > abs(c - applied):
+            # nan (not measured) passes; the newest stretch's motion must show the change
+            # beyond what a constant tool error and a slow drift can take
+            self.counters["changes_not_separable"] += 1
+            return (
+                f"{said}; kept: {agreed}, but the newest stretch's motion cannot separate "
+                f"a delay from a tool error to better than {newest.sep_se * 1e6:.0f} us"
+            )
         old = math.hypot(newest.rms, (applied - newest.value) * newest.speed)
         new = math.hypot(newest.rms, (c - newest.value) * newest.speed)
         if not new < old:
@@ -858,3 +885,61 @@ def _on_line(anchor: Anchor | None, stamps: list[tuple[float, float | None]]) ->
         mapped = ~np.isnan(device)
         t[mapped] = anchor.at(device[mapped])
     return t
+
+
+def _quat_matrices(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices of unit quaternions (w, x, y, z), one per row."""
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        1,
+    )
+
+
+def _unexplained(t: np.ndarray, r: np.ndarray, degree: int = 6) -> float:
+    """Sum of squares of the smooth part of r(t) (a polynomial of `degree` in time, which
+    leaves the samples' noise out) beyond a constant and a straight line in time."""
+    x = (t - t.mean()) / max(float(np.ptp(t)), 1e-9) * 2.0
+    smooth = np.polynomial.polynomial.polyval(x, np.polynomial.polynomial.polyfit(x, r, degree)).T
+    line = np.polynomial.polynomial.polyval(x, np.polynomial.polynomial.polyfit(x, r, 1)).T
+    return float(np.sum((smooth - line) ** 2))
+
+
+def separable_se(trk_t: np.ndarray, trk_p: np.ndarray, trk_q: np.ndarray | None) -> float:
+    """The standard error a delay could have from this stretch's motion alone, once a
+    constant error in the tool frame and a slow (linear in time) drift of it are allowed:
+    a delay changes the measured error by the tool's velocity times the delay, in the tool
+    frame R^T v (and R^T w for the orientation), so only the part of that signature which
+    is neither constant nor a straight line in time tells a delay from a tool calibration
+    error or from a geometric error varying smoothly along the path. For one joint turning
+    at constant speed the signature is constant: no stretch of it separates a delay, however
+    small the fit's own standard error. The noise is the tracker's own, from its samples'
+    second differences. inf: nothing separates; nan: no orientation to say (not measured)."""
+    if trk_q is None or trk_t.size < 20:
+        return math.nan
+    dt = np.diff(trk_t)
+    if not (dt > 0).all():
+        return math.nan
+    R = _quat_matrices(np.asarray(trk_q, dtype=float))
+    # the position's and the orientation's increments, in the tool (sensor) frame
+    dp = np.einsum("nji,nj->ni", R[:-1], np.diff(trk_p, axis=0))
+    rel = np.einsum("nji,njk->nik", R[:-1], R[1:])  # R_i^T R_(i+1)
+    dw = 0.5 * np.stack(
+        [rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]],
+        -1,
+    )
+    t_mid = 0.5 * (trk_t[1:] + trk_t[:-1])
+    info = 0.0
+    for inc in (dp, dw):
+        # the noise of one sample: increments' differences carry it 6 times (1, -2, 1)
+        sigma = max(
+            float(np.mean([_mad_sigma(np.diff(inc[:, c])) for c in range(3)])) / math.sqrt(6),
+            1e-12,
+        )
+        info += _unexplained(t_mid, inc / dt[:, None]) / sigma**2
+    return math.inf if info <= 0 else 1.0 / math.sqrt(info)
