@@ -34,7 +34,11 @@ def build(out: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--check", action="store_true", help="build with warnings as errors; say when docs/api/ is stale")
+    parser.add_argument(
+        "--check",
+        action="store_true",
+        help="build with warnings as errors; say when docs/api/ is stale",
+    )
     args = parser.parse_args(argv)
     if not args.check:
         build(OUT)
