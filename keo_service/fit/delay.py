@@ -386,7 +386,7 @@ def fit_delay(
             nch,
             float(inflate),
         )
-        explained, spread_note = _consistent(windows)
+        explained, spread_note = _consistent(windows, _sample_interval(enc_t))
         if not explained:
             notes.append(spread_note)
     return DelayFit(
@@ -489,7 +489,16 @@ def _window_delays(
     return out
 
 
-def _consistent(windows: list[tuple[float, float]]) -> tuple[bool, str]:
+def _sample_interval(t: np.ndarray) -> float:
+    """The stream's median sample interval (s; 0 when it has fewer than two samples)."""
+    return float(np.median(np.diff(t))) if t.size > 1 else 0.0
+
+
+def _consistent(windows: list[tuple[float, float]], enc_interval_s: float) -> tuple[bool, str]:
+    """Whether the windows agree on one delay: statistically (with the windows'
+    clustered se, at 0.1 %) and practically (by more than 1 ms, and by more than a tenth of the
+    encoder's sample interval: a stream stamped on receipt moves each window's delay by a
+    fraction of its interval, which the windows' se do not fully carry)."""
     from scipy.stats import chi2
 
     if len(windows) < 3:
@@ -504,9 +513,9 @@ def _consistent(windows: list[tuple[float, float]]) -> tuple[bool, str]:
     mean = float(np.sum(w * est) / np.sum(w))
     stat = float(np.sum(((est - mean) / se) ** 2))
     p = float(chi2.sf(stat, est.size - 1))
-    # statistically (at 1 %, with the windows clustered se) and practically different:
+    # statistically (at 0.1 %, with the windows clustered se) and practically different:
     # within 1 ms a constant delay serves
-    if p >= 0.01 or np.ptp(est) < PRACTICAL_SPREAD_S:
+    if p >= 0.001 or np.ptp(est) < max(PRACTICAL_SPREAD_S, 0.1 * enc_interval_s):
         return True, ""
     return False, (
         f"no constant delay (and drift) explains these streams: stretches of the "
