@@ -3,6 +3,8 @@ and delay model. The one place where config keys meet the math's types."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pinocchio as pin
 
@@ -101,15 +103,7 @@ def _with_placement_corrections(robot: RobotModel, placement: np.ndarray) -> Rob
         model.jointPlacements[j] = model.jointPlacements[j] * pin.exp6(
             pin.Motion(delta[:3], delta[3:])
         )
-    return RobotModel(
-        model,
-        robot.base_frame_id,
-        robot.flange_frame_id,
-        robot.joint_names,
-        robot.lower,
-        robot.upper,
-        robot.velocity_limit,
-    )
+    return dataclasses.replace(robot, model=model)
 
 
 def _with_pinning(
@@ -130,15 +124,7 @@ def _with_pinning(
         frame = model.frames[robot.flange_frame_id]
         frame.placement = frame.placement * pin.SE3(flange)
         model.frames[robot.flange_frame_id] = frame
-    return RobotModel(
-        model,
-        robot.base_frame_id,
-        robot.flange_frame_id,
-        robot.joint_names,
-        robot.lower,
-        robot.upper,
-        robot.velocity_limit,
-    )
+    return dataclasses.replace(robot, model=model)
 
 
 def corrections_from_config(model: ModelConfig, nq: int, source: str) -> ModelCorrections | None:
