@@ -169,6 +169,9 @@ class UdpEncoderAdapter(EncoderAdapter):
         self._declare_publishers(session)
         self._peer: tuple[str | Any, int] | None = None
         self.reply_us: collections.deque[float] = collections.deque(maxlen=REPLY_WINDOW)
+        # the same span in this thread's CPU time: what the answer costs keo, apart from the
+        # time the scheduler or a hypervisor kept the thread waiting
+        self.reply_cpu_us: collections.deque[float] = collections.deque(maxlen=REPLY_WINDOW)
         self.reply_max_us = 0.0
         self.cycle_s = DEFAULT_CYCLE_S
         self._last_device_ms: float | None = None
@@ -209,6 +212,7 @@ class UdpEncoderAdapter(EncoderAdapter):
         self, data: bytes, addr: tuple[str | Any, int], transport: asyncio.DatagramTransport
     ) -> None:
         start = time.perf_counter_ns()
+        start_cpu = time.thread_time_ns()
         host_ns = time.time_ns()
         new_peer = addr != self._peer
         if new_peer:
@@ -226,6 +230,7 @@ class UdpEncoderAdapter(EncoderAdapter):
             correction = self.correction.next(time.monotonic(), self.cycle_s)
         transport.sendto(self.reply(frame, correction), addr)
         took_us = (time.perf_counter_ns() - start) * 1e-3
+        self.reply_cpu_us.append((time.thread_time_ns() - start_cpu) * 1e-3)
         self.reply_us.append(took_us)
         self.reply_max_us = max(self.reply_max_us, took_us)
         self.counters["replies"] += 1
@@ -282,6 +287,7 @@ class UdpEncoderAdapter(EncoderAdapter):
 
     def status(self) -> dict[str, Any]:
         replies = np.array(self.reply_us) if self.reply_us else np.zeros(1)
+        cpu = np.array(self.reply_cpu_us) if self.reply_cpu_us else np.zeros(1)
         return {
             "adapter": self.name,
             "protocol": self.protocol,
@@ -290,6 +296,8 @@ class UdpEncoderAdapter(EncoderAdapter):
                 "last": float(replies[-1]),
                 "p99": float(np.percentile(replies, 99)),
                 "max": self.reply_max_us,
+                "cpu_p50": float(np.percentile(cpu, 50)),
+                "cpu_p99": float(np.percentile(cpu, 99)),
             },
             "cycle_ms": self.cycle_s * 1e3,
             "scheduling": self.scheduling,
