@@ -168,6 +168,7 @@ def ur10_b(tmp_path_factory):
 
 
 @pytest.mark.e2e
+@pytest.mark.slow  # the analysis of Series B behind it takes a minute or more on two cores
 def test_corrections_on_the_real_ur10_data_are_the_size_of_the_nominal_error(ur10_b, tmp_path):
     """60 joint rows of Series B itself, compensated with the model.toml moved to another
     folder (it travels): corrections within 1.5x of the nominal model's held-out error, the
