@@ -330,7 +330,11 @@ def register(add: common.AddCommand) -> None:
     p.add_argument("--config", default=str(demo_config_path()))
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--json", action="store_true")
+    _register_model(add)
 
+
+def _register_model(add: common.AddCommand) -> None:
+    """The identified model's two commands: `analyze` writes it, `compensate` uses it."""
     p = add("analyze", cmd_analyze, "what the model still gets wrong, effects added and judged")
     p.add_argument(
         "--encoder",
@@ -347,6 +351,7 @@ def register(add: common.AddCommand) -> None:
         help="keep the effects in the config; re-identify tracker and tool only",
     )
     p.add_argument("--json", action="store_true")
+
     p = add(
         "compensate",
         cmd_compensate,
