@@ -246,7 +246,9 @@ class Estimator:
             return self._advance()
         return []
 
-    def on_tracker(
+    # complexity (C901): the hot path keeps its checks inline, since a Python call per check
+    # is a real share of a sample's cost (docs/performance.md times the pieces)
+    def on_tracker(  # noqa: C901
         self,
         t: float,
         p: Sequence[float] | np.ndarray | None,
