@@ -117,6 +117,7 @@ class Estimate:
 
     @property
     def measured(self) -> np.ndarray | None:
+        """The measured error per channel (m, rad), an array; None when held."""
         m = self._measured
         if m is None or isinstance(m, np.ndarray):
             return m
@@ -125,6 +126,7 @@ class Estimate:
 
     @property
     def estimate(self) -> np.ndarray:
+        """The observer's estimate per channel (m, rad), an array."""
         e = self._estimate
         if isinstance(e, np.ndarray):
             return e

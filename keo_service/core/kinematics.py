@@ -243,8 +243,8 @@ def measured_error_folded(
 
     Three native calls (kinematics, frame placement, T_kt as position and quaternion); the
     error transform T_ts = T_kt^-1 T_ks is formed on plain floats: in the service each
-    sample wakes a cold CPU, where a native call costs 5-12 us and a line of float
-    arithmetic a fraction of that."""
+    sample wakes a cold CPU, where a native call costs several times a line of float
+    arithmetic (docs/performance.md times both)."""
     pin.forwardKinematics(frames.model, data, q)
     T_kt = pin.updateFramePlacement(frames.model, data, frames.tool_frame_id)
     tx, ty, tz, ax, ay, az, aw = pin.SE3ToXYZQUAT(T_kt).tolist()
