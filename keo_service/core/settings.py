@@ -11,9 +11,9 @@ from keo_service.core.timing import DelayModel
 
 @dataclass(frozen=True)
 class EstimatorSettings:
-    """How the estimator aligns the streams and filters the measured error: the [observer]
-    and [timing] keys of a config (`estimator_settings` reads them; docs/config.md says what
-    each does).
+    """How the estimator aligns the streams and filters the measured error
+    (`estimator_settings` reads them from a config's [observer] and [timing] sections, all
+    but `start`; docs/config.md says what each key does).
 
     Attributes:
         gains: the observer's gain per channel, px, py, pz, rx, ry, rz (1/s): the estimate
@@ -23,7 +23,8 @@ class EstimatorSettings:
         delay: offset (s) and drift (s/s) of the tracker's stamps behind the encoder's.
         alignment: "interpolate" (the joints at each pose's time) or "latest" (the reference
             method: the newest joints at `sample_rate_hz`).
-        sample_rate_hz: the fixed rate of "latest" alignment (Hz); also the first step's dt.
+        sample_rate_hz: the fixed rate of "latest" alignment (Hz); from a zero start, the
+            first step is taken as one period of it.
         buffer_s: encoder samples kept for alignment (s of stream time).
         max_gap_s: two encoder samples further apart (s) are not interpolated between.
         stale_after_s: a pose waits at most this long (s of stream time) for encoder data.
