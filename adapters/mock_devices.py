@@ -48,11 +48,11 @@ def _first_pass(t0: float, period_s: float, now: float) -> float:
 class Resampled:
     """A played track read at any instant within it: a cubic spline through its rows (joints,
     positions, quaternions' components). A device samples when its cycle runs; this process's
-    timer wakes 0.1-1.3 ms late (asyncio waits in whole milliseconds, and the host is
-    shared), so a row that goes out late describes the instant it goes out: that lateness
-    is the mock's, not the link's, and a real controller's cycle does not have it (stamping
-    the planned instant put 0.1-0.5 ms of this process's wake-ups, moving with the host's
-    load, into every stream's transport time)."""
+    timer wakes late (asyncio waits in whole milliseconds, and the host is shared), so a row
+    that goes out late describes the instant it goes out: that lateness is the mock's, not
+    the link's, and a real controller's cycle does not have it (stamping the planned instant
+    put this process's wake-ups, moving with the host's load, into every stream's transport
+    time; docs/timing-delay.md measures both)."""
 
     def __init__(self, t: np.ndarray, values: np.ndarray) -> None:
         from scipy.interpolate import CubicSpline  # scipy costs its import only where played

@@ -56,9 +56,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def console() -> int:
     """The `keo` executable: `main`, then an exit without the interpreter's final garbage
-    collections over every loaded module's objects (with polars loaded, the exit took 75-160
-    ms after `main` returned, 25-43 ms without them; the memory goes back to the system
-    whole either way)."""
+    collections over every loaded module's objects: with polars loaded they are a noticeable
+    part of a short command (docs/performance.md), and the memory goes back to the system
+    whole either way."""
     # SIGTERM asks what SIGINT asks: stop. Until a command installs its own handlers (a
     # running loop stops gracefully), both raise KeyboardInterrupt, which `main` turns into
     # exit 0 instead of the signal's default death (seen: `keo mock` stopped while it still

@@ -38,9 +38,9 @@ def print_json(doc: Any) -> None:
 
 def collector_paused(command: Command) -> Command:
     """A command that runs once over its files and returns, run with the cyclic garbage
-    collector off: loading numpy, polars and Pinocchio allocates ~80k objects, and the
-    collections that triggers cost 40-120 ms of a ~1 s `keo estimate`; the command's arrays are
-    freed by reference counting either way."""
+    collector off: loading numpy, polars and Pinocchio allocates tens of thousands of objects,
+    and the collections that triggers are a noticeable part of a short `keo estimate`
+    (docs/performance.md); the command's arrays are freed by reference counting either way."""
 
     @functools.wraps(command)
     def paused(args: argparse.Namespace) -> int:

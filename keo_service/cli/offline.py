@@ -13,7 +13,8 @@ from keo_service.core.errors import ConfigError
 from keo_service.resources import demo_config_path
 
 
-def cmd_gain(args: argparse.Namespace) -> int:
+# complexity (C901): one check per argument, each with its own error message
+def cmd_gain(args: argparse.Namespace) -> int:  # noqa: C901
     from keo_service.core import observer as ob
 
     if args.rate <= 0:
@@ -330,7 +331,11 @@ def register(add: common.AddCommand) -> None:
     p.add_argument("--config", default=str(demo_config_path()))
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--json", action="store_true")
+    _register_model(add)
 
+
+def _register_model(add: common.AddCommand) -> None:
+    """The identified model's two commands: `analyze` writes it, `compensate` uses it."""
     p = add("analyze", cmd_analyze, "what the model still gets wrong, effects added and judged")
     p.add_argument(
         "--encoder",
@@ -347,6 +352,7 @@ def register(add: common.AddCommand) -> None:
         help="keep the effects in the config; re-identify tracker and tool only",
     )
     p.add_argument("--json", action="store_true")
+
     p = add(
         "compensate",
         cmd_compensate,

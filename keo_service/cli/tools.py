@@ -152,22 +152,7 @@ def cmd_selftest(args: argparse.Namespace) -> int:
     return common.EXIT_FAILURE if crashes else common.EXIT_OK
 
 
-def register(add: common.AddCommand) -> None:
-    _register_init(add)
-    p = add(
-        "view",
-        cmd_view,
-        "a recording (interchange CSV or MCAP folder) as a Rerun file, estimates included",
-        config=False,
-    )
-    p.add_argument(
-        "--config",
-        type=Path,
-        help="the cell's config (default: the one .toml in DIR, else the demo cell; said so)",
-    )
-    p.add_argument("directory", type=Path, help="written by keo record (or keo simulate)")
-    p.add_argument("--out", type=Path, required=True, help="the Rerun file (.rrd) to write")
-    p.add_argument("--json", action="store_true")
+def _register_demo(add: common.AddCommand) -> None:
     p = add(
         "demo",
         cmd_demo,
@@ -205,6 +190,25 @@ def register(add: common.AddCommand) -> None:
         help="close the loop: a UR10 (RTDE) follows a path plus keo's live correction; prints "
         "the true tool error along the path without and with it",
     )
+
+
+def register(add: common.AddCommand) -> None:
+    _register_init(add)
+    p = add(
+        "view",
+        cmd_view,
+        "a recording (interchange CSV or MCAP folder) as a Rerun file, estimates included",
+        config=False,
+    )
+    p.add_argument(
+        "--config",
+        type=Path,
+        help="the cell's config (default: the one .toml in DIR, else the demo cell; said so)",
+    )
+    p.add_argument("directory", type=Path, help="written by keo record (or keo simulate)")
+    p.add_argument("--out", type=Path, required=True, help="the Rerun file (.rrd) to write")
+    p.add_argument("--json", action="store_true")
+    _register_demo(add)
 
     p = add(
         "selftest",

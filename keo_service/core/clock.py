@@ -24,21 +24,18 @@ Not through the lowest blocks: the least latency of a block varies by a hundred 
 from block to block (whether the receiving process happened to be awake), with rare "lucky"
 samples far below the rest and stretches of seconds when the host answers faster; a line
 through the lowest (a lower convex hull, tried) jumps whenever one enters or leaves the
-window and tilts between them (measured on loopback with two busy cores: block minima 80-270
-us, hull-mapped stamps stepping by 100 us and drifting by up to 60 ppm), and the mean of the
-lowest half (the version before) follows each faster stretch: a line tracker whose block
-minima sat at ~300 us for most of a minute but at ~160 us for 8 s moved its stamps by 80 us
-and back, which the delay between the streams then had to follow. The median moved them by
-20 us (the same recorded receipts replayed). So the mapped stamps carry the stream's usual
-shortest transport time (which cannot be seen from the host and stays in the offset) and
-little else.
+window and tilts between them, and the mean of the lowest half (the version before) follows
+each faster stretch, which the delay between the streams then has to follow. The median
+does neither (docs/timing-delay.md, "The clock mapping", has the measurements). So the mapped
+stamps carry the stream's usual shortest transport time (which cannot be seen from the host
+and stays in the offset) and little else.
 
 A drift needs a span of device time to be resolved: until the blocks span `min_drift_span_s`
 (and `min_drift_blocks` of them), the drift is held at its prior, the drift the mapper had
 before it re-learned (or zero for a new mapper, or the `prior_drift` given), and the offset is
 taken from the newest blocks only (`hold_s` seconds), so a wrong prior costs about
-`drift * hold_s / 2`. (Fitting a drift from two blocks, as the first version did, turned one slow
-block after a restart into a slope of hundreds of ppm and the stamps swung by -160 to -380 us.)
+`drift * hold_s / 2`. (A drift fitted from two blocks, as the first version did, turns one
+slow block after a restart into a steep slope: docs/timing-delay.md.)
 
 A device clock that steps (controller restart, resync) shows as samples arriving earlier than
 the line allows (more than `step_threshold_s`) or device time going backwards: after
@@ -51,8 +48,8 @@ the old minima leave the window.)
 A device's oscillator does not change when its connection does: a new connection (or a
 restarted adapter, from the mapping it saved: `export` / `resume`) continues the mapping it
 had, block minima and all, so the stamps go on on the same line and the drift is not learned
-again from a few seconds of blocks (which left it 15 ppm off and swung the stamps by up to
-200 us while it converged). The continued line is checked: until a whole block of the new
+again from a few seconds of blocks (which leaves it off and swings the stamps while it
+converges: docs/timing.md). The continued line is checked: until a whole block of the new
 data has come, a sample late beyond `step_threshold_s` counts like an early one, and a first
 block whose least lag is more than `step_threshold_s` off the line either way is a step (the
 device restarted, or another device answers at that address): the mapping starts anew.

@@ -62,13 +62,27 @@ class Estimate:
 
     The one estimate record: the wire's `EstimateMessage` is made from it
     (`live.messages.estimate_message`), the batch path's `BatchResult` holds its fields as
-    columns under the same names, the Rerun pipe carries its fields. `stamp` is stream time,
-    `encoder_stamp` the stream time the joints were taken at, `device_stamp` the tracker's own
-    time of the sample (None when it gives none).
+    columns under the same names, the Rerun pipe carries its fields.
 
-    Read-only by convention. The two vectors are kept as they were made (plain floats on the
-    hot path: two arrays per tracker sample cost a twelfth of its budget) and become arrays on
-    first read; `measured_values` and `estimate_values` give the floats without arrays."""
+    Read-only by convention. The two vectors are kept as they were made (plain floats: the
+    hot path makes one estimate per tracker sample, and two arrays each would be a real share
+    of its cost, docs/performance.md) and become arrays on first read; `measured_values` and
+    `estimate_values` give the floats without arrays.
+
+    Attributes:
+        stamp: the tracker sample's stream time (s), or the tick's for "latest" alignment.
+        measured: the measured error of this sample, one value per channel (m for px, py, pz;
+            rad for rx, ry, rz: a rotation vector), in the measurement frame; None when held.
+        estimate: the observer's estimate of the error, per channel (m, rad).
+        flags: why the step was held (its only flag then) or what to know about it.
+        encoder_stamp: the stream time (s) the joints were taken at: the tracker's stamp
+            minus the delay (None for a gap the tracker reported).
+        channels: the channel names, ("px", "py", "pz") or with ("rx", "ry", "rz").
+        joints: the joints (rad, m for a prismatic joint) the measured error was computed
+            with, or None.
+        device_stamp: the tracker's own time of the sample (s, its clock), or None when it
+            gives none.
+    """
 
     __slots__ = (
         "_estimate",
@@ -103,6 +117,7 @@ class Estimate:
 
     @property
     def measured(self) -> np.ndarray | None:
+        """The measured error per channel (m, rad), an array; None when held."""
         m = self._measured
         if m is None or isinstance(m, np.ndarray):
             return m
@@ -111,6 +126,7 @@ class Estimate:
 
     @property
     def estimate(self) -> np.ndarray:
+        """The observer's estimate per channel (m, rad), an array."""
         e = self._estimate
         if isinstance(e, np.ndarray):
             return e
@@ -118,15 +134,18 @@ class Estimate:
         return e
 
     def measured_values(self) -> list[float] | None:
+        """`measured` as plain floats (m, rad), without making an array; None when held."""
         m = self._measured
         return m.tolist() if isinstance(m, np.ndarray) else m
 
     def estimate_values(self) -> list[float]:
+        """`estimate` as plain floats (m, rad), without making an array."""
         e = self._estimate
         return e.tolist() if isinstance(e, np.ndarray) else e
 
     @property
     def held(self) -> bool:
+        """No measured error this step (the reason is the only flag); the estimate held."""
         return self._measured is None
 
     def __repr__(self) -> str:
@@ -146,7 +165,22 @@ class _TrackerSample:
 
 
 class Estimator:
-    """Feeds samples through alignment, the measured error and the observer."""
+    """Feeds samples through alignment, the measured error and the observer.
+
+    Samples go in one at a time, stamped in stream time (s: the host clock the adapters stamp
+    with, or a recording's time axis); each call returns the estimates it completed, none,
+    one or several (samples that waited for encoder data). A bad sample is refused, counted
+    in `counters` with a message in `messages`, and never raises: a stream keeps going.
+
+    Args:
+        cell: robot, measurement frame and tracker registration (`cell_from_config`).
+        settings: gains (1/s), delay (s), alignment and the buffer and gap limits (s)
+            (`estimator_settings`).
+
+    Raises:
+        ValueError: `settings.alignment` is neither "interpolate" nor "latest" (a config
+            file cannot give one: `load_config` refuses it first).
+    """
 
     def __init__(self, cell: Cell, settings: EstimatorSettings) -> None:
         if settings.alignment not in ("interpolate", "latest"):
@@ -196,14 +230,26 @@ class Estimator:
 
     @property
     def delay(self) -> DelayModel:
+        """The delay in use: offset (s) and drift (s/s) of the tracker behind the encoder."""
         return self._delay
 
     def set_delay(self, delay: DelayModel) -> None:
+        """Use `delay` from the next sample on, as a step (a pending target is dropped).
+
+        Args:
+            delay: offset (s) and drift (s/s): the tracker sample stamped t is compared with
+                the joints at t - delay.at(t).
+        """
         self._delay = delay
         self._delay_target = None
 
     def set_delay_target(self, offset_s: float) -> None:
-        """Move the delay toward `offset_s` gradually (DELAY_SLEW), so estimates see no step."""
+        """Move the delay toward `offset_s` gradually, so estimates see no step.
+
+        Args:
+            offset_s: the delay to reach (s); approached at DELAY_SLEW (s per s of stream
+                time) as tracker samples come.
+        """
         self._delay_target = offset_s
 
     def _slew_delay(self, t: float) -> None:
@@ -217,11 +263,32 @@ class Estimator:
             self._delay_target = None
 
     def set_gains(self, gains: Sequence[float]) -> None:
+        """New observer gains from the next step on; the estimate so far is kept.
+
+        Args:
+            gains: per channel in the order px, py, pz, rx, ry, rz (1/s); a position-only
+                stream uses the first three.
+
+        Raises:
+            ValueError: once the stream's channels are known, fewer gains than channels, or
+                a gain that is not finite and > 0.
+        """
         self.settings = EstimatorSettings(**{**self.settings.__dict__, "gains": tuple(gains)})
         if self.observer is not None:
             self.observer.set_gain(self._gains_for(len(self.observer.gain)))
 
     def on_encoder(self, t: float, q: Sequence[float] | np.ndarray) -> list[Estimate]:
+        """An encoder sample.
+
+        Args:
+            t: its stream time (s), after the previous encoder sample's.
+            q: the joint positions, one per joint of the robot (rad; m for a prismatic joint).
+
+        Returns:
+            The estimates it completed: tracker samples that waited for the encoder stream to
+            cover their time (and, with "latest" alignment, the ticks now due). Empty when
+            none did or the sample was refused (counted in `counters`).
+        """
         if isinstance(q, np.ndarray):
             values = q.tolist() if q.shape == (self._nq,) else []
         else:
@@ -246,7 +313,9 @@ class Estimator:
             return self._advance()
         return []
 
-    def on_tracker(
+    # complexity (C901): the hot path keeps its checks inline, since a Python call per check
+    # is a real share of a sample's cost (docs/performance.md times the pieces)
+    def on_tracker(  # noqa: C901
         self,
         t: float,
         p: Sequence[float] | np.ndarray | None,
@@ -254,9 +323,22 @@ class Estimator:
         ok: bool = True,
         device_stamp: float | None = None,
     ) -> list[Estimate]:
-        """A tracker sample; `ok=False` (or p None) is a gap the tracker reported. Its
-        `device_stamp` (the tracker's own time, when it gives one) goes through to the
-        estimate it makes."""
+        """A tracker sample.
+
+        Args:
+            t: its stream time (s), after the previous tracker sample's.
+            p: the probe's position in the tracker frame (m); None for a gap.
+            quat: its orientation as a unit quaternion (qw, qx, qy, qz), or None for a
+                single reflector (position only: three channels).
+            ok: False for a gap the tracker reported (a beam break): the step is held.
+            device_stamp: the tracker's own time of the sample (s, its clock), when it gives
+                one; carried to the estimate it makes.
+
+        Returns:
+            The estimates it completed: usually this sample's, at once, when the encoder
+            stream already covers t minus the delay; none while it waits for encoder data
+            (or when refused, counted in `counters`).
+        """
         last = self._last_tracker_t
         if not last < t < math.inf:  # one comparison for a good stamp
             return self._reject(*tracker_stamp_problem(t, last))
@@ -294,7 +376,8 @@ class Estimator:
 
     @property
     def has_pending(self) -> bool:
-        """Tracker samples wait for encoder data (or "latest" ticks wait to be run)."""
+        """Tracker samples wait for encoder data (or "latest" ticks wait to be run): `flush`
+        would return estimates."""
         if self.settings.alignment == "interpolate":
             return bool(self._pending)
         return (
@@ -304,7 +387,11 @@ class Estimator:
         )
 
     def flush(self) -> list[Estimate]:
-        """End of input: resolve what still waits (their encoder data will never come)."""
+        """End of input: resolve what still waits (their encoder data will never come).
+
+        Returns:
+            The remaining estimates in stamp order, held where no encoder data covers them.
+        """
         out: list[Estimate] = []
         if self.settings.alignment == "interpolate":
             while self._pending:

@@ -110,7 +110,20 @@ def load_robot(
 
 @dataclass(frozen=True)
 class Cell:
-    """Everything needed to turn joints and a tracker pose into the measured error."""
+    """Everything needed to turn joints and a tracker pose into the measured error.
+
+    Built from a config by `cell_from_config`; lengths in m, angles in rad.
+
+    Attributes:
+        robot: the kinematic chain (URDF) and the base and flange frames keo measures between.
+        T_nt: the measurement frame (the probe) in the flange frame.
+        T_bk: the tracker's frame in the robot's base frame (the registration).
+        corrections: the identified model of `keo analyze` (joint offsets, compliance,
+            backlash, maps, ...), or None for the nominal robot.
+        nominal_model: the nominal robot, for the gravity torques of the compliance
+            correction when `robot.model` carries identified geometry.
+        gravity_data: scratch data for those torques (not used per sample).
+    """
 
     robot: RobotModel
     T_nt: pin.SE3  # flange -> nominal tool
@@ -230,8 +243,8 @@ def measured_error_folded(
 
     Three native calls (kinematics, frame placement, T_kt as position and quaternion); the
     error transform T_ts = T_kt^-1 T_ks is formed on plain floats: in the service each
-    sample wakes a cold CPU, where a native call costs 5-12 us and a line of float
-    arithmetic a fraction of that."""
+    sample wakes a cold CPU, where a native call costs several times a line of float
+    arithmetic (docs/performance.md times both)."""
     pin.forwardKinematics(frames.model, data, q)
     T_kt = pin.updateFramePlacement(frames.model, data, frames.tool_frame_id)
     tx, ty, tz, ax, ay, az, aw = pin.SE3ToXYZQUAT(T_kt).tolist()

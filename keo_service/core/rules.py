@@ -387,8 +387,8 @@ MEDIAN_WINDOWS = 1024  # step-cap windows sorted at once
 
 def _sorted_median(rows: np.ndarray) -> np.ndarray:
     """np.median of each sorted row: the middle value, or (a + b) / 2 of the two middle values
-    as median computes it (for an odd count that is (a + a) / 2 = a, exactly). A sort is 10x
-    faster than median's partition on rows of 64."""
+    as median computes it (for an odd count that is (a + a) / 2 = a, exactly). On rows this
+    short a sort is much faster than median's partition (docs/performance.md)."""
     k = rows.shape[1]
     out: np.ndarray = (rows[:, (k - 1) // 2] + rows[:, k // 2]) / 2.0
     return out

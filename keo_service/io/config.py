@@ -286,6 +286,28 @@ class ModelConfig(_Section):
 
 
 class Config(_Section):
+    """A validated config file, one attribute per TOML section; docs/config.md lists every
+    key with its type, default and unit. Units are SI (m, rad, s, Hz) except where a key's
+    name says otherwise (`accuracy_mm`). `load_config` makes one; absent keys hold their
+    defaults.
+
+    Attributes:
+        robot: [robot]: the URDF, the base and flange frames, the controller's protocol and
+            address.
+        cell: the cell's name: every key expression on the bus is keo/<cell>/...
+        tool: [tool]: the nominal tool frame (TCP) in the flange frame (m, rad).
+        tracker: [tracker]: the tracker's frame in the robot base frame (m, rad), the probe
+            and the tracker's stream.
+        observer: [observer]: the gains (1/s) and the longest step (s).
+        timing: [timing]: the delay (s) and its se, alignment, rates (Hz) and buffers (s).
+        bus: [bus]: where `keo run` listens and the other processes connect (Zenoh).
+        model: [model]: the effects `keo analyze` identified (model.toml).
+        ros2: [ros2]: rmw_zenoh's wire format on keo's own Zenoh sessions.
+        compensation: [compensation]: limits on live corrections (mm, mrad, mm/s, as the
+            keys name them), their rate (Hz) and ages (s).
+        source: the file it was read from (not a TOML key).
+    """
+
     robot: RobotConfig
     cell: CellName = "cell1"
     tool: ToolConfig = msgspec.field(default_factory=ToolConfig)
@@ -296,11 +318,11 @@ class Config(_Section):
     model: ModelConfig = msgspec.field(default_factory=ModelConfig)
     ros2: Ros2Config = msgspec.field(default_factory=Ros2Config)
     compensation: CompensationConfig = msgspec.field(default_factory=CompensationConfig)
-    # Where the file came from; not a TOML key.
     source: str = ""
 
     @property
     def urdf_path(self) -> Path:
+        """`robot.urdf` as a path (made absolute against the config's folder on loading)."""
         return Path(self.robot.urdf)
 
     def bus_endpoints(self) -> list[str]:
@@ -366,7 +388,8 @@ def _expand_gain(data: dict[str, object], source: str) -> dict[str, object]:
     return data
 
 
-def parse_config(
+# complexity (C901, PLR0912): one cross-key check per rule of docs/design.md §6
+def parse_config(  # noqa: C901, PLR0912
     data: dict[str, object], source: str = "<config>", base_dir: Path | None = None
 ) -> Config:
     """Validate a parsed TOML document; resolve relative paths against `base_dir`."""

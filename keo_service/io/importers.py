@@ -39,7 +39,10 @@ def _number(text: str, path: Path, line: int, column: str) -> float:
         raise DataFormatError(str(path), line, column, f"'{text}' is not a number") from None
 
 
-def read_ur10_lasertracker(path: str | Path) -> tuple[EncoderData, TrackerData, dict[str, str]]:
+# complexity (C901, PLR0915): one branch per optional column group of the vendor's files
+def read_ur10_lasertracker(  # noqa: C901, PLR0915
+    path: str | Path,
+) -> tuple[EncoderData, TrackerData, dict[str, str]]:
     path = Path(path)
     with path.open(encoding="utf-8", newline="") as f:
         rows = list(csv.reader(f, delimiter=";"))

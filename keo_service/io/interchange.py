@@ -43,11 +43,11 @@ class TrackerData:
 
 def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
     """Header and numbers (rows, columns) of a CSV file. Polars parses a well-formed file (in
-    native code, 6x numpy's loadtxt on a 10-minute 1 kHz recording) into one column-major
-    array: each column is contiguous, and the callers' column groups are views of it, not
-    copies (a copy of a recording costs more in fresh pages than in arithmetic). A file it
-    refuses goes to numpy, and one numpy refuses too is parsed again cell by cell only to say
-    which line and column is wrong."""
+    native code, several times faster than numpy's loadtxt: docs/performance.md) into one
+    column-major array: each column is contiguous, and the callers' column groups are views
+    of it, not copies (a copy of a recording costs more in fresh pages than in arithmetic).
+    A file it refuses goes to numpy, and one numpy refuses too is parsed again cell by cell
+    only to say which line and column is wrong."""
     try:
         with path.open(encoding="utf-8", newline="") as f:
             first = f.readline()

@@ -49,7 +49,8 @@ def _joint_names(n: int) -> list[str]:
     return [f"q{i + 1}" for i in range(n)]
 
 
-def read_targets(path: str | Path, nq: int) -> Targets:
+# complexity (C901): one refusal per way a target file can be wrong, each with its own message
+def read_targets(path: str | Path, nq: int) -> Targets:  # noqa: C901
     """The targets of a file; DataFormatError (exit 2) for columns that fit neither form, a
     cell that is not a number, and rows with non-finite values (counted, lines named)."""
     path = Path(path)
