@@ -272,46 +272,53 @@ class KeoService:
     async def _consume(self) -> None:
         """The data path: every sample that waited since the last wake-up, in arrival order,
         each through the estimator and its estimates out before the next sample."""
-        sinks = self.sinks
         async for batch in self._sub.batches():
-            inputs = sinks.takes_input
-            for key, payload in batch:
-                now = time.monotonic()
-                try:
-                    msg = decode(payload)
-                except msgspec.DecodeError as exc:
-                    self.decode_errors += 1
-                    self._messages.append(f"undecodable payload on {key}: {exc}")
-                    continue
-                self.received += 1
-                self._last_arrival = self._progress_at = now
-                if isinstance(msg, TrackerSample):
-                    self._note_sample("tracker", msg)
-                    self._rates["tracker"].tick(now)
-                    if inputs:
-                        sinks.on_input(msg)  # before the estimates it may cause
-                    out = self.estimator.on_tracker(
-                        msg.stamp,
-                        msg.position,
-                        msg.quaternion,
-                        ok=msg.status == "ok",
-                        device_stamp=msg.device_stamp,
-                    )
-                    if self._delay_tracker is not None:
-                        self._track_delay(self._delay_tracker, msg)
-                elif isinstance(msg, JointSample):
-                    self._note_sample("encoder", msg)
-                    self._rates["encoder"].tick(now)
-                    out = self.estimator.on_encoder(msg.stamp, msg.joints)
-                    if inputs:
-                        sinks.on_input(msg)
-                    if self._delay_tracker is not None:
-                        self._track_delay(self._delay_tracker, msg)
-                else:
-                    self.estimator.counters["unexpected_message"] += 1
-                    continue
-                for estimate in out:
-                    self._publish(estimate, now)
+            self._handle(batch)
+
+    def _handle(self, batch: list[tuple[str, bytes]]) -> None:
+        """One wake-up's samples (key, payload), in arrival order, each through the
+        estimator and its estimates out before the next sample (synchronous: no await)."""
+        sinks = self.sinks
+        inputs = sinks.takes_input
+        estimator = self.estimator
+        tracker = self._delay_tracker
+        for key, payload in batch:
+            now = time.monotonic()
+            try:
+                msg = decode(payload)
+            except msgspec.DecodeError as exc:
+                self.decode_errors += 1
+                self._messages.append(f"undecodable payload on {key}: {exc}")
+                continue
+            self.received += 1
+            self._last_arrival = self._progress_at = now
+            if isinstance(msg, TrackerSample):
+                self._note_sample("tracker", msg)
+                self._rates["tracker"].tick(now)
+                if inputs:
+                    sinks.on_input(msg)  # before the estimates it may cause
+                out = estimator.on_tracker(
+                    msg.stamp,
+                    msg.position,
+                    msg.quaternion,
+                    ok=msg.status == "ok",
+                    device_stamp=msg.device_stamp,
+                )
+                if tracker is not None:
+                    self._track_delay(tracker, msg)
+            elif isinstance(msg, JointSample):
+                self._note_sample("encoder", msg)
+                self._rates["encoder"].tick(now)
+                out = estimator.on_encoder(msg.stamp, msg.joints)
+                if inputs:
+                    sinks.on_input(msg)
+                if tracker is not None:
+                    self._track_delay(tracker, msg)
+            else:
+                estimator.counters["unexpected_message"] += 1
+                continue
+            for estimate in out:
+                self._publish(estimate, now)
 
     async def _adapter_events(self) -> None:
         """The adapters' state changes (silent, back, reconnected, wrong protocol): into the
@@ -454,11 +461,27 @@ class KeoService:
     def _track_delay(self, tracker: OnlineDelayTracker, msg: JointSample | TrackerSample) -> None:
         """One sample into the delay tracker with its clock fields; then the tracked delay, as
         the streams' clock mappings move their lines (each sample may bring a moved line)."""
-        clock = (msg.clock_epoch, msg.seq, bool(msg.flags), msg.device_stamp, msg.clock_drift)
         if isinstance(msg, JointSample):
-            tracker.add_encoder(msg.stamp, msg.joints, *clock)
+            tracker.add_encoder(
+                msg.stamp,
+                msg.joints,
+                msg.clock_epoch,
+                msg.seq,
+                bool(msg.flags),
+                msg.device_stamp,
+                msg.clock_drift,
+            )
         elif msg.position is not None:
-            tracker.add_tracker(msg.stamp, msg.position, msg.quaternion, *clock)
+            tracker.add_tracker(
+                msg.stamp,
+                msg.position,
+                msg.quaternion,
+                msg.clock_epoch,
+                msg.seq,
+                bool(msg.flags),
+                msg.device_stamp,
+                msg.clock_drift,
+            )
         self._follow_tracked_delay(tracker)
 
     def _follow_tracked_delay(self, tracker: OnlineDelayTracker) -> None:
