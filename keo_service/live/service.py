@@ -76,11 +76,15 @@ STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "st
 
 def _measure(
     tracker: OnlineDelayTracker, stretch: Stretch, current: float
-) -> DelayMeasurement | DelayRefused:
-    """In the worker: the stretch's arrays, then its fit."""
+) -> tuple[DelayMeasurement | DelayRefused, float]:
+    """In the worker: the stretch's arrays, then its fit; and the worker's CPU time for it
+    (s), counted in the status (`delay_fit_cpu_ms`): the fits are part of the service's CPU
+    beside the data path (docs/performance.md)."""
     from keo_service.fit.delay_online import stretch_arrays
 
-    return tracker.measure(stretch_arrays(stretch), current)
+    start = time.thread_time()
+    found = tracker.measure(stretch_arrays(stretch), current)
+    return found, time.thread_time() - start
 
 
 MAX_ADAPTERS = 16  # adapters whose newest state change the service keeps (bounded)
@@ -125,6 +129,7 @@ class KeoService:
         self._delay_tracker: OnlineDelayTracker | None = None
         self._delay_followed: float | None = None  # the delay last set from the tracker
         self._delay_said = ""  # the kind of the tracker's decision last logged
+        self._fit_cpu_s = 0.0  # the delay fits' CPU time in the worker, all of them (s)
         if config.timing.track_delay:
             from keo_service.fit.delay_online import OnlineDelayTracker
 
@@ -418,6 +423,7 @@ class KeoService:
         if self._delay_tracker is not None:
             for name, value in self._delay_tracker.counters.items():
                 counters[f"delay_{name}"] = value
+            counters["delay_fit_cpu_ms"] = round(1e3 * self._fit_cpu_s)
         last = self.estimator.last
         delay = self.estimator.delay
         return ServiceStatus(
@@ -512,7 +518,8 @@ class KeoService:
             stretch = tracker.take()
             restarts = tracker.counters["restarts"]
             current = self.estimator.delay.offset_s
-            found = await asyncio.to_thread(_measure, tracker, stretch, current)
+            found, cpu_s = await asyncio.to_thread(_measure, tracker, stretch, current)
+            self._fit_cpu_s += cpu_s
             if tracker.counters["restarts"] == restarts:
                 tracker.combine(found)
                 self._follow_tracked_delay(tracker)
