@@ -390,7 +390,7 @@ def end_to_end_rounds(
     return out
 
 
-def _spread_of(values: list[float]) -> dict[str, Any]:
+def spread_of(values: list[float]) -> dict[str, Any]:
     return {
         "median": float(np.median(values)),
         "min": min(values),
@@ -416,7 +416,7 @@ def round_ratios(rounds: list[dict[str, Any]]) -> dict[str, Any]:
             if over in r and under in r
         ]
         values = [a / b for a, b in pairs if a is not None and b]
-        return _spread_of(values) if values else None
+        return spread_of(values) if values else None
 
     cpu = ("processes", "service", "cpu_pct")
     found = {
