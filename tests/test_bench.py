@@ -379,3 +379,27 @@ def test_bench_table_compares_the_correction_path_with_the_protocol_cycles():
     assert "RSI/EGM 4 ms: within at p99" in row
     assert "RTDE 2 ms: NOT within at p99" in row
     assert "CPU x2.00" in text  # 40 % over the relay's 20 %
+
+
+def test_bench_table_shows_the_services_cpu_without_its_delay_fits():
+    """The fits' worker CPU (the service's `delay_fit_cpu_ms`) is taken off the service's
+    CPU within each round: 60 % of a core with 3 s of fits over 30 s is 50 % without them,
+    against a relay at 25 %: x2.00."""
+    from keo_service.bench.table import _round_rows
+
+    def run(cpu: float, fits_ms: int | None) -> dict:
+        counters = {} if fits_ms is None else {"delay_fit_cpu_ms": fits_ms}
+        return {
+            "seconds": 30.0,
+            "processes": {"service": {"cpu_pct": cpu}},
+            "latency_ms": {"p50": 1.0, "p99": 2.0},
+            "service_counters": counters,
+        }
+
+    rounds = [{"end_to_end": run(60.0, 3000), "transport_floor": run(25.0, None)}]
+    rows = _round_rows({"end_to_end_rounds": rounds, "round_ratios": round_ratios(rounds)})
+    line = next(r for r in rows if "without its delay fits" in r)
+    assert "x2.00" in line
+    rounds[0]["end_to_end"]["service_counters"] = {}  # runs from before the counter
+    rows = _round_rows({"end_to_end_rounds": rounds, "round_ratios": round_ratios(rounds)})
+    assert not any("without its delay fits" in r for r in rows)

@@ -152,6 +152,22 @@ def end_to_end(
     return res
 
 
+# the processes of the chain whose CPU and memory every run reports
+CHAIN = ("service", "mock-robot", "mock-tracker", "adapter-encoder", "adapter-tracker")
+
+
+def _chain_settings(tracker_hz: float, encoder_hz: float, seconds: float) -> list[str]:
+    """The mocks' scenario settings: steady rates, no drops, `seconds` long."""
+    return [
+        f"tracker_rate_hz={tracker_hz}",
+        "tracker_rate_std_hz=0",
+        f"encoder_rate_hz={encoder_hz}",
+        "encoder_rate_std_hz=0",
+        "drop_probability=0",
+        f"duration_s={seconds}",
+    ]
+
+
 def _end_to_end(
     work: Path,
     config: Config,
@@ -170,72 +186,78 @@ def _end_to_end(
         config = msgspec.structs.replace(config, robot=robot)
     cfg = work / "bench.toml"
     cfg.write_text(config_to_toml(config))
-    sets = [
-        f"tracker_rate_hz={tracker_hz}",
-        "tracker_rate_std_hz=0",
-        f"encoder_rate_hz={encoder_hz}",
-        "encoder_rate_std_hz=0",
-        "drop_probability=0",
-        f"duration_s={seconds}",
-    ]
-    set_args = [a for s in sets for a in ("--set", s)]
+    sets = _chain_settings(tracker_hz, encoder_hz, seconds)
     # the mocks simulate the whole scenario before they listen (about 2 % of its length at
     # 1 kHz) after their imports, which take many times as long on a loaded machine (with a
     # load of 15 on two cores, 5 s were too few by 10-20 s, and most of each run's samples
     # were skipped): start the play late enough that no device data is skipped
     startup = startup_s() + 0.04 * seconds * tracker_hz / 1000.0
     t0 = time.time() + startup
-    play = ["--scenario", "path", "--seed", "1", "--t0", repr(t0), *set_args]
-    names = ["service", "mock-robot", "mock-tracker", "adapter-encoder", "adapter-tracker"]
+    play = ["--scenario", "path", "--seed", "1", "--t0", repr(t0)]
+    play += [a for s in sets for a in ("--set", s)]
+    recording = work / "bench.rrd"
     with process_group(work) as procs:
-        recording = work / "bench.rrd"
-        extra = ["--rrd", str(recording)] if rrd else []
         procs.start_cell(
             cfg,
             play,
-            service=extra,
+            service=["--rrd", str(recording)] if rrd else [],
             tracker=["--wall-clock-device-time"],
             relay_only=relay_only,
             service_python=service_python,
         )
         collector = _Collector(config)
-        pids = {n: procs.procs[n].pid for n in names}
+        pids = {n: procs.procs[n].pid for n in CHAIN}
         time.sleep(max(0.0, t0 + 0.5 - time.time()))
-        rerun_process = children(pids["service"]) if rrd else []
-        if rerun_process:  # the service's only child, started by then
-            pids["rerun-process"] = rerun_process[0]
-        warm_cpu = {n: proc_cpu_s(p) for n, p in pids.items()}
-        warm_machine = machine_ticks()
-        time.sleep(max(0.0, seconds / 3))
-        warm_mem = {n: proc_mem_kb(p) for n, p in pids.items()}
-        trace = []
-        while sample_every is not None and time.time() + sample_every < t0 + seconds:
-            time.sleep(sample_every)
-            trace.append(
-                {
-                    "t_s": round(time.time() - t0, 1),
-                    "rss_mb": {n: proc_mem_kb(p).get("VmRSS", 0) / 1024 for n, p in pids.items()},
-                    "open_fds": {n: open_fds(p) for n, p in pids.items()},
-                }
-            )
-        time.sleep(max(0.0, t0 + seconds - time.time()))
-        end_cpu = {n: proc_cpu_s(p) for n, p in pids.items()}
-        end_machine = machine_ticks()
-        end_mem = {n: proc_mem_kb(p) for n, p in pids.items()}
+        if rrd and (rerun_process := children(pids["service"])):
+            pids["rerun-process"] = rerun_process[0]  # the service's only child, started by then
+        measured = _measure_run(pids, t0, seconds, sample_every)
         time.sleep(1.5)  # the last samples: encoder coverage, or the quiet-time flush
         items, corrections = collector.close()
         counters = {} if relay_only else _service_counters(config)
-    run_s = seconds - 0.5
     played = simulate(
         cell_from_config(config), make_scenario("path", dict(s.split("=", 1) for s in sets)), seed=1
     )
-    sent = int(played.tracker.t.size)
-    # latency after a warm-up of 0.5 s (connections settle, the first samples wait for encoder
-    # data that predates the subscription)
-    # good estimates only: the held ones at the very end (tracker samples stamped after the
-    # last encoder sample, answered by the quiet-time flush) say nothing about latency
-    in_window, latencies = _latencies(items, t0)
-    corr_lat, corr_pub = correction_latency(in_window, corrections)
+    out: dict[str, Any] = {
+        "tracker_hz": tracker_hz,
+        "encoder_hz": encoder_hz,
+        "seconds": seconds,
+        **_results(items, corrections, int(played.tracker.t.size), t0, measured),
+        "rerun_dropped": counters.get("rerun_dropped", 0),
+        "service_counters": counters,
+    }
+    if correction:
+        out["correction"] = config.robot.correction
+        out.update(_correction_results(items, corrections, t0))
+    if rrd:  # the recording rolls every 10 minutes: its files in the sink's own order
+        out["recording"] = _recording_files(recording)
+    return out
+
+
+def _measure_run(
+    pids: dict[str, int], t0: float, seconds: float, sample_every: float | None
+) -> dict[str, Any]:
+    """While the play runs (from 0.5 s in, its warm-up, to its end): each process's CPU time
+    and memory at both ends and a third of the way, the machine's ticks, and every
+    `sample_every` s (a soak) each process's RSS and open files."""
+    warm_cpu = {n: proc_cpu_s(p) for n, p in pids.items()}
+    warm_machine = machine_ticks()
+    time.sleep(max(0.0, seconds / 3))
+    warm_mem = {n: proc_mem_kb(p) for n, p in pids.items()}
+    trace = []
+    while sample_every is not None and time.time() + sample_every < t0 + seconds:
+        time.sleep(sample_every)
+        trace.append(
+            {
+                "t_s": round(time.time() - t0, 1),
+                "rss_mb": {n: proc_mem_kb(p).get("VmRSS", 0) / 1024 for n, p in pids.items()},
+                "open_fds": {n: open_fds(p) for n, p in pids.items()},
+            }
+        )
+    time.sleep(max(0.0, t0 + seconds - time.time()))
+    end_cpu = {n: proc_cpu_s(p) for n, p in pids.items()}
+    end_machine = machine_ticks()
+    end_mem = {n: proc_mem_kb(p) for n, p in pids.items()}
+    run_s = seconds - 0.5
     procs_out = {
         n: {
             "cpu_pct": 100.0 * (end_cpu[n] - warm_cpu[n]) / run_s,
@@ -244,39 +266,55 @@ def _end_to_end(
         }
         for n in pids
     }
-    out: dict[str, Any] = {
-        "tracker_hz": tracker_hz,
-        "encoder_hz": encoder_hz,
-        "seconds": seconds,
+    return {
+        "processes": procs_out,
+        "machine": machine_share(warm_machine, end_machine),
+        "trace": trace,
+    }
+
+
+def _results(
+    items: list[tuple[float, EstimateMessage]],
+    corrections: list[tuple[float, Any]],
+    sent: int,
+    t0: float,
+    measured: dict[str, Any],
+) -> dict[str, Any]:
+    """What arrived against what was sent, the latencies, the processes and the machine."""
+    _in_window, latencies = _latencies(items, t0)
+    return {
         "tracker_samples_sent": sent,
         "estimates_received": len(items),
         "held": sum(1 for _a, m in items if m.measured is None),
         "lost": max(0, sent - len(items)),
         **latencies,
         "corrections_received": len(corrections),
-        "processes": procs_out,
-        "machine": machine_share(warm_machine, end_machine),
-        "trace": trace,
-        "rerun_dropped": counters.get("rerun_dropped", 0),
-        "service_counters": counters,
+        "processes": measured["processes"],
+        "machine": measured["machine"],
+        "trace": measured["trace"],
     }
-    if correction:
-        out.update(
-            correction=config.robot.correction,
-            correction_latency_ms=_percentiles(corr_lat),
-            correction_to_service_publish_ms=_percentiles(corr_pub),
-        )
-    if rrd:  # the recording rolls every 10 minutes: its files in the sink's own order
-        from keo_service.live.rerun_logger import rolled_path  # imports Rerun: only here
 
-        files = list(
-            itertools.takewhile(Path.exists, (rolled_path(recording, i) for i in itertools.count()))
-        )
-        out["recording"] = {
-            "files": len(files),
-            "mb": [round(f.stat().st_size / 2**20, 1) for f in files],
-        }
-    return out
+
+def _correction_results(
+    items: list[tuple[float, EstimateMessage]], corrections: list[tuple[float, Any]], t0: float
+) -> dict[str, Any]:
+    """The correction path's latency: to the subscriber, and to the service's publish."""
+    in_window, _latencies_ms = _latencies(items, t0)
+    corr_lat, corr_pub = correction_latency(in_window, corrections)
+    return {
+        "correction_latency_ms": _percentiles(corr_lat),
+        "correction_to_service_publish_ms": _percentiles(corr_pub),
+    }
+
+
+def _recording_files(recording: Path) -> dict[str, Any]:
+    """The `--rrd` run's recording: how many files (it rolls every 10 minutes), their MB."""
+    from keo_service.live.rerun_logger import rolled_path  # imports Rerun: only here
+
+    files = list(
+        itertools.takewhile(Path.exists, (rolled_path(recording, i) for i in itertools.count()))
+    )
+    return {"files": len(files), "mb": [round(f.stat().st_size / 2**20, 1) for f in files]}
 
 
 def startup_s() -> float:
@@ -352,7 +390,7 @@ def end_to_end_rounds(
     return out
 
 
-def _spread_of(values: list[float]) -> dict[str, Any]:
+def spread_of(values: list[float]) -> dict[str, Any]:
     return {
         "median": float(np.median(values)),
         "min": min(values),
@@ -378,7 +416,7 @@ def round_ratios(rounds: list[dict[str, Any]]) -> dict[str, Any]:
             if over in r and under in r
         ]
         values = [a / b for a, b in pairs if a is not None and b]
-        return _spread_of(values) if values else None
+        return spread_of(values) if values else None
 
     cpu = ("processes", "service", "cpu_pct")
     found = {

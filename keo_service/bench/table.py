@@ -6,7 +6,7 @@ from typing import Any
 
 import msgspec
 
-from keo_service.bench.end_to_end import value_at
+from keo_service.bench.end_to_end import spread_of, value_at
 
 
 def _spread(hp: dict[str, Any]) -> str:
@@ -80,6 +80,12 @@ def _round_rows(r: dict[str, Any]) -> list[str]:
         f"CPU {_ratio(ratios.get('service_cpu_over_relay'))}; "
         f"p50 {_ratio(ratios.get('p50_over_relay'))}; p99 {_ratio(ratios.get('p99_over_relay'))} |"
     ]
+    less_fits = _cpu_less_fits_over_relay(rounds)
+    if less_fits is not None:
+        lines.append(
+            "| keo's CPU without its delay fits (the worker thread's CPU time, counted by the "
+            f"service) over the transport floor | {_ratio(less_fits)} |"
+        )
     if n > 1:
         names = {
             "end_to_end": "service",
@@ -116,6 +122,22 @@ def _round_rows(r: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _cpu_less_fits_over_relay(rounds: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The service's CPU less its delay fits' (`delay_fit_cpu_ms`, over the run's data) over
+    the relay's, round by round; None for runs that did not count the fits."""
+    values = []
+    for x in rounds:
+        run, relay = x.get("end_to_end"), x.get("transport_floor")
+        if run is None or relay is None or not relay["processes"]["service"]["cpu_pct"]:
+            continue
+        fits_ms = run.get("service_counters", {}).get("delay_fit_cpu_ms")
+        if fits_ms is None:
+            continue
+        own = run["processes"]["service"]["cpu_pct"] - 100.0 * fits_ms * 1e-3 / run["seconds"]
+        values.append(own / relay["processes"]["service"]["cpu_pct"])
+    return spread_of(values) if values else None
+
+
 # the controller cycles a live correction feeds (ms): KUKA RSI and ABB EGM 4 ms, UR RTDE 2 ms
 # (500 Hz, e-Series)
 PROTOCOL_CYCLES_MS = {"RSI/EGM": 4.0, "RTDE": 2.0}
@@ -145,17 +167,10 @@ def _correction_rows(rounds: list[dict[str, Any]], ratios: dict[str, Any]) -> li
     ]
 
 
-def bench_table(r: dict[str, Any]) -> str:
-    m = r["machine"]
-    lines = [
-        f"machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}"
-        + (" (quick run)" if r["quick"] else ""),
-        "",
-    ]
+def _hot_path_rows(r: dict[str, Any]) -> list[str]:
+    """The hot path against the naive floor, and with Rerun's worker."""
     hp, hpr = r["hot_path"], r["hot_path_rerun"]
-    lines += [
-        "| measure | value |",
-        "|---|---|",
+    return [
         f"| hot path: aligned samples/s, one core{_spread(hp)} | {hp['samples_per_s']:,.0f} "
         f"({hp['us_per_sample']:.1f} us each; a 1 kHz tracker costs "
         f"{hp['core_share_at_1kHz_pct']:.1f} % of a core) |",
@@ -167,88 +182,111 @@ def bench_table(r: dict[str, Any]) -> str:
         _rerun_row(hp, hpr),
     ]
 
-    if "recording" in r:
-        rec = r["recording"]
-        b = rec["batch"]
+
+def _recording_rows(rec: dict[str, Any]) -> list[str]:
+    """The offline commands over the bench's recording: estimate (batch and streaming),
+    calibrate-delay, analyze."""
+    b = rec["batch"]
+    lines = [
+        f"| keo estimate, {rec['seconds']:.0f} s at 1 kHz ({rec['tracker_samples']:,} tracker, "
+        f"{rec['encoder_samples']:,} encoder rows; CSV in and out, process start included) | "
+        f"{b['wall_s']:.2f} s wall, {b['cpu_s']:.2f} s CPU, "
+        f"peak RSS {b['peak_rss_mb']:.0f} MB{_runs(b)}; "
+        f"naive floor over the same samples {rec['floor_s']:.2f} s CPU; command / floor = "
+        f"{_command_over_floor(rec)} (wall), {b['cpu_s'] / rec['floor_s']:.2f} (CPU) |"
+    ]
+    if "streaming" in rec:
+        st = rec["streaming"]
         lines.append(
-            f"| keo estimate, {rec['seconds']:.0f} s at 1 kHz ({rec['tracker_samples']:,} tracker, "
-            f"{rec['encoder_samples']:,} encoder rows; CSV in and out, process start included) | "
-            f"{b['wall_s']:.2f} s wall, {b['cpu_s']:.2f} s CPU, "
-            f"peak RSS {b['peak_rss_mb']:.0f} MB{_runs(b)}; "
-            f"naive floor over the same samples {rec['floor_s']:.2f} s CPU; command / floor = "
-            f"{_command_over_floor(rec)} (wall), {b['cpu_s'] / rec['floor_s']:.2f} (CPU) |"
+            f"| keo estimate --streaming (per-sample path), same files | {st['wall_s']:.2f} s "
+            f"wall, {st['cpu_s']:.2f} s CPU, peak RSS {st['peak_rss_mb']:.0f} MB; batch is "
+            f"x{st['wall_s'] / b['wall_s']:.1f} faster |"
         )
-        if "streaming" in rec:
-            st = rec["streaming"]
-            lines.append(
-                f"| keo estimate --streaming (per-sample path), same files | {st['wall_s']:.2f} s "
-                f"wall, {st['cpu_s']:.2f} s CPU, peak RSS {st['peak_rss_mb']:.0f} MB; batch is "
-                f"x{st['wall_s'] / b['wall_s']:.1f} faster |"
-            )
-        if "calibrate_delay" in rec:
-            cd = rec["calibrate_delay"]
-            lines.append(
-                f"| keo calibrate-delay, same files (delay and drift, Gauss-Newton to 0.1 us) | "
-                f"{cd['wall_s']:.2f} s wall, {cd['cpu_s']:.2f} s CPU, "
-                f"peak RSS {cd['peak_rss_mb']:.0f} MB |"
-            )
-        if "analyze" in rec:
-            an = rec["analyze"]
-            lines.append(
-                f"| keo analyze, the first {an['seconds']:.0f} s of the same files "
-                f"({an['poses']:,} poses; registration, then every candidate effect fitted and "
-                f"judged on held-out poses) | {an['wall_s']:.1f} s wall, {an['cpu_s']:.1f} s CPU, "
-                f"peak RSS {an['peak_rss_mb']:.0f} MB |"
-            )
-        if "analyze_long" in rec:
-            al = rec["analyze_long"]
-            used = al["samples"].get("used", rec["tracker_samples"])
-            lines.append(
-                f"| keo analyze, the whole {rec['seconds']:.0f} s ({rec['tracker_samples']:,} "
-                f"tracker samples, {used:,} informative ones used; held out "
-                f"{al['held_out_pos_rms_mm']:.3f} mm) | {al['wall_s']:.1f} s wall, "
-                f"{al['cpu_s']:.1f} s CPU, peak RSS {al['peak_rss_mb']:.0f} MB; command / floor "
-                f"= {al['over_floor']:.0f} (wall) |"
-            )
+    if "calibrate_delay" in rec:
+        cd = rec["calibrate_delay"]
+        lines.append(
+            f"| keo calibrate-delay, same files (delay and drift, Gauss-Newton to 0.1 us) | "
+            f"{cd['wall_s']:.2f} s wall, {cd['cpu_s']:.2f} s CPU, "
+            f"peak RSS {cd['peak_rss_mb']:.0f} MB |"
+        )
+    if "analyze" in rec:
+        an = rec["analyze"]
+        lines.append(
+            f"| keo analyze, the first {an['seconds']:.0f} s of the same files "
+            f"({an['poses']:,} poses; registration, then every candidate effect fitted and "
+            f"judged on held-out poses) | {an['wall_s']:.1f} s wall, {an['cpu_s']:.1f} s CPU, "
+            f"peak RSS {an['peak_rss_mb']:.0f} MB |"
+        )
+    if "analyze_long" in rec:
+        al = rec["analyze_long"]
+        used = al["samples"].get("used", rec["tracker_samples"])
+        lines.append(
+            f"| keo analyze, the whole {rec['seconds']:.0f} s ({rec['tracker_samples']:,} "
+            f"tracker samples, {used:,} informative ones used; held out "
+            f"{al['held_out_pos_rms_mm']:.3f} mm) | {al['wall_s']:.1f} s wall, "
+            f"{al['cpu_s']:.1f} s CPU, peak RSS {al['peak_rss_mb']:.0f} MB; command / floor "
+            f"= {al['over_floor']:.0f} (wall) |"
+        )
+    return lines
 
-    def ms(d: dict[str, float | None]) -> str:
-        return ", ".join(f"{k} {v:.2f} ms" for k, v in d.items() if v is not None)
 
-    rows = (
-        ("end_to_end", "end to end"),
-        ("transport_floor", "transport floor (pass-through relay in the service's place)"),
-        ("end_to_end_rerun", "end to end, --rrd"),
-        ("end_to_end_correction", "end to end with a correction output"),
-    )
+def _ms(d: dict[str, float | None]) -> str:
+    return ", ".join(f"{k} {v:.2f} ms" for k, v in d.items() if v is not None)
+
+
+# the end-to-end kinds, in the table's order, and their rows' names
+E2E_ROWS = (
+    ("end_to_end", "end to end"),
+    ("transport_floor", "transport floor (pass-through relay in the service's place)"),
+    ("end_to_end_rerun", "end to end, --rrd"),
+    ("end_to_end_correction", "end to end with a correction output"),
+)
+
+
+def _run_rows(e: dict[str, Any], label: str) -> list[str]:
+    """One end-to-end run: its latency, the split at the service's publish, each process;
+    the service's delay fits (a worker thread) where the run counted them."""
+    lines = [
+        f"| {label}: tracker {e['tracker_hz']:.0f} Hz, robot {e['encoder_hz']:.0f} Hz, "
+        f"{e['seconds']:.0f} s | latency {_ms(e['latency_ms'])}; "
+        f"{e['estimates_received']} estimates for {e['tracker_samples_sent']} samples"
+        + (
+            f"; the machine {e['machine']['busy_pct']:.0f} % busy, "
+            f"{e['machine']['steal_pct']:.1f} % stolen |"
+            if "machine" in e
+            else " |"
+        )
+    ]
+    if "latency_to_service_publish_ms" in e:
+        lines.append(
+            f"| {label}: tracker line -> service publish / publish -> subscriber | "
+            f"{_ms(e['latency_to_service_publish_ms'])} / "
+            f"{_ms(e['latency_publish_to_subscriber_ms'])} |"
+        )
+    for name, p in e["processes"].items():
+        lines.append(
+            f"| {label}: {name} | CPU {p['cpu_pct']:.1f} %, peak RSS "
+            f"{p['peak_rss_mb']:.0f} MB, RSS growth after warm-up "
+            f"{p['rss_growth_mb']:+.1f} MB |"
+        )
+    fits_ms = e.get("service_counters", {}).get("delay_fit_cpu_ms")
+    if fits_ms is not None:  # the fits happen while data flows: over the run's length
+        lines.append(
+            f"| {label}: the service's delay fits (its worker thread; in its CPU above) | "
+            f"{100.0 * fits_ms * 1e-3 / e['seconds']:.1f} % of a core over the "
+            f"{e['seconds']:.0f} s of data |"
+        )
+    return lines
+
+
+def _end_to_end_rows(r: dict[str, Any]) -> list[str]:
+    """The end-to-end runs (round 1 of several), then the ratios of every round (or, in
+    runs from before rounds, of the one pair)."""
+    lines = []
     first_of = len(r.get("end_to_end_rounds", []))
-    for key, kind in rows:
-        if key not in r:
-            continue
-        e = r[key]
-        label = kind + (f" (round 1 of {first_of})" if first_of > 1 else "")
-        lines.append(
-            f"| {label}: tracker {e['tracker_hz']:.0f} Hz, robot {e['encoder_hz']:.0f} Hz, "
-            f"{e['seconds']:.0f} s | latency {ms(e['latency_ms'])}; "
-            f"{e['estimates_received']} estimates for {e['tracker_samples_sent']} samples"
-            + (
-                f"; the machine {e['machine']['busy_pct']:.0f} % busy, "
-                f"{e['machine']['steal_pct']:.1f} % stolen |"
-                if "machine" in e
-                else " |"
-            )
-        )
-        if "latency_to_service_publish_ms" in e:
-            lines.append(
-                f"| {label}: tracker line -> service publish / publish -> subscriber | "
-                f"{ms(e['latency_to_service_publish_ms'])} / "
-                f"{ms(e['latency_publish_to_subscriber_ms'])} |"
-            )
-        for name, p in e["processes"].items():
-            lines.append(
-                f"| {label}: {name} | CPU {p['cpu_pct']:.1f} %, peak RSS "
-                f"{p['peak_rss_mb']:.0f} MB, RSS growth after warm-up "
-                f"{p['rss_growth_mb']:+.1f} MB |"
-            )
+    for key, kind in E2E_ROWS:
+        if key in r:
+            lines += _run_rows(r[key], kind + (f" (round 1 of {first_of})" if first_of > 1 else ""))
     if "round_ratios" in r:
         lines += _round_rows(r)
     elif "transport_floor" in r:  # runs before rounds: the one pair
@@ -266,20 +304,39 @@ def bench_table(r: dict[str, Any]) -> str:
                 f"p99 x{rrd['p99'] / plain['p99']:.2f}; Rerun queue drops "
                 f"{r['end_to_end_rerun'].get('rerun_dropped', 0)} |"
             )
+    return lines
+
+
+def _capacity_and_accuracy_rows(r: dict[str, Any]) -> list[str]:
     c = r["capacity"]
     steps = ", ".join(f"{s['tracker_hz']:.0f} Hz: {s['received']}/{s['sent']}" for s in c["steps"])
-    lines.append(
-        f"| capacity: highest tracker rate with no drops | "
-        f"{c['highest_rate_without_drops_hz']:.0f} Hz ({steps}) |"
-    )
     a = r["accuracy"]
-    lines.append(
+    return [
+        f"| capacity: highest tracker rate with no drops | "
+        f"{c['highest_rate_without_drops_hz']:.0f} Hz ({steps}) |",
         f"| accuracy ({a['scenario']}), RMS position error after 5 s | keo interpolate "
         f"L={a['configured_gain']:g}: {a['interpolate_pos_mm']:.4f} mm; reference latest: "
         f"{a['latest_pos_mm']:.4f} mm; keo at best gain L={a['best_gain']:g}: "
         f"{a['best_gain_interpolate_pos_mm']:.4f} mm; reference / keo-best = "
-        f"{a['reference_over_keo']:.1f} |"
-    )
+        f"{a['reference_over_keo']:.1f} |",
+    ]
+
+
+def bench_table(r: dict[str, Any]) -> str:
+    """The README's table of one `keo bench` run (its JSON)."""
+    m = r["machine"]
+    lines = [
+        f"machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}"
+        + (" (quick run)" if r["quick"] else ""),
+        "",
+        "| measure | value |",
+        "|---|---|",
+        *_hot_path_rows(r),
+    ]
+    if "recording" in r:
+        lines += _recording_rows(r["recording"])
+    lines += _end_to_end_rows(r)
+    lines += _capacity_and_accuracy_rows(r)
     return "\n".join(lines) + "\n"
 
 

@@ -12,7 +12,6 @@ whole recordings. No I/O here.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 from collections import deque
@@ -258,7 +257,10 @@ class Estimator:
         dt = min(max(t - self._last_tracker_t, 0.0), 1.0)
         gap = self._delay_target - self._delay.offset_s
         step = max(-DELAY_SLEW * dt, min(DELAY_SLEW * dt, gap))
-        self._delay = dataclasses.replace(self._delay, offset_s=self._delay.offset_s + step)
+        # built directly: `dataclasses.replace` introspects the fields at every call, and this
+        # runs per tracker sample for the seconds a slew lasts (docs/performance.md)
+        delay = self._delay
+        self._delay = DelayModel(delay.offset_s + step, delay.drift, delay.t_ref)
         if step == gap:
             self._delay_target = None
 

@@ -254,10 +254,12 @@ class OnlineDelayTracker:
         if flagged or t < self._start:
             self.counters["encoder_left_out"] += 1
             return
-        q_arr = np.asarray(q, dtype=float)
+        # finite checks on the floats as they came: numpy's isfinite().all() on a row cost
+        # several times the rest of this call (docs/performance.md)
+        isfinite = math.isfinite
         newer = not self._enc or t > self._enc[-1][0]
-        if math.isfinite(t) and np.isfinite(q_arr).all() and newer:
-            self._enc.append((t, q_arr, device))
+        if isfinite(t) and all(map(isfinite, q)) and newer:
+            self._enc.append((t, np.asarray(q, dtype=float), device))
 
     def add_tracker(
         self,
@@ -276,11 +278,11 @@ class OnlineDelayTracker:
         if flagged or t < self._start:
             self.counters["tracker_left_out"] += 1
             return
-        p_arr = np.asarray(p, dtype=float)
-        q_arr = None if quat is None else np.asarray(quat, dtype=float)
-        finite = np.isfinite(p_arr).all() and (q_arr is None or np.isfinite(q_arr).all())
-        if math.isfinite(t) and finite and (not self._trk or t > self._trk[-1][0]):
-            self._trk.append((t, p_arr, q_arr, device))
+        isfinite = math.isfinite  # as in add_encoder: no numpy for the checks
+        finite = all(map(isfinite, p)) and (quat is None or all(map(isfinite, quat)))
+        if isfinite(t) and finite and (not self._trk or t > self._trk[-1][0]):
+            q_arr = None if quat is None else np.asarray(quat, dtype=float)
+            self._trk.append((t, np.asarray(p, dtype=float), q_arr, device))
 
     def _line(
         self, stream: str, t: float, device_stamp: float | None, drift: float | None

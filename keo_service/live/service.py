@@ -76,11 +76,15 @@ STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "st
 
 def _measure(
     tracker: OnlineDelayTracker, stretch: Stretch, current: float
-) -> DelayMeasurement | DelayRefused:
-    """In the worker: the stretch's arrays, then its fit."""
+) -> tuple[DelayMeasurement | DelayRefused, float]:
+    """In the worker: the stretch's arrays, then its fit; and the worker's CPU time for it
+    (s), counted in the status (`delay_fit_cpu_ms`): the fits are part of the service's CPU
+    beside the data path (docs/performance.md)."""
     from keo_service.fit.delay_online import stretch_arrays
 
-    return tracker.measure(stretch_arrays(stretch), current)
+    start = time.thread_time()
+    found = tracker.measure(stretch_arrays(stretch), current)
+    return found, time.thread_time() - start
 
 
 MAX_ADAPTERS = 16  # adapters whose newest state change the service keeps (bounded)
@@ -125,6 +129,7 @@ class KeoService:
         self._delay_tracker: OnlineDelayTracker | None = None
         self._delay_followed: float | None = None  # the delay last set from the tracker
         self._delay_said = ""  # the kind of the tracker's decision last logged
+        self._fit_cpu_s = 0.0  # the delay fits' CPU time in the worker, all of them (s)
         if config.timing.track_delay:
             from keo_service.fit.delay_online import OnlineDelayTracker
 
@@ -272,46 +277,53 @@ class KeoService:
     async def _consume(self) -> None:
         """The data path: every sample that waited since the last wake-up, in arrival order,
         each through the estimator and its estimates out before the next sample."""
-        sinks = self.sinks
         async for batch in self._sub.batches():
-            inputs = sinks.takes_input
-            for key, payload in batch:
-                now = time.monotonic()
-                try:
-                    msg = decode(payload)
-                except msgspec.DecodeError as exc:
-                    self.decode_errors += 1
-                    self._messages.append(f"undecodable payload on {key}: {exc}")
-                    continue
-                self.received += 1
-                self._last_arrival = self._progress_at = now
-                if isinstance(msg, TrackerSample):
-                    self._note_sample("tracker", msg)
-                    self._rates["tracker"].tick(now)
-                    if inputs:
-                        sinks.on_input(msg)  # before the estimates it may cause
-                    out = self.estimator.on_tracker(
-                        msg.stamp,
-                        msg.position,
-                        msg.quaternion,
-                        ok=msg.status == "ok",
-                        device_stamp=msg.device_stamp,
-                    )
-                    if self._delay_tracker is not None:
-                        self._track_delay(self._delay_tracker, msg)
-                elif isinstance(msg, JointSample):
-                    self._note_sample("encoder", msg)
-                    self._rates["encoder"].tick(now)
-                    out = self.estimator.on_encoder(msg.stamp, msg.joints)
-                    if inputs:
-                        sinks.on_input(msg)
-                    if self._delay_tracker is not None:
-                        self._track_delay(self._delay_tracker, msg)
-                else:
-                    self.estimator.counters["unexpected_message"] += 1
-                    continue
-                for estimate in out:
-                    self._publish(estimate, now)
+            self._handle(batch)
+
+    def _handle(self, batch: list[tuple[str, bytes]]) -> None:
+        """One wake-up's samples (key, payload), in arrival order, each through the
+        estimator and its estimates out before the next sample (synchronous: no await)."""
+        sinks = self.sinks
+        inputs = sinks.takes_input
+        estimator = self.estimator
+        tracker = self._delay_tracker
+        for key, payload in batch:
+            now = time.monotonic()
+            try:
+                msg = decode(payload)
+            except msgspec.DecodeError as exc:
+                self.decode_errors += 1
+                self._messages.append(f"undecodable payload on {key}: {exc}")
+                continue
+            self.received += 1
+            self._last_arrival = self._progress_at = now
+            if isinstance(msg, TrackerSample):
+                self._note_sample("tracker", msg)
+                self._rates["tracker"].tick(now)
+                if inputs:
+                    sinks.on_input(msg)  # before the estimates it may cause
+                out = estimator.on_tracker(
+                    msg.stamp,
+                    msg.position,
+                    msg.quaternion,
+                    ok=msg.status == "ok",
+                    device_stamp=msg.device_stamp,
+                )
+                if tracker is not None:
+                    self._track_delay(tracker, msg)
+            elif isinstance(msg, JointSample):
+                self._note_sample("encoder", msg)
+                self._rates["encoder"].tick(now)
+                out = estimator.on_encoder(msg.stamp, msg.joints)
+                if inputs:
+                    sinks.on_input(msg)
+                if tracker is not None:
+                    self._track_delay(tracker, msg)
+            else:
+                estimator.counters["unexpected_message"] += 1
+                continue
+            for estimate in out:
+                self._publish(estimate, now)
 
     async def _adapter_events(self) -> None:
         """The adapters' state changes (silent, back, reconnected, wrong protocol): into the
@@ -411,6 +423,7 @@ class KeoService:
         if self._delay_tracker is not None:
             for name, value in self._delay_tracker.counters.items():
                 counters[f"delay_{name}"] = value
+            counters["delay_fit_cpu_ms"] = round(1e3 * self._fit_cpu_s)
         last = self.estimator.last
         delay = self.estimator.delay
         return ServiceStatus(
@@ -454,11 +467,27 @@ class KeoService:
     def _track_delay(self, tracker: OnlineDelayTracker, msg: JointSample | TrackerSample) -> None:
         """One sample into the delay tracker with its clock fields; then the tracked delay, as
         the streams' clock mappings move their lines (each sample may bring a moved line)."""
-        clock = (msg.clock_epoch, msg.seq, bool(msg.flags), msg.device_stamp, msg.clock_drift)
         if isinstance(msg, JointSample):
-            tracker.add_encoder(msg.stamp, msg.joints, *clock)
+            tracker.add_encoder(
+                msg.stamp,
+                msg.joints,
+                msg.clock_epoch,
+                msg.seq,
+                bool(msg.flags),
+                msg.device_stamp,
+                msg.clock_drift,
+            )
         elif msg.position is not None:
-            tracker.add_tracker(msg.stamp, msg.position, msg.quaternion, *clock)
+            tracker.add_tracker(
+                msg.stamp,
+                msg.position,
+                msg.quaternion,
+                msg.clock_epoch,
+                msg.seq,
+                bool(msg.flags),
+                msg.device_stamp,
+                msg.clock_drift,
+            )
         self._follow_tracked_delay(tracker)
 
     def _follow_tracked_delay(self, tracker: OnlineDelayTracker) -> None:
@@ -489,7 +518,8 @@ class KeoService:
             stretch = tracker.take()
             restarts = tracker.counters["restarts"]
             current = self.estimator.delay.offset_s
-            found = await asyncio.to_thread(_measure, tracker, stretch, current)
+            found, cpu_s = await asyncio.to_thread(_measure, tracker, stretch, current)
+            self._fit_cpu_s += cpu_s
             if tracker.counters["restarts"] == restarts:
                 tracker.combine(found)
                 self._follow_tracked_delay(tracker)
