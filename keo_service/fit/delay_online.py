@@ -36,6 +36,12 @@ class DelayMeasurement:
     # how well the stretch's motion alone separates a delay from a constant error in the
     # tool frame and a slow drift (`separable_se`); nan: not measured (no orientation)
     sep_se_s: float = math.nan
+    # the fit's own (clustered) standard error, before the error model's share is added to
+    # `se_s`; nan: the same as se_s
+    own_se_s: float = math.nan
+    # how far the tool-frame and base-frame error models' fits of the stretch disagree (s;
+    # nan: only one of them gave a fit)
+    model_s: float = math.nan
 
     @property
     def described_t(self) -> float:
@@ -470,15 +476,30 @@ class OnlineDelayTracker:
             return DelayRefused("fits_not_identifiable", str(reason), float(trk_t[-1]))
         fit = min(fits, key=lambda f: f.residual_rms_moving)
         middle = 0.5 * float(trk_t[0] + trk_t[-1])
+        model = abs(fits[0].delay_s - fits[1].delay_s) if len(fits) == 2 else math.nan
+        sep = separable_se(trk_t, trk_p, trk_q)
+        if sep > self.max_se_s:
+            # the motion alone cannot tell a delay from a constant tool error and a slow
+            # drift of it: whatever the fit says it knows comes from the error model alone
+            return DelayRefused(
+                "fits_not_identifiable",
+                f"the motion cannot separate a delay from a tool error and its slow drift "
+                f"(to {sep * 1e3:.1f} ms > {self.max_se_s * 1e3:.0f} ms: the tool's velocity "
+                "in the tool frame hardly changes, as for one joint at constant speed); "
+                "changes of speed or direction separate it",
+                float(trk_t[-1]),
+            )
         return DelayMeasurement(
             fit.delay_s,
-            fit.delay_se_s,
+            _reported_se(fit.delay_se_s, model, sep),
             fit.speed_rms,
             float(trk_t[-1]),
             current,
             middle,
             fit.residual_rms_moving if math.isfinite(fit.residual_rms_moving) else 0.0,
-            separable_se(trk_t, trk_p, trk_q),
+            sep,
+            fit.delay_se_s,
+            model,
         )
 
     def combine(self, found: DelayMeasurement | DelayRefused) -> float | None:
@@ -594,10 +615,11 @@ class OnlineDelayTracker:
             f"fit {newest.value * 1e6:.1f} +/- {self.honest_se(newest.se) * 1e6:.1f} us "
             f"at {newest.speed * 1e3:.0f} mm/s"
         )
-        first = cons is None and self.applied is None and len(self._recent) == 1
-        if first and newest.se * newest.speed <= self.max_apply_m:
-            # nothing is known: one precise fit beats nothing (flagged, and the fits that
-            # follow revise it by the consensus like any other)
+        if cons is None and self.applied is None:
+            # nothing is known: one usable fit beats nothing (flagged, and the fits that
+            # follow revise it by the consensus like any other; with honest standard errors
+            # a receipt-stamped 40 Hz encoder's fits are rough, 0.3-1 ms, and waiting for a
+            # precise one left the delay at 0 for 10 s and more)
             self._take(newest.value, self.honest_se(newest.se), t, step=True)
             return f"{said}; unsettled: the first fit, in use until fits agree"
         if cons is None:
@@ -825,6 +847,18 @@ class OnlineDelayTracker:
         self.applied_se = prior_se_s if known else None
         self.settled = known
         self.source = "configured" if known else "unknown"
+
+
+def _reported_se(own_se: float, model: float, sep: float) -> float:
+    """The standard error a stretch's fit reports. Its own (clustered) one cannot see how
+    far the stretch's error model is off; two things measured on the stretch can: how far
+    the tool-frame and the base-frame error models' fits disagree (`model`, added: with
+    configuration-dependent geometric errors the fits' own se covered 35-38 % of fits within
+    2.5 se, with it 96-100 %), and how well the motion alone separates a delay from a
+    constant tool error and its slow drift (`separable_se`, a floor: for one joint at
+    constant speed the fits' own se covered 45-69 %). docs/timing-delay.md has the figures."""
+    se = own_se if not math.isfinite(model) else math.hypot(own_se, model)
+    return max(se, sep) if math.isfinite(sep) else se
 
 
 def _triples(items: list[_T]) -> list[tuple[_T, _T, _T]]:

@@ -223,8 +223,12 @@ def case_streams(cell: Cell, case: StreamCase, seed: int = 0) -> CaseStreams:
         stamps = ReceiptStamps()
         enc_t = np.array([stamps.place(float(r), 1)[0] for r in receipt])
     else:
-        enc_t = t_dev + rng.normal(0.0, err, t_dev.size)
-        enc_t = np.maximum.accumulate(enc_t + np.arange(t_dev.size) * 1e-9)
+        # stamps that never go back, nudged by a nanosecond where noise would reorder them
+        # (a nanosecond per sample added to all of them, as before, was a drift: 0.5 ppm at
+        # 500 Hz, which the fits of long runs duly found)
+        enc_t = np.maximum.accumulate(t_dev + rng.normal(0.0, err, t_dev.size))
+        for j in (np.flatnonzero(np.diff(enc_t) <= 0) + 1).tolist():
+            enc_t[j] = max(enc_t[j], enc_t[j - 1] + 1e-9)
     tperiod, terr = TRACKERS[case.tracker]
     tau = np.arange(0.2, case.seconds - 0.2, tperiod) + rng.uniform(0, tperiod)
     trk_t = tau + case.delay_s + rng.normal(0.0, terr, tau.size)
@@ -265,6 +269,7 @@ class TrackedRun:
     fits: list[tuple[float, float, float]]  # each fit: value - truth, its se, with tau
     refused: int
     decisions: list[str]
+    measurements: list[Any] = dataclasses.field(default_factory=list)  # each DelayMeasurement
 
 
 def run_tracker(
@@ -285,6 +290,7 @@ def run_tracker(
     out_delay = np.empty(streams.trk_t.size)
     out_flag = np.empty(streams.trk_t.size, dtype=bool)
     fits: list[tuple[float, float, float]] = []
+    measurements: list[DelayMeasurement] = []
     refused = 0
     decisions: list[str] = []
     k = 0
@@ -298,6 +304,7 @@ def run_tracker(
             if tracker.due():
                 found = tracker.measure(tracker.snapshot(), in_use)
                 if isinstance(found, DelayMeasurement):
+                    measurements.append(found)
                     fits.append(
                         (
                             found.delay_s - streams.case.delay_s,
@@ -314,7 +321,7 @@ def run_tracker(
                     in_use = target
         out_delay[i] = in_use
         out_flag[i] = track and not tracker.settled
-    return TrackedRun(streams.trk_t, out_delay, out_flag, fits, refused, decisions)
+    return TrackedRun(streams.trk_t, out_delay, out_flag, fits, refused, decisions, measurements)
 
 
 def delay_harm(streams: CaseStreams, run: TrackedRun, at: float) -> tuple[float, float]:
