@@ -14,7 +14,13 @@ from typing import Any, TypeVar
 import numpy as np
 
 from keo_service.core.kinematics import Cell
-from keo_service.fit.delay import DelayFit, DelayNotIdentifiableError, _mad_sigma, fit_delay
+from keo_service.fit.delay import (
+    MIN_SPEED,
+    DelayFit,
+    DelayNotIdentifiableError,
+    _mad_sigma,
+    fit_delay,
+)
 from keo_service.fit.delay_trend import LevelAndRate, SteadyOrMoving
 from keo_service.fit.stamp_lines import Anchor, moved
 
@@ -448,6 +454,18 @@ class OnlineDelayTracker:
         enc_t, enc_q, trk_t, trk_p, trk_q = _covered(window, guess, self.max_gap_s)
         if enc_t.size < 20 or trk_t.size < 50:
             return DelayRefused("fits_without_data", "not enough data in the stretch")
+        sep = separable_se(trk_t, trk_p, trk_q)
+        if sep > self.max_se_s and _point_moves(trk_t, trk_p):  # at rest: the fit says so
+            # the motion alone cannot tell a delay from a constant tool error and a slow
+            # drift of it: whatever the fit says it knows comes from the error model alone
+            return DelayRefused(
+                "fits_not_identifiable",
+                f"the motion cannot separate a delay from a tool error and its slow drift "
+                f"(to {sep * 1e3:.1f} ms > {self.max_se_s * 1e3:.0f} ms: the tool's velocity "
+                "in the tool frame hardly changes, as for one joint at constant speed); "
+                "changes of speed or direction separate it",
+                float(trk_t[-1]),
+            )
         # the error model of a short stretch: linear in the tool position, with the errors in
         # the tool frame (where the tool's own calibration error is constant) or in the base
         # frame (closer for a robot's geometric errors); the one that leaves less residual
@@ -477,18 +495,6 @@ class OnlineDelayTracker:
         fit = min(fits, key=lambda f: f.residual_rms_moving)
         middle = 0.5 * float(trk_t[0] + trk_t[-1])
         model = abs(fits[0].delay_s - fits[1].delay_s) if len(fits) == 2 else math.nan
-        sep = separable_se(trk_t, trk_p, trk_q)
-        if sep > self.max_se_s:
-            # the motion alone cannot tell a delay from a constant tool error and a slow
-            # drift of it: whatever the fit says it knows comes from the error model alone
-            return DelayRefused(
-                "fits_not_identifiable",
-                f"the motion cannot separate a delay from a tool error and its slow drift "
-                f"(to {sep * 1e3:.1f} ms > {self.max_se_s * 1e3:.0f} ms: the tool's velocity "
-                "in the tool frame hardly changes, as for one joint at constant speed); "
-                "changes of speed or direction separate it",
-                float(trk_t[-1]),
-            )
         return DelayMeasurement(
             fit.delay_s,
             _reported_se(fit.delay_se_s, model, sep),
@@ -847,6 +853,17 @@ class OnlineDelayTracker:
         self.applied_se = prior_se_s if known else None
         self.settled = known
         self.source = "configured" if known else "unknown"
+
+
+def _point_moves(t: np.ndarray, p: np.ndarray) -> bool:
+    """Does the tracked point move (its mean speed over the stretch, from samples 0.1 s
+    apart so that the tracker's noise is no speed, above twice `MIN_SPEED`)?"""
+    span = float(t[-1] - t[0])
+    if span <= 0.2:
+        return False
+    k = np.unique(np.searchsorted(t, np.arange(t[0], t[-1], 0.1)))
+    path = float(np.sum(np.linalg.norm(np.diff(p[k], axis=0), axis=1)))
+    return path / span > 2 * MIN_SPEED
 
 
 def _reported_se(own_se: float, model: float, sep: float) -> float:
