@@ -448,6 +448,7 @@ class Coverage:
             "not_identifiable": self.not_identifiable,
             "other_refused": self.other_refused,
             "seconds": self.seconds,
+            "z": [round(float(v), 3) for v in z],
         }
 
 
@@ -496,3 +497,33 @@ def coverage_markdown(rows: list[dict[str, Any]]) -> str:
             f"{r['not_identifiable']} | {r['other_refused']} | {r['seconds']:.0f} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def harm_row(cell: Cell, case: StreamCase, seed: int) -> dict[str, Any]:
+    """The targets of issue 45 on one run: the harm at the end with the right delay
+    configured, tracking on and off, and from delay_s = 0 the harm 20 s after the motion
+    starts and whether every estimate up to then was flagged (m, rad)."""
+    streams = case_streams(cell, case, seed)
+    end = float(streams.trk_t[-1])
+    on = delay_harm(streams, run_tracker(cell, streams, case.delay_s, 0.0005), end)
+    off = delay_harm(streams, run_tracker(cell, streams, case.delay_s, 0.0005, False), end)
+    unknown = run_tracker(cell, streams, 0.0, None)
+    at20 = streams.motion_start + 20.0
+    from0 = delay_harm(streams, unknown, at20)
+    flagged = bool(unknown.unsettled[unknown.t <= at20].all())
+    return {
+        "scenario": case.label,
+        "seed": seed,
+        "on_m": on[0],
+        "on_rad": on[1],
+        "off_m": off[0],
+        "off_rad": off[1],
+        "from0_m": from0[0],
+        "from0_rad": from0[1],
+        "from0_flagged": flagged,
+        "worse_m": on[0] - off[0],
+        "worse_rad": on[1] - off[1],
+        "ok": on[0] <= off[0] + 10e-6
+        and on[1] <= off[1] + 10e-6
+        and (flagged or (from0[0] <= 50e-6 and from0[1] <= 50e-6)),
+    }
