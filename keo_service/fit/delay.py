@@ -68,29 +68,7 @@ def _mad_sigma(x: np.ndarray) -> float:
 
 
 def _interp_joints(enc_t: np.ndarray, enc_q: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """The joints at times t: a cubic Hermite curve through the encoder samples, its slopes
-    from each sample's neighbours (held at the ends, as np.interp holds). Why not straight
-    lines: a line between samples 25 ms apart misses a joint accelerating at 1 rad/s^2 by
-    up to 80 urad, an error that follows the acceleration, which is the part of the motion
-    a short stretch's fit reads a delay from (fits of a receipt-stamped 40 Hz encoder's
-    first stretch, the motion ramping up, lay 1.5 ms off, at 14 of their own standard
-    errors)."""
-    n = enc_t.size
-    if n < 3:
-        return np.column_stack([np.interp(t, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])])
-    k = np.clip(np.searchsorted(enc_t, t, side="right") - 1, 0, n - 2)
-    t0 = enc_t[k]
-    h = enc_t[k + 1] - t0
-    s = np.clip((t - t0) / h, 0.0, 1.0)[:, None]
-    slope = np.gradient(enc_q, enc_t, axis=0)
-    s2, s3 = s * s, s * s * s
-    q: np.ndarray = (
-        (2 * s3 - 3 * s2 + 1) * enc_q[k]
-        + (s3 - 2 * s2 + s) * h[:, None] * slope[k]
-        + (3 * s2 - 2 * s3) * enc_q[k + 1]
-        + (s3 - s2) * h[:, None] * slope[k + 1]
-    )
-    return q
+    return np.column_stack([np.interp(t, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])])
 
 
 def _tool_states(
@@ -383,10 +361,13 @@ def fit_delay(
             with_drift,
             features,
         )
-        if not float(last.cov[0, 0]) < MAX_SE_S**2:
-            break  # no step from a round that cannot separate a delay: said below
         # e(t; d) = e_true + v (d - d_true): the fitted coefficient is how far off we are
         step = float(last.beta[0])
+        if not abs(step) <= margin:
+            # a step beyond the margin would read joints outside the recording (a constant-
+            # velocity stroke's round jumped seconds and was then refused as "hardly
+            # moving"): the round's own standard error says below why there is no delay
+            break
         delay -= step
         if with_drift:
             drift -= float(last.beta[1])

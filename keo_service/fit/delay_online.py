@@ -606,8 +606,8 @@ class OnlineDelayTracker:
 
     def _decide(self, t: float) -> str:
         """The gate of a change of the delay in use. Unknown (nothing configured): the
-        consensus is taken as soon as two fits agree (a step: anything measured beats
-        nothing), and the delay is settled once three agree to `settle_m` at the tool's
+        newest usable fit until two agree, then their consensus (a step: anything measured
+        beats nothing), and the delay is settled once three agree to `settle_m` at the tool's
         speed; estimates are flagged until then. Settled (configured, or found): it changes
         only when (a) the consensus is incompatible with the delay in use at
         `change_sigmas`, the delay in use's own uncertainty counted (a configured delay's
