@@ -628,11 +628,14 @@ class OnlineDelayTracker:
             f"fit {newest.value * 1e6:.1f} +/- {self.honest_se(newest.se) * 1e6:.1f} us "
             f"at {newest.speed * 1e3:.0f} mm/s"
         )
-        if cons is None and self.applied is None:
+        precise = newest.se * newest.speed <= self.max_apply_m
+        if cons is None and self.applied is None and (precise or not newest.young):
             # nothing is known: one usable fit beats nothing (flagged, and the fits that
             # follow revise it by the consensus like any other; with honest standard errors
             # a receipt-stamped 40 Hz encoder's fits are rough, 0.3-1 ms, and waiting for a
-            # precise one left the delay at 0 for 10 s and more)
+            # precise one left the delay at 0 for 10 s and more); but a young clock
+            # mapping's rough fit is not taken alone (its stamps still move: taking them
+            # failed the device-clock test's targets in 3 of 3 runs, 10-32 us at the end)
             self._take(newest.value, self.honest_se(newest.se), t, step=True)
             return f"{said}; unsettled: the first fit, in use until fits agree"
         if cons is None:
