@@ -356,3 +356,52 @@ def test_the_correction_cycle_step_by_step(demo_config):
     finally:
         pub.close()
         session.close()
+
+
+def test_a_correction_from_an_unsettled_delay_is_held_and_counted(demo_cell, demo_config, run):
+    """Issue 45: while the delay in use is not settled (found from the motion, possibly
+    milliseconds off) the estimate message says `delay_unsettled`; a correction computed from
+    it is held (invalid, zero, reason "delay_unsettled") and counted. Once the flag goes, the
+    corrections are valid again."""
+    from keo_service.core.estimator import Estimator
+    from keo_service.io.cell import estimator_settings
+
+    session = open_session("peer")
+    pub = compensation.CorrectionPublisher(demo_config, session)
+    sink = compensation.CorrectionSink(pub, None)
+    try:
+        est = Estimator(demo_cell, estimator_settings(demo_config))
+        plan = replay_plan(run.encoder.t, run.tracker.t)
+        estimates = []
+        for kind, i in zip(plan.kinds, plan.index, strict=True):
+            if kind == 0:
+                estimates += est.on_encoder(float(run.encoder.t[i]), run.encoder.q[i].tolist())
+            else:
+                estimates += est.on_tracker(
+                    float(run.tracker.t[i]), run.tracker.p[i].tolist(), run.tracker.quat[i].tolist()
+                )
+        fresh = [e for e in estimates if not e.held]
+        assert len(fresh) > 20
+        half = len(fresh) // 2
+        for e in fresh[:half]:
+            sink.on_estimate(e, msgspec.structs.replace(_message(e), flags=["delay_unsettled"]))
+        held = pub.latest
+        for e in fresh[half:]:
+            sink.on_estimate(e, _message(e))
+        assert pub.counters["corrections_delay_unsettled"] == half
+        assert held is not None
+        assert not held.valid
+        assert held.reason == "delay_unsettled"
+        assert held.translation == [0.0, 0.0, 0.0]
+        assert held.rotation == [0.0] * 3
+        assert pub.latest is not None
+        assert pub.latest.valid
+    finally:
+        pub.close()
+        session.close()
+
+
+def _message(estimate):
+    from keo_service.live.messages import estimate_message
+
+    return estimate_message(estimate, host_ns=0, seq=0, delay_s=0.0)

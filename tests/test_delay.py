@@ -256,23 +256,28 @@ def test_real_ur10_static_data_is_refused(tmp_path):
 
 def test_tool_states_over_arrays_match_pinocchio_sample_by_sample(demo_cell):
     """The delay fit's poses and velocities, all samples at once, against Pinocchio's forward
-    kinematics per sample and central differences written out here."""
+    kinematics per sample and central differences over two sample intervals (the velocity
+    is read from samples other than the two the joints are interpolated between) written out
+    here."""
     import pinocchio as pin
 
     from keo_service.core.kinematics import tool_pose
-    from keo_service.fit.delay import VELOCITY_STEP_S, _tool_states
+    from keo_service.fit.delay import _tool_states
 
     rng = np.random.default_rng(8)
-    enc_t = np.arange(200) * 0.004
+    enc_t = np.arange(200) * 0.004 + rng.uniform(-0.001, 0.001, 200)
     enc_q = np.cumsum(rng.normal(0, 0.01, (200, demo_cell.robot.nq)), axis=0)
     t = np.sort(rng.uniform(0.05, 0.75, 60))
     q, p, R, v, w = _tool_states(demo_cell, enc_t, enc_q, t)
     data = demo_cell.robot.create_data()
-    h = VELOCITY_STEP_S
+    h = 2 * float(np.median(np.diff(enc_t)))  # two sample intervals (more than 5 ms here)
+    assert h > 0.005
+
+    def at(x):
+        return np.array([np.interp(x, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])])
+
     for i, ti in enumerate(t):
-        qi = np.array([np.interp(ti, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])])
-        qm = np.array([np.interp(ti - h, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])])
-        qp = np.array([np.interp(ti + h, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])])
+        qi, qm, qp = at(ti), at(ti - h), at(ti + h)
         T = tool_pose(demo_cell, data, qi)
         Tm, Tp = tool_pose(demo_cell, data, qm), tool_pose(demo_cell, data, qp)
         assert np.allclose(q[i], qi, atol=1e-15)

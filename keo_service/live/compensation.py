@@ -51,6 +51,8 @@ CYCLE_BOUNDS_S = (0.001, 0.1)  # the observer's period as the cycle, kept within
 # a quiet cycle renews the newest correction once this many cycles passed without a put (not
 # one: estimates at the cycle's own rate would be doubled by every tick that comes late)
 RENEW_AFTER = 1.5
+# the estimate message's flag while the delay in use is not settled (live/service.py sets it)
+DELAY_UNSETTLED = "delay_unsettled"
 WARN_EVERY_S = 1.0  # a correction going stale is a warning at most this often (always counted)
 
 
@@ -107,6 +109,8 @@ class CorrectionPublisher:
         self.seq = 0
         self.failures = 0
         self.stale_events = 0  # times the freshness check turned the correction invalid
+        # estimates measured with a delay not yet settled (issue 45): their corrections held
+        self.unsettled_held = 0
         # with robot.correction = "none" no correction reaches a robot: its validity is
         # counted, not logged (issue 45: 19 warnings about corrections nobody sends)
         self._quiet = config.robot.correction == "none"
@@ -132,6 +136,7 @@ class CorrectionPublisher:
             **self.filter.counters,
             "corrections_publish_failed": self.failures,
             "corrections_stale": self.stale_events,
+            "corrections_delay_unsettled": self.unsettled_held,
         }
 
     @property
@@ -235,12 +240,20 @@ class CorrectionPublisher:
         self._put(msg, now)
         return msg
 
-    def message(self, estimate: Estimate, joints: Any = None) -> CorrectionMessage:
+    def message(
+        self, estimate: Estimate, joints: Any = None, delay_unsettled: bool = False
+    ) -> CorrectionMessage:
         """`joints`: the newest joints (the feedforward's "now"; the estimate's own joints
-        are a tracker delay and a transport older), else the estimate's."""
+        are a tracker delay and a transport older), else the estimate's. `delay_unsettled`:
+        the estimate was measured with a delay the service has not settled yet (its message
+        carries the flag): a correction from it is held, invalid, and counted (the delay in
+        use may still be milliseconds off: at 0.25 m/s a millisecond is 250 um)."""
         reason = ""
         if estimate.held:
             reason = estimate.flags[0] if estimate.flags else "held"
+        elif delay_unsettled:
+            reason = DELAY_UNSETTLED
+            self.unsettled_held += 1
         elif OUTSIDE_CALIBRATED_RANGE in estimate.flags:
             reason = OUTSIDE_CALIBRATED_RANGE
         values = estimate.estimate_values()
@@ -274,14 +287,17 @@ class CorrectionPublisher:
             clamped=c.clamped,
         )
 
-    def publish(self, estimate: Estimate, estimator: Any = None) -> CorrectionMessage:
+    def publish(
+        self, estimate: Estimate, estimator: Any = None, delay_unsettled: bool = False
+    ) -> CorrectionMessage:
         """Publish the correction for `estimate`; `estimator`: the service's, whose newest
-        encoder sample gives the joints for the feedforward."""
+        encoder sample gives the joints for the feedforward; `delay_unsettled` as in
+        `message`."""
         joints = None
         if estimator is not None and self.filter.model is not None:
             newest = estimator.encoder.latest_at_or_before(estimator.encoder.newest_t)
             joints = None if newest is None else newest[1]
-        msg = self.message(estimate, joints)
+        msg = self.message(estimate, joints, delay_unsettled)
         self._put(msg)
         return msg
 
@@ -344,7 +360,8 @@ class CorrectionSink:
             self.publisher.on_joints(sample.stamp, sample.joints)
 
     def on_estimate(self, estimate: Estimate, message: Any) -> None:
-        self.publisher.publish(estimate, self.estimator)
+        unsettled = DELAY_UNSETTLED in getattr(message, "flags", ())
+        self.publisher.publish(estimate, self.estimator, unsettled)
 
     def on_tick(self) -> None:
         self.publisher.tick()

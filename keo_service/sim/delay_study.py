@@ -9,7 +9,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import pinocchio as pin
 
 from keo_service.core.kinematics import Cell
 from keo_service.core.timing import DelayModel
@@ -208,8 +207,9 @@ def case_motion(cell: Cell, motion: str, rng: np.random.Generator) -> Any:
 
 def case_streams(cell: Cell, case: StreamCase, seed: int = 0) -> CaseStreams:
     """The encoder and tracker streams of one case, stamped as the adapters stamp them."""
+    from keo_service.core.chain import Chain
     from keo_service.core.clock import ReceiptStamps
-    from keo_service.core.kinematics import flange_pose, quat_wxyz
+    from keo_service.core.rotations import log3_many
     from keo_service.sim.simulate import make_true_robot
 
     rng = np.random.default_rng(seed)
@@ -223,35 +223,98 @@ def case_streams(cell: Cell, case: StreamCase, seed: int = 0) -> CaseStreams:
         stamps = ReceiptStamps()
         enc_t = np.array([stamps.place(float(r), 1)[0] for r in receipt])
     else:
-        enc_t = t_dev + rng.normal(0.0, err, t_dev.size)
-        enc_t = np.maximum.accumulate(enc_t + np.arange(t_dev.size) * 1e-9)
+        # stamps that never go back, nudged by a nanosecond where noise would reorder them
+        # (a nanosecond per sample added to all of them, as before, was a drift: 0.5 ppm at
+        # 500 Hz, which the fits of long runs duly found)
+        enc_t = np.maximum.accumulate(t_dev + rng.normal(0.0, err, t_dev.size))
+        for j in (np.flatnonzero(np.diff(enc_t) <= 0) + 1).tolist():
+            enc_t[j] = max(enc_t[j], enc_t[j - 1] + 1e-9)
     tperiod, terr = TRACKERS[case.tracker]
     tau = np.arange(0.2, case.seconds - 0.2, tperiod) + rng.uniform(0, tperiod)
     trk_t = tau + case.delay_s + rng.normal(0.0, terr, tau.size)
     q_phys = traj(tau)
+    # the true sensor poses and the nominal tool's, all samples at once (runs of many minutes
+    # at 1 kHz: a pose at a time took 6 s per simulated minute)
+    true_chain = Chain(dataclasses.replace(cell.robot, model=true_robot.model))
+    R_bs, p_bs = true_chain.flange_frames(
+        q_phys + true_robot.joint_offsets, tail=true_robot.T_ns.homogeneous
+    )
     T_kb = true_robot.T_bk.inverse()
-    p = np.empty((tau.size, 3))
-    quat = np.empty((tau.size, 4))
-    pos = np.empty((tau.size, 3))
-    rots = []
-    data = cell.robot.create_data()
-    for i in range(tau.size):
-        T_ks = T_kb * true_robot.sensor_pose(q_phys[i])
-        noise = pin.exp3(rng.normal(0.0, case.noise_rad, 3))
-        p[i] = T_ks.translation + rng.normal(0.0, case.noise_m, 3)
-        quat[i] = quat_wxyz(T_ks.rotation @ noise)
-        T_bt = flange_pose(cell.robot, data, q_phys[i]) * cell.T_nt
-        pos[i] = T_bt.translation
-        rots.append(T_bt.rotation)
+    R_ks = np.einsum("ij,jkn->nik", T_kb.rotation, R_bs)
+    p = (T_kb.rotation @ p_bs).T + T_kb.translation + rng.normal(0.0, case.noise_m, (tau.size, 3))
+    R_ks = R_ks @ _exp3_many(rng.normal(0.0, case.noise_rad, (tau.size, 3)))
+    quat = _quat_wxyz_many(R_ks)
+    R_nom, p_nom = Chain(cell.robot).flange_frames(q_phys, tail=cell.T_nt.homogeneous)
+    pos = p_nom.T
+    R = np.moveaxis(R_nom, 2, 0)
     h = np.gradient(tau)
     v = np.gradient(pos, axis=0) / h[:, None]
-    R = np.array(rots)
     w = np.zeros((tau.size, 3))
-    for i in range(1, tau.size - 1):
-        w[i] = pin.log3(R[i + 1] @ R[i - 1].T) / (tau[i + 1] - tau[i - 1])
+    if tau.size > 2:
+        rel = np.einsum("nij,nkj->nik", R[2:], R[:-2])  # R_(i+1) R_(i-1)^T
+        w[1:-1] = log3_many(np.moveaxis(rel, 0, 2)) / (tau[2:] - tau[:-2])[:, None]
     moving = np.max(np.abs(traj(tau + 1e-3) - q_phys), axis=1) > 1e-7
     start = float(trk_t[np.argmax(moving)]) if moving.any() else math.inf
     return CaseStreams(case, enc_t, enc_q, trk_t, p, quat, v, w, start)
+
+
+def _exp3_many(a: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) of rotation vectors (N, 3) (Rodrigues)."""
+    theta = np.linalg.norm(a, axis=1)
+    safe = np.where(theta > 0, theta, 1.0)
+    k = a / safe[:, None]
+    K = np.zeros((a.shape[0], 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
+    out: np.ndarray = np.eye(3) + s * K + (1 - c) * (K @ K)
+    return out
+
+
+def _quat_wxyz_many(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (w, x, y, z) of rotation matrices (N, 3, 3), w >= 0."""
+    tr = np.trace(R, axis1=1, axis2=2)
+    cand = np.stack(
+        [
+            np.stack(
+                [1 + tr, R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]],
+                -1,
+            ),
+            np.stack(
+                [
+                    R[:, 2, 1] - R[:, 1, 2],
+                    1 + 2 * R[:, 0, 0] - tr,
+                    R[:, 0, 1] + R[:, 1, 0],
+                    R[:, 0, 2] + R[:, 2, 0],
+                ],
+                -1,
+            ),
+            np.stack(
+                [
+                    R[:, 0, 2] - R[:, 2, 0],
+                    R[:, 0, 1] + R[:, 1, 0],
+                    1 + 2 * R[:, 1, 1] - tr,
+                    R[:, 1, 2] + R[:, 2, 1],
+                ],
+                -1,
+            ),
+            np.stack(
+                [
+                    R[:, 1, 0] - R[:, 0, 1],
+                    R[:, 0, 2] + R[:, 2, 0],
+                    R[:, 1, 2] + R[:, 2, 1],
+                    1 + 2 * R[:, 2, 2] - tr,
+                ],
+                -1,
+            ),
+        ],
+        1,
+    )  # each row: 4 q_k times one of the quaternion's components, k the largest
+    best = np.argmax(np.stack([tr, R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], -1), axis=1)
+    q: np.ndarray = cand[np.arange(R.shape[0]), best]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q
 
 
 @dataclass
@@ -265,6 +328,8 @@ class TrackedRun:
     fits: list[tuple[float, float, float]]  # each fit: value - truth, its se, with tau
     refused: int
     decisions: list[str]
+    measurements: list[Any] = dataclasses.field(default_factory=list)  # each DelayMeasurement
+    counters: dict[str, int] = dataclasses.field(default_factory=dict)  # the tracker's
 
 
 def run_tracker(
@@ -285,6 +350,7 @@ def run_tracker(
     out_delay = np.empty(streams.trk_t.size)
     out_flag = np.empty(streams.trk_t.size, dtype=bool)
     fits: list[tuple[float, float, float]] = []
+    measurements: list[DelayMeasurement] = []
     refused = 0
     decisions: list[str] = []
     k = 0
@@ -298,6 +364,7 @@ def run_tracker(
             if tracker.due():
                 found = tracker.measure(tracker.snapshot(), in_use)
                 if isinstance(found, DelayMeasurement):
+                    measurements.append(found)
                     fits.append(
                         (
                             found.delay_s - streams.case.delay_s,
@@ -314,7 +381,16 @@ def run_tracker(
                     in_use = target
         out_delay[i] = in_use
         out_flag[i] = track and not tracker.settled
-    return TrackedRun(streams.trk_t, out_delay, out_flag, fits, refused, decisions)
+    return TrackedRun(
+        streams.trk_t,
+        out_delay,
+        out_flag,
+        fits,
+        refused,
+        decisions,
+        measurements,
+        dict(tracker.counters),
+    )
 
 
 def delay_harm(streams: CaseStreams, run: TrackedRun, at: float) -> tuple[float, float]:
@@ -325,3 +401,131 @@ def delay_harm(streams: CaseStreams, run: TrackedRun, at: float) -> tuple[float,
     v = np.linalg.norm(streams.tool_v[sel], axis=1)
     w = np.linalg.norm(streams.tool_w[sel], axis=1)
     return float(np.sqrt(np.mean((err * v) ** 2))), float(np.sqrt(np.mean((err * w) ** 2)))
+
+
+# ---- do the fits' standard errors cover the truth? (issue 45, item 2) ---------------------------
+
+
+def matrix_cases() -> list[StreamCase]:
+    """Every scenario of the matrix: encoder x tracker x motion x geometry."""
+    return [
+        StreamCase(enc, trk, motion, geometry)
+        for enc in ENCODERS
+        for trk in TRACKERS
+        for motion in MOTIONS
+        for geometry in (False, True)
+    ]
+
+
+@dataclass
+class Coverage:
+    """How the fits of one scenario lie against the injected delay: z = |fit - truth| / se,
+    with the se each fit reports (the one the log, `keo status` and the gate use)."""
+
+    label: str
+    z: list[float]
+    not_identifiable: int  # stretches that said so instead of giving a number
+    other_refused: int  # stretches without a fit for another reason (no data, too rough)
+    seconds: float  # simulated stream time
+
+    @property
+    def n(self) -> int:
+        return len(self.z)
+
+    def within(self, limit: float = 2.5) -> float:
+        return float(np.mean(np.asarray(self.z) <= limit)) if self.z else math.nan
+
+    def row(self) -> dict[str, Any]:
+        z = np.asarray(self.z)
+        some = z.size > 0
+        return {
+            "scenario": self.label,
+            "fits": self.n,
+            "within_2_5": self.within(),
+            "median": float(np.median(z)) if some else math.nan,
+            "p95": float(np.percentile(z, 95)) if some else math.nan,
+            "max": float(z.max()) if some else math.nan,
+            "not_identifiable": self.not_identifiable,
+            "other_refused": self.other_refused,
+            "seconds": self.seconds,
+            "z": [round(float(v), 3) for v in z],
+        }
+
+
+def coverage(
+    cell: Cell,
+    case: StreamCase,
+    min_fits: int = 200,
+    seconds: float = 300.0,
+    max_seconds: float = 3600.0,
+    first_seed: int = 100,
+) -> Coverage:
+    """Runs of `seconds` (seeds from `first_seed`) through the online tracker with the right
+    delay configured, until `min_fits` fits or `max_seconds` of stream time: each fit's z."""
+    if case.motion == "stop_go":  # its moves end at 121 s: runs of rest are not fits
+        seconds = min(seconds, 125.0)
+    z: list[float] = []
+    not_identifiable = other = 0
+    total = 0.0
+    seed = first_seed
+    while len(z) < min_fits and total < max_seconds:
+        streams = case_streams(cell, dataclasses.replace(case, seconds=seconds), seed)
+        run = run_tracker(cell, streams, case.delay_s, 0.0005)
+        z += [abs(err) / se for err, _own, se in run.fits]
+        ni = run.counters.get("fits_not_identifiable", 0)
+        not_identifiable += ni
+        other += run.refused - ni
+        total += seconds
+        seed += 1
+    return Coverage(case.label, z, not_identifiable, other, total)
+
+
+def coverage_markdown(rows: list[dict[str, Any]]) -> str:
+    """The per-scenario table of docs/timing-delay.md."""
+    lines = [
+        "| scenario | fits | within 2.5 se | median z | p95 z | max z | not identifiable | "
+        "other refused | stream time (s) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        within = "" if r["fits"] == 0 else f"{100 * r['within_2_5']:.1f} %"
+        nums = (
+            ["", "", ""]
+            if r["fits"] == 0
+            else [f"{r['median']:.2f}", f"{r['p95']:.2f}", f"{r['max']:.1f}"]
+        )
+        lines.append(
+            f"| {r['scenario']} | {r['fits']} | {within} | {' | '.join(nums)} | "
+            f"{r['not_identifiable']} | {r['other_refused']} | {r['seconds']:.0f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def harm_row(cell: Cell, case: StreamCase, seed: int) -> dict[str, Any]:
+    """The targets of issue 45 on one run: the harm at the end with the right delay
+    configured, tracking on and off, and from delay_s = 0 the harm 20 s after the motion
+    starts and whether every estimate up to then was flagged (m, rad)."""
+    streams = case_streams(cell, case, seed)
+    end = float(streams.trk_t[-1])
+    on = delay_harm(streams, run_tracker(cell, streams, case.delay_s, 0.0005), end)
+    off = delay_harm(streams, run_tracker(cell, streams, case.delay_s, 0.0005, False), end)
+    unknown = run_tracker(cell, streams, 0.0, None)
+    at20 = streams.motion_start + 20.0
+    from0 = delay_harm(streams, unknown, at20)
+    flagged = bool(unknown.unsettled[unknown.t <= at20].all())
+    return {
+        "scenario": case.label,
+        "seed": seed,
+        "on_m": on[0],
+        "on_rad": on[1],
+        "off_m": off[0],
+        "off_rad": off[1],
+        "from0_m": from0[0],
+        "from0_rad": from0[1],
+        "from0_flagged": flagged,
+        "worse_m": on[0] - off[0],
+        "worse_rad": on[1] - off[1],
+        "ok": on[0] <= off[0] + 10e-6
+        and on[1] <= off[1] + 10e-6
+        and (flagged or (from0[0] <= 50e-6 and from0[1] <= 50e-6)),
+    }
