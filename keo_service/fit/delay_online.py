@@ -240,6 +240,11 @@ class OnlineDelayTracker:
         self.source = "configured" if known else "unknown"  # where the delay in use comes from
         self.step = False  # the last change is a step (confirmed), not a refinement to slew to
         self._applied_t = math.nan  # the stream time it describes
+        # whether the delay in use follows the lines' moves: a fitted value describes the
+        # stamps under its fit's lines; the user's calibration was made under no line keo saw,
+        # and a young mapping's line moves while its stamps stay right (a held drift), so a
+        # configured delay moves with them only once a fit precise enough to matter agreed
+        self._carried = False
         self._estimate_t = math.nan  # the stream time `estimate` describes
         self.counters: collections.Counter[str] = collections.Counter()
         self.last_result: str = "waiting for motion"
@@ -312,9 +317,12 @@ class OnlineDelayTracker:
         """The delay to use now: the estimate last applied, carried along as the mapped
         streams' lines moved since the stretch it was fitted under (a tracker stamp that moved
         later needs a longer delay, an encoder stamp a shorter one; the move where the
-        estimate describes). None before one was applied."""
+        estimate describes). A configured delay is carried only once a precise fit agreed with
+        it (`_carried`). None before one was applied."""
         if self.applied is None:
             return None
+        if not self._carried:
+            return self.applied
         return self.applied + self._moved(self._newest, self._applied_t)
 
     def _moved(self, lines: dict[str, Anchor], at: float) -> float:
@@ -356,7 +364,7 @@ class OnlineDelayTracker:
             self._suspect = (value + self._moved(lines, t), se, t)
         if self.estimate is not None:
             self.estimate += self._moved(lines, self._estimate_t)
-        if self.applied is not None:
+        if self.applied is not None and self._carried:
             self.applied += self._moved(lines, self._applied_t)
         self._frame = dict(lines)
 
@@ -384,7 +392,7 @@ class OnlineDelayTracker:
         self._suspect = None
         self._segment += 1
         self._recent.clear()
-        if self.source != "configured":  # found under the old mapping: found again
+        if not self.source.startswith("configured"):  # found under the old mapping: again
             self.settled = False
         if self.se is not None:  # the delay in use is less sure under the new mapping
             self.se = math.hypot(self.se, self.restart_sigma_s)
@@ -536,7 +544,8 @@ class OnlineDelayTracker:
         # young mappings' stamps still move; receipt and shared-clock stamps have no mapping
         provisional = found.t <= self._young_until and bool(lines)
         if not provisional:  # young stretches have their own length
-            self._fit_stretch(se * speed)
+            own = found.own_se_s if math.isfinite(found.own_se_s) else se
+            self._fit_stretch(own * speed)  # the length for the fits' own precision
         if not (math.isfinite(value) and math.isfinite(se) and se > 0) or se > self.max_se_s:
             self.counters["fits_refused_imprecise"] += 1
             self.last_result = "kept: the fit gave no usable value"
@@ -553,6 +562,9 @@ class OnlineDelayTracker:
                 sep_se=found.sep_se_s,
             )
         )
+        if not self._carried and self._confirms(self._recent[-1]):
+            self._carried = True
+            self.source = f"configured, confirmed by the fit at {found.t:.1f} s"
         before = self.applied
         decision = self._decide(found.t)
         self.state = decision.split("; ", 1)[-1].split(":")[0]
@@ -644,26 +656,9 @@ class OnlineDelayTracker:
             self.counters["fits_without_consensus"] += 1
             return f"{said}; kept: the recent fits do not agree yet"
         c, se_c, members = cons
-        speed = float(np.median([f.speed for f in members]))
         agreed = f"{len(members)} fits agree on {c * 1e6:.1f} +/- {se_c * 1e6:.1f} us"
         if not self.settled or self.applied is None:
-            if newest.young and newest in members:  # its stamps are the most settled
-                c, se_c = newest.value, self.honest_se(newest.se)
-            self._take(c, se_c, t, step=True)
-            grown = len(members) >= 3 and not any(f.young for f in members)
-            # and the motion itself separates a delay (not so for one joint at constant
-            # speed, whose fits agree on a value the motion cannot tell from a tool error)
-            separates = not newest.sep_se * newest.speed > self.settings.settle_m
-            # fits of one motion are biased alike (the stamps' errors and the stretches'
-            # error model change slowly): their mean is known no better than the best of them
-            se_settle = max(se_c, min(self.honest_se(f.se) for f in members))
-            if grown and separates and se_settle * speed <= self.settings.settle_m:
-                self.settled = True
-                self._trend.start(c, se_c * se_c, newest.t)
-                self._trend_fits = 0
-                return f"{said}; settled: {agreed}"
-            to = self.settings.settle_m * 1e6
-            return f"{said}; unsettled: {agreed}, in use until they agree to {to:g} um at speed"
+            return f"{said}; {self._decide_unsettled(t, cons, agreed)}"
         applied = self.applied
         # the delay in use walks on since it was set (device clocks' stamps move with load)
         since = 0.0 if math.isnan(self._applied_t) else max(0.0, t - self._applied_t)
@@ -672,6 +667,14 @@ class OnlineDelayTracker:
         if z < self.settings.change_sigmas:
             self.counters["fits_agree"] += 1
             return f"{said}; kept: {agreed}, {z:.1f} sigma from the delay in use"
+        if not se_c < applied_se:
+            # automation may only improve on the delay in use: a value known less precisely
+            # than it (a configured delay's `delay_se_s`) is no improvement, however far off
+            self.counters["changes_less_precise"] += 1
+            return (
+                f"{said}; kept: {agreed}, known less precisely than the delay in use "
+                f"(+/- {applied_se * 1e6:.1f} us)"
+            )
         side = math.copysign(1.0, c - applied)
         tau2 = self._tau2()
         confirming = [
@@ -705,8 +708,49 @@ class OnlineDelayTracker:
             f"on the newest stretch {old * 1e6:.1f} -> {new * 1e6:.1f} um"
         )
 
+    def _decide_unsettled(
+        self, t: float, cons: tuple[float, float, list[_Fit]], agreed: str
+    ) -> str:
+        """While the delay is not settled the consensus is taken at once; it settles once three
+        fits of settled mappings agree to `settle_m` at the tool's speed and the motion
+        separates a delay."""
+        c, se_c, members = cons
+        newest = self._recent[-1]
+        speed = float(np.median([f.speed for f in members]))
+        if newest.young and newest in members:  # its stamps are the most settled
+            c, se_c = newest.value, self.honest_se(newest.se)
+        self._take(c, se_c, t, step=True)
+        grown = len(members) >= 3 and not any(f.young for f in members)
+        # and the motion itself separates a delay (not so for one joint at constant
+        # speed, whose fits agree on a value the motion cannot tell from a tool error)
+        separates = not newest.sep_se * newest.speed > self.settings.settle_m
+        # fits of one motion are biased alike (the stamps' errors and the stretches'
+        # error model change slowly): their mean is known no better than the best of them
+        se_settle = max(se_c, min(self.honest_se(f.se) for f in members))
+        if grown and separates and se_settle * speed <= self.settings.settle_m:
+            self.settled = True
+            self._trend.start(c, se_c * se_c, newest.t)
+            self._trend_fits = 0
+            return f"settled: {agreed}"
+        to = self.settings.settle_m * 1e6
+        return f"unsettled: {agreed}, in use until they agree to {to:g} um at speed"
+
+    def _confirms(self, fit: _Fit) -> bool:
+        """Does this fit confirm the configured delay in use: precise to `max_apply_m` at its
+        speed (its own standard error, as a first fit is taken) and within `change_sigmas`
+        of it?"""
+        if self.applied is None or self.applied_se is None:
+            return False
+        se = fit.se
+        if not se * fit.speed <= self.max_apply_m:
+            return False
+        return abs(fit.value - self.applied) <= self.settings.change_sigmas * math.hypot(
+            se, self.applied_se
+        )
+
     def _take(self, value: float, se: float, t: float, step: bool) -> None:
         self.applied, self.applied_se, self._applied_t = value, se, t
+        self._carried = True
         self.estimate, self.se, self._estimate_t = value, se, t
         self.source = f"fit at {t:.1f} s"
         self.step = step
@@ -716,7 +760,11 @@ class OnlineDelayTracker:
         refinement when it is known to `max_apply_m` at the tool's speed and moves the delay
         by at most three times that there (larger changes go through `_decide`). None when
         it did not refine the delay in use."""
-        value, se, speed = found.delay_s, found.se_s, found.speed_rms
+        value, speed = found.delay_s, found.speed_rms
+        # the running estimate follows the delay's walk between stretches: what a fit knows
+        # of that is its own standard error; the error models' share and the motion's floor
+        # (in `se_s`) are biases that stretches of one motion share, which a walk does not move
+        se = found.own_se_s if math.isfinite(found.own_se_s) else found.se_s
         t_fit = found.described_t
         fresh = provisional or self._provisional or not self._trend.started
         moved = None if fresh else self._outlier(value, se, t_fit)
@@ -757,6 +805,8 @@ class OnlineDelayTracker:
             return None
         self.applied_se = self.se
         self.applied, self._applied_t = self.estimate, self._estimate_t
+        self.source = f"fit at {self._estimate_t:.1f} s"
+        self._carried = True
         self.step = False
         self.counters["refinements"] += 1
         return (
@@ -865,6 +915,7 @@ class OnlineDelayTracker:
         self.applied_se = prior_se_s if known else None
         self.settled = known
         self.source = "configured" if known else "unknown"
+        self._carried = False
 
 
 # the other error model's residual this many times the chosen one's: rejected by the data
