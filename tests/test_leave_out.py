@@ -1,0 +1,102 @@
+"""Leave one session out (fit.leave_out): the model of the other recordings carried to the
+one left out, and pooling judged against each single recording. Simulated stations of one
+robot with injected truth, so what the figures must be is known without the code under test:
+the simulator's noise where the carried model is right, far above it where it is wrong."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pinocchio as pin
+from scipy.spatial.transform import Rotation
+
+from keo_service.core.model_corrections import approach_directions
+from keo_service.fit.analysis import Data
+from keo_service.fit.leave_out import fit_full, leave_one_session_out, sessions_subset
+from keo_service.sim.simulate import make_scenario, simulate
+
+SETS = {"poses": "120", "geometric_errors": "false"}  # the true robot: the nominal one
+NOISE_MM = 0.05  # the simulator's 20 um per coordinate: ~0.035 mm RMS position error
+STATIONS = ((0.0, [0.0, 0.0, 0.0]), (0.6, [-1.2, 2.0, 0.3]), (-0.5, [0.8, -1.5, -0.2]))
+
+
+def _sessions(cell, offsets: list[float]) -> Data:
+    """Three stations of the tracker; session s's encoder of joint 2 reads `offsets[s]` rad
+    more than the joint's true angle (a joint re-mastered for that session only)."""
+    parts = []
+    for s, (yaw, move) in enumerate(STATIONS):
+        R = Rotation.from_euler("z", yaw).as_matrix()
+        station = dataclasses.replace(cell, T_bk=cell.T_bk * pin.SE3(R, np.array(move)))
+        run = simulate(station, make_scenario("static-poses", SETS), seed=40 + s)
+        q = run.encoder.q.copy()
+        q[:, 1] += offsets[s]
+        parts.append((q, run))
+    q = np.concatenate([q for q, _run in parts])
+    sizes = [run.tracker.p.shape[0] for _q, run in parts]
+    return Data(
+        q,
+        np.concatenate([run.tracker.p for _q, run in parts]),
+        np.concatenate(
+            [Rotation.from_quat(r.tracker.quat, scalar_first=True).as_matrix() for _q, r in parts]
+        ),
+        np.concatenate([run.tracker.t for _q, run in parts]),
+        {},
+        approach_directions(q),
+        session=np.repeat([0, 1, 2], sizes),
+        weight=np.ones(q.shape[0]),
+    )
+
+
+def _loso(cell, offsets: list[float]) -> dict:
+    data = _sessions(cell, offsets)
+    # joint offsets only, no maps or couplings on top: the truth has nothing else, and the
+    # full library costs minutes on three sessions
+    kept = ("joint_offsets",)
+    pooled = fit_full(cell.robot, data, False, candidates=kept, on_top=False)
+    return leave_one_session_out(cell.robot, data, False, pooled, candidates=kept, on_top=False)
+
+
+def test_sessions_subset_relabels_and_reweights(demo_cell):
+    data = _sessions(demo_cell, [0.0, 0.0, 0.0])
+    one = sessions_subset(data, [1])
+    assert one.session is None
+    assert one.weight is None
+    assert one.n == int(np.sum(data.session == 1))
+    two = sessions_subset(data, [0, 2])
+    assert two.session is not None
+    assert set(two.session) == {0, 1}
+    assert two.weight is not None
+    for label in (0, 1):  # each counts equally: its weights sum to half the rows
+        assert np.isclose(np.sum(two.weight[two.session == label]), two.n / 2)
+
+
+def test_left_out_sessions_at_the_noise_and_pooling_no_worse(demo_cell):
+    """The same robot at three stations: the others' model, carried with only the
+    registration refitted, is at the noise on the session left out, and pooled it is no
+    worse than either other session alone."""
+    loso = _loso(demo_cell, [0.0, 0.0, 0.0])
+    assert len(loso["entries"]) == 3
+    for entry in loso["entries"]:
+        assert entry["held_out_pos_rms_mm"] < NOISE_MM
+        assert entry["nominal_pos_rms_mm"] > 2 * entry["held_out_pos_rms_mm"]
+        assert len(entry["single_sessions"]) == 2
+        assert not entry["pooled_worse_than_best_single"]
+    assert loso["summary"]["pooled_worse_than_best_single"] == []
+    assert loso["summary"]["left_out_pos_rms_mm"] < NOISE_MM
+
+
+def test_pooling_that_does_worse_than_one_session_is_named(demo_cell):
+    """Session 2's joint 2 reads 1 mrad off: pooled with it, a model carried to a clean
+    session is worse than the other clean session's model alone (which stays at the noise),
+    and the report names it."""
+    loso = _loso(demo_cell, [0.0, 1e-3, 0.0])
+    by_left_out = {e["session"]: e for e in loso["entries"]}
+    for left_out, clean in ((0, 2), (2, 0)):
+        entry = by_left_out[left_out]
+        assert entry["best_single"]["fitted_on"] == clean
+        assert entry["best_single"]["held_out_pos_rms_mm"] < NOISE_MM
+        assert entry["held_out_pos_rms_mm"] > 2 * NOISE_MM
+        assert entry["pooled_worse_than_best_single"]
+    assert {0, 2} <= set(loso["summary"]["pooled_worse_than_best_single"])
+    assert "pooling did worse than a single recording" in loso["summary"]["verdict"]
