@@ -9,6 +9,7 @@ import dataclasses
 
 import numpy as np
 import pinocchio as pin
+import pytest
 from scipy.spatial.transform import Rotation
 
 from keo_service.core.model_corrections import approach_directions
@@ -71,6 +72,7 @@ def test_sessions_subset_relabels_and_reweights(demo_cell):
         assert np.isclose(np.sum(two.weight[two.session == label]), two.n / 2)
 
 
+@pytest.mark.slow  # 16 analyses of 120-360 poses: about a minute alone
 def test_left_out_sessions_at_the_noise_and_pooling_no_worse(demo_cell):
     """The same robot at three stations: the others' model, carried with only the
     registration refitted, is at the noise on the session left out, and pooled it is no
@@ -86,6 +88,7 @@ def test_left_out_sessions_at_the_noise_and_pooling_no_worse(demo_cell):
     assert loso["summary"]["left_out_pos_rms_mm"] < NOISE_MM
 
 
+@pytest.mark.slow
 def test_pooling_that_does_worse_than_one_session_is_named(demo_cell):
     """Session 2's joint 2 reads 1 mrad off: pooled with it, a model carried to a clean
     session is worse than the other clean session's model alone (which stays at the noise),
@@ -100,3 +103,27 @@ def test_pooling_that_does_worse_than_one_session_is_named(demo_cell):
         assert entry["pooled_worse_than_best_single"]
     assert {0, 2} <= set(loso["summary"]["pooled_worse_than_best_single"])
     assert "pooling did worse than a single recording" in loso["summary"]["verdict"]
+
+
+def test_the_summary_names_a_pooling_that_did_worse():
+    """The verdict from the entries alone: RMS over the recordings left out, and a recording
+    where the others pooled are over 5 % above the best single one named with both figures."""
+    from keo_service.fit.leave_out import _summary
+
+    def entry(s: int, pooled: float, best: float) -> dict[str, object]:
+        return {
+            "session": s,
+            "held_out_pos_rms_mm": pooled,
+            "nominal_pos_rms_mm": 1.0,
+            "within_session_pooled_pos_rms_mm": 0.1,
+            "best_single": {"fitted_on": (s + 1) % 3, "held_out_pos_rms_mm": best},
+            "pooled_worse_than_best_single": pooled > 1.05 * best,
+        }
+
+    fine = _summary([entry(0, 0.30, 0.29), entry(1, 0.40, 0.45)])
+    assert fine["pooled_worse_than_best_single"] == []
+    assert fine["left_out_pos_rms_mm"] == pytest.approx(np.sqrt((0.30**2 + 0.40**2) / 2))
+    assert "no worse" in fine["verdict"]
+    worse = _summary([entry(0, 0.30, 0.29), entry(2, 0.50, 0.25)])
+    assert worse["pooled_worse_than_best_single"] == [2]
+    assert "session 3: pooled 0.5000 mm, session 1 alone 0.2500 mm" in worse["verdict"]

@@ -439,19 +439,8 @@ def try_maps(
     before = stats(model, x, val, tau_va)
     after = stats(fit.model, fit.x, val, tau_va)
     gain = 1 - after.judged_mm / before.judged_mm
-    # second split: a band of joint 1's angle held out (a region of the workspace)
-    lin = linearize(model, x, data, chain.gravity_torques(data.q))
-    keep_band, band = held_out_band(data)
-    knots = knots_for(data.q[keep_band], fit.spacing)
-    band_before = _linear_rms(lin, data.q, knots, keep_band, band, fit.smoothing, x.size, False)
-    band_after = _linear_rms(lin, data.q, knots, keep_band, band, fit.smoothing, x.size, True)
+    band, band_before, band_after, curve = _band_and_curve(model, x, fit, data, train_idx, val_idx)
     band_gain = 1 - band_after / band_before
-    curve = []
-    for share in (0.25, 0.5, 0.75, 1.0):
-        sub = train_idx[: max(10, int(share * train_idx.size))]
-        kn = knots_for(data.q[sub], fit.spacing)
-        rms = _linear_rms(lin, data.q, kn, sub, val_idx, fit.smoothing, x.size, True)
-        curve.append({"train_poses": int(sub.size), "held_out_pos_rms_mm": rms})
     entry: dict[str, Any] = {
         "name": JointMaps.name,
         "description": JointMaps.description,
@@ -490,6 +479,30 @@ def try_maps(
             analysis.report["registration"]["tools"]["with_effects_and_maps"]["per_session"] = False
         analysis.report["rejected"].append(entry)
         say(f"not kept joint_maps: held-out {100 * gain:+.1f} %, band {100 * band_gain:+.1f} %")
+
+
+def _band_and_curve(
+    model: Model,
+    x: np.ndarray,
+    fit: MapFit,
+    data: Data,
+    train_idx: np.ndarray,
+    val_idx: np.ndarray,
+) -> tuple[np.ndarray, float, float, list[dict[str, Any]]]:
+    """The maps' second split (a band of joint 1's angle held out, a region of the workspace:
+    its poses and RMS without and with the maps, linearized) and their learning curve."""
+    lin = linearize(model, x, data, model.chain.gravity_torques(data.q))
+    keep_band, band = held_out_band(data)
+    knots = knots_for(data.q[keep_band], fit.spacing)
+    band_before = _linear_rms(lin, data.q, knots, keep_band, band, fit.smoothing, x.size, False)
+    band_after = _linear_rms(lin, data.q, knots, keep_band, band, fit.smoothing, x.size, True)
+    curve = []
+    for share in (0.25, 0.5, 0.75, 1.0):
+        sub = train_idx[: max(10, int(share * train_idx.size))]
+        kn = knots_for(data.q[sub], fit.spacing)
+        rms = _linear_rms(lin, data.q, kn, sub, val_idx, fit.smoothing, x.size, True)
+        curve.append({"train_poses": int(sub.size), "held_out_pos_rms_mm": rms})
+    return band, band_before, band_after, curve
 
 
 def session_rms(model: Model, x: np.ndarray, data: Data, idx: np.ndarray) -> list[float]:
