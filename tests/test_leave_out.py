@@ -17,14 +17,15 @@ from keo_service.fit.analysis import Data
 from keo_service.fit.leave_out import fit_full, leave_one_session_out, sessions_subset
 from keo_service.sim.simulate import make_scenario, simulate
 
-SETS = {"poses": "120", "geometric_errors": "false"}  # the true robot: the nominal one
+SETS = {"poses": "120", "geometric_errors": "false"}  # the nominal robot but for the offsets
 NOISE_MM = 0.05  # the simulator's 20 um per coordinate: ~0.035 mm RMS position error
 STATIONS = ((0.0, [0.0, 0.0, 0.0]), (0.6, [-1.2, 2.0, 0.3]), (-0.5, [0.8, -1.5, -0.2]))
 
 
 def _sessions(cell, offsets: list[float]) -> Data:
-    """Three stations of the tracker; session s's encoder of joint 2 reads `offsets[s]` rad
-    more than the joint's true angle (a joint re-mastered for that session only)."""
+    """Three stations of the tracker. Every session's encoder of joint 3 reads 0.5 mrad more
+    than the joint's true angle (the robot's own error, which the nominal model lacks), and
+    session s's of joint 2 `offsets[s]` rad more (a joint re-mastered for that session only)."""
     parts = []
     for s, (yaw, move) in enumerate(STATIONS):
         R = Rotation.from_euler("z", yaw).as_matrix()
@@ -32,6 +33,7 @@ def _sessions(cell, offsets: list[float]) -> Data:
         run = simulate(station, make_scenario("static-poses", SETS), seed=40 + s)
         q = run.encoder.q.copy()
         q[:, 1] += offsets[s]
+        q[:, 2] += 5e-4
         parts.append((q, run))
     q = np.concatenate([q for q, _run in parts])
     sizes = [run.tracker.p.shape[0] for _q, run in parts]
