@@ -129,3 +129,14 @@ def test_the_summary_names_a_pooling_that_did_worse():
     worse = _summary([entry(0, 0.30, 0.29), entry(2, 0.50, 0.25)])
     assert worse["pooled_worse_than_best_single"] == [2]
     assert "session 3: pooled 0.5000 mm, session 1 alone 0.2500 mm" in worse["verdict"]
+
+
+def test_pooled_worse_needs_the_margin_and_more_than_the_scatter():
+    """5 % above the best single recording is chance on 30 held-out poses at the noise (the
+    RMS of 30 3-D errors scatters by about 7 %), not on 3000; 20 % is beyond both."""
+    from keo_service.fit.leave_out import pooled_worse
+
+    assert not pooled_worse(0.037, 0.035, 30)
+    assert pooled_worse(0.037, 0.035, 3000)
+    assert pooled_worse(0.045, 0.035, 30)
+    assert not pooled_worse(0.036, 0.035, 100000)  # beyond the scatter, under the margin

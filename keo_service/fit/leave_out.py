@@ -34,7 +34,8 @@ from keo_service.fit.model import Data, Model, NotIdentifiableError
 from keo_service.fit.uncertainty import TrackerUncertainty
 
 # pooling is "worse" than a single recording when its error on the recording left out is
-# this much above the best single one's (the keep margin of every other choice)
+# this much above the best single one's (the keep margin of every other choice) and beyond
+# the held-out poses' scatter (pooled_worse)
 POOLED_MARGIN = KEEP_MARGIN
 
 
@@ -83,6 +84,7 @@ def carried(robot: RobotModel, model: Model, data: Data, position_only: bool) ->
     result = analyze(robot, data, position_only, fixed_model=model)
     rep = result.report
     out = {
+        "held_out_poses": rep["final"]["validation"]["n"],
         "held_out_pos_rms_mm": rep["final"]["validation"]["pos_rms_mm"],
         "held_out_pos_max_mm": rep["final"]["validation"]["pos_max_mm"],
         "nominal_pos_rms_mm": rep["baseline"]["validation"]["pos_rms_mm"],
@@ -106,7 +108,7 @@ def leave_one_session_out(
     several) carried to it, beside its within-session held-out figure from the pooled model
     (`pooled`: the analysis of all recordings) and its own model's. With three or more
     recordings, each other recording's model alone is carried to it too, and where the pooled
-    one did worse than the best of them by POOLED_MARGIN the entry and the summary say so.
+    one did worse than the best of them (pooled_worse) the entry and the summary say so.
     `candidates`, `on_top`: as fit_full (the pooled analysis' own choices)."""
     say = say or (lambda _m: None)
     n = sessions_of(data)
@@ -146,8 +148,8 @@ def leave_one_session_out(
             best_mm = singles[best]["held_out_pos_rms_mm"]
             entry["single_sessions"] = [{"fitted_on": o, **singles[o]} for o in others]
             entry["best_single"] = {"fitted_on": best, "held_out_pos_rms_mm": best_mm}
-            entry["pooled_worse_than_best_single"] = bool(
-                entry["held_out_pos_rms_mm"] > (1 + POOLED_MARGIN) * best_mm
+            entry["pooled_worse_than_best_single"] = pooled_worse(
+                entry["held_out_pos_rms_mm"], best_mm, int(entry["held_out_poses"])
             )
         entries.append(entry)
         say(
@@ -156,6 +158,16 @@ def leave_one_session_out(
             f"{within[s]:.4f})"
         )
     return {"kind": "leave one session out", "entries": entries, "summary": _summary(entries)}
+
+
+def pooled_worse(pooled_mm: float, single_mm: float, poses: int) -> bool:
+    """Pooling did worse than a single recording on the recording left out: its held-out RMS
+    is POOLED_MARGIN above the single one's and the difference is beyond what the held-out
+    poses' own scatter allows (two standard errors of the difference of two RMS over `poses`
+    3-D errors, each RMS / sqrt(6 x poses)): with a few dozen held-out poses at the noise,
+    5 % is chance."""
+    se = np.hypot(pooled_mm, single_mm) / np.sqrt(6.0 * max(poses, 1))
+    return bool(pooled_mm - single_mm > max(POOLED_MARGIN * single_mm, 2.0 * se))
 
 
 def _names(sessions: Sequence[int]) -> str:
