@@ -62,6 +62,12 @@ def fit_full(
     return result
 
 
+def fitted(result: Analysis) -> Model:
+    """The analysis' model holding its fitted parameters (an Analysis keeps them beside the
+    model, whose own x is where its last fit started)."""
+    return dataclasses.replace(result.model, x=result.x)
+
+
 def sessions_subset(data: Data, sessions: Sequence[int]) -> Data:
     """The rows of `sessions`, relabelled 0..k-1 and weighted so each counts equally (one
     session: unlabelled and unweighted, as a recording analysed alone)."""
@@ -124,14 +130,14 @@ def leave_one_session_out(
         others = [o for o in range(n) if o != s]
         alone = sessions_subset(data, [s])
         if len(others) == 1:
-            model = own[others[0]].model
+            model = fitted(own[others[0]])
         else:
             say(f"leave one session out: sessions {_names(others)} pooled, session {s + 1} out")
             try:
                 part = sessions_subset(data, others)
-                model = fit_full(
-                    robot, part, position_only, uncertainty, None, candidates, on_top
-                ).model
+                model = fitted(
+                    fit_full(robot, part, position_only, uncertainty, None, candidates, on_top)
+                )
             except NotIdentifiableError as exc:
                 entries.append({"session": s, "fitted_on": others, "error": str(exc)})
                 continue
@@ -143,7 +149,7 @@ def leave_one_session_out(
             "within_session_own_pos_rms_mm": own[s].report["final"]["validation"]["pos_rms_mm"],
         }
         if len(others) > 1:
-            singles = {o: carried(robot, own[o].model, alone, position_only) for o in others}
+            singles = {o: carried(robot, fitted(own[o]), alone, position_only) for o in others}
             best = min(others, key=lambda o: singles[o]["held_out_pos_rms_mm"])
             best_mm = singles[best]["held_out_pos_rms_mm"]
             entry["single_sessions"] = [{"fitted_on": o, **singles[o]} for o in others]
