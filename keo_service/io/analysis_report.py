@@ -250,42 +250,11 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
             line += f"; **the held-out maximum rose** from {previous_max:.3f} to {new_max:.3f} mm"
         previous_max = new_max
         lines.append(line)
-    carried = report.get("carried_maps")
-    if carried:
-        lines.append(
-            f"- carried {JointMaps.name} (registration refitted): held out "
-            f"{carried['held_out_pos_rms_mm_with']:.4f} mm with them, "
-            f"{carried['held_out_pos_rms_mm_without']:.4f} mm without: "
-            + ("kept" if carried["kept"] else "dropped, the model is written without them")
-            + f"; {carried['poses_outside_calibrated_range_pct']:.0f} % of these poses lie "
-            "outside the angles the maps were calibrated on, on some joint (there that joint's "
-            f"map fades to zero over {MAP_TAPER_RAD:g} rad; the other joints' maps apply)"
-            + (
-                "; maps of "
-                + ", ".join(d["joint"] for d in carried.get("joints_dropped", []))
-                + " dropped (they raised the error on this session's registration poses)"
-                if carried.get("joints_dropped")
-                else ""
-            )
-        )
-    predicted = report.get("predicted_vs_measured")
-    if predicted:
-        lines.append(
-            f"- the model predicted {predicted['predicted_rms_mm']:.4f} mm RMS on these "
-            f"held-out poses ({predicted['outside_calibrated_range_pct']:.0f} % outside its "
-            f"calibrated joint ranges) and measured {predicted['measured_rms_mm']:.4f} mm; "
-            f"{predicted['within_95_pct']:.0f} % of the poses lie within its 95 % band"
-        )
-    transfer = report.get("transfer")
-    if transfer and not report.get("registration_only"):
-        lines.append(
-            "- extrapolation (standing in for a session not seen: held-out bands at the ends "
-            "of each joint's range, linearized, physical effects only; the maps fade there): "
-            f"{transfer['model_bands_pos_rms_mm']:.4f} mm RMS against the nominal "
-            f"{transfer['nominal_bands_pos_rms_mm']:.4f} mm"
-        )
+    lines += _carried_markdown(report)
+    lines += _transfer_line(report)
     lines.append(f"- final: {_stats_line(report['final']['validation'])}")
     lines.append(f"- (final on the fitted poses: {_stats_line(report['final']['train'])})")
+    lines += _leave_out_markdown(report.get("leave_one_session_out"))
     if report.get("sessions"):
         lines += ["", "Sessions (one tracker registration each, one robot model):", ""]
         for entry in report["sessions"]:
@@ -328,8 +297,17 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
     ]
     for c in report["correlations"]:
         lines.append(f"| {c['variable']} | {c['r2']:.3f} | {c['chance']:.3f} |")
+    lines += _parameters_markdown(report["effects"])
+    lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots]
+    return "\n".join(lines) + "\n"
+
+
+def _parameters_markdown(effects: list[dict[str, Any]]) -> list[str]:
+    """Each kept effect's parameters (value +/- standard error), combinations the poses
+    see only together once, and what the poses cannot tell apart."""
+    lines: list[str] = []
     lines += ["", "## Parameters (value +/- standard error)", ""]
-    for e in report["effects"]:
+    for e in effects:
         p = e["parameters"]
         if "maps" in p:
             lines += _maps_markdown(e)
@@ -384,8 +362,7 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
                 f"{k} = {v:.6g}" if isinstance(v, float) else f"{k} = {v}" for k, v in p.items()
             )
         lines += [head, "", body, ""]
-    lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 _DISPLAY = {
@@ -395,6 +372,96 @@ _DISPLAY = {
     "m/s": (1e6, "um/s"),
     "rad/rad": (1e3, "mrad/rad"),
 }
+
+
+def _carried_markdown(report: dict[str, Any]) -> list[str]:
+    """--registration-only: what became of the carried maps, and what the model predicted
+    for this session beside what it measured."""
+    lines: list[str] = []
+    carried = report.get("carried_maps")
+    if carried:
+        lines.append(
+            f"- carried {JointMaps.name} (registration refitted): held out "
+            f"{carried['held_out_pos_rms_mm_with']:.4f} mm with them, "
+            f"{carried['held_out_pos_rms_mm_without']:.4f} mm without: "
+            + ("kept" if carried["kept"] else "dropped, the model is written without them")
+            + f"; {carried['poses_outside_calibrated_range_pct']:.0f} % of these poses lie "
+            "outside the angles the maps were calibrated on, on some joint (there that joint's "
+            f"map fades to zero over {MAP_TAPER_RAD:g} rad; the other joints' maps apply)"
+            + (
+                "; maps of "
+                + ", ".join(d["joint"] for d in carried.get("joints_dropped", []))
+                + " dropped (they raised the error on this session's registration poses)"
+                if carried.get("joints_dropped")
+                else ""
+            )
+        )
+    predicted = report.get("predicted_vs_measured")
+    if predicted:
+        lines.append(
+            f"- the model predicted {predicted['predicted_rms_mm']:.4f} mm RMS on these "
+            f"held-out poses ({predicted['outside_calibrated_range_pct']:.0f} % outside its "
+            f"calibrated joint ranges) and measured {predicted['measured_rms_mm']:.4f} mm; "
+            f"{predicted['within_95_pct']:.0f} % of the poses lie within its 95 % band"
+        )
+    return lines
+
+
+def _transfer_line(report: dict[str, Any]) -> list[str]:
+    """The transfer headline: leave-one-session-out with several recordings, the held-out
+    extrapolation bands with one."""
+    transfer = report.get("transfer")
+    if not transfer or report.get("registration_only"):
+        return []
+    if "left_out_pos_rms_mm" in transfer:
+        return [
+            "- **transfer** (leave one session out: the model of the other recordings, only "
+            "the registration fitted on the one left out, its held-out poses): "
+            f"{transfer['left_out_pos_rms_mm']:.4f} mm RMS over the recordings left out, "
+            f"against {transfer['within_session_pos_rms_mm']:.4f} mm within the sessions "
+            f"and the nominal {transfer['nominal_pos_rms_mm']:.4f} mm (table below)"
+        ]
+    return [
+        "- extrapolation (standing in for a session not seen: held-out bands at the ends "
+        "of each joint's range, linearized, physical effects only; the maps fade there): "
+        f"{transfer['model_bands_pos_rms_mm']:.4f} mm RMS against the nominal "
+        f"{transfer['nominal_bands_pos_rms_mm']:.4f} mm"
+    ]
+
+
+def _leave_out_markdown(loso: dict[str, Any] | None) -> list[str]:
+    """Several recordings: each one left out, the others' model carried to it."""
+    if not loso:
+        return []
+    lines = [
+        "",
+        "Leave one session out (fitted on the others, only the registration and the mount "
+        "fitted on the one left out; position RMS on its held-out poses, mm):",
+        "",
+        "| left out | fitted on | held out (max) | nominal there | within the session, "
+        "pooled model | its own model | best single other |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for e in loso["entries"]:
+        fitted = "+".join(str(o + 1) for o in e["fitted_on"])
+        if "error" in e:
+            lines.append(f"| {e['session'] + 1} | {fitted} | {e['error']} | | | | |")
+            continue
+        best = e.get("best_single")
+        best_text = (
+            f"{best['held_out_pos_rms_mm']:.4f} (session {best['fitted_on'] + 1})"
+            + (" **better than pooled**" if e["pooled_worse_than_best_single"] else "")
+            if best
+            else "-"
+        )
+        lines.append(
+            f"| {e['session'] + 1} | {fitted} | {e['held_out_pos_rms_mm']:.4f} "
+            f"({e['held_out_pos_max_mm']:.3f}) | {e['nominal_pos_rms_mm']:.4f} | "
+            f"{e['within_session_pooled_pos_rms_mm']:.4f} | "
+            f"{e['within_session_own_pos_rms_mm']:.4f} | {best_text} |"
+        )
+    lines += ["", loso["summary"]["verdict"]]
+    return lines
 
 
 def _record_line(rec: dict[str, Any]) -> str:

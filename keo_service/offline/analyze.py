@@ -33,6 +33,7 @@ from keo_service.fit.analysis import (
 from keo_service.fit.angle_maps import try_maps
 from keo_service.fit.coupling import try_couplings
 from keo_service.fit.diagnostics import repeatability, residual_components
+from keo_service.fit.leave_out import leave_one_session_out
 from keo_service.fit.model import Data, Model, fit, initial_registration_sessions
 from keo_service.fit.sampling import MAX_ROWS, informative_rows, selection_report
 from keo_service.fit.uncertainty import iso_path_figures, iso_pose_figures
@@ -271,9 +272,7 @@ def run_analysis(
     except NotIdentifiableError as exc:
         raise KeoError(f"cannot analyze these data: {exc}") from None
     if fixed is None:
-        train_idx, val_idx = split_data(data)
-        try_maps(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
-        try_couplings(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, progress)
+        _on_top(result, robot, data, position_only, config, len(recordings), progress)
     _state_accuracy(result, data, config if fixed is not None else None, progress)
     sessions, tools = result.model.sessions, result.model.tools
     baseline = Model(
@@ -304,6 +303,51 @@ def run_analysis(
         report["samples"] = samples
     write_analysis(out, report, result, data, base_x, baseline, improved)
     return report
+
+
+def _on_top(
+    result: Analysis,
+    robot: RobotModel,
+    data: Data,
+    position_only: bool,
+    config: Config,
+    recordings: int,
+    say: Callable[[str], None],
+) -> None:
+    """A new model: the joint maps and the couplings on top of the effects; with several
+    recordings, each left out in turn."""
+    train_idx, val_idx = split_data(data)
+    try_maps(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, say)
+    try_couplings(result, data, train_idx, val_idx, KEEP_MARGIN, robot.joint_names, say)
+    if recordings > 1:
+        _leave_one_out(result, robot, data, position_only, config, say)
+
+
+def _leave_one_out(
+    result: Analysis,
+    robot: RobotModel,
+    data: Data,
+    position_only: bool,
+    config: Config,
+    say: Callable[[str], None],
+) -> None:
+    """Several recordings: leave-one-session-out (fit.leave_out) is the transfer figure, the
+    report's headline beside the within-session one."""
+    loso = leave_one_session_out(
+        robot, data, position_only, result, tracker_uncertainty(config), say
+    )
+    report = result.report
+    report["leave_one_session_out"] = loso
+    summary = loso["summary"]
+    if "left_out_pos_rms_mm" in summary:
+        report["transfer"] = {
+            "kind": "leave one session out (fit on the others, registration only on the one "
+            "left out)",
+            "left_out_pos_rms_mm": summary["left_out_pos_rms_mm"],
+            "within_session_pos_rms_mm": summary["within_session_pos_rms_mm"],
+            "nominal_pos_rms_mm": summary["nominal_pos_rms_mm"],
+        }
+    say(summary["verdict"])
 
 
 def _state_accuracy(
