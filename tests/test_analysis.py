@@ -163,6 +163,7 @@ def analyze_cli(cfg: Path, data: Path, out: Path, *extra: str):
     )
 
 
+@pytest.mark.slow  # an analysis by the CLI (11 s in CI): the default run stays under 10 minutes
 def test_cli_writes_report_model_and_estimate_uses_the_model(tmp_path):
     sim = tmp_path / "sim"
     cfg = static_config(tmp_path)
@@ -201,6 +202,7 @@ def test_cli_writes_report_model_and_estimate_uses_the_model(tmp_path):
         assert low < rms < high
 
 
+@pytest.mark.slow  # two analyses (17 s in CI): the default run stays under 10 minutes
 def test_registration_only_on_a_moved_tracker(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     cfg_a = static_config(tmp_path)
@@ -228,6 +230,7 @@ def test_registration_only_on_a_moved_tracker(tmp_path):
     assert np.allclose(move[:3, :3], np.eye(3), atol=2e-3)
 
 
+@pytest.mark.slow  # the real UR10 data analysed (26 s in CI): the default run stays < 10 min
 def test_real_ur10_data_imports_and_improves(tmp_path):
     res = keo("import", "ur10-lasertracker", str(UR10_B), "--out", str(tmp_path))
     assert res.returncode == 0, res.stderr
@@ -306,6 +309,7 @@ def test_time_delay_found_from_motion_data(tmp_path):
     assert float(delay_line.split("=")[1]) == pytest.approx(0.028, abs=1e-3)
 
 
+@pytest.mark.slow  # an analysis and an estimate (14 s in CI): the default run stays < 10 min
 def test_backlash_in_model_toml_is_applied_by_estimate(tmp_path):
     """Backlash identified offline is applied by the live estimator (direction of each joint's
     last move, tracked from the encoder stream)."""

@@ -100,6 +100,7 @@ def test_the_client_snippets_run_against_the_demo_as_the_readme_starts_it(tmp_pa
 
 
 @pytest.mark.e2e
+@pytest.mark.slow  # a whole keo demo (40 s in CI): the default run stays under 10 minutes
 def test_the_demo_says_why_steps_were_held_and_leaves_no_temp_folder(tmp_path):
     import json
     import os
