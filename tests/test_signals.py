@@ -158,3 +158,26 @@ def test_an_async_subscription_closes_once():
             session.close()
 
     asyncio.run(main())
+
+
+def test_output_to_a_closed_pipe_ends_quietly():
+    """`keo gain ... | head`: the reader takes one line and closes the pipe; keo ends as a Unix
+    filter does (128 + SIGPIPE, the code a shell reports for `yes | head`), without the
+    BrokenPipeError traceback it once printed, then and again at the interpreter's exit."""
+    gains = [str(g) for g in range(1, 3001)]  # ~180 kB: more than a pipe's buffer holds
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "keo_service.cli", "gain", "--rate", "100", "--gain", *gains],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    assert proc.stdout is not None
+    assert proc.stderr is not None
+    first = proc.stdout.readline()
+    proc.stdout.close()  # what `head -1` does after its line
+    err = proc.stderr.read().decode()
+    code = proc.wait(timeout=60)
+    assert first.startswith(b"rate 100 Hz")
+    assert code == 128 + signal.SIGPIPE, err
+    assert "Traceback" not in err
+    assert "BrokenPipeError" not in err
+    assert err == ""

@@ -3,13 +3,15 @@ group (`offline`, `live`, `tools`). The CLI only parses and calls; each command 
 it runs lazily so that `keo gain` starts fast.
 
 Exit codes: 0 success, 2 bad usage or bad config (the message names the key or argument),
-1 other failures. `--json` prints one JSON document on stdout.
+1 other failures, 141 (128 + SIGPIPE) when the reader of stdout closed the pipe. `--json`
+prints one JSON document on stdout.
 """
 
 from __future__ import annotations
 
 import argparse
 import gc
+import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
@@ -66,7 +68,27 @@ def console() -> int:
     signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
         code = main()
+        sys.stdout.flush()  # here, so that a reader gone by now is caught below
     except KeyboardInterrupt:  # before `main` could catch it (parsing the arguments)
         code = common.EXIT_OK
+    except BrokenPipeError:
+        code = _reader_gone()
     gc.freeze()
     return code
+
+
+def _reader_gone() -> int:
+    """The end of a command whose reader closed the pipe (`keo gain ... | head`): no
+    traceback, as for any Unix filter.
+
+    Python ignores SIGPIPE and raises BrokenPipeError instead; the interpreter would raise it
+    once more when it flushes stdout at exit, so stdout is pointed at /dev/null first.
+
+    Returns:
+        128 + SIGPIPE, the code a shell reports for a filter that SIGPIPE ended, so that
+        `set -o pipefail` still sees that the output was cut short.
+    """
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return common.EXIT_BROKEN_PIPE

@@ -15,6 +15,7 @@ from typing import Any, Protocol
 from keo_service.core.errors import ConfigError
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
+EXIT_BROKEN_PIPE = 128 + 13  # 128 + SIGPIPE: the reader of stdout closed the pipe
 
 Command = Callable[[argparse.Namespace], int]
 
