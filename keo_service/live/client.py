@@ -54,7 +54,11 @@ _M = TypeVar("_M", bound=msgspec.Struct)
 
 
 class ClientError(KeoError):
-    """The bus or the service did not answer as expected (what, where, what was expected)."""
+    """The bus or the service did not answer as expected.
+
+    Its message says what was asked, where (the endpoint or key) and what was expected, so
+    that a script can print it as it is. A `KeoError`: `except KeoError` catches it too.
+    """
 
 
 def _endpoints(endpoint: str | Sequence[str]) -> list[str]:
@@ -308,8 +312,22 @@ class Client(_ClientBase):
 
 
 class SyncClient(_ClientBase):
-    """The same for scripts without asyncio (`with SyncClient(...) as keo:`): iteration
-    blocks the caller's thread, never Zenoh's. Arguments and errors as for `Client`."""
+    """`Client` for scripts without asyncio: a context manager (`with SyncClient(...) as
+    keo:`) that owns one Zenoh client session. Iteration blocks the caller's thread, never
+    Zenoh's: samples wait in a bounded queue until the caller takes them.
+
+    Args:
+        endpoint: where the service (or a router) listens, e.g. "tcp/127.0.0.1:7447", or a
+            list of such endpoints.
+        cell: the cell whose keys are read (the config's `cell`).
+        queue_size: samples buffered per iteration before the oldest is dropped (counted in
+            `dropped`): a slow reader never holds up the bus.
+        connect_timeout_s: seconds to keep trying to reach the bus (None: until it answers).
+
+    Raises:
+        ClientError: on entering, when the bus cannot be reached within
+            `connect_timeout_s` (the text names the endpoint and the keys to check).
+    """
 
     def __enter__(self) -> Self:
         s = self._settings
@@ -351,22 +369,52 @@ class SyncClient(_ClientBase):
             sub.close()
 
     def estimates(self, timeout: float | None = None) -> Iterator[EstimateMessage]:
-        """Estimates as published, as `Client.estimates`; the iteration ends when none
-        arrived for `timeout` seconds (None: never)."""
+        """The service's estimates as they are published, as `Client.estimates`.
+
+        Args:
+            timeout: the iteration ends when no estimate arrived for this many seconds
+                (None: never).
+
+        Returns:
+            An iterator of the estimates (`stamp` s; `measured`, `estimate`: m and rad,
+            px py pz rx ry rz).
+        """
         for msg in self.samples("estimate", timeout):
             if isinstance(msg, EstimateMessage):
                 yield msg
 
     def latest(self, timeout: float = 2.0) -> EstimateMessage | None:
-        """The latest estimate, as `Client.latest` (`timeout` in seconds)."""
+        """The service's latest estimate, for a script that joins late, as `Client.latest`.
+
+        Args:
+            timeout: seconds to wait for the answer.
+
+        Returns:
+            The estimate, or None when the service has none yet or does not answer.
+        """
         return _query(self._open_session(), topic(self.cell, "estimate"), EstimateMessage, timeout)
 
     def adapters(self, timeout: float = 2.0) -> dict[str, AdapterStatus]:
-        """Each adapter's own status by name, as `Client.adapters` (`timeout` in seconds)."""
+        """Each adapter's own status, asked of the adapters themselves, as `Client.adapters`.
+
+        Args:
+            timeout: seconds to wait for the answers.
+
+        Returns:
+            The status by adapter name ("encoder", "tracker"); an adapter that does not
+            answer within `timeout` is missing.
+        """
         return query_adapters(self._open_session(), self.cell, timeout)
 
     def status(self, timeout: float = 5.0) -> ServiceStatus:
-        """The service's status, as `Client.status`.
+        """The service's status (health, rates, the delay in use, counters, adapters), as
+        `Client.status`.
+
+        Args:
+            timeout: seconds to wait for the answer.
+
+        Returns:
+            The status (`ServiceStatus`).
 
         Raises:
             ClientError: no service answered within `timeout` seconds.

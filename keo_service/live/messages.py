@@ -45,30 +45,50 @@ class JointSample(_Message, frozen=True, tag=_tag("joint")):
         joints: positions, rad (m for a prismatic joint), in the URDF's joint order.
         velocities: the joints' velocities, rad/s, where the controller gives them.
         device_stamp: the controller's own time of the sample, s, where it gives one.
+        clock: the clock domain `stamp` is on: "shared", "device" or "receipt"
+            (`core.clock.Stamper`); "" from a writer that did not say.
+        clock_epoch: a counter the adapter bumps whenever its time base starts anew
+            (reconnect, device clock step): stamps of two epochs are not comparable.
+        flags: notes on this sample's stamp (e.g. "stamp_ahead", "stamp_old",
+            "clock_relearning").
+        clock_drift: for a "device" stamp, the drift (s/s) of the clock mapping's line it was
+            mapped with, so that a consumer can carry stamps onto the mapping's newer line
+            (the delay tracker does); None otherwise.
     """
 
     stamp: float
     host_ns: int
     seq: int
-    joints: list[float]  # rad (m for a prismatic joint), the URDF's joint order
-    velocities: list[float] | None = None  # the joints' velocities, rad/s
+    joints: list[float]
+    velocities: list[float] | None = None
     device_stamp: float | None = None
-    # the clock domain `stamp` is on ("shared", "device", "receipt"), a counter the adapter bumps
-    # whenever its time base starts anew (reconnect, device clock step) and per-sample notes
-    # on the stamp (e.g. "stamp_ahead", "stamp_old", "clock_relearning")
     clock: str = ""
     clock_epoch: int = 0
     flags: list[str] = msgspec.field(default_factory=list)
-    # a "device" stamp: the drift (s/s) of the clock mapping's line it was mapped with, so a
-    # consumer can carry stamps onto the mapping's newer line (the delay tracker does)
     clock_drift: float | None = None
 
 
 class RobotStatus(_Message, frozen=True, tag=_tag("robot_status")):
-    """keo/<cell>/robot_status: the controller's state as ROS-Industrial's ROBOT_STATUS has it
-    (MotoROS sends it; the RTDE adapter maps UR's robot and safety modes onto it), each field
-    1 (true), 0 (false) or -1 (unknown); `error_code` and `mode` as the controller gives them;
-    `host_ns` when it was received, ns since the epoch."""
+    """keo/<cell>/robot_status: the controller's state as ROS-Industrial's ROBOT_STATUS has it.
+
+    MotoROS sends it; the RTDE adapter maps UR's robot and safety modes onto it and the EGM
+    adapter its motor and EGM states. One message type for every controller, so that a
+    client asks one question ("may the robot move?") whatever the protocol. The flags are
+    integers, not booleans, because the controller may not know: 1 (true), 0 (false) or -1
+    (unknown).
+
+    Attributes:
+        host_ns: when the adapter received it, ns since the epoch.
+        drives_powered: the servo drives have power (1, 0, -1).
+        e_stopped: an emergency stop is engaged (1, 0, -1).
+        error_code: the controller's own error code as it gives it (RTDE: the safety mode
+            of a fault); 0: none.
+        in_error: the controller reports an error (1, 0, -1).
+        in_motion: the robot is moving (1, 0, -1).
+        mode: the controller's mode as it numbers it (MotoROS: ROS-Industrial's 1 manual,
+            2 auto, -1 unknown; RTDE: UR's robot mode); 0 where the protocol does not tell.
+        motion_possible: the robot would move if commanded (1, 0, -1).
+    """
 
     host_ns: int
     drives_powered: int
@@ -81,24 +101,63 @@ class RobotStatus(_Message, frozen=True, tag=_tag("robot_status")):
 
 
 class TrackerSample(_Message, frozen=True, tag=_tag("tracker")):
-    """keo/<cell>/tracker: a pose (position, and quaternion scalar first for a 6-DoF probe),
-    or a gap when status != "ok" (`stamp`, `host_ns`, `device_stamp`, the clock fields as in
-    `JointSample`; `seq` the tracker's own sequence number)."""
+    """keo/<cell>/tracker: one measurement of the tracker, a pose or a gap.
+
+    A gap is a sample too (status other than "ok", no pose): the estimator must know that
+    the tracker lost the target, not only that nothing arrived.
+
+    Attributes:
+        stamp: the stream time used for alignment, s (the host's clock, in `clock`'s domain).
+        host_ns: when the adapter received it, ns since the epoch.
+        seq: the tracker's own sequence number.
+        status: "ok", or why there is no pose, in the tracker's word for it.
+        position: the sensor frame's origin in the tracker frame, m; None in a gap.
+        quaternion: the sensor frame's orientation in the tracker frame, [w, x, y, z]
+            (scalar first); None for a single reflector or in a gap.
+        device_stamp: the tracker's own time of the sample, s, where it gives one.
+        clock: the clock domain `stamp` is on, as in `JointSample`.
+        clock_epoch: the time base's counter, as in `JointSample`.
+        flags: notes on this sample's stamp, as in `JointSample`.
+        clock_drift: the drift (s/s) of a device stamp's mapping line, as in `JointSample`.
+    """
 
     stamp: float
     host_ns: int
     seq: int
     status: str = "ok"
-    position: list[float] | None = None  # m, the sensor frame's origin in the tracker frame
-    quaternion: list[float] | None = None  # [w, x, y, z]; None for a single reflector
+    position: list[float] | None = None
+    quaternion: list[float] | None = None
     device_stamp: float | None = None
-    clock: str = ""  # as in JointSample
+    clock: str = ""
     clock_epoch: int = 0
     flags: list[str] = msgspec.field(default_factory=list)
-    clock_drift: float | None = None  # as in JointSample
+    clock_drift: float | None = None
 
 
 class EstimateMessage(_Message, frozen=True, tag=_tag("estimate")):
+    """keo/<cell>/estimate: the observer's output for one tracker sample, as published.
+
+    Made from the estimator's record (`core.estimator.Estimate`) by `estimate_message`, its
+    fields under the same names, plus what only the publisher knows (when it was sent, the
+    delay in use): a client can judge the estimate without asking the service anything.
+
+    Attributes:
+        stamp: the tracker sample's stream time, s (the tick's for "latest" alignment).
+        host_ns: when the service published it, ns since the epoch.
+        channels: the channel names: ["px", "py", "pz"] or with "rx", "ry", "rz".
+        measured: the measured error of this sample per channel (m for px, py, pz; rad for
+            rx, ry, rz, a rotation vector); None when the step was held (see `flags`).
+        estimate: the observer's estimate of the error per channel, m and rad.
+        flags: why the step was held, or what to know about it (e.g. "delay_unsettled").
+        delay_s: the delay in use at `stamp`, s: the tracker stream lags the encoder's by it.
+        seq: the service's counter, one per estimate (a gap is an estimate lost on the bus).
+        device_stamp: the tracker's own time of the sample behind it, s, where it gives one.
+        delay_se_s: the standard error of the delay in use, s, when it is known (calibrated
+            or tracked); None when nobody measured it.
+        tool_speed_m_s: the tool's speed at this estimate, m/s, from the joint velocities;
+            None where they are not known.
+    """
+
     stamp: float
     host_ns: int
     channels: list[str]
@@ -107,11 +166,8 @@ class EstimateMessage(_Message, frozen=True, tag=_tag("estimate")):
     flags: list[str]
     delay_s: float
     seq: int
-    # the device stamp of the tracker sample behind this estimate, when the tracker gives one
     device_stamp: float | None = None
-    # standard error of the delay in use (s), when it is known (calibrated or tracked)
     delay_se_s: float | None = None
-    # tool speed at this estimate (m/s), from the joint velocities
     tool_speed_m_s: float | None = None
 
 
@@ -147,15 +203,26 @@ class ServiceStatus(_Message, frozen=True, tag=_tag("status")):
     `Client.status()`.
 
     Attributes:
+        cell: the config's `cell`.
         health: "ok", "waiting" (no estimate yet) or "stale" (none fresh for a second, or
             the newest one held).
-        uptime_s: seconds since the service started; `host_ns` when this was made, ns.
+        host_ns: when this status was made, ns since the epoch.
+        uptime_s: seconds since the service started.
         rates_hz: samples per second of each stream and of the estimates.
         delay_s: the delay in use (s): the tracker stream lags the encoder stream by it.
         drift: the delay model's drift, s per s of stream time.
         gains: the observer's gains, 1/s (px py pz rx ry rz).
+        alignment: how a tracker sample finds its joints: "interpolate" or "latest"
+            (`[timing] alignment`).
         counters: rejects, held steps and the rest, by name.
-        last_estimate: the newest estimate, if any; `messages`: the newest findings.
+        last_estimate: the newest estimate, if any.
+        messages: the newest findings in words (at most 10), newest last.
+        delay_tracking: what online delay tracking last did, in words; None when it is off.
+        delay_se_s: the standard error of the delay in use, s, when known.
+        clock_domains: each stream's clock domain as its samples declare it
+            ({"encoder": "device", ...}).
+        adapters: each adapter's own status (`AdapterStatus`), by adapter name, as the
+            service last gathered them.
     """
 
     cell: str
@@ -170,11 +237,9 @@ class ServiceStatus(_Message, frozen=True, tag=_tag("status")):
     counters: dict[str, int]
     last_estimate: EstimateMessage | None
     messages: list[str]
-    delay_tracking: str | None = None  # what online delay tracking last did (when enabled)
-    delay_se_s: float | None = None  # standard error of the delay in use (s), when known
-    # each stream's clock domain as the samples declare it ("encoder": "device", ...)
+    delay_tracking: str | None = None
+    delay_se_s: float | None = None
     clock_domains: dict[str, str] = msgspec.field(default_factory=dict)
-    # each adapter's own status (state, rates, counters, newest rejects), as gathered
     adapters: dict[str, AdapterStatus] = msgspec.field(default_factory=dict)
 
 
@@ -210,31 +275,66 @@ class AdapterStatus(msgspec.Struct, frozen=True, kw_only=True):
 
     JSON rather than MessagePack so that `keo echo` and any tool read it as it is; every field
     but `adapter` is absent (UNSET) where that kind of adapter has nothing to say, so the
-    document on the wire is what each adapter wrote before it was typed. Units: `rate_hz` Hz,
-    `last_data_age_s` and `cycle_ms` as named, `reply_us` microseconds.
+    document on the wire is what each adapter wrote before it was typed.
+
+    Attributes:
+        adapter: which adapter: "encoder" or "tracker".
+        state: what `adapters.health` makes of the connection: "starting", "connecting",
+            "connected", "receiving", "silent", "wrong_protocol" or "disconnected".
+        endpoint: where the device is: host:port, or the ROS 2 topic.
+        protocol: the configured protocol (a row of `io.protocols`).
+        rate_hz: samples published per second, Hz, over the last 5 s.
+        last_data_age_s: seconds since the device last sent data; None: nothing yet on this
+            connection.
+        silent_events: how often the device went silent while connected.
+        problem: a device that does not speak the protocol, in words.
+        last_error: the connection's newest problem in words, with the key to fix.
+        counters: samples published, rejects and the rest, by name.
+        clock: the stamping rule's state (`core.clock.Stamper.state()`: the domain, the
+            epoch and, for a device clock, the mapping: offset s, drift ppm, residual s).
+        decoder: the codec's reject counters, by reason.
+        parser: the line protocol's reject counters, by reason (its codec's name for them).
+        messages: the codec's newest reject messages, each saying where in the input it was.
+        stamps_held_back: MotoROS: receipt stamps held back so as not to run ahead.
+        controller: RTDE: the controller's version.
+        topics: ROS 2: the topics subscribed.
+        reply_us: the UDP servers (RSI, EGM): the time from a datagram's receipt to the
+            answer's send, microseconds: "last", "p99", "max", and the answering thread's CPU
+            time "cpu_p50", "cpu_p99".
+        cycle_ms: the UDP servers: the controller's cycle, ms.
+        scheduling: the UDP servers: what real-time scheduling the answering thread got.
+        correction: the UDP servers: the corrections sent ("sent_mm", "sent_mrad": the
+            newest, mm and mrad; "reason" it is zero, if so; its counters); None:
+            corrections are off.
+        peer: the UDP servers: the controller's host:port, None before it spoke.
+        external_axes: RSI, EGM: the external axes' values as the controller sends them
+            (None when it sends none).
+        controller_late_count: RSI: the controller's own count of late answers (its `Delay`
+            element), None when it sends none.
+        robot_state: EGM: the motors, EGM and RAPID states (True, False, None: not told).
+        event_seq: counts the changes put on the key.
+        event: what changed, in words, with the key to fix.
+        level: how much the event matters, as the adapter judges it: "info", "warning" or
+            "error" (the service logs it at this level; absent: `trouble` decides).
     """
 
-    adapter: str  # "encoder" or "tracker"
-    # what adapters.health makes of it: "starting", "connecting", "connected", "receiving",
-    # "silent", "wrong_protocol", "disconnected"
+    adapter: str
     state: str | UnsetType = UNSET
-    endpoint: str | UnsetType = UNSET  # host:port, or the ROS 2 topic
-    protocol: str | UnsetType = UNSET  # the configured protocol (io.protocols)
-    rate_hz: float | UnsetType = UNSET  # published samples per second, over the last 5 s
-    last_data_age_s: float | UnsetType | None = UNSET  # None: nothing yet on this connection
+    endpoint: str | UnsetType = UNSET
+    protocol: str | UnsetType = UNSET
+    rate_hz: float | UnsetType = UNSET
+    last_data_age_s: float | UnsetType | None = UNSET
     silent_events: int | UnsetType = UNSET
-    problem: str | UnsetType = UNSET  # a device that does not speak the protocol, in words
-    last_error: str | UnsetType = UNSET  # the connection's newest problem, with the key to fix
+    problem: str | UnsetType = UNSET
+    last_error: str | UnsetType = UNSET
     counters: dict[str, int] = msgspec.field(default_factory=dict)
-    clock: dict[str, Any] | UnsetType = UNSET  # core.clock.Stamper.state()
-    # the codec's reject counters ("decoder"; the line protocol's "parser") and newest messages
+    clock: dict[str, Any] | UnsetType = UNSET
     decoder: dict[str, int] | UnsetType = UNSET
     parser: dict[str, int] | UnsetType = UNSET
     messages: list[str] | UnsetType = UNSET
-    stamps_held_back: int | UnsetType = UNSET  # MotoROS: receipt stamps held back
-    controller: str | UnsetType = UNSET  # RTDE: the controller's version
-    topics: list[str] | UnsetType = UNSET  # ROS 2: the topics subscribed
-    # the UDP servers (RSI, EGM): answer times, cycle, scheduling, the peer, corrections
+    stamps_held_back: int | UnsetType = UNSET
+    controller: str | UnsetType = UNSET
+    topics: list[str] | UnsetType = UNSET
     reply_us: dict[str, float] | UnsetType = UNSET
     cycle_ms: float | UnsetType = UNSET
     scheduling: str | UnsetType = UNSET
@@ -243,10 +343,8 @@ class AdapterStatus(msgspec.Struct, frozen=True, kw_only=True):
     external_axes: list[float] | UnsetType | None = UNSET
     controller_late_count: int | UnsetType | None = UNSET
     robot_state: dict[str, bool | None] | UnsetType = UNSET
-    event_seq: int | UnsetType = UNSET  # counts the changes put on the key
-    event: str | UnsetType = UNSET  # what changed, in words, with the key to fix
-    # how much the event matters, as the adapter judges it: "info", "warning" or "error" (the
-    # service logs it at this level; absent: `trouble` decides)
+    event_seq: int | UnsetType = UNSET
+    event: str | UnsetType = UNSET
     level: str | UnsetType = UNSET
 
     @property
@@ -266,11 +364,23 @@ class AdapterStatus(msgspec.Struct, frozen=True, kw_only=True):
         return logging.WARNING if self.trouble else logging.INFO
 
     def to_json(self) -> bytes:
+        """The JSON document put on the status key (absent fields left out), UTF-8."""
         return msgspec.json.encode(self)
 
     @classmethod
     def from_json(cls, payload: bytes) -> AdapterStatus:
-        """Raises msgspec.DecodeError (with where and what) for anything else."""
+        """An adapter's status as read from its key.
+
+        Args:
+            payload: the JSON document, UTF-8 bytes.
+
+        Returns:
+            The status; fields the document lacks are UNSET.
+
+        Raises:
+            msgspec.DecodeError: the payload is not an adapter's status (the message says
+                where and what).
+        """
         return msgspec.json.decode(payload, type=cls)
 
 

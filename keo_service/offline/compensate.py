@@ -37,10 +37,20 @@ from keo_service.io.targets import Targets, read_targets, write_compensated
 
 @dataclass
 class CompensateResult:
-    """What `keo compensate` writes and prints: the solve per target (`result`), the targets
-    as read, the model's calibrated region (None for a model.toml that does not state it),
-    the predicted accuracy per target (mm, NaN where the model states none) and the summary
-    the command prints (`--json`)."""
+    """What `keo compensate` writes and prints.
+
+    Attributes:
+        result: the solve per target (`core.compensation.Compensated`): the corrected joints
+            (rad), the nominal-model tool pose to command (m, rotation matrix), the
+            correction (m, rad) and the solve's residual (m, rad), the flags per target.
+        targets: the targets as read (`io.targets.Targets`).
+        region: the model's calibrated region; None for a model.toml that does not state it.
+        accuracy_mm: (N,) the model's predicted position accuracy at each target, mm; NaN
+            outside the calibrated region or where the model states none.
+        summary: what the command prints (`--json`): counts of the flags, the corrections'
+            RMS and max (mm, mrad), the residuals' max (um, urad), the region.
+        out: the output file written, None when none was asked for.
+    """
 
     result: Compensated
     targets: Targets
@@ -125,9 +135,25 @@ def compensate(
     out: str | Path | None = None,
     accuracy_columns: bool = False,
 ) -> CompensateResult:
-    """Read a model (a Config or the path of `keo analyze`'s model.toml) and a targets file,
-    solve every target, write the output file to `out` (when given; with
-    `accuracy_columns` also predicted_mm, predicted_mrad and accuracy_mm) and return it all."""
+    """The joints (and the nominal-model pose to command) that put the user's TCP on each
+    target under the identified model (`keo compensate`).
+
+    Args:
+        config: `keo analyze`'s model.toml (its path, or loaded as a `Config`): the model
+            with its identified effects.
+        targets: the targets CSV (`keo_service.io.targets`): a joint program `q1..qN` (rad)
+            or tool poses `x,y,z,qw,qx,qy,qz` (m, scalar-first quaternion).
+        out: where to write the output CSV; None: write nothing.
+        accuracy_columns: also write predicted_mm, predicted_mrad, accuracy_mm and
+            outside_region_mm.
+
+    Returns:
+        The solve, the targets, the region, the predicted accuracy and the summary.
+
+    Raises:
+        ConfigError: the config cannot be read or has no identified model (naming the key).
+        DataFormatError: the targets file is missing or malformed (naming line and column).
+    """
     if not isinstance(config, Config):
         config = load_config(config)
     model = tool_model(config, require_effects=True)
