@@ -586,50 +586,53 @@ def _check_supported(settings: EstimatorSettings) -> None:
         raise BatchUnsupportedError(f"observer start {settings.start!r}")
 
 
-def estimate_batch(
-    cell: Cell,
-    settings: EstimatorSettings,
+def _as_streams(
+    nq: int,
     encoder_t: np.ndarray,
     encoder_q: np.ndarray,
     tracker_t: np.ndarray,
     tracker_p: np.ndarray,
     tracker_quat: np.ndarray | None,
-    keep_joints: bool = True,
-) -> BatchResult:
-    """What `run_offline(Estimator(cell, settings), ...)` returns, as arrays (without the
-    joints of each row unless `keep_joints`: an estimate file does not hold them).
-
-    Phases: accept (rejects), bracket (where each encoder time falls), kinematics (worker
-    threads), verdicts (when each sample is resolved and whether it is held), then chunk by
-    chunk as the workers finish: held rows and range flags, and the observer in order."""
-    _check_supported(settings)
-    nq = cell.robot.nq
+) -> _Accepted:
+    """Phase 1: the inputs as float arrays of their shapes, with the rejects taken out."""
     enc_t = np.asarray(encoder_t, dtype=float).reshape(-1)
     trk_t = np.asarray(tracker_t, dtype=float).reshape(-1)
-    streams = _accept(
+    return _accept(
         enc_t,
         np.asarray(encoder_q, dtype=float).reshape(enc_t.size, nq),
         trk_t,
         np.asarray(tracker_p, dtype=float).reshape(trk_t.size, 3),
         None if tracker_quat is None else np.asarray(tracker_quat, dtype=float).reshape(-1, 4),
     )
+
+
+def _empty_result(streams: _Accepted, nq: int) -> BatchResult:
+    """No tracker sample was accepted: no rows, the rejects' counters and messages."""
+    return BatchResult(
+        np.empty(0),
+        np.empty((0, 0)),
+        np.empty((0, 0)),
+        [],
+        np.empty(0),
+        np.empty((0, nq)),
+        (),
+        streams.counters,
+        streams.messages,
+    )
+
+
+def _run_chunks(
+    cell: Cell,
+    settings: EstimatorSettings,
+    streams: _Accepted,
+    where: _Bracket,
+    out: _Rows,
+    n_channels: int,
+) -> _Verdicts:
+    """Phases 3-5: the kinematics on worker threads while the verdicts are decided, then
+    chunk by chunk as the workers finish: held rows and range flags, and the observer in
+    order. Fills `out`; returns the verdicts (the flags)."""
     n = streams.T.size
-    if n == 0:
-        return BatchResult(
-            np.empty(0),
-            np.empty((0, 0)),
-            np.empty((0, 0)),
-            [],
-            np.empty(0),
-            np.empty((0, nq)),
-            (),
-            streams.counters,
-            streams.messages,
-        )
-    channels = channels_for(tracker_quat is None)
-    streams.counters["channels"] = len(channels)
-    where = _bracket(settings, streams)
-    out = _Rows(n, nq, len(channels), keep_joints)
     corr = cell.corrections
     ranges = CalibratedRanges(corr)
     kinematics = _Kinematics(cell, streams, where, out, bool(ranges))
@@ -650,7 +653,7 @@ def estimate_batch(
                 np.maximum(verdicts.have - 1, 0)
             ]
             chunks_done = pool.map(kinematics, starts)
-        observer = _Observer(settings, streams, verdicts, len(channels))
+        observer = _Observer(settings, streams, verdicts, n_channels)
         if not observer.upd.size:
             out.estimate.fill(0.0)
         for start, chunk_joints in zip(starts, chunks_done, strict=True):
@@ -660,6 +663,36 @@ def estimate_batch(
                 observer.run_to(hi, out.measured, out.estimate)
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+    return verdicts
+
+
+def estimate_batch(
+    cell: Cell,
+    settings: EstimatorSettings,
+    encoder_t: np.ndarray,
+    encoder_q: np.ndarray,
+    tracker_t: np.ndarray,
+    tracker_p: np.ndarray,
+    tracker_quat: np.ndarray | None,
+    keep_joints: bool = True,
+) -> BatchResult:
+    """What `run_offline(Estimator(cell, settings), ...)` returns, as arrays (without the
+    joints of each row unless `keep_joints`: an estimate file does not hold them).
+
+    Phases: accept (rejects), bracket (where each encoder time falls), kinematics (worker
+    threads), verdicts (when each sample is resolved and whether it is held), then chunk by
+    chunk as the workers finish: held rows and range flags, and the observer in order."""
+    _check_supported(settings)
+    nq = cell.robot.nq
+    streams = _as_streams(nq, encoder_t, encoder_q, tracker_t, tracker_p, tracker_quat)
+    n = streams.T.size
+    if n == 0:
+        return _empty_result(streams, nq)
+    channels = channels_for(tracker_quat is None)
+    streams.counters["channels"] = len(channels)
+    where = _bracket(settings, streams)
+    out = _Rows(n, nq, len(channels), keep_joints)
+    verdicts = _run_chunks(cell, settings, streams, where, out, len(channels))
     return BatchResult(
         stamp=streams.T,
         measured=out.measured,
