@@ -263,7 +263,8 @@ class McapRecorder(_StreamRecorder):
         self.writer.close()
 
 
-async def record(
+# complexity (C901): its tasks (subscriber, flusher, stream watch, duration) set up in order
+async def record(  # noqa: C901
     session: zenoh.Session,
     cell: str,
     out_dir: Path,
