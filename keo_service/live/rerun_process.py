@@ -1,11 +1,12 @@
 """Rerun logging in its own process, so that it never holds the service's GIL.
 
-In the service's process Rerun's calls hold the GIL for a few milliseconds at every flush
-(part of that in native code, which no switch interval preempts): the samples that arrive
-meanwhile wait, and at 1 kHz those waits were the service's 99th percentile. Here the service
-only encodes each estimate (msgpack, about a microsecond) into a bounded buffer and writes
-the buffer to a pipe, a few times a second, without ever blocking; this module's `main`, run
-as `python -m keo_service.live.rerun_process`, reads the pipe and runs the `RerunLogger`.
+In the service's process Rerun's calls hold the GIL at every flush (part of that in native
+code, which no switch interval preempts): the samples that arrive meanwhile wait, and those
+waits became the service's slowest answers (docs/performance.md, "Rerun in its own process").
+Here the service only encodes each estimate (msgpack, cheap beside the estimate itself) into
+a bounded buffer and writes the buffer to a pipe, a few times a second, without ever
+blocking; this module's `main`, run as `python -m keo_service.live.rerun_process`, reads the
+pipe and runs the `RerunLogger`.
 
 The pipe carries frames: a 4-byte little-endian length, then the payload. The first payload
 is the pickled `(cell, rrd, viewer, options)` from the parent (options: the URDF for its

@@ -73,7 +73,8 @@ def estimate_recording(
 
 
 def _load_estimators() -> None:
-    """Import both estimators (~25 ms) while the tracker file parses."""
+    """Import both estimators while the tracker file parses: their imports then add no wall
+    time to a short command."""
     for module in ("keo_service.core.batch", "keo_service.core.estimator"):
         importlib.import_module(module)
 

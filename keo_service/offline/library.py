@@ -291,7 +291,7 @@ def estimate(
             and unit quaternions (scalar first).
         out: if given, the estimate file is written there (CSV, m and rad).
         streaming: run the per-sample live estimator instead of the array path (the same
-            output, about 10x slower: a cross-check).
+            output, much slower: a cross-check; docs/performance.md has the times).
         quiet: do not print the warnings on stderr (they stay in `warnings`).
 
     Returns:

@@ -50,7 +50,8 @@ def read_recording(
         tracker_csv = None if tracker_mcap else pool.submit(read_tracker, tracker_path)
         if while_parsing is not None:
             while_parsing()
-        # the kinematics libraries load while it parses (Pinocchio alone takes ~0.1 s)
+        # the kinematics libraries load while it parses: Pinocchio's import is a good part of
+        # a short command (docs/performance.md)
         from keo_service.io.cell import cell_from_config
 
         cell = cell_from_config(config)
@@ -71,7 +72,8 @@ def read_recording(
 
 
 def _maybe_mcap(path: str | Path) -> bool:
-    """An MCAP recording (rosbags, ~40 ms to import, is loaded only for one)."""
+    """Whether the path is an MCAP recording. rosbags is imported only for one: its import
+    is a noticeable part of a short command over CSV files (docs/performance.md)."""
     if not (Path(path).suffix == ".mcap" or Path(path).is_dir()):
         return False
     from keo_service.io.mcap_files import is_mcap
