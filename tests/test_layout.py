@@ -121,7 +121,7 @@ def test_docstrings_cite_the_design_page_in_the_repository():
     root = CONFIGS.parent
     sections = set(re.findall(r"^## (\d)\. ", (root / "docs" / "design.md").read_text(), re.M))
     cited = set()
-    for folder in ("keo_service", "adapters", "tests", "examples"):
+    for folder in ("keo_service", "tests", "examples"):
         for path in (root / folder).rglob("*.py"):
             text = path.read_text()
             assert "DESIGN" + ".md" not in text, path
