@@ -181,3 +181,38 @@ def test_output_to_a_closed_pipe_ends_quietly():
     assert "Traceback" not in err
     assert "BrokenPipeError" not in err
     assert err == ""
+
+
+@pytest.mark.e2e
+def test_echo_to_a_closed_pipe_ends_quietly(demo_config, tmp_path):
+    """`keo echo KEY | head -1` on a live bus: once the reader is gone, the next sample ends
+    the echo (128 + SIGPIPE, no traceback) instead of it running on unseen or crashing."""
+    config = loopback_config(demo_config)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(config_to_toml(config))
+    peer = open_session("peer", listen=config.bus.listen)
+    proc = _start(["echo", "keo/*/encoder", "--config", str(cfg)])
+    try:
+        sample = encode(JointSample(stamp=1.0, host_ns=1, seq=1, joints=[0.0] * 6))
+
+        def echoed() -> bool:
+            peer.put(topic(config.cell, "encoder"), sample)
+            return _has_line(proc)
+
+        _wait("echo", echoed)
+        assert proc.stdout is not None
+        proc.stdout.close()  # the reader took its line and went
+
+        def ended() -> bool:
+            peer.put(topic(config.cell, "encoder"), sample)
+            return proc.poll() is not None
+
+        _wait("echo to end", ended, timeout=20.0)
+        assert proc.stderr is not None
+        err = proc.stderr.read().decode(errors="replace")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        peer.close()
+    assert proc.returncode == 128 + signal.SIGPIPE, err[-500:]
+    assert "Traceback" not in err
