@@ -286,7 +286,8 @@ class AdapterStatus(msgspec.Struct, frozen=True, kw_only=True):
         rate_hz: samples published per second, Hz, over the last 5 s.
         last_data_age_s: seconds since the device last sent data; None: nothing yet on this
             connection.
-        silent_events: how often the device went silent while connected.
+        silent_events: how often a connected device went silent (nothing for its
+            `silent_after_s`).
         problem: a device that does not speak the protocol, in words.
         last_error: the connection's newest problem in words, with the key to fix.
         counters: samples published, rejects and the rest, by name.
@@ -295,7 +296,8 @@ class AdapterStatus(msgspec.Struct, frozen=True, kw_only=True):
         decoder: the codec's reject counters, by reason.
         parser: the line protocol's reject counters, by reason (its codec's name for them).
         messages: the codec's newest reject messages, each saying where in the input it was.
-        stamps_held_back: MotoROS: receipt stamps held back so as not to run ahead.
+        stamps_held_back: MotoROS: receipt stamps moved to just after the previous one, so
+            that none goes back in time.
         controller: RTDE: the controller's version.
         topics: ROS 2: the topics subscribed.
         reply_us: the UDP servers (RSI, EGM): the time from a datagram's receipt to the
