@@ -194,3 +194,11 @@ def test_gain_command_prints_a_table(tmp_path):
 def test_all_finite_agrees_with_numpy_including_overflowing_sums(values):
     arr = np.array(values)
     assert all_finite(arr) == bool(np.isfinite(arr).all())
+
+
+def test_settling_of_a_gain_so_large_that_one_sample_is_taken_whole() -> None:
+    # exp(-30000 * 0.01) underflows to 0 in the step fraction: the observer takes the first
+    # sample whole, so it has settled after one period (before: a math domain error in keo gain)
+    assert ob.step_alpha(30000.0, 0.01) == 1.0
+    assert ob.discrete_settling_time(30000.0, 0.01) == 0.01
+    assert ob.discrete_settling_time(1e6, 1e-3) == 1e-3

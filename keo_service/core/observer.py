@@ -133,6 +133,8 @@ def discrete_settling_time(
 ) -> float:
     """First sample time at which a step from zero is within `fraction` of its final value."""
     a = step_alpha(gain, period)
+    if a >= 1.0:  # exp(-L T) rounds to 0: the first sample is taken whole
+        return period
     steps = math.ceil(math.log(fraction) / math.log1p(-a) - 1e-12)
     return max(steps, 1) * period
 
