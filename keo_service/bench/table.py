@@ -264,15 +264,16 @@ def _run_rows(e: dict[str, Any], label: str) -> list[str]:
             f"{_ms(e['latency_publish_to_subscriber_ms'])} |"
         )
     for name, p in e["processes"].items():
+        own = f" (its own process {p['own_cpu_pct']:.1f} %)" if "own_cpu_pct" in p else ""
         lines.append(
-            f"| {label}: {name} | CPU {p['cpu_pct']:.1f} %, peak RSS "
+            f"| {label}: {name} | CPU {p['cpu_pct']:.1f} %{own}, peak RSS "
             f"{p['peak_rss_mb']:.0f} MB, RSS growth after warm-up "
             f"{p['rss_growth_mb']:+.1f} MB |"
         )
     fits_ms = e.get("service_counters", {}).get("delay_fit_cpu_ms")
     if fits_ms is not None:  # the fits happen while data flows: over the run's length
         lines.append(
-            f"| {label}: the service's delay fits (its worker thread; in its CPU above) | "
+            f"| {label}: the service's delay fits (its worker process; in its CPU above) | "
             f"{100.0 * fits_ms * 1e-3 / e['seconds']:.1f} % of a core over the "
             f"{e['seconds']:.0f} s of data |"
         )

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from keo_service.core.batch import CHUNK, tool_frames
-from keo_service.core.chain import Chain
+from keo_service.core.chain import shared_chain
 from keo_service.core.errors import KeoError
 from keo_service.core.kinematics import Cell
 from keo_service.core.rotations import log3_many, quaternion_matrices
@@ -78,7 +78,7 @@ def _tool_states(
     differences over VELOCITY_STEP_S), STATE_ROWS samples at a time: the three passes of
     kinematics and their temporaries for a whole recording would cost more in fresh pages
     than in arithmetic (every row is computed on its own, so the chunks change nothing)."""
-    chain = Chain(cell.robot)
+    chain = shared_chain(cell.robot)
     h = max(VELOCITY_STEP_S, VELOCITY_INTERVALS * _sample_interval(enc_t))
     n = t.size
     q0 = np.empty((n, enc_q.shape[1]))
