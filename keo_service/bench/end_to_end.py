@@ -46,7 +46,8 @@ CORRECTION_OUTPUT = "rtde_registers"
 class _Collector:
     """The subscriber at the end of the chain. It is the measuring instrument, so its callback
     keeps only an arrival time and the raw bytes (no object the garbage collector tracks: a
-    growing list of decoded messages cost a 30 ms gen-2 pause mid-run) and decodes afterwards.
+    growing list of decoded messages cost a long gen-2 pause mid-run, docs/performance.md)
+    and decodes afterwards.
     It takes the estimates and, from a service with a correction output, the corrections."""
 
     def __init__(self, config: Config) -> None:
@@ -188,10 +189,10 @@ def _end_to_end(
     cfg = work / "bench.toml"
     cfg.write_text(config_to_toml(config))
     sets = _chain_settings(tracker_hz, encoder_hz, seconds)
-    # the mocks simulate the whole scenario before they listen (about 2 % of its length at
-    # 1 kHz) after their imports, which take many times as long on a loaded machine (with a
-    # load of 15 on two cores, 5 s were too few by 10-20 s, and most of each run's samples
-    # were skipped): start the play late enough that no device data is skipped
+    # the mocks simulate the whole scenario before they listen (a few % of its length at
+    # 1 kHz) after their imports, which take many times as long on a loaded machine (a fixed
+    # lead lost most of each run's samples there, docs/performance.md): start the play late
+    # enough that no device data is skipped
     startup = startup_s() + 0.04 * seconds * tracker_hz / 1000.0
     t0 = time.time() + startup
     play = ["--scenario", "path", "--seed", "1", "--t0", repr(t0)]

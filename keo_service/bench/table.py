@@ -48,6 +48,17 @@ def _runs(command: dict[str, Any]) -> str:
     return f" (median of {len(walls)} runs{after}, {min(walls):.2f} to {max(walls):.2f} s wall)"
 
 
+def _floor_wall(rec: dict[str, Any]) -> str:
+    """The floor's wall time, and the command's wall over the floor's CPU (the measure of
+    runs before the floor's wall was taken), when the run has them."""
+    if "floor_wall_s" not in rec:
+        return ""
+    return (
+        f", {rec['floor_wall_s']:.2f} s wall (command wall / floor CPU "
+        f"{rec['over_floor_wall_over_cpu']:.2f})"
+    )
+
+
 def _command_over_floor(rec: dict[str, Any]) -> str:
     b = rec["batch"]
     if "over_floor" not in rec:  # runs before the floor passes alternated with the command
@@ -83,7 +94,7 @@ def _round_rows(r: dict[str, Any]) -> list[str]:
     less_fits = _cpu_less_fits_over_relay(rounds)
     if less_fits is not None:
         lines.append(
-            "| keo's CPU without its delay fits (the worker thread's CPU time, counted by the "
+            "| keo's CPU without its delay fits (the worker's CPU time, counted by the "
             f"service) over the transport floor | {_ratio(less_fits)} |"
         )
     if n > 1:
@@ -192,8 +203,10 @@ def _recording_rows(rec: dict[str, Any]) -> list[str]:
         f"{rec['encoder_samples']:,} encoder rows; CSV in and out, process start included) | "
         f"{b['wall_s']:.2f} s wall, {b['cpu_s']:.2f} s CPU, "
         f"peak RSS {b['peak_rss_mb']:.0f} MB{_runs(b)}; "
-        f"naive floor over the same samples {rec['floor_s']:.2f} s CPU; command / floor = "
-        f"{_command_over_floor(rec)} (wall), {b['cpu_s'] / rec['floor_s']:.2f} (CPU) |"
+        f"naive floor over the same samples {rec['floor_s']:.2f} s CPU{_floor_wall(rec)}; "
+        f"command / floor = {_command_over_floor(rec)} "
+        f"({'wall over wall' if 'floor_wall_s' in rec else 'wall'}), "
+        f"{b['cpu_s'] / rec['floor_s']:.2f} (CPU) |"
     ]
     if "streaming" in rec:
         st = rec["streaming"]

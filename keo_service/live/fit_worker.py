@@ -1,9 +1,10 @@
 """The online delay tracker's fits in a process of their own.
 
-A fit is a few hundred milliseconds of numpy and Python every 2-2.5 s of data. On a thread of
+A fit is a sizeable piece of numpy and Python every stretch (2-2.5 s of data). On a thread of
 the service it held the GIL in its Python parts, and the samples that arrived meanwhile
-waited for it; numpy's BLAS also ran its own threads for the fit's linear algebra, which
-on a small machine spun on the cores the data path needed (docs/performance.md). Here the
+waited for it; numpy's BLAS also ran threads of its own for the fit's linear algebra, which
+on a small machine spun on the cores the data path needed (docs/performance.md has the
+figures). Here the
 service's event loop only takes the stretch from the tracker's bounded buffers and builds its
 arrays (between samples), hands them to one worker process and awaits the result, which it
 folds in between samples as before.

@@ -615,7 +615,7 @@ async def run_service(
             watchdog = asyncio.create_task(ping(), name="keo.service.watchdog")
         # what start-up made (modules, the cell, the sessions) lives as long as the process:
         # out of the cyclic collector's way, so that no collection on the data path walks it
-        # (the first ones after start-up took up to 30 ms; docs/performance.md)
+        # (the first ones after start-up were long pauses: docs/performance.md)
         gc.collect()
         gc.freeze()
         systemd.notify(f"READY=1\nSTATUS=cell {config.cell} on {', '.join(config.bus.listen)}")
