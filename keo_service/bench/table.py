@@ -258,7 +258,7 @@ E2E_ROWS = (
 
 def _run_rows(e: dict[str, Any], label: str) -> list[str]:
     """One end-to-end run: its latency, the split at the service's publish, each process;
-    the service's delay fits (a worker thread) where the run counted them."""
+    the service's delay fits (its worker process) where the run counted them."""
     lines = [
         f"| {label}: tracker {e['tracker_hz']:.0f} Hz, robot {e['encoder_hz']:.0f} Hz, "
         f"{e['seconds']:.0f} s | latency {_ms(e['latency_ms'])}; "
