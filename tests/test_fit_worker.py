@@ -135,3 +135,5 @@ def test_the_bench_counts_the_services_workers_in_its_cpu():
     out = _fold_service_workers(measured)["processes"]["service"]
     assert out["cpu_pct"] == pytest.approx(34.5)
     assert out["own_cpu_pct"] == pytest.approx(30.0)
+    relay = {"processes": {"service": proc(25.0), "mock-robot": proc(8.0)}}
+    assert _fold_service_workers(relay)["processes"]["service"] == proc(25.0)

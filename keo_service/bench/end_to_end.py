@@ -262,9 +262,11 @@ def _fold_service_workers(measured: dict[str, Any]) -> dict[str, Any]:
     `own_cpu_pct`): the fits are the service's work wherever they run. The workers stay
     listed with their own figures."""
     procs = measured["processes"]
-    service = procs["service"]
-    service["own_cpu_pct"] = service["cpu_pct"]
-    service["cpu_pct"] += sum(p["cpu_pct"] for n, p in procs.items() if n in SERVICE_WORKERS)
+    workers = [p["cpu_pct"] for n, p in procs.items() if n in SERVICE_WORKERS]
+    if workers:  # the relay has none
+        service = procs["service"]
+        service["own_cpu_pct"] = service["cpu_pct"]
+        service["cpu_pct"] += sum(workers)
     return measured
 
 
