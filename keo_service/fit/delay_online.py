@@ -449,8 +449,8 @@ class OnlineDelayTracker:
 
     def guess(self, current: float) -> float:
         """Where a fit starts: the delay in use once settled, else the recent fits' (a
-        Gauss-Newton fit from far off, e.g. 0 where 30 ms is right, can stop in a wrong
-        minimum)."""
+        Gauss-Newton fit from far off, e.g. 0 where tens of milliseconds are right, can stop
+        in a wrong minimum)."""
         if not self.settled and self._recent:
             cons = self.consensus()
             return cons[0] if cons is not None else self._recent[-1].value
