@@ -403,3 +403,27 @@ def test_bench_table_shows_the_services_cpu_without_its_delay_fits():
     rounds[0]["end_to_end"]["service_counters"] = {}  # runs from before the counter
     rows = _round_rows({"end_to_end_rounds": rounds, "round_ratios": round_ratios(rounds)})
     assert not any("without its delay fits" in r for r in rows)
+
+
+def test_keo_estimate_is_judged_by_the_wait_against_the_floors_wait():
+    """On a busy machine the command and the floor pass both wait for a core: the ratio is
+    wall over wall, pair by pair (the command's wall over the floor's CPU charged the wait to
+    one side only); CPU over CPU beside it, and the old measure kept for comparison."""
+    from keo_service.bench.commands import _pair_ratios
+
+    runs = [
+        {"wall_s": 2.0, "cpu_s": 1.0},
+        {"wall_s": 3.0, "cpu_s": 1.5},
+        {"wall_s": 1.0, "cpu_s": 1.0},
+    ]
+    got = _pair_ratios(runs, floor_cpu=[2.0, 3.0, 2.0], floor_wall=[4.0, 5.0, 2.0])
+    assert got["over_floor_runs"] == [0.5, 0.6, 0.5]
+    assert got["over_floor"] == 0.5
+    assert got["over_floor_cpu"] == 0.5
+    assert got["over_floor_wall_over_cpu"] == 1.0
+    assert got["floor_wall_s"] == 4.0
+    rec = {**_table_report()["recording"], **got}
+    table = bench_table({**_table_report(), "recording": rec})
+    assert "command / floor = 0.50 (median of 3 pairs" in table
+    assert "(wall over wall)" in table
+    assert "4.00 s wall (command wall / floor CPU 1.00)" in table

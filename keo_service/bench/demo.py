@@ -108,9 +108,9 @@ def _finish_logs(work: Path, keep: bool, failed: bool) -> str | None:
 
 def _seconds_until_listening(endpoint: str, procs: ProcessGroup, limit: float = 60.0) -> float:
     """How long the service took to listen: the mocks, started next, import as much and
-    compute their scenario besides, so their start is given four times this (on a machine
-    loaded 8x over, a fixed 4 s lead let the scenario end before the mocks were up and the
-    demo saw no estimate; the mocks took 3-3.5x the service's time there)."""
+    compute their scenario besides, so their start is given four times this (on a heavily
+    loaded machine a fixed lead let the scenario end before the mocks were up, and the demo
+    saw no estimate: docs/performance.md)."""
     started = time.monotonic()
     host, _, port = endpoint.removeprefix("tcp/").rpartition(":")
     while time.monotonic() - started < limit and procs.procs["service"].poll() is None:

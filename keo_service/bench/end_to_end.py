@@ -21,6 +21,7 @@ import numpy as np
 from keo_service.bench.demo import loopback_config
 from keo_service.bench.machine import (
     children,
+    cmdline,
     machine_share,
     machine_ticks,
     open_fds,
@@ -45,7 +46,8 @@ CORRECTION_OUTPUT = "rtde_registers"
 class _Collector:
     """The subscriber at the end of the chain. It is the measuring instrument, so its callback
     keeps only an arrival time and the raw bytes (no object the garbage collector tracks: a
-    growing list of decoded messages cost a 30 ms gen-2 pause mid-run) and decodes afterwards.
+    growing list of decoded messages cost a long gen-2 pause mid-run, docs/performance.md)
+    and decodes afterwards.
     It takes the estimates and, from a service with a correction output, the corrections."""
 
     def __init__(self, config: Config) -> None:
@@ -187,10 +189,10 @@ def _end_to_end(
     cfg = work / "bench.toml"
     cfg.write_text(config_to_toml(config))
     sets = _chain_settings(tracker_hz, encoder_hz, seconds)
-    # the mocks simulate the whole scenario before they listen (about 2 % of its length at
-    # 1 kHz) after their imports, which take many times as long on a loaded machine (with a
-    # load of 15 on two cores, 5 s were too few by 10-20 s, and most of each run's samples
-    # were skipped): start the play late enough that no device data is skipped
+    # the mocks simulate the whole scenario before they listen (a few % of its length at
+    # 1 kHz) after their imports, which take many times as long on a loaded machine (a fixed
+    # lead lost most of each run's samples there, docs/performance.md): start the play late
+    # enough that no device data is skipped
     startup = startup_s() + 0.04 * seconds * tracker_hz / 1000.0
     t0 = time.time() + startup
     play = ["--scenario", "path", "--seed", "1", "--t0", repr(t0)]
@@ -208,9 +210,8 @@ def _end_to_end(
         collector = _Collector(config)
         pids = {n: procs.procs[n].pid for n in CHAIN}
         time.sleep(max(0.0, t0 + 0.5 - time.time()))
-        if rrd and (rerun_process := children(pids["service"])):
-            pids["rerun-process"] = rerun_process[0]  # the service's only child, started by then
-        measured = _measure_run(pids, t0, seconds, sample_every)
+        pids.update(_service_children(pids["service"]))
+        measured = _fold_service_workers(_measure_run(pids, t0, seconds, sample_every))
         time.sleep(1.5)  # the last samples: encoder coverage, or the quiet-time flush
         items, corrections = collector.close()
         counters = {} if relay_only else _service_counters(config)
@@ -231,6 +232,42 @@ def _end_to_end(
     if rrd:  # the recording rolls every 10 minutes: its files in the sink's own order
         out["recording"] = _recording_files(recording)
     return out
+
+
+# the service's child processes whose CPU is the service's own work: its delay fits' worker
+# and the standard library's helper for that worker (the Rerun process is listed apart)
+SERVICE_WORKERS = {
+    "service-fit-worker": "multiprocessing.spawn",
+    "service-mp-helper": "multiprocessing.resource_tracker",
+}
+
+
+def _service_children(service: int) -> dict[str, int]:
+    """The service's child processes by name (started by then: at the service's start, or,
+    for the Rerun process, when it is asked for)."""
+    found = {}
+    for pid in children(service):
+        line = cmdline(pid)
+        if "keo_service.live.rerun_process" in line:
+            found["rerun-process"] = pid
+            continue
+        for name, marker in SERVICE_WORKERS.items():
+            if marker in line and name not in found:
+                found[name] = pid
+    return found
+
+
+def _fold_service_workers(measured: dict[str, Any]) -> dict[str, Any]:
+    """The service's CPU with its workers' in it (`cpu_pct`; its own process alone in
+    `own_cpu_pct`): the fits are the service's work wherever they run. The workers stay
+    listed with their own figures."""
+    procs = measured["processes"]
+    workers = [p["cpu_pct"] for n, p in procs.items() if n in SERVICE_WORKERS]
+    if workers:  # the relay has none
+        service = procs["service"]
+        service["own_cpu_pct"] = service["cpu_pct"]
+        service["cpu_pct"] += sum(workers)
+    return measured
 
 
 def _measure_run(

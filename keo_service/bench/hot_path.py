@@ -112,18 +112,18 @@ def hot_path(config: Config, seconds: float, with_rerun: bool, repeats: int = 5)
     return summary
 
 
-def floor_pass(cell: Any, run: SimulatedRun) -> tuple[int, float]:
+def floor_pass(cell: Any, run: SimulatedRun) -> tuple[int, float, float]:
     """The per-sample floor of Python over Pinocchio: for each tracker sample only what the
     math needs (forward kinematics on preallocated data, the tool and sensor poses, the
     error transform and its log3), joints from the newest encoder sample, no validation, no
-    interpolation, no observer: (samples, CPU seconds)."""
+    interpolation, no observer: (samples, CPU seconds, wall seconds)."""
     model, data = cell.robot.model, cell.robot.create_data()
     flange, T_nt, T_bk = cell.robot.flange_frame_id, cell.T_nt, cell.T_bk
     quat = run.tracker.quat
     assert quat is not None
     xyzquat = np.hstack([run.tracker.p, quat[:, 1:], quat[:, :1]])  # pin's x y z qx qy qz qw
     enc_index = np.searchsorted(run.encoder.t, run.tracker.t, side="right") - 1
-    cpu0 = time.process_time()
+    cpu0, wall0 = time.process_time(), time.perf_counter()
     n = 0
     for j in range(run.tracker.t.size):
         i = enc_index[j]
@@ -135,7 +135,7 @@ def floor_pass(cell: Any, run: SimulatedRun) -> tuple[int, float]:
         err = T_bt.actInv(T_bs)
         pin.log3(err.rotation)
         n += 1
-    return n, time.process_time() - cpu0
+    return n, time.process_time() - cpu0, time.perf_counter() - wall0
 
 
 def hot_path_and_floor(
@@ -149,7 +149,7 @@ def hot_path_and_floor(
     hot, floor, ratios = [], [], []
     n_hot = n_floor = 0
     for _ in range(repeats):
-        n_floor, cpu_floor = floor_pass(cell, run)
+        n_floor, cpu_floor, _wall = floor_pass(cell, run)
         n_hot, cpu_hot = _hot_path_pass(cell, settings, run, False)
         floor.append(n_floor / cpu_floor)
         hot.append(n_hot / cpu_hot)

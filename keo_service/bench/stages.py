@@ -203,8 +203,8 @@ def profile_service(
     keep = ("latency_ms", "processes", "machine", "correction_latency_ms", "service_counters")
     found["run"] = {k: res[k] for k in keep if k in res}
     found["clock"] = clock
-    # the delay fits run on a worker thread, which the profiler does not see: their CPU as
-    # the service counted it, per estimate published
+    # the delay fits run in the service's worker process, which the profiler does not see:
+    # their CPU as the service counted it, per estimate published
     fits_ms = res.get("service_counters", {}).get("delay_fit_cpu_ms")
     if fits_ms is not None:
         found["delay_fits_per_estimate_us"] = 1e3 * fits_ms / max(1, found["published"])
@@ -223,7 +223,7 @@ def stages_table(found: dict[str, Any]) -> str:
     lines.append(f"| the data path (`_consume`, all of it) | {path:.1f} | 100 % |")
     if "delay_fits_per_estimate_us" in found:
         lines.append(
-            f"| delay fits (worker thread, not profiled: its CPU time) | "
+            f"| delay fits (the service's worker process, not profiled: its CPU time) | "
             f"{found['delay_fits_per_estimate_us']:.1f} | "
             f"{found['delay_fits_core_pct']:.1f} % of a core |"
         )

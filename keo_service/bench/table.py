@@ -48,6 +48,17 @@ def _runs(command: dict[str, Any]) -> str:
     return f" (median of {len(walls)} runs{after}, {min(walls):.2f} to {max(walls):.2f} s wall)"
 
 
+def _floor_wall(rec: dict[str, Any]) -> str:
+    """The floor's wall time, and the command's wall over the floor's CPU (the measure of
+    runs before the floor's wall was taken), when the run has them."""
+    if "floor_wall_s" not in rec:
+        return ""
+    return (
+        f", {rec['floor_wall_s']:.2f} s wall (command wall / floor CPU "
+        f"{rec['over_floor_wall_over_cpu']:.2f})"
+    )
+
+
 def _command_over_floor(rec: dict[str, Any]) -> str:
     b = rec["batch"]
     if "over_floor" not in rec:  # runs before the floor passes alternated with the command
@@ -83,7 +94,7 @@ def _round_rows(r: dict[str, Any]) -> list[str]:
     less_fits = _cpu_less_fits_over_relay(rounds)
     if less_fits is not None:
         lines.append(
-            "| keo's CPU without its delay fits (the worker thread's CPU time, counted by the "
+            "| keo's CPU without its delay fits (the worker's CPU time, counted by the "
             f"service) over the transport floor | {_ratio(less_fits)} |"
         )
     if n > 1:
@@ -192,8 +203,10 @@ def _recording_rows(rec: dict[str, Any]) -> list[str]:
         f"{rec['encoder_samples']:,} encoder rows; CSV in and out, process start included) | "
         f"{b['wall_s']:.2f} s wall, {b['cpu_s']:.2f} s CPU, "
         f"peak RSS {b['peak_rss_mb']:.0f} MB{_runs(b)}; "
-        f"naive floor over the same samples {rec['floor_s']:.2f} s CPU; command / floor = "
-        f"{_command_over_floor(rec)} (wall), {b['cpu_s'] / rec['floor_s']:.2f} (CPU) |"
+        f"naive floor over the same samples {rec['floor_s']:.2f} s CPU{_floor_wall(rec)}; "
+        f"command / floor = {_command_over_floor(rec)} "
+        f"({'wall over wall' if 'floor_wall_s' in rec else 'wall'}), "
+        f"{b['cpu_s'] / rec['floor_s']:.2f} (CPU) |"
     ]
     if "streaming" in rec:
         st = rec["streaming"]
@@ -245,7 +258,7 @@ E2E_ROWS = (
 
 def _run_rows(e: dict[str, Any], label: str) -> list[str]:
     """One end-to-end run: its latency, the split at the service's publish, each process;
-    the service's delay fits (a worker thread) where the run counted them."""
+    the service's delay fits (its worker process) where the run counted them."""
     lines = [
         f"| {label}: tracker {e['tracker_hz']:.0f} Hz, robot {e['encoder_hz']:.0f} Hz, "
         f"{e['seconds']:.0f} s | latency {_ms(e['latency_ms'])}; "
@@ -264,15 +277,16 @@ def _run_rows(e: dict[str, Any], label: str) -> list[str]:
             f"{_ms(e['latency_publish_to_subscriber_ms'])} |"
         )
     for name, p in e["processes"].items():
+        own = f" (its own process {p['own_cpu_pct']:.1f} %)" if "own_cpu_pct" in p else ""
         lines.append(
-            f"| {label}: {name} | CPU {p['cpu_pct']:.1f} %, peak RSS "
+            f"| {label}: {name} | CPU {p['cpu_pct']:.1f} %{own}, peak RSS "
             f"{p['peak_rss_mb']:.0f} MB, RSS growth after warm-up "
             f"{p['rss_growth_mb']:+.1f} MB |"
         )
     fits_ms = e.get("service_counters", {}).get("delay_fit_cpu_ms")
     if fits_ms is not None:  # the fits happen while data flows: over the run's length
         lines.append(
-            f"| {label}: the service's delay fits (its worker thread; in its CPU above) | "
+            f"| {label}: the service's delay fits (its worker process; in its CPU above) | "
             f"{100.0 * fits_ms * 1e-3 / e['seconds']:.1f} % of a core over the "
             f"{e['seconds']:.0f} s of data |"
         )

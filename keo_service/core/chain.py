@@ -184,3 +184,21 @@ class Chain:
         last = carried @ self.flange
         times_constant_frames(R, p, last if tail is None else last @ tail)
         return R, p
+
+
+_SHARED: dict[int, tuple[RobotModel, Chain]] = {}
+SHARED_CHAINS = 8  # robots whose chain `shared_chain` keeps (bounded)
+
+
+def shared_chain(robot: RobotModel) -> Chain:
+    """One `Chain` per robot model, built once and kept (the newest few robots): building
+    one reads the whole model through Pinocchio, which cost the online delay fits more than
+    some of their rounds' kinematics. For `flange_frames` without corrections, which keep no
+    state between calls (`gravity_torques` writes the chain's Pinocchio data: not for
+    threads sharing a chain)."""
+    hit = _SHARED.get(id(robot))
+    if hit is None or hit[0] is not robot:
+        if len(_SHARED) >= SHARED_CHAINS:
+            _SHARED.clear()
+        hit = _SHARED[id(robot)] = (robot, Chain(robot))
+    return hit[1]

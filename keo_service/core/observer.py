@@ -31,8 +31,8 @@ class KinematicErrorObserver:
         if not np.all(np.isfinite(gain)) or np.any(gain <= 0):
             raise ValueError(f"every gain must be finite and > 0, got {gain.tolist()}")
         self._gain = gain
-        # the step runs on plain floats: for a handful of channels, Python arithmetic costs a
-        # third of the equivalent numpy calls
+        # the step runs on plain floats: for a handful of channels, Python arithmetic costs
+        # less than the equivalent numpy calls (docs/performance.md)
         self._neg_gain = [-g for g in gain.tolist()]
         self._one_neg_gain = self._neg_gain[0] if len(set(self._neg_gain)) == 1 else None
         self._state = [0.0] * gain.size
@@ -193,9 +193,9 @@ def finite_numbers(values: list[Any]) -> bool:
 
 def all_finite(values: np.ndarray) -> bool:
     """True when every value is finite. A finite sum proves it (a NaN or an infinity makes the
-    sum non-finite); summing the short hot-path vectors as Python floats costs a third of
-    isfinite().all() and warns about nothing. Only a non-finite sum (or an overflow of huge
-    finite values) takes the exact test."""
+    sum non-finite); summing the short hot-path vectors as Python floats costs less than
+    isfinite().all() (docs/performance.md) and warns about nothing. Only a non-finite sum (or
+    an overflow of huge finite values) takes the exact test."""
     return math.isfinite(sum(values.ravel().tolist())) or bool(np.isfinite(values).all())
 
 

@@ -447,20 +447,26 @@ class OnlineDelayTracker:
         """Fit one stretch and fold it in: the running estimate if this fit moved it."""
         return self.combine(self.measure(window, current))
 
+    def guess(self, current: float) -> float:
+        """Where a fit starts: the delay in use once settled, else the recent fits' (a
+        Gauss-Newton fit from far off, e.g. 0 where tens of milliseconds are right, can stop
+        in a wrong minimum)."""
+        if not self.settled and self._recent:
+            cons = self.consensus()
+            return cons[0] if cons is not None else self._recent[-1].value
+        return current
+
     def measure(
         self,
         window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
         current: float,
+        guess: float | None = None,
     ) -> DelayMeasurement | DelayRefused:
         """The delay over one stretch, or why there is none. Runs anywhere (a worker
-        thread): it reads the tracker's settings only and changes nothing."""
-        # fitted from the best guess there is: the delay in use once settled, else the
-        # recent fits' (a Gauss-Newton fit from far off, e.g. 0 where 30 ms is right, can
-        # stop in a wrong minimum)
-        guess = current
-        if not self.settled and self._recent:
-            cons = self.consensus()
-            guess = cons[0] if cons is not None else self._recent[-1].value
+        thread, or a process given the `guess` its tracker made): with `guess` it reads the
+        tracker's settings only and changes nothing."""
+        if guess is None:
+            guess = self.guess(current)
         enc_t, enc_q, trk_t, trk_p, trk_q = _covered(window, guess, self.max_gap_s)
         if enc_t.size < 20 or trk_t.size < 50:
             return DelayRefused("fits_without_data", "not enough data in the stretch")

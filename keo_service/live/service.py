@@ -57,12 +57,8 @@ def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 if TYPE_CHECKING:
-    from keo_service.fit.delay_online import (
-        DelayMeasurement,
-        DelayRefused,
-        OnlineDelayTracker,
-        Stretch,
-    )
+    from keo_service.fit.delay_online import OnlineDelayTracker
+    from keo_service.live.fit_worker import FitWorker
     from keo_service.live.sinks import Sink
 
 log = logging.getLogger("keo.service")
@@ -72,19 +68,6 @@ STATUS_PERIOD_S = 0.1
 # waits at most this long (its stretches are 2-2.5 s)
 DELAY_POLL_S = 0.25
 STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "stale"
-
-
-def _measure(
-    tracker: OnlineDelayTracker, stretch: Stretch, current: float
-) -> tuple[DelayMeasurement | DelayRefused, float]:
-    """In the worker: the stretch's arrays, then its fit; and the worker's CPU time for it
-    (s), counted in the status (`delay_fit_cpu_ms`): the fits are part of the service's CPU
-    beside the data path (docs/performance.md)."""
-    from keo_service.fit.delay_online import stretch_arrays
-
-    start = time.thread_time()
-    found = tracker.measure(stretch_arrays(stretch), current)
-    return found, time.thread_time() - start
 
 
 MAX_ADAPTERS = 16  # adapters whose newest state change the service keeps (bounded)
@@ -130,6 +113,7 @@ class KeoService:
         self._delay_followed: float | None = None  # the delay last set from the tracker
         self._delay_said = ""  # the kind of the tracker's decision last logged
         self._fit_cpu_s = 0.0  # the delay fits' CPU time in the worker, all of them (s)
+        self._fits: FitWorker | None = None  # the fits' worker process, while running
         if config.timing.track_delay:
             from keo_service.fit.delay_online import OnlineDelayTracker
 
@@ -185,6 +169,9 @@ class KeoService:
             if sink.period_s is not None:
                 self._start(self._sink_loop(sink), f"keo.service.{sink.name}")
         if self._delay_tracker is not None:
+            from keo_service.live.fit_worker import FitWorker
+
+            self._fits = FitWorker(self._delay_tracker)
             self._start(self._delay_loop(), "keo.service.delay")
         log.info("keo service for cell %s up; listening on %s", self.cell, self.config.bus.listen)
         return self
@@ -196,6 +183,8 @@ class KeoService:
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
+        if self._fits is not None:
+            self._fits.close()
         self._token.undeclare()
         self._status_q.undeclare()
         self.sinks.close()
@@ -504,21 +493,24 @@ class KeoService:
                 self.estimator.set_delay_target(target)
 
     async def _delay_loop(self) -> None:
-        """Online delay tracking: take each stretch from the tracker's bounded buffers on the
-        loop (list copies), build its arrays and fit it in a worker thread (one fit at a
-        time), fold the result in on the loop, between samples, and set the estimator's
-        delay (a step for a confirmed change, a slew for a refinement). A fit of data from
-        before a time base started anew is dropped."""
-        tracker = self._delay_tracker
+        """Online delay tracking: take each stretch from the tracker's bounded buffers and
+        build its arrays on the loop, between samples; fit it in the worker process (one fit
+        at a time, `live/fit_worker.py`), fold the result in on the loop, between samples,
+        and set the estimator's delay (a step for a confirmed change, a slew for a
+        refinement). A fit of data from before a time base started anew is dropped."""
+        from keo_service.fit.delay_online import stretch_arrays
+
+        tracker, fits = self._delay_tracker, self._fits
         assert tracker is not None
+        assert fits is not None
         while not self._stop.is_set():
             if not tracker.due():  # else a stretch is waiting already (a slow fit, a replay)
                 await asyncio.sleep(DELAY_POLL_S)
                 continue
-            stretch = tracker.take()
+            window = stretch_arrays(tracker.take())
             restarts = tracker.counters["restarts"]
             current = self.estimator.delay.offset_s
-            found, cpu_s = await asyncio.to_thread(_measure, tracker, stretch, current)
+            found, cpu_s = await fits.measure(window, current, tracker.guess(current))
             self._fit_cpu_s += cpu_s
             if tracker.counters["restarts"] == restarts:
                 tracker.combine(found)
@@ -623,7 +615,7 @@ async def run_service(
             watchdog = asyncio.create_task(ping(), name="keo.service.watchdog")
         # what start-up made (modules, the cell, the sessions) lives as long as the process:
         # out of the cyclic collector's way, so that no collection on the data path walks it
-        # (the first ones after start-up took up to 30 ms; docs/performance.md)
+        # (the first ones after start-up were long pauses: docs/performance.md)
         gc.collect()
         gc.freeze()
         systemd.notify(f"READY=1\nSTATUS=cell {config.cell} on {', '.join(config.bus.listen)}")

@@ -1,0 +1,112 @@
+"""The online delay tracker's fits in a process of their own.
+
+A fit is a sizeable piece of numpy and Python every stretch (2-2.5 s of data). On a thread of
+the service it held the GIL in its Python parts, and the samples that arrived meanwhile
+waited for it; numpy's BLAS also ran threads of its own for the fit's linear algebra, which
+on a small machine spun on the cores the data path needed (docs/performance.md has the
+figures). Here the
+service's event loop only takes the stretch from the tracker's bounded buffers and builds its
+arrays (between samples), hands them to one worker process and awaits the result, which it
+folds in between samples as before.
+
+Bounded: one process, one fit at a time (the delay loop awaits each before it takes the next
+stretch), a stretch's arrays as its only input. The worker holds a copy of the tracker made
+when the service started (its settings: `OnlineDelayTracker.measure` reads nothing else once
+given the `guess` the service's tracker made), starts with numpy's BLAS on one thread, and
+ignores SIGINT and SIGTERM (a supervisor that signals the whole group stops the service,
+which then shuts the worker down). A worker that dies is a failure of the service's delay
+task, as any task's (`concurrent.futures.process.BrokenProcessPool`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import multiprocessing
+import os
+import pickle
+import signal
+import time
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from keo_service.fit.delay_online import DelayMeasurement, DelayRefused, OnlineDelayTracker
+
+    Window = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]
+
+__all__ = ["FitWorker"]
+
+# the thread counts numpy's BLAS builds read at their import: one, in the worker
+BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+# in the worker: the service's tracker as it was at start (set once, by `_start`)
+_worker: dict[str, OnlineDelayTracker] = {}
+
+
+def _start(state: bytes) -> None:
+    """The worker's initializer: its tracker, and the stop signals left to the service."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _worker["tracker"] = pickle.loads(state)
+
+
+def _ready() -> int:
+    """Answered once the worker has started (its pid)."""
+    return os.getpid()
+
+
+def _measure(
+    window: Window, current: float, guess: float
+) -> tuple[DelayMeasurement | DelayRefused, float]:
+    """In the worker: one stretch's fit, and the worker's CPU time for it (s), all of its
+    threads, counted in the service's status (`delay_fit_cpu_ms`)."""
+    start = time.process_time()
+    found = _worker["tracker"].measure(window, current, guess)
+    return found, time.process_time() - start
+
+
+@contextlib.contextmanager
+def _one_blas_thread() -> Iterator[None]:
+    """The environment a process started meanwhile inherits: BLAS on one thread."""
+    saved = {name: os.environ.get(name) for name in BLAS_THREADS}
+    os.environ.update(dict.fromkeys(BLAS_THREADS, "1"))
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+class FitWorker:
+    """One worker process for the delay fits (see the module). `tracker`: the service's
+    tracker, copied as it is now (at start: its settings, empty buffers)."""
+
+    def __init__(self, tracker: OnlineDelayTracker) -> None:
+        context = multiprocessing.get_context("spawn")  # not fork: Zenoh runs threads here
+        with _one_blas_thread():  # the process starts at the first submit
+            self._pool = ProcessPoolExecutor(
+                1, mp_context=context, initializer=_start, initargs=(pickle.dumps(tracker),)
+            )
+            self._started = self._pool.submit(_ready)
+
+    async def measure(
+        self, window: Window, current: float, guess: float
+    ) -> tuple[DelayMeasurement | DelayRefused, float]:
+        """One stretch's fit in the worker (`OnlineDelayTracker.measure`), and its CPU (s)."""
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(self._pool, _measure, window, current, guess)
+
+    def pid(self, timeout: float = 30.0) -> int:
+        """The worker's process id, once it runs (blocking: for tests and tools)."""
+        return int(self._started.result(timeout))
+
+    def close(self) -> None:
+        """Stop the worker without waiting for a fit it may be running (it exits after)."""
+        self._pool.shutdown(wait=False, cancel_futures=True)

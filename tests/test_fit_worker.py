@@ -1,0 +1,139 @@
+"""The delay fits in their worker process (issue 48): the same results as in the service's
+own process, the worker left alone by stop signals, its BLAS on one thread, and its CPU counted
+in the service's figure by the bench."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from keo_service.bench.demo import loopback_config
+
+
+def _stretches(demo_config, demo_cell, count: int):
+    """The service's tracker fed a simulated 1 kHz / 250 Hz path as its wire fields, and the
+    first `count` stretches it takes (as arrays), each with the guess it would fit from."""
+    from keo_service.fit.delay_online import OnlineDelayTracker, stretch_arrays
+    from keo_service.io.cell import delay_prior
+    from keo_service.sim.simulate import make_scenario, simulate
+
+    config = loopback_config(demo_config)
+    tracker = OnlineDelayTracker(
+        demo_cell, None, *delay_prior(config.timing), max_gap_s=config.timing.max_gap_s
+    )
+    fresh = OnlineDelayTracker(
+        demo_cell, None, *delay_prior(config.timing), max_gap_s=config.timing.max_gap_s
+    )
+    sets = {"tracker_rate_hz": "1000", "encoder_rate_hz": "250", "duration_s": "12"}
+    run = simulate(demo_cell, make_scenario("path", sets), seed=2)
+    rows = sorted(
+        [(float(t), 0, i) for i, t in enumerate(run.encoder.t)]
+        + [(float(t), 1, i) for i, t in enumerate(run.tracker.t)]
+    )
+    out = []
+    for t, kind, i in rows:
+        if kind == 0:
+            tracker.add_encoder(t, [float(x) for x in run.encoder.q[i]], 1, i + 1)
+        else:
+            p = [float(x) for x in run.tracker.p[i]]
+            tracker.add_tracker(t, p, [float(x) for x in run.tracker.quat[i]], 1, i + 1)
+        if tracker.due():
+            current = config.timing.delay_s
+            window = stretch_arrays(tracker.take())
+            out.append((window, current, tracker.guess(current)))
+            if len(out) == count:
+                break
+    return fresh, out
+
+
+def test_the_worker_fits_as_the_service_would(demo_config, demo_cell):
+    """Every stretch's measurement from the worker process equals, field for field, the one
+    the tracker makes in this process from the same arrays (its fits' standard errors to
+    1e-12 relative: BLAS on one thread may sum in another order); and the worker's CPU time
+    is counted (> 0) for each fit."""
+    from keo_service.live.fit_worker import FitWorker
+
+    fresh, stretches = _stretches(demo_config, demo_cell, 3)
+    assert len(stretches) == 3
+    worker = FitWorker(fresh)
+
+    async def fit_all():
+        return [await worker.measure(w, c, g) for w, c, g in stretches]
+
+    try:
+        found = asyncio.run(fit_all())
+    finally:
+        worker.close()
+    for (window, current, guess), (got, cpu_s) in zip(stretches, found, strict=True):
+        want = fresh.measure(window, current, guess)
+        assert type(got) is type(want)
+        assert cpu_s > 0
+        for name, value in vars(want).items():
+            other = vars(got)[name]
+            if isinstance(value, float):
+                assert other == pytest.approx(value, rel=1e-12, abs=1e-15, nan_ok=True), name
+            else:
+                assert other == value, name
+    assert any(type(g).__name__ == "DelayMeasurement" for g, _cpu in found)
+
+
+def test_the_worker_ignores_stop_signals_and_runs_blas_on_one_thread(demo_cell):
+    """A SIGTERM or SIGINT to the worker (a supervisor signalling the whole group) leaves it
+    running: the service stops it. Its environment asks BLAS for one thread, the service's
+    own is left as it was."""
+    from keo_service.fit.delay_online import OnlineDelayTracker
+    from keo_service.live.fit_worker import BLAS_THREADS, FitWorker
+
+    before = {name: os.environ.get(name) for name in BLAS_THREADS}
+    worker = FitWorker(OnlineDelayTracker(demo_cell, None, 0.01, 0.001))
+    try:
+        pid = worker.pid()
+        assert {name: os.environ.get(name) for name in BLAS_THREADS} == before
+        environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+        assert b"OPENBLAS_NUM_THREADS=1" in environ
+        os.kill(pid, signal.SIGTERM)
+        os.kill(pid, signal.SIGINT)
+        time.sleep(0.5)
+        assert Path(f"/proc/{pid}").exists()
+        assert worker.pid() == pid
+    finally:
+        worker.close()
+    deadline = time.monotonic() + 10
+    while Path(f"/proc/{pid}").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+        try:  # reaped by the pool's manager thread; a zombie still has a /proc entry
+            if Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
+                break
+        except OSError:
+            break
+    state = Path(f"/proc/{pid}/stat")
+    assert not state.exists() or state.read_text().rsplit(")", 1)[1].split()[0] == "Z"
+
+
+def test_the_bench_counts_the_services_workers_in_its_cpu():
+    """The end-to-end run's service CPU is its own process's plus its fit worker's (and the
+    worker's helper's); the Rerun process stays apart."""
+    from keo_service.bench.end_to_end import _fold_service_workers
+
+    def proc(cpu: float) -> dict[str, float]:
+        return {"cpu_pct": cpu, "peak_rss_mb": 1.0, "rss_growth_mb": 0.0}
+
+    measured = {
+        "processes": {
+            "service": proc(30.0),
+            "service-fit-worker": proc(4.0),
+            "service-mp-helper": proc(0.5),
+            "rerun-process": proc(7.0),
+            "relay": proc(99.0),
+        }
+    }
+    out = _fold_service_workers(measured)["processes"]["service"]
+    assert out["cpu_pct"] == pytest.approx(34.5)
+    assert out["own_cpu_pct"] == pytest.approx(30.0)
+    relay = {"processes": {"service": proc(25.0), "mock-robot": proc(8.0)}}
+    assert _fold_service_workers(relay)["processes"]["service"] == proc(25.0)
