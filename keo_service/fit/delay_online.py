@@ -932,6 +932,7 @@ class OnlineDelayTracker:
 # often and their coverage fell; at 3 the test subset is as without the rule)
 MODEL_REJECT_RATIO = 3.0
 JOINT_MODEL_ROUNDS = 3  # Gauss-Newton rounds of the joint-linear model from the chosen fit
+JOINT_MODEL_SIGMAS = 3.0  # its disagreement counts where this far beyond its extra roughness
 
 
 def _point_moves(t: np.ndarray, p: np.ndarray) -> bool:
@@ -949,18 +950,27 @@ def _model_disagreement(
     fit: DelayFit, position_fits: list[DelayFit], joint: DelayFit | None
 ) -> float:
     """How far the stretch's delay depends on its error model: the largest disagreement of
-    the chosen fit with the other models' (linear in the position in the other frame, linear
-    in the joints) that the data do not reject. A model counts only while its residual is
-    within MODEL_REJECT_RATIO of the chosen fit's: with a tool error alone and noise-free
-    poses the tool-frame fit leaves almost nothing and the other models' disagreement says
-    nothing about it. nan: no other model counts."""
-    others = [f for f in position_fits if f is not fit] + ([joint] if joint is not None else [])
-    gaps = [
-        abs(fit.delay_s - other.delay_s)
-        for other in others
-        if math.isfinite(other.delay_s)
-        and not other.residual_rms_moving > MODEL_REJECT_RATIO * fit.residual_rms_moving
-    ]
+    the chosen fit with the other models' that the data do not reject. A model counts only
+    while its residual is within MODEL_REJECT_RATIO of the chosen fit's: with a tool error
+    alone and noise-free poses the tool-frame fit leaves almost nothing and the other
+    models' disagreement says nothing about it. The other frame's model (linear in the
+    position) counts as it disagrees. The joint-linear model has more parameters, so its
+    own delay is rougher: where the chosen model were right the two would still differ by
+    about sqrt(se_joint^2 - se_chosen^2) (the difference of an efficient and a less
+    efficient estimate, as in Hausman's test), so its disagreement counts only where it is
+    beyond JOINT_MODEL_SIGMAS of that: there it shows the chosen model wrong. nan: no other
+    model counts."""
+
+    def kept(other: DelayFit) -> bool:
+        return math.isfinite(other.delay_s) and not (
+            other.residual_rms_moving > MODEL_REJECT_RATIO * fit.residual_rms_moving
+        )
+
+    gaps = [abs(fit.delay_s - f.delay_s) for f in position_fits if f is not fit and kept(f)]
+    if joint is not None and kept(joint) and math.isfinite(joint.delay_se_s):
+        gap = abs(fit.delay_s - joint.delay_s)
+        if gap > JOINT_MODEL_SIGMAS * math.sqrt(max(0.0, joint.delay_se_s**2 - fit.delay_se_s**2)):
+            gaps.append(gap)
     return max(gaps) if gaps else math.nan
 
 
