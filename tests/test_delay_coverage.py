@@ -54,3 +54,44 @@ def test_one_joint_at_constant_speed_is_not_identifiable_and_says_why(demo_cell)
     assert isinstance(found, DelayRefused), found
     assert found.counter == "fits_not_identifiable"
     assert "cannot separate a delay from a tool error" in found.reason
+
+
+def _fit(delay_s: float, se_s: float, rms_m: float):
+    from keo_service.fit.delay import DelayFit
+
+    return DelayFit(
+        delay_s=delay_s,
+        delay_se_s=se_s,
+        drift=0.0,
+        drift_se=float("inf"),
+        t_ref=0.0,
+        drift_significant=False,
+        residual_rms_moving=rms_m,
+        residual_rms_rest=float("nan"),
+        samples=1000,
+        moving_fraction=1.0,
+        explained=True,
+        iterations=3,
+    )
+
+
+def test_the_joint_model_counts_only_where_it_shows_the_chosen_model_wrong():
+    """The joint-linear model is rougher than the chosen one: were the chosen model right they
+    would differ by about sqrt(se_joint^2 - se_chosen^2) = 0.8 ms here. 1.2 ms off (1.5 of
+    that, as a noise-free tool-error stretch had it) says nothing; 2.4 ms off (3 of it) shows
+    the chosen model wrong, and the whole disagreement counts. A model the data reject (its
+    residual over 3 times the chosen one's) never counts."""
+    from keo_service.fit.delay_online import _model_disagreement
+
+    chosen = _fit(0.030, 1e-6, 20e-6)
+    other_frame = _fit(0.0301, 5e-6, 200e-6)  # rejected: 10 times the residual
+    rough = 0.0008
+    assert np.isnan(_model_disagreement(chosen, [chosen, other_frame], None))
+    near = _fit(0.030 + 1.5 * rough, rough, 18e-6)
+    assert np.isnan(_model_disagreement(chosen, [chosen, other_frame], near))
+    far = _fit(0.030 - 3.0 * rough, rough, 18e-6)
+    assert _model_disagreement(chosen, [chosen, other_frame], far) == pytest.approx(3.0 * rough)
+    kept_frame = _fit(0.0305, 5e-6, 30e-6)  # within 3 times: its 0.5 ms counts
+    assert _model_disagreement(chosen, [chosen, kept_frame], near) == pytest.approx(0.0005)
+    rejected_joint = _fit(0.030 - 3.0 * rough, rough, 100e-6)
+    assert np.isnan(_model_disagreement(chosen, [chosen], rejected_joint))
