@@ -62,7 +62,7 @@ class DelayFit:
 
 def _mad_sigma(x: np.ndarray) -> float:
     """The median absolute deviation scaled to a normal's sigma (what scipy.stats'
-    median_abs_deviation(scale="normal") gives; scipy.stats costs the service 1.7 s of
+    median_abs_deviation(scale="normal") gives; scipy.stats costs the service seconds of
     start-up to import, and online delay tracking is on by default)."""
     return float(np.median(np.abs(x - np.median(x)))) * 1.482602218505602
 
@@ -297,7 +297,7 @@ def _judge_drift(
     """Is the drift shown, and its standard error. A drift is claimed only when stretches of
     the recording show it beyond their own scatter (`_drift_from_windows`): the samples'
     standard error alone takes a delay that wanders with the load, or jumps, for a drift (a
-    20 s recording of undrifted clocks "showed" -316 +/- 63 ppm)."""
+    short recording of undrifted clocks "showed" hundreds of ppm; docs/timing-delay.md)."""
     if not with_drift:
         return False, drift_se
     claimed = abs(drift) > 3 * drift_se
@@ -531,8 +531,8 @@ def _windows(
 def _shown_factor(windows: int) -> float:
     """How many standard errors show a drift judged on this many windows: 3 (99.73 %), as
     Student's t with windows - 2 degrees of freedom, since the slope's se is scaled by the
-    windows' own scatter (with 6 windows of a 20 s recording a 3.4 se "drift" of undrifted
-    clocks was claimed)."""
+    windows' own scatter (with the few windows of a short recording a normal's 3 se claimed
+    drifts of undrifted clocks; docs/timing-delay.md)."""
     from scipy.stats import t as student
 
     if windows < 4:
