@@ -112,20 +112,11 @@ def _features(q: np.ndarray, p: np.ndarray, kind: str) -> np.ndarray:
     base frame, "tool" with the errors and velocities taken in the tool frame, where the
     tool's own calibration error is a constant: in the base frame it turns with the tool,
     which a model linear in the position leaves in the residual, correlated with the
-    motion), or linear in the joints ("joint", base frame)."""
+    motion)."""
     ones = np.ones((q.shape[0], 1))
     if kind in ("position", "tool"):
         return np.hstack([ones, p - p.mean(axis=0)])
-    if kind == "joint":
-        # linear in the joints (base frame): the first-order model of an error that is a
-        # function of the joints, as a robot's geometric errors are; joints that do not
-        # move give no column (a column of zeros would project out an arbitrary direction)
-        dq = q - q.mean(axis=0)
-        return np.hstack([ones, dq[:, np.ptp(q, axis=0) > JOINT_STILL_RAD]])
     return np.hstack([ones, np.sin(q), np.cos(q)])
-
-
-JOINT_STILL_RAD = 1e-6  # a joint moving less than this over a stretch gives no "joint" column
 
 
 BLOCK_S = 0.25  # residuals are taken as independent between blocks this long, not within

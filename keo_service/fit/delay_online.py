@@ -501,9 +501,7 @@ class OnlineDelayTracker:
             return DelayRefused("fits_not_identifiable", str(reason), float(trk_t[-1]))
         fit = min(fits, key=lambda f: f.residual_rms_moving)
         middle = 0.5 * float(trk_t[0] + trk_t[-1])
-        model = _model_disagreement(
-            fit, fits, self._joint_model_fit((enc_t, enc_q, trk_t, trk_p, trk_q), fit)
-        )
+        model = _model_disagreement(fit, fits)
         return DelayMeasurement(
             fit.delay_s,
             _reported_se(fit.delay_se_s, model, sep),
@@ -516,28 +514,6 @@ class OnlineDelayTracker:
             fit.delay_se_s,
             model,
         )
-
-    def _joint_model_fit(
-        self,
-        covered: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
-        fit: DelayFit,
-    ) -> DelayFit | None:
-        """The stretch fitted once more with its error linear in the joints, from the chosen
-        fit's delay (a few rounds: it starts close). A robot's geometric errors are functions
-        of its joints; over a stretch their first-order model is linear in the joints, which
-        a model linear in the tool position only projects. None: that model gives no fit."""
-        try:
-            return fit_delay(
-                self.cell,
-                *covered,
-                initial=fit.delay_s,
-                with_drift=False,
-                max_iterations=JOINT_MODEL_ROUNDS,
-                features="joint",
-                check_windows=False,
-            )
-        except DelayNotIdentifiableError:
-            return None
 
     def combine(self, found: DelayMeasurement | DelayRefused) -> float | None:
         """Fold one measurement in (on the loop, between samples): the delay to use now if
@@ -931,8 +907,6 @@ class OnlineDelayTracker:
 # (docs/timing-delay.md: at 1.5 the disagreement of receipt-stamped fits was dropped too
 # often and their coverage fell; at 3 the test subset is as without the rule)
 MODEL_REJECT_RATIO = 3.0
-JOINT_MODEL_ROUNDS = 3  # Gauss-Newton rounds of the joint-linear model from the chosen fit
-JOINT_MODEL_SIGMAS = 2.0  # its disagreement counts where this far beyond its extra roughness
 
 
 def _point_moves(t: np.ndarray, p: np.ndarray) -> bool:
@@ -946,38 +920,22 @@ def _point_moves(t: np.ndarray, p: np.ndarray) -> bool:
     return path / span > 2 * MIN_SPEED
 
 
-def _model_disagreement(
-    fit: DelayFit, position_fits: list[DelayFit], joint: DelayFit | None
-) -> float:
-    """How far the stretch's delay depends on its error model: the largest disagreement of
-    the chosen fit with the other models' that the data do not reject. A model counts only
-    while its residual is within MODEL_REJECT_RATIO of the chosen fit's: with a tool error
-    alone and noise-free poses the tool-frame fit leaves almost nothing and the other
-    models' disagreement says nothing about it. The other frame's model (linear in the
-    position) counts as it disagrees. The joint-linear model has more parameters, so its
-    own delay is rougher: where the chosen model were right the two would still differ by
-    about sqrt(se_joint^2 - se_chosen^2) (the difference of an efficient and a less
-    efficient estimate, as in Hausman's test), so its disagreement counts only where it is
-    beyond JOINT_MODEL_SIGMAS of that: there it shows the chosen model wrong. nan: no other
-    model counts."""
-
-    def kept(other: DelayFit) -> bool:
-        return math.isfinite(other.delay_s) and not (
-            other.residual_rms_moving > MODEL_REJECT_RATIO * fit.residual_rms_moving
-        )
-
-    gaps = [abs(fit.delay_s - f.delay_s) for f in position_fits if f is not fit and kept(f)]
-    if joint is not None and kept(joint) and math.isfinite(joint.delay_se_s):
-        gap = abs(fit.delay_s - joint.delay_s)
-        if gap > JOINT_MODEL_SIGMAS * math.sqrt(max(0.0, joint.delay_se_s**2 - fit.delay_se_s**2)):
-            gaps.append(gap)
-    return max(gaps) if gaps else math.nan
+def _model_disagreement(fit: DelayFit, fits: list[DelayFit]) -> float:
+    """How far the tool-frame and the base-frame error models' delays disagree. The other
+    model counts only while the data do not reject it (its residual within
+    MODEL_REJECT_RATIO of the chosen fit's): with a tool error alone and noise-free poses the
+    tool-frame fit leaves almost nothing, and the other model's disagreement says nothing
+    about it. nan: only one model gave a fit, or the other is rejected."""
+    others = [f for f in fits if f is not fit]
+    if not others or others[0].residual_rms_moving > MODEL_REJECT_RATIO * fit.residual_rms_moving:
+        return math.nan
+    return abs(fit.delay_s - others[0].delay_s)
 
 
 def _reported_se(own_se: float, model: float, sep: float) -> float:
     """The standard error a stretch's fit reports. Its own (clustered) one cannot see how
     far the stretch's error model is off; two things measured on the stretch can: how far
-    the fits with other error models disagree with it (`model`, added,
+    the tool-frame and the base-frame error models' fits disagree (`model`, added,
     `_model_disagreement`), and how well the motion alone separates a delay from a constant
     tool error and its slow drift (`separable_se`, a floor: one joint at constant speed is
     fitted precisely and wrongly). docs/timing-delay.md has the coverage each brought."""
