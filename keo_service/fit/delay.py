@@ -62,7 +62,7 @@ class DelayFit:
 
 def _mad_sigma(x: np.ndarray) -> float:
     """The median absolute deviation scaled to a normal's sigma (what scipy.stats'
-    median_abs_deviation(scale="normal") gives; scipy.stats costs the service 1.7 s of
+    median_abs_deviation(scale="normal") gives; scipy.stats costs the service seconds of
     start-up to import, and online delay tracking is on by default)."""
     return float(np.median(np.abs(x - np.median(x)))) * 1.482602218505602
 
@@ -119,7 +119,7 @@ def _features(q: np.ndarray, p: np.ndarray, kind: str) -> np.ndarray:
     base frame, "tool" with the errors and velocities taken in the tool frame, where the
     tool's own calibration error is a constant: in the base frame it turns with the tool,
     which a model linear in the position leaves in the residual, correlated with the
-    motion; measured 50-100 us of bias on 5 s stretches of a UR10 turning its tool)."""
+    motion)."""
     ones = np.ones((q.shape[0], 1))
     if kind in ("position", "tool"):
         return np.hstack([ones, p - p.mean(axis=0)])
@@ -295,7 +295,7 @@ def _judge_drift(
     """Is the drift shown, and its standard error. A drift is claimed only when stretches of
     the recording show it beyond their own scatter (`_drift_from_windows`): the samples'
     standard error alone takes a delay that wanders with the load, or jumps, for a drift (a
-    20 s recording of undrifted clocks "showed" -316 +/- 63 ppm)."""
+    short recording of undrifted clocks "showed" hundreds of ppm; docs/timing-delay.md)."""
     if not with_drift:
         return False, drift_se
     claimed = abs(drift) > 3 * drift_se
@@ -305,9 +305,10 @@ def _judge_drift(
                 f"no significant clock drift ({drift * 1e6:.1f} +/- {drift_se * 1e6:.1f} ppm)"
             )
         return claimed, drift_se
-    slope_se, note = _drift_from_windows(last.X_p[:, 0], last.y_p, trk_t, last.nch, drift, claimed)
+    windows = _windows(last.X_p[:, 0], last.y_p, trk_t, last.nch)
+    slope_se, note = _drift_from_windows(windows, trk_t, drift, claimed)
     drift_se = max(drift_se, slope_se)
-    shown = claimed and abs(drift) > 3 * drift_se
+    shown = claimed and abs(drift) > _shown_factor(len(windows)) * drift_se
     if not shown:
         notes.append(note)
     return shown, drift_se
@@ -328,101 +329,42 @@ def fit_delay(
 ) -> DelayFit:
     """Least-squares delay (and drift) from recorded streams in the tracker frame."""
     _refuse_stop_and_measure(enc_t, trk_t)
-    keep = np.all(np.isfinite(trk_p), axis=1) & np.isfinite(trk_t)
-    if trk_quat is not None:
-        keep &= np.all(np.isfinite(trk_quat), axis=1)
-    trk_t, trk_p = trk_t[keep], trk_p[keep]
-    trk_quat = None if trk_quat is None else trk_quat[keep]
     order = np.argsort(enc_t)
     enc_t, enc_q = enc_t[order], enc_q[order]
-    margin = 0.2
-    inside = (trk_t - initial > enc_t[0] + margin) & (trk_t - initial < enc_t[-1] - margin)
-    trk_t, trk_p = trk_t[inside], trk_p[inside]
-    trk_quat = None if trk_quat is None else trk_quat[inside]
-    if trk_t.size < 50:
-        raise DelayNotIdentifiableError(
-            f"only {trk_t.size} tracker samples overlap the encoder stream"
-        )
-    T_bk = cell.T_bk
-    p_bs = trk_p @ T_bk.rotation.T + T_bk.translation
-    # the tracker's rotations in the base frame (N, 3, 3)
-    R_bs = (
-        None
-        if trk_quat is None
-        else np.einsum("ij,jkn->nik", T_bk.rotation, quaternion_matrices(trk_quat))
-    )
+    trk_t, p_bs, R_bs = _tracker_in_base(cell, enc_t, trk_t, trk_p, trk_quat, initial)
     t_ref = float(np.mean(trk_t))
-    delay = initial
-    drift = 0.0
-    iterations = 0
-    last: _Round | None = None
-    for _ in range(max_iterations):
-        iterations += 1
-        last = None  # the previous round's arrays go before this round's are made
-        last = _linearised_round(
-            cell,
-            (enc_t, enc_q),
-            (trk_t, p_bs, R_bs),
-            trk_t - (delay + drift * (trk_t - t_ref)),
-            t_ref,
-            with_drift,
-            features,
-        )
-        # e(t; d) = e_true + v (d - d_true): the fitted coefficient is how far off we are
-        step = float(last.beta[0])
-        if not abs(step) <= margin:
-            # a step beyond the margin would read joints outside the recording (a constant-
-            # velocity stroke's round jumped seconds and was then refused as "hardly
-            # moving"): the round's own standard error says below why there is no delay
-            break
-        delay -= step
-        if with_drift:
-            drift -= float(last.beta[1])
-        if abs(step) < 1e-7:
-            break
-    assert last is not None  # max_iterations >= 1
-    beta, cov, resid, scale, moving = last.beta, last.cov, last.resid, last.scale, last.moving
-    nch, X_p, y_p, inflate = last.nch, last.X_p, last.y_p, last.inflate
-    se = float(math.sqrt(cov[0, 0])) if np.isfinite(cov[0, 0]) else math.inf
-    drift_se = float(math.sqrt(cov[1, 1])) if with_drift and np.isfinite(cov[1, 1]) else math.inf
-    res = resid.reshape(nch, -1).T * scale  # back to metres / radians
-    res_pos = np.linalg.norm(res[:, :3], axis=1)
-    rms_moving = float(np.sqrt(np.mean(res_pos[moving] ** 2))) if moving.any() else math.nan
-    rms_rest = float(np.sqrt(np.mean(res_pos[~moving] ** 2))) if (~moving).any() else math.nan
-    notes: list[str] = []
+    delay, drift, iterations, last = _gauss_newton(
+        cell,
+        (enc_t, enc_q),
+        (trk_t, p_bs, R_bs),
+        initial,
+        t_ref,
+        with_drift,
+        max_iterations,
+        features,
+    )
+    se = float(math.sqrt(last.cov[0, 0])) if np.isfinite(last.cov[0, 0]) else math.inf
+    drift_se = (
+        float(math.sqrt(last.cov[1, 1])) if with_drift and np.isfinite(last.cov[1, 1]) else math.inf
+    )
     if not se < MAX_SE_S:
-        # the advice follows the motion measured: only a motion along one direction is told
-        # that it moves along one direction
-        advice = (
-            "a move at constant velocity along one direction is not enough: include rests, "
-            "changes of speed or of direction"
-            if last.turning < 0.2
-            else f"the motion turns, but {float(trk_t[-1] - trk_t[0]):.1f} s of it are too "
-            "few for this error model: a longer stretch (or recording) helps"
-        )
-        raise DelayNotIdentifiableError(
-            f"the motion cannot separate a delay from a configuration-dependent error "
-            f"(standard error {se * 1e3:.1f} ms > {MAX_SE_S * 1e3:.0f} ms); {advice}"
-        )
+        raise _not_separable(last, se, float(trk_t[-1] - trk_t[0]))
+    notes: list[str] = []
     significant, drift_se = _judge_drift(
         last, trk_t, drift, drift_se, with_drift, check_windows, notes
     )
     # a constant delay (and drift) explains the data if separate stretches of time agree on it
-    windows: list[tuple[float, float]] = []
+    windows: list[tuple[float, float, float]] = []
     explained = True
     if check_windows:
-        windows = _window_delays(
-            X_p[:, 0],
-            y_p - (X_p[:, 1:] @ beta[1:] if with_drift else 0.0),
-            trk_t,
-            nch,
-            float(inflate),
-        )
+        y = last.y_p - (last.X_p[:, 1:] @ last.beta[1:] if with_drift else 0.0)
+        windows = _windows(last.X_p[:, 0], y, trk_t, last.nch)
         explained, spread_note = _consistent(windows, _sample_interval(enc_t))
         if not explained:
             notes.append(spread_note)
+    rms_moving, rms_rest = _residual_rms(last)
     return DelayFit(
-        window_delays_s=[delay - w[0] for w in windows],
+        window_delays_s=[delay - w[1] for w in windows],
         delay_s=delay,
         delay_se_s=se,
         drift=drift if significant else 0.0,
@@ -432,12 +374,117 @@ def fit_delay(
         residual_rms_moving=rms_moving,
         residual_rms_rest=rms_rest,
         samples=int(trk_t.size),
-        moving_fraction=float(moving.mean()),
+        moving_fraction=float(last.moving.mean()),
         explained=explained,
         iterations=iterations,
         notes=notes,
         speed_rms=last.speed_rms,
     )
+
+
+GUESS_MARGIN_S = 0.2  # tracker samples this close to the encoder stream's ends are left out
+
+
+def _tracker_in_base(
+    cell: Cell,
+    enc_t: np.ndarray,
+    trk_t: np.ndarray,
+    trk_p: np.ndarray,
+    trk_quat: np.ndarray | None,
+    initial: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The tracker samples the fit can use (finite, their joints inside the encoder stream at
+    the initial guess, with a margin for the guess's steps), in the robot's base frame: times,
+    positions (N, 3) and rotations (N, 3, 3; None for a position-only tracker)."""
+    keep = np.all(np.isfinite(trk_p), axis=1) & np.isfinite(trk_t)
+    if trk_quat is not None:
+        keep &= np.all(np.isfinite(trk_quat), axis=1)
+    margin = GUESS_MARGIN_S
+    keep &= (trk_t - initial > enc_t[0] + margin) & (trk_t - initial < enc_t[-1] - margin)
+    trk_t, trk_p = trk_t[keep], trk_p[keep]
+    trk_quat = None if trk_quat is None else trk_quat[keep]
+    if trk_t.size < 50:
+        raise DelayNotIdentifiableError(
+            f"only {trk_t.size} tracker samples overlap the encoder stream"
+        )
+    T_bk = cell.T_bk
+    p_bs = trk_p @ T_bk.rotation.T + T_bk.translation
+    R_bs = (
+        None
+        if trk_quat is None
+        else np.einsum("ij,jkn->nik", T_bk.rotation, quaternion_matrices(trk_quat))
+    )
+    return trk_t, p_bs, R_bs
+
+
+def _gauss_newton(
+    cell: Cell,
+    encoder: tuple[np.ndarray, np.ndarray],
+    tracker: tuple[np.ndarray, np.ndarray, np.ndarray | None],
+    initial: float,
+    t_ref: float,
+    with_drift: bool,
+    max_iterations: int,
+    features: str,
+) -> tuple[float, float, int, _Round]:
+    """Rounds of the linearised fit from the initial guess: the delay, the drift, how many
+    rounds, and the last round (whose covariance and residual describe the result)."""
+    trk_t = tracker[0]
+    delay, drift = initial, 0.0
+    iterations = 0
+    last: _Round | None = None
+    for _ in range(max_iterations):
+        iterations += 1
+        last = None  # the previous round's arrays go before this round's are made
+        last = _linearised_round(
+            cell,
+            encoder,
+            tracker,
+            trk_t - (delay + drift * (trk_t - t_ref)),
+            t_ref,
+            with_drift,
+            features,
+        )
+        # e(t; d) = e_true + v (d - d_true): the fitted coefficient is how far off we are
+        step = float(last.beta[0])
+        if not abs(step) <= GUESS_MARGIN_S:
+            # a step beyond the margin would read joints outside the recording (a constant-
+            # velocity stroke's round jumped seconds and was then refused as "hardly
+            # moving"): the round's own standard error says why there is no delay
+            break
+        delay -= step
+        if with_drift:
+            drift -= float(last.beta[1])
+        if abs(step) < 1e-7:
+            break
+    assert last is not None
+    return delay, drift, iterations, last
+
+
+def _not_separable(last: _Round, se: float, span_s: float) -> DelayNotIdentifiableError:
+    """Why the motion gives no delay, with advice that follows the motion measured: only a
+    motion along one direction is told that it moves along one direction."""
+    advice = (
+        "a move at constant velocity along one direction is not enough: include rests, "
+        "changes of speed or of direction"
+        if last.turning < 0.2
+        else f"the motion turns, but {span_s:.1f} s of it are too "
+        "few for this error model: a longer stretch (or recording) helps"
+    )
+    return DelayNotIdentifiableError(
+        f"the motion cannot separate a delay from a configuration-dependent error "
+        f"(standard error {se * 1e3:.1f} ms > {MAX_SE_S * 1e3:.0f} ms); {advice}"
+    )
+
+
+def _residual_rms(last: _Round) -> tuple[float, float]:
+    """The position residual's RMS while moving and at rest (m; NaN where there is none)."""
+    res = last.resid.reshape(last.nch, -1).T * last.scale  # back to metres / radians
+    res_pos = np.linalg.norm(res[:, :3], axis=1)
+    moving = last.moving
+    rms_moving = float(np.sqrt(np.mean(res_pos[moving] ** 2))) if moving.any() else math.nan
+    rms_rest = float(np.sqrt(np.mean(res_pos[~moving] ** 2))) if (~moving).any() else math.nan
+    return rms_moving, rms_rest
 
 
 WINDOWS = 6
@@ -446,85 +493,87 @@ DRIFT_WINDOW_S = 5.0  # a drift is judged on windows this long (6 to 30 of them)
 SHOWN_PPM = 100.0  # the drift the minimum span is stated for
 
 
-def _drift_from_windows(
-    x: np.ndarray, y: np.ndarray, t: np.ndarray, nch: int, drift: float, claimed: bool
-) -> tuple[float, str]:
-    """The drift's standard error from the recording's windows: each window's delay (with
-    its clustered se), a weighted line through them, its slope's se scaled by the windows'
-    scatter about the line beyond their own se (chi^2 per degree of freedom, when above one).
-    And, for a drift not shown, a note with the smallest drift this recording can show (3
-    se) and the span that would show SHOWN_PPM (the slope's se falls as the span to the power
-    1.5 at a fixed window count and sample rate)."""
-    span = float(t[-1] - t[0])
-    n = int(min(30, max(WINDOWS, span // DRIFT_WINDOW_S)))
-    bounds = np.linspace(t[0], t[-1] + 1e-9, n + 1)
-    mids, vals, ses = [], [], []
+def _windows(
+    x: np.ndarray, y: np.ndarray, t: np.ndarray, nch: int
+) -> list[tuple[float, float, float]]:
+    """The delay correction fitted on each stretch of DRIFT_WINDOW_S (WINDOWS to 30 of them):
+    (middle, value, se). The se is clustered in blocks of time within the window as the whole
+    fit's, and at least the delete-one-block jackknife's (`_block_covariance`), as the online
+    fits' are: a window whose information sits in a few blocks (a stroke's acceleration, the
+    tool reversing) has few effective clusters, and the sandwich alone claimed too much there
+    (constant delays were called "no constant delay"). The whole fit's inflation is not carried
+    over: a delay that changes half-way inflates the whole fit's residual, not each window's."""
+    n = t.size
+    count = int(min(30, max(WINDOWS, (t[-1] - t[0]) // DRIFT_WINDOW_S)))
+    bounds = np.linspace(t[0], t[-1] + 1e-9, count + 1)
+    out = []
     for a, b in itertools.pairwise(bounds):
         inside = (t >= a) & (t < b)
-        rows = np.tile(inside, nch)[: x.size]
-        xx = float(x[rows] @ x[rows])
-        if xx <= 0 or rows.sum() < 20 * nch:
+        if inside.sum() < 20:
             continue
-        est = float(x[rows] @ y[rows]) / xx
-        r = np.where(rows, y - est * x, 0.0)
-        cov, _ = _block_covariance(
-            x[:, None] * rows[:, None], r, t, nch, np.array([[1 / xx]]), jackknife=False
-        )
+        xw, yw = x.reshape(nch, n)[:, inside], y.reshape(nch, n)[:, inside]
+        xx = float(np.sum(xw * xw))
+        if not xx > 0:
+            continue
+        est = float(np.sum(xw * yw)) / xx
+        xf = np.zeros((nch, n))
+        rf = np.zeros((nch, n))
+        xf[:, inside], rf[:, inside] = xw, yw - est * xw
+        cov, _ = _block_covariance(xf.reshape(-1, 1), rf.reshape(-1), t, nch, np.array([[1 / xx]]))
         if not np.isfinite(cov[0, 0]) or cov[0, 0] <= 0:
             continue
-        mids.append(0.5 * (a + b))
-        vals.append(-est)  # the window's delay against the fitted line (s)
-        ses.append(math.sqrt(float(cov[0, 0])))
-    if len(vals) < 4:
+        out.append((0.5 * (a + b), est, math.sqrt(float(cov[0, 0]))))
+    return out
+
+
+def _shown_factor(windows: int) -> float:
+    """How many standard errors show a drift judged on this many windows: 3 (99.73 %), as
+    Student's t with windows - 2 degrees of freedom, since the slope's se is scaled by the
+    windows' own scatter (with the few windows of a short recording a normal's 3 se claimed
+    drifts of undrifted clocks; docs/timing-delay.md)."""
+    from scipy.stats import t as student
+
+    if windows < 4:
+        return math.inf
+    return float(student.ppf(SHOWN_PROBABILITY, windows - 2))
+
+
+SHOWN_PROBABILITY = 0.99865  # one-sided: a drift beyond 3 sigma of a normal, either sign
+
+
+def _drift_from_windows(
+    windows: list[tuple[float, float, float]], t: np.ndarray, drift: float, claimed: bool
+) -> tuple[float, str]:
+    """The drift's standard error from the recording's windows (`_windows`): a weighted line
+    through the windows' delays, its slope's se scaled by the windows' scatter about the line
+    beyond their own se (chi^2 per degree of freedom, when above one). And, for a drift not
+    shown, a note with the smallest drift this recording can show (`_shown_factor` se) and the
+    span that would show SHOWN_PPM (the slope's se falls as the span to the power 1.5 at a
+    fixed window count and sample rate)."""
+    span = float(t[-1] - t[0])
+    if len(windows) < 4:
         return math.inf, (
             f"too short to show a clock drift ({span:.0f} s; a drift is judged on at least 4 "
             f"stretches of {DRIFT_WINDOW_S:g} s)"
         )
-    m, v, w = np.array(mids), np.array(vals), 1.0 / np.array(ses) ** 2
+    m = np.array([w[0] for w in windows])
+    v = -np.array([w[1] for w in windows])  # the window's delay against the fitted line (s)
+    w = 1.0 / np.array([w[2] for w in windows]) ** 2
     A = np.column_stack([np.ones_like(m), m - m.mean()])
     cov_line = np.linalg.inv((A * w[:, None]).T @ A)
     coef = cov_line @ (A * w[:, None]).T @ v
     chi2 = float(np.sum(w * (v - A @ coef) ** 2))
     slope_se = math.sqrt(float(cov_line[1, 1]) * max(1.0, chi2 / (len(v) - 2)))
-    if claimed and abs(drift) > 3 * slope_se:
+    k = _shown_factor(len(v))
+    if claimed and abs(drift) > k * slope_se:
         return slope_se, ""
-    needed = span * (3 * slope_se / (SHOWN_PPM * 1e-6)) ** (2 / 3)
+    needed = span * (k * slope_se / (SHOWN_PPM * 1e-6)) ** (2 / 3)
     return slope_se, (
         f"no clock drift shown: this {span:.0f} s recording is too short to show one below "
-        f"{3 * slope_se * 1e6:.3g} ppm ({drift * 1e6:.1f} +/- {slope_se * 1e6:.1f} ppm from "
+        f"{k * slope_se * 1e6:.3g} ppm ({drift * 1e6:.1f} +/- {slope_se * 1e6:.1f} ppm from "
         f"the scatter of {len(v)} stretches); about {needed:.0f} s of such motion would show "
         f"{SHOWN_PPM:g} ppm"
     )
-
-
-def _window_delays(
-    x: np.ndarray, y: np.ndarray, t: np.ndarray, nch: int, inflate: float
-) -> list[tuple[float, float]]:
-    """The delay correction fitted on each stretch of DRIFT_WINDOW_S (WINDOWS to 30 of them):
-    (value, se), the se
-    clustered in blocks of time within the window as the whole fit's (`_block_covariance`;
-    the whole fit's inflation is not carried over: a delay that changes half-way inflates
-    the whole fit's residual, not each window's)."""
-    del inflate
-    n = int(min(30, max(WINDOWS, (t[-1] - t[0]) // DRIFT_WINDOW_S)))
-    bounds = np.linspace(t[0], t[-1] + 1e-9, n + 1)
-    out = []
-    for a, b in itertools.pairwise(bounds):
-        inside = (t >= a) & (t < b)
-        rows = np.tile(inside, nch)[: x.size]
-        xx = float(x[rows] @ x[rows])
-        if xx <= 0 or rows.sum() < 20 * nch:
-            continue
-        est = float(x[rows] @ y[rows]) / xx
-        r = np.where(rows, y - est * x, 0.0)
-        # without the jackknife (the windows' chi^2 test was set at 0.1 % with the sandwich
-        # alone; with the jackknife's larger se a 15 ms step fitted as a 354 ppm drift passed)
-        cov, _ = _block_covariance(
-            x[:, None] * rows[:, None], r, t, nch, np.array([[1.0 / xx]]), jackknife=False
-        )
-        out.append((est, math.sqrt(float(cov[0, 0]))))
-    del n
-    return out
 
 
 def _sample_interval(t: np.ndarray) -> float:
@@ -532,34 +581,69 @@ def _sample_interval(t: np.ndarray) -> float:
     return float(np.median(np.diff(t))) if t.size > 1 else 0.0
 
 
-def _consistent(windows: list[tuple[float, float]], enc_interval_s: float) -> tuple[bool, str]:
-    """Whether the windows agree on one delay: statistically (with the windows'
-    clustered se, at 0.1 %) and practically (by more than 1 ms, and by more than a tenth of the
-    encoder's sample interval: a stream stamped on receipt moves each window's delay by a
-    fraction of its interval, which the windows' se do not fully carry)."""
+def _consistent(
+    windows: list[tuple[float, float, float]], enc_interval_s: float
+) -> tuple[bool, str]:
+    """Whether the windows ((middle, value, se), about the fitted delay and drift) agree on one
+    delay: statistically, at 0.1 %, against their scatter about the fit and against a step at
+    any one instant (the two ways a delay changes during a recording: it wanders, or a path or
+    an adapter changed; a step fitted as a drift leaves windows that fall before it and rise
+    after it, which their scatter alone missed at the jackknife's se), and practically (by
+    more than 1 ms, and by more than a tenth of the encoder's sample interval: a stream
+    stamped on receipt moves each window's delay by a fraction of its interval)."""
     from scipy.stats import chi2
 
-    if len(windows) < 3:
-        return True, ""
-    est = np.array([w[0] for w in windows])
-    se = np.array([w[1] for w in windows])
+    mid = np.array([w[0] for w in windows])
+    est = np.array([w[1] for w in windows])
+    se = np.array([w[2] for w in windows])
     ok = np.isfinite(se) & (se > 0) & (se < 0.05)
-    est, se = est[ok], se[ok]
+    mid, est, se = mid[ok], est[ok], se[ok]
     if est.size < 3:
         return True, ""
     w = 1 / se**2
     mean = float(np.sum(w * est) / np.sum(w))
     stat = float(np.sum(((est - mean) / se) ** 2))
     p = float(chi2.sf(stat, est.size - 1))
-    # statistically (at 0.1 %, with the windows clustered se) and practically different:
+    p_step, at = _step_test(mid, est, w)
     # within 1 ms a constant delay serves
-    if p >= 0.001 or np.ptp(est) < max(PRACTICAL_SPREAD_S, 0.1 * enc_interval_s):
+    if min(p, p_step) >= 0.001 or np.ptp(est) < max(PRACTICAL_SPREAD_S, 0.1 * enc_interval_s):
         return True, ""
+    why = (
+        f"chi2 {stat:.0f} on {est.size - 1} dof"
+        if p < 0.001
+        else f"they step at {at:.1f} s (p = {p_step:.1g})"
+    )
     return False, (
         f"no constant delay (and drift) explains these streams: stretches of the "
-        f"recording disagree by up to {np.ptp(est) * 1e3:.2f} ms (chi2 {stat:.0f} on "
-        f"{est.size - 1} dof); the delay varies, or samples are stamped unevenly"
+        f"recording disagree by up to {np.ptp(est) * 1e3:.2f} ms ({why}); the delay varies, or "
+        "samples are stamped unevenly"
     )
+
+
+def _step_test(mid: np.ndarray, est: np.ndarray, w: np.ndarray) -> tuple[float, float]:
+    """Do the windows step? The weighted least squares of a line through them against a line
+    and a step between any two windows (at least two on either side): the chi^2 the best step
+    removes, its p value (1 degree of freedom) times the number of places tried (Bonferroni),
+    and where (s). (1, nan) with fewer than 6 windows."""
+    from scipy.stats import chi2
+
+    if est.size < 6:
+        return 1.0, math.nan
+
+    def misfit(A: np.ndarray) -> float:
+        Aw = A * w[:, None]
+        coef = np.linalg.lstsq(Aw.T @ A, Aw.T @ est, rcond=None)[0]
+        r = est - A @ coef
+        return float(np.sum(w * r * r))
+
+    line = np.column_stack([np.ones_like(mid), mid - mid.mean()])
+    base = misfit(line)
+    places = range(2, est.size - 1)
+    gains = [base - misfit(np.column_stack([line, np.arange(est.size) >= k])) for k in places]
+    best = int(np.argmax(gains))
+    p = min(1.0, float(chi2.sf(max(gains[best], 0.0), 1)) * len(gains))
+    k = list(places)[best]
+    return p, 0.5 * float(mid[k - 1] + mid[k])
 
 
 @dataclass

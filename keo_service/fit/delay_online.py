@@ -112,15 +112,14 @@ class OnlineDelayTracker:
     gathered since the last fit (`span_s`, up to `max_span_s` while its fits are rough),
     the service takes that stretch (`snapshot`) and fits it off the loop (`measure`:
     `fit_delay` over that stretch only, so successive fits see disjoint data), then folds
-    the result in on the loop (`combine`). A fit is accepted only when
-
-    - the tool moved (`fit_delay` refuses otherwise: at rest nothing changes),
-    - its standard error is small against what it changes at the tool's speed there:
-      `se * v_rms <= max_position_se_m` (a delay only matters through `v * delay`), or the
-      delay in use is not known that well yet (then a rougher fit still helps: it is
-      weighted by its variance); and always `se <= max_se_s`,
-    - it agrees with the running estimate (within `outlier_sigmas` combined standard
-      errors), unless the next fit agrees with it too (then the delay really moved).
+    the result in on the loop (`combine`). A stretch gives no fit when the tool hardly moved
+    or its motion cannot separate a delay (`separable_se`), and a fit is usable only with
+    `se <= max_se_s`. Usable fits join the recent fits; the delay in use changes only
+    through their robust consensus, under the gate of `_decide` (a configured delay is a
+    prior: the consensus must be incompatible with it, confirmed by a later stretch, lower
+    the residual scatter, be separable by the motion and be known better than the delay in
+    use). Once settled, the running estimate below may refine the delay in use by steps
+    too small to matter at the tool's speed.
 
     The running estimate is a Kalman filter over the delay's level in two views
     (`SteadyOrMoving`): "steady", whose level walks (`steady_walk`), and "moving", whose
@@ -131,25 +130,19 @@ class OnlineDelayTracker:
     standard error cannot know how its stretch's error model fits the robot), from how far
     each fit lies off the line through its neighbours, at least `min_wander_s`^2. The delay
     the stamps need moves as the mapped clocks' floors move with the load and their drifts
-    converge, often steadily (3-5 us/s for 10-20 s in the device-clock test), so an older
-    fit says less about it now, and a steady walk is followed, not lagged. (An equal-weight
-    mean of the last 8 fits lagged the walk by 20 s: 40-60 us behind; a mean weighted by
-    age, 15-20 us at the end of a run.) The estimate is the level at the newest stretch's
-    end, its standard error the filter's. The service
-    slews the estimator's delay to it, never jumps, when it is known to `max_apply_m` at the
-    tool's speed or is more than three standard errors away from the delay in use; otherwise
-    (fits scattering widely, as when the robot's geometry makes an error the stretches'
-    model does not hold) it is shown but not applied.
+    converge, often steadily for tens of seconds, so an older fit says less about it now,
+    and a steady walk is followed, not lagged (a mean of recent fits, however weighted, lags
+    it). The estimate is the level at the newest stretch's end, its standard error the
+    filter's. It refines the delay in use (slewed, never a jump) only when known to
+    `max_apply_m` at the tool's speed; otherwise (fits scattering widely, as when the
+    robot's geometry makes an error the stretches' model does not hold) it is not applied.
 
     Fits of stretches that end within `young_s` of the first samples or of a restart are
-    provisional: a young clock mapping's stamps move while its drift converges (in the
-    device-clock test the first 5 s fit lay 60-160 us below the delay the stamps needed from
-    10 s on). So while young the stretches are shorter (`young_span_s`) and the newest fit
-    alone is the delay, each replacing the one before (its stamps are the most settled),
-    applied only when known to `max_apply_m` at the tool's speed; the first fit of a later
-    stretch replaces them too. (With 5 s stretches averaged, the delay in use at 10 s after
-    the start was 50 us short of what the settled stamps needed: 28 urad at that tool's
-    turning speed.)
+    provisional: a young clock mapping's stamps move while its drift converges. So while
+    young the stretches are shorter (`young_span_s`) and the newest fit alone is the delay,
+    each replacing the one before (its stamps are the most settled), applied only when known
+    to `max_apply_m` at the tool's speed; the first fit of a later stretch replaces them too
+    (averaged instead, they left the delay short of what the settled stamps needed).
 
     Mapped samples ("device" clocks) come with their line's drift: each stretch is fitted
     under each stream's newest line, and the delay applied is carried along as the lines
@@ -240,11 +233,6 @@ class OnlineDelayTracker:
         self.source = "configured" if known else "unknown"  # where the delay in use comes from
         self.step = False  # the last change is a step (confirmed), not a refinement to slew to
         self._applied_t = math.nan  # the stream time it describes
-        # whether the delay in use follows the lines' moves: a fitted value describes the
-        # stamps under its fit's lines; the user's calibration was made under no line keo saw,
-        # and a young mapping's line moves while its stamps stay right (a held drift), so a
-        # configured delay moves with them only once a fit precise enough to matter agreed
-        self._carried = False
         self._estimate_t = math.nan  # the stream time `estimate` describes
         self.counters: collections.Counter[str] = collections.Counter()
         self.last_result: str = "waiting for motion"
@@ -312,6 +300,15 @@ class OnlineDelayTracker:
         if drift is not None and math.isfinite(drift) and math.isfinite(t):
             self._newest[stream] = Anchor(t, device_stamp, drift)
         return device_stamp if stream in self._newest else None
+
+    @property
+    def _carried(self) -> bool:
+        """Whether the delay in use follows the lines' moves. A fitted value describes the
+        stamps under its fit's lines; the user's calibration was made under no line keo saw,
+        and a young mapping's line moves while its stamps stay right (a held drift), so a
+        configured delay moves with them only once a fit precise enough to matter agreed
+        with it (`source` then says so). One fact, read off `source`."""
+        return self.source != "configured"
 
     def delay_now(self) -> float | None:
         """The delay to use now: the estimate last applied, carried along as the mapped
@@ -510,14 +507,7 @@ class OnlineDelayTracker:
             return DelayRefused("fits_not_identifiable", str(reason), float(trk_t[-1]))
         fit = min(fits, key=lambda f: f.residual_rms_moving)
         middle = 0.5 * float(trk_t[0] + trk_t[-1])
-        model = math.nan
-        if len(fits) == 2:
-            other = fits[1] if fit is fits[0] else fits[0]
-            # the other error model counts only while the data do not reject it: with a
-            # tool error alone and no noise the tool-frame fit leaves 0.03 um, the base-frame
-            # one much more, and their 420 us disagreement says nothing about the first
-            if not other.residual_rms_moving > MODEL_REJECT_RATIO * fit.residual_rms_moving:
-                model = abs(fit.delay_s - other.delay_s)
+        model = _model_disagreement(fit, fits)
         return DelayMeasurement(
             fit.delay_s,
             _reported_se(fit.delay_se_s, model, sep),
@@ -569,7 +559,6 @@ class OnlineDelayTracker:
             )
         )
         if not self._carried and self._confirms(self._recent[-1]):
-            self._carried = True
             self.source = f"configured, confirmed by the fit at {found.t:.1f} s"
         before = self.applied
         decision = self._decide(found.t)
@@ -652,10 +641,9 @@ class OnlineDelayTracker:
         if cons is None and self.applied is None and (precise or not newest.young):
             # nothing is known: one usable fit beats nothing (flagged, and the fits that
             # follow revise it by the consensus like any other; with honest standard errors
-            # a receipt-stamped 40 Hz encoder's fits are rough, 0.3-1 ms, and waiting for a
-            # precise one left the delay at 0 for 10 s and more); but a young clock
-            # mapping's rough fit is not taken alone (its stamps still move: taking them
-            # failed the device-clock test's targets in 3 of 3 runs, 10-32 us at the end)
+            # a receipt-stamped encoder's fits are rough, and waiting for a precise one
+            # left the delay at 0 for many seconds); but a young clock mapping's rough fit
+            # is not taken alone (its stamps still move; docs/timing-delay.md)
             self._take(newest.value, self.honest_se(newest.se), t, step=True)
             return f"{said}; unsettled: the first fit, in use until fits agree"
         if cons is None:
@@ -756,7 +744,6 @@ class OnlineDelayTracker:
 
     def _take(self, value: float, se: float, t: float, step: bool) -> None:
         self.applied, self.applied_se, self._applied_t = value, se, t
-        self._carried = True
         self.estimate, self.se, self._estimate_t = value, se, t
         self.source = f"fit at {t:.1f} s"
         self.step = step
@@ -801,7 +788,7 @@ class OnlineDelayTracker:
             provisional
             # a refinement is the work of several fits, never one, and only once their
             # scatter beyond their se is measured (fits biased alike by the robot's geometry
-            # refined a right delay by 14 um at speed while it was still assumed)
+            # refined a right delay while that scatter was still assumed)
             or self._trend_fits < 3
             or not self._wander_known()
             or self.applied is None
@@ -812,7 +799,6 @@ class OnlineDelayTracker:
         self.applied_se = self.se
         self.applied, self._applied_t = self.estimate, self._estimate_t
         self.source = f"fit at {self._estimate_t:.1f} s"
-        self._carried = True
         self.step = False
         self.counters["refinements"] += 1
         return (
@@ -833,9 +819,9 @@ class OnlineDelayTracker:
         """The settled stretch as short as gives fits known to `max_position_se_m` at the
         tool's speed: twice as long after a rougher fit, up to `max_span_s`; half as long
         after one precise enough to stay so at half the length (a fit's standard error
-        grows about as the length to the power -1.5), down to `span_s`. (2.5 s stretches
-        follow the delay's walk, measured at 3-5 us/s; a robot whose geometry the
-        stretches' linear error model does not hold needs 5-10 s for a fit worth taking.)"""
+        grows about as the length to the power -1.5), down to `span_s`. (Short stretches
+        follow the delay's walk; a robot whose geometry the stretches' linear error model
+        does not hold needs longer ones for a fit worth taking.)"""
         if not math.isfinite(precision_m) or precision_m > self.max_position_se_m:
             self._stretch_s = min(2.0 * self._stretch_s, self.max_span_s)
         elif precision_m * 2.0**1.5 <= self.max_position_se_m:
@@ -868,9 +854,9 @@ class OnlineDelayTracker:
     def _se_at(self, t: float) -> float | None:
         """The running estimate's standard error at stream time t: grown by the walk since
         its newest fit. Judged against it, a new fit is neither refused as less precise than
-        an estimate that has gone stale nor as an outlier from it (the delay the device-clock
-        test needed walked 50 us in 30 s; fits against the unaged estimate were refused four
-        times in a row, the delay in use 30 us behind)."""
+        an estimate that has gone stale nor as an outlier from it (against the unaged
+        estimate, fits of a walking delay were refused in a row and the delay in use fell
+        behind)."""
         if not self._trend.started:
             return self.se
         return math.sqrt(self._trend.predict(t)[1])
@@ -921,7 +907,6 @@ class OnlineDelayTracker:
         self.applied_se = prior_se_s if known else None
         self.settled = known
         self.source = "configured" if known else "unknown"
-        self._carried = False
 
 
 # the other error model's residual this many times the chosen one's: rejected by the data
@@ -941,14 +926,25 @@ def _point_moves(t: np.ndarray, p: np.ndarray) -> bool:
     return path / span > 2 * MIN_SPEED
 
 
+def _model_disagreement(fit: DelayFit, fits: list[DelayFit]) -> float:
+    """How far the tool-frame and the base-frame error models' delays disagree. The other
+    model counts only while the data do not reject it (its residual within
+    MODEL_REJECT_RATIO of the chosen fit's): with a tool error alone and noise-free poses the
+    tool-frame fit leaves almost nothing, and the other model's disagreement says nothing
+    about it. nan: only one model gave a fit, or the other is rejected."""
+    others = [f for f in fits if f is not fit]
+    if not others or others[0].residual_rms_moving > MODEL_REJECT_RATIO * fit.residual_rms_moving:
+        return math.nan
+    return abs(fit.delay_s - others[0].delay_s)
+
+
 def _reported_se(own_se: float, model: float, sep: float) -> float:
     """The standard error a stretch's fit reports. Its own (clustered) one cannot see how
     far the stretch's error model is off; two things measured on the stretch can: how far
-    the tool-frame and the base-frame error models' fits disagree (`model`, added: with
-    configuration-dependent geometric errors the fits' own se covered 35-38 % of fits within
-    2.5 se, with it 96-100 %), and how well the motion alone separates a delay from a
-    constant tool error and its slow drift (`separable_se`, a floor: for one joint at
-    constant speed the fits' own se covered 45-69 %). docs/timing-delay.md has the figures."""
+    the tool-frame and the base-frame error models' fits disagree (`model`, added,
+    `_model_disagreement`), and how well the motion alone separates a delay from a constant
+    tool error and its slow drift (`separable_se`, a floor: one joint at constant speed is
+    fitted precisely and wrongly). docs/timing-delay.md has the coverage each brought."""
     se = own_se if not math.isfinite(model) else math.hypot(own_se, model)
     return max(se, sep) if math.isfinite(sep) else se
 

@@ -4,9 +4,8 @@ rate of change. No I/O.
 The delay between two mapped streams is such a value: each mapped stream's stamps carry its
 clock mapping's error, which moves as the mapping follows its transport floor (the host
 answering faster for tens of seconds) and as its drift converges, often steadily for tens
-of seconds (measured in the device-clock test: 3-5 us/s over 10-20 s). A mean of recent fits,
-however weighted, lags such a walk by about half its span: 15-20 us behind at the end of a
-run where a level and a rate followed it within 3 us (the same recorded stamps replayed).
+of seconds. A mean of recent fits, however weighted, lags such a walk by about half its span,
+where a level and a rate follow it (docs/timing-delay.md has the figures).
 
 A Kalman filter over x = [level, rate]: between measurements the rate random-walks
 (`rate_walk`, (s/s)^2 per second) and relaxes towards zero with `rate_relax_s` (a walk of a

@@ -6,11 +6,9 @@ runs: every quarter second its offset follows the median transport floor and its
 converges. The device's clock does not move with it: its stamps are as regular as its
 oscillator. So stamps mapped while the line moved disagree with each other by the line's
 moves, and a delay between two mapped streams fitted from a stretch of them holds only until
-either line moves on. In the device-clock test the delay the stamps needed moved by 10-40 us
-within seconds, and a delay refitted every 2.5 s lagged it by 15.5 us (median over 35
-recorded runs of each run's 95th percentile, up to 34 us); fitted under one line per stream
-and carried along as the lines move (what `Anchor` does), 8 us (replayed on the same
-recorded streams).
+either line moves on: a delay refitted every few seconds lags each move by its stretch, while
+one fitted under one line per stream and carried along as the lines move (what `Anchor`
+does) follows a move at once (docs/timing-delay.md, "Stamps on one line", has the figures).
 
 An anchor is one sample on its line: (stamp, device stamp, the line's drift). Under it every
 device stamp of the stream maps to `stamp + (d - device) * (1 + drift)`: the whole stretch on
