@@ -13,7 +13,11 @@ import numpy as np
 import pytest
 
 from keo_service.bench.demo import loopback_config
-from keo_service.fit.delay_online import DelayMeasurement, OnlineDelayTracker
+from keo_service.fit.delay_online import (
+    DelayMeasurement,
+    OnlineDelayTracker,
+    stale_joint_intervals,
+)
 from keo_service.live.bus import session_for_client
 from keo_service.live.messages import (
     EstimateMessage,
@@ -172,6 +176,37 @@ def test_fits_are_refused_across_an_encoder_gap(demo_cell):
     found = tracker.measure(tracker.snapshot(), 0.028)
     assert isinstance(found, DelayMeasurement), found
     assert found.delay_s == pytest.approx(0.028, abs=0.3e-3)
+
+
+@pytest.mark.parametrize("frozen", [(4.0, 5.0), (2.0, 3.5)])
+def test_stale_joints_after_an_encoder_stall_are_left_out_of_the_fit(demo_cell, frozen):
+    """A stalled encoder sender that resends its newest row: the stamps go on while the
+    joints stand still, then jump to where the arm is. Fitted, those samples read a delay
+    into a made-up motion (the fit refused, blaming the motion). Left out, the stretch's
+    other samples give the injected 28 ms."""
+    sets = {"duration_s": "12", "delay_jitter_s": "0", "tool_error_only": "true"}
+    run = simulate(demo_cell, make_scenario("path", sets), seed=3)
+    joints = run.encoder.q.copy()
+    stale = (run.encoder.t > frozen[0]) & (run.encoder.t < frozen[1])
+    joints[stale] = joints[np.argmax(stale) - 1]
+    tracker = OnlineDelayTracker(demo_cell, span_s=10.0, young_span_s=10.0)
+    for t, q in zip(run.encoder.t, joints, strict=True):
+        tracker.add_encoder(float(t), q)
+    for t, p, quat in zip(run.tracker.t, run.tracker.p, run.tracker.quat, strict=True):
+        tracker.add_tracker(float(t), p, quat)
+    found = tracker.measure(tracker.snapshot(), 0.028)
+    assert isinstance(found, DelayMeasurement), found
+    assert found.delay_s == pytest.approx(0.028, abs=3 * found.se_s + 0.1e-3)
+
+
+def test_stale_joint_intervals_only_where_repeated_rows_end_in_a_jump():
+    ramp = np.linspace(0.0, 1.0, 11)[:, None] * np.ones((1, 6))
+    assert not stale_joint_intervals(ramp).any()  # steady motion
+    start = np.vstack([np.zeros((5, 6)), ramp[:6] ** 2])  # from rest, speeding up
+    assert not stale_joint_intervals(start).any()
+    stalled = ramp.copy()
+    stalled[4:8] = stalled[3]  # four rows resent, then the jump back onto the ramp
+    assert stale_joint_intervals(stalled).tolist() == [False] * 3 + [True] * 5 + [False] * 2
 
 
 # ---- the service ------------------------------------------------------------------------------

@@ -969,8 +969,30 @@ def _covered(
     k = np.searchsorted(enc_t, at)
     inside = (k > 0) & (k < enc_t.size)
     k = np.clip(k, 1, enc_t.size - 1)
-    keep = inside & (enc_t[k] - enc_t[k - 1] <= max_gap_s)
+    sound = (np.diff(enc_t) <= max_gap_s) & ~stale_joint_intervals(enc_q)
+    keep = inside & sound[k - 1]
     return enc_t, enc_q, trk_t[keep], trk_p[keep], None if trk_q is None else trk_q[keep]
+
+
+def stale_joint_intervals(enc_q: np.ndarray, ratio: float = 4.0, floor: float = 1e-3) -> np.ndarray:
+    """Per encoder interval, True where the joints are stale: a run of repeated rows that
+    ends in a jump (a step `ratio` times larger than the step after it and over `floor`
+    rad). That is what an encoder stream looks like after its sender stalled and resent its
+    newest row: the stamps go on while the joints stand still, then catch up at once. The
+    tool moved all along, so fitting those samples would read a delay into a made-up
+    motion (and blame the motion for the fit's failure)."""
+    if enc_q.ndim != 2 or enc_q.shape[0] < 3:
+        return np.zeros(max(enc_q.shape[0] - 1, 0), dtype=bool)
+    step = np.max(np.abs(np.diff(enc_q, axis=0)), axis=1)
+    stale = np.zeros(step.size, dtype=bool)
+    after = np.append(step[1:], np.inf)
+    for jump in np.flatnonzero((step > floor) & (step > ratio * after)):
+        start = jump
+        while start > 0 and step[start - 1] == 0.0:
+            start -= 1
+        if start < jump:  # repeated rows before the jump: stale, the jump with them
+            stale[start : jump + 1] = True
+    return stale
 
 
 @dataclass(frozen=True)
