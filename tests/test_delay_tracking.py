@@ -5,7 +5,9 @@ with the clock epochs an adapter would give)."""
 from __future__ import annotations
 
 import asyncio
+import datetime
 import math
+import re
 import time
 
 import msgspec
@@ -27,7 +29,7 @@ from keo_service.live.messages import (
     encode,
     topic,
 )
-from keo_service.live.service import KeoService
+from keo_service.live.service import KeoService, _when
 from keo_service.sim.simulate import make_scenario, simulate
 
 SPEED = 0.24  # m/s, the tool speed of issue 31's runs
@@ -418,3 +420,26 @@ def test_separable_se_matches_the_analytic_information_of_a_varying_speed():
     info = float(np.sum((vm - line) ** 2)) * (1.0 + 1.0 / 1.5**2) / (10e-6) ** 2
     expected = 1.0 / math.sqrt(info)
     assert separable_se(t, p, quat) == pytest.approx(expected, rel=0.3)
+
+
+def test_the_status_line_shows_one_delay_and_the_log_keeps_the_fits(demo_cell):
+    """Issue 45 item 4: the status says the delay in use once; the decision's reason speaks
+    of the fits without giving a second, different delay. The log line keeps each value."""
+    us_value = re.compile(r"\d+\.\d+ \+/- \d+\.\d+ us|\d+\.\d+ us")
+    configured = OnlineDelayTracker(demo_cell, prior_s=0.030, prior_se_s=0.0005)
+    unknown = OnlineDelayTracker(demo_cell)
+    for tracker in (configured, unknown):
+        feed(tracker, [(29.9e-3, 300e-6), (30.2e-3, 250e-6), (29.7e-3, 2e-3), (3.3e-3, 1e-3)])
+        assert us_value.search(tracker.last_result), tracker.last_result
+        words = tracker.last_decision()
+        assert not us_value.search(words), words
+        assert words.split(":")[0] in {"kept", "unsettled", "settled", "changed"}, words
+
+
+def test_a_source_on_the_host_clock_reads_as_the_time_of_day():
+    stamp = datetime.datetime(2026, 11, 28, 5, 54, 12, tzinfo=datetime.UTC).timestamp()
+    assert _when(f"fit at {stamp + 0.4:.1f} s") == "fit at 05:54:12 UTC"
+    assert _when(f"configured, confirmed by the fit at {stamp:.1f} s") == (
+        "configured, confirmed by the fit at 05:54:12 UTC"
+    )
+    assert _when("fit at 42.5 s") == "fit at 42.5 s"  # a simulation's own clock: no date

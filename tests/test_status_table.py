@@ -148,10 +148,13 @@ def test_status_table_against_a_running_service(tmp_path):
     assert "estimate" in rates
     # the delay in ms with its standard error (or said to be the configured one)
     delay = re.fullmatch(
-        r"(-?\d+\.\d\d) ms(?: ± (\d+\.\d\d) ms| \(configured, no standard error yet\))"
+        r"(?:not known yet \()?(-?\d+\.\d\d) ms"
+        r"(?: ± (\d+\.\d\d) ms| \(configured, no standard error yet\)| in use\))"
         r"(?:, drift [-+]\d+\.\d ppm)?(?:; .+)?",  # then its source and the last decision
         _line(table, "delay"),
     )
+    if _line(table, "delay").startswith("not known yet"):  # only while the source says so
+        assert "unknown" in _line(table, "delay"), table
     assert delay is not None, table
     shown = float(delay.group(1))
     # (the delay in use moves towards a new fit gradually: the table's is between the two)
@@ -216,6 +219,11 @@ def test_status_table_of_a_waiting_service_and_missing_fields():
     lines = table.splitlines()
     assert lines[0] == "keo status: cell c: waiting, up 66.7 min"
     assert _line(table, "delay") == "28.00 ms (configured, no standard error yet)"
+    # with delay_s = 0 the delay is unknown, not a configured 0 (issue 45's review)
+    unknown = dict(doc, delay_s=0.0, delay_tracking="unknown, unsettled; waiting for motion")
+    assert _line(status_table(unknown), "delay") == (
+        "not known yet (0.00 ms in use); unknown, unsettled; waiting for motion"
+    )
     assert _line(table, "last estimate") == "none yet"
     assert _line(table, "counters") == "(2 more at 0)"
     assert "clock domains" not in table  # not in the document: not shown

@@ -7,6 +7,7 @@ import collections
 import dataclasses
 import itertools
 import math
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -300,6 +301,11 @@ class OnlineDelayTracker:
         if drift is not None and math.isfinite(drift) and math.isfinite(t):
             self._newest[stream] = Anchor(t, device_stamp, drift)
         return device_stamp if stream in self._newest else None
+
+    def last_decision(self) -> str:
+        """The last decision and its reason without the delays the fits gave: the status shows
+        one delay, the one in use (the log keeps each fit's value with the decision)."""
+        return _without_fit_values(self.last_result)
 
     @property
     def _carried(self) -> bool:
@@ -972,6 +978,23 @@ def _covered(
     sound = (np.diff(enc_t) <= max_gap_s) & ~stale_joint_intervals(enc_q)
     keep = inside & sound[k - 1]
     return enc_t, enc_q, trk_t[keep], trk_p[keep], None if trk_q is None else trk_q[keep]
+
+
+_US = r"-?\d+(?:\.\d+)? \+/- \d+(?:\.\d+)? us"
+_FIT_VALUES = (
+    (re.compile(rf"^fit {_US} at \d+ mm/s; "), ""),
+    (re.compile(rf" on {_US}"), ""),
+    (re.compile(rf"disagrees with {_US}"), "disagrees with the recent fits"),
+    (re.compile(r" \(\+/- \d+(?:\.\d+)? us\)"), ""),
+    (re.compile(r" from -?\d+(?:\.\d+)? us\)"), " from the delay before)"),
+)
+
+
+def _without_fit_values(decision: str) -> str:
+    """`last_result` with the fitted delays taken out (the phrases `_decide` writes)."""
+    for pattern, words in _FIT_VALUES:
+        decision = pattern.sub(words, decision)
+    return decision
 
 
 def stale_joint_intervals(enc_q: np.ndarray, ratio: float = 4.0, floor: float = 1e-3) -> np.ndarray:

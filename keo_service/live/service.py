@@ -14,6 +14,7 @@ import asyncio
 import collections
 import gc
 import logging
+import re
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -43,6 +44,23 @@ from keo_service.live.supervise import supervise
 
 # keys a SIGHUP applies without a restart
 HOT_KEYS = frozenset({"observer.gain", "timing.delay_s", "timing.drift_ppm", "timing.drift_ref_s"})
+
+
+_STREAM_TIME = re.compile(r"at (\d+(?:\.\d+)?) s")
+
+
+def _when(source: str) -> str:
+    """The delay's source with a stream time on the host clock (seconds since the epoch) as
+    the time of day a user can match with the log, UTC; a stream time of another clock stays
+    as it is."""
+
+    def clock(match: re.Match[str]) -> str:
+        t = float(match.group(1))
+        if t < 1e9:  # a device's or a simulation's own time: no date behind it
+            return match.group(0)
+        return "at " + time.strftime("%H:%M:%S UTC", time.gmtime(t))
+
+    return _STREAM_TIME.sub(clock, source)
 
 
 def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -380,7 +398,7 @@ class KeoService:
         tracker = self._delay_tracker
         assert tracker is not None
         state = "" if tracker.settled else ", unsettled"
-        return f"{tracker.source}{state}; {tracker.last_result}"
+        return f"{_when(tracker.source)}{state}; {tracker.last_decision()}"
 
     def delay_se(self) -> float | None:
         """The standard error of the delay in use: the tracker's (the configured prior's, or

@@ -83,7 +83,12 @@ def _delay(doc: dict[str, Any]) -> str:
         return "?"
     se = _number(doc.get("delay_se_s"))
     text = f"{delay * 1e3:.2f} ms"
-    text += f" ± {se * 1e3:.2f} ms" if se is not None else " (configured, no standard error yet)"
+    if se is not None:
+        text += f" ± {se * 1e3:.2f} ms"
+    elif str(doc.get("delay_tracking") or "").startswith("unknown"):
+        text = f"not known yet ({text} in use)"
+    else:
+        text += " (configured, no standard error yet)"
     drift = _number(doc.get("drift"))
     if drift:
         text += f", drift {drift * 1e6:+.1f} ppm"
