@@ -18,7 +18,7 @@ import pinocchio as pin
 from keo_service.core.chain import Chain
 from keo_service.core.errors import KeoError
 from keo_service.core.model_corrections import MAP_TAPER_RAD
-from keo_service.fit.accuracy import Accuracy
+from keo_service.fit.accuracy import Accuracy, default_session_mm
 from keo_service.fit.analysis import Analysis
 from keo_service.fit.effects import JointMaps, config_fields, effect_from_config
 from keo_service.fit.model import Data, Model
@@ -76,11 +76,15 @@ def saved_accuracy(config: Config) -> Accuracy | None:
     m = config.model
     if not m.accuracy_mm or not m.calibrated_q_min:
         return None
+    # a model written before the between-session term states the bands' default
+    session = m.accuracy_session_mm or default_session_mm(m.accuracy_mm, m.accuracy_outside_mm)
     return Accuracy(
         m.accuracy_mm,
         m.accuracy_outside_mm,
         np.asarray(m.calibrated_q_min, dtype=float),
         np.asarray(m.calibrated_q_max, dtype=float),
+        session_mm=session,
+        session_source=m.accuracy_session_source or "held-out bands",
     )
 
 
@@ -93,6 +97,8 @@ def model_config(result: Analysis, base: Config) -> Config:
         {
             "accuracy_mm": acc["inside_mm"],
             "accuracy_outside_mm": acc["outside_mm"],
+            "accuracy_session_mm": acc["session_mm"],
+            "accuracy_session_source": acc["session_source"],
             "calibrated_q_min": acc["lower_rad"],
             "calibrated_q_max": acc["upper_rad"],
         }
@@ -403,6 +409,13 @@ def _carried_markdown(report: dict[str, Any]) -> list[str]:
             f"held-out poses ({predicted['outside_calibrated_range_pct']:.0f} % outside its "
             f"calibrated joint ranges) and measured {predicted['measured_rms_mm']:.4f} mm; "
             f"{predicted['within_95_pct']:.0f} % of the poses lie within its 95 % band"
+            + (
+                f" (its between-session term {predicted['session_mm']:.4f} mm, from the "
+                f"{predicted['session_source']}, added in quadrature; without it "
+                f"{predicted['within_session_band']['within_95_pct']:.0f} %)"
+                if "session_mm" in predicted
+                else ""
+            )
         )
     return lines
 
@@ -548,7 +561,13 @@ def _accuracy_markdown(report: dict[str, Any]) -> list[str]:
         "",
         f"Stated accuracy (model.toml; `predicted_position_sigma`): {acc['inside_mm']:.4f} mm "
         f"RMS within the calibrated joint ranges, {acc['outside_mm']:.4f} mm at "
-        f"{acc['taper_rad']:g} rad or more outside (the extrapolation bands' figure).",
+        f"{acc['taper_rad']:g} rad or more outside (the extrapolation bands' figure)"
+        + (
+            f"; in another session {acc['session_mm']:.4f} mm more in quadrature (the "
+            f"between-session term, from the {acc['session_source']})."
+            if "session_mm" in acc
+            else "."
+        ),
     ]
     cov = acc.get("held_out_coverage")
     if cov and cov.get("n"):
