@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 import tomllib
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -130,6 +131,8 @@ def model_config(result: Analysis, base: Config) -> Config:
 def _plots(
     out: Path, result: Analysis, data: Data, baseline_x: np.ndarray, baseline_model: Model
 ) -> list[str]:
+    """The report's plots (file names, in the order report.md shows them): the joint maps,
+    the residual's spectra, and the residual before and after against the variables."""
     try:
         import matplotlib
     except ImportError:
@@ -145,8 +148,18 @@ def _plots(
     width = 3 if result.model.position_only or data.R_ks is None else 6
     before = baseline_model.residuals(baseline_x, data, tau).reshape(-1, width)[:, :3] * 1e3
     after = result.model.residuals(result.x, data, tau).reshape(-1, width)[:, :3] * 1e3
+    files = _map_plots(plt, out, result.report)
+    files += _spectrum_plots(plt, out, result.report)
+    files.append(_histogram_plot(plt, out, before, after))
+    files.append(_variables_plot(plt, out, data, before, after))
+    files.append(_components_plot(plt, out, data, before, after, chain.robot.joint_names))
+    return files
+
+
+def _map_plots(plt: Any, out: Path, report: dict[str, Any]) -> list[str]:
+    """Each joint map's angle error against its angle, with +/- 2 standard errors."""
     files = []
-    maps_entry = next((e for e in result.report["effects"] if "maps" in e["parameters"]), None)
+    maps_entry = next((e for e in report["effects"] if "maps" in e["parameters"]), None)
     for m in maps_entry["parameters"]["maps"] if maps_entry else []:
         knots, values, se = (
             np.asarray(m[k]) * 1e3 if k != "knots" else np.asarray(m[k])
@@ -163,7 +176,13 @@ def _plots(
         fig.savefig(out / name, dpi=110)
         plt.close(fig)
         files.append(name)
-    for effect_name, spectra in result.report.get("spectra", {}).items():
+    return files
+
+
+def _spectrum_plots(plt: Any, out: Path, report: dict[str, Any]) -> list[str]:
+    """Each joint's residual periodogram, the terms taken dashed."""
+    files = []
+    for spectra in report.get("spectra", {}).values():
         for joint, sp in spectra.items():
             fig, ax = plt.subplots(figsize=(6, 2.5))
             ax.plot(sp["periods_rad"], sp["amplitude_mrad"], lw=0.8)
@@ -178,7 +197,11 @@ def _plots(
             fig.savefig(out / name, dpi=110)
             plt.close(fig)
             files.append(name)
-        del effect_name
+    return files
+
+
+def _histogram_plot(plt: Any, out: Path, before: np.ndarray, after: np.ndarray) -> str:
+    """The position residual's length, nominal against identified."""
     fig, ax = plt.subplots(figsize=(6, 3.5))
     bins = np.linspace(0, max(np.linalg.norm(before, axis=1).max(), 1e-3), 50).tolist()
     ax.hist(np.linalg.norm(before, axis=1), bins=bins, alpha=0.6, label="nominal model")
@@ -189,7 +212,11 @@ def _plots(
     fig.tight_layout()
     fig.savefig(out / "residual_histogram.png", dpi=110)
     plt.close(fig)
-    files.append("residual_histogram.png")
+    return "residual_histogram.png"
+
+
+def _variables_plot(plt: Any, out: Path, data: Data, before: np.ndarray, after: np.ndarray) -> str:
+    """The residual's length against each joint, time and the tracker's extra columns."""
     variables = {f"q{j + 1} (rad)": data.q[:, j] for j in range(data.q.shape[1])}
     variables["time (s)"] = data.t
     for k, v in data.extra.items():
@@ -208,7 +235,18 @@ def _plots(
     fig.tight_layout()
     fig.savefig(out / "residual_vs_variables.png", dpi=90)
     plt.close(fig)
-    files.append("residual_vs_variables.png")
+    return "residual_vs_variables.png"
+
+
+def _components_plot(
+    plt: Any,
+    out: Path,
+    data: Data,
+    before: np.ndarray,
+    after: np.ndarray,
+    joint_names: Sequence[str],
+) -> str:
+    """Each base-frame component of the residual against each joint's angle."""
     nq = data.q.shape[1]
     fig, axes = plt.subplots(3, nq, figsize=(2.6 * nq, 7), squeeze=False, sharey="row")
     for row, axis in enumerate("xyz"):
@@ -218,15 +256,14 @@ def _plots(
             ax.plot(data.q[:, col], after[:, row], ".", ms=2, alpha=0.4, label="identified")
             ax.axhline(0.0, color="grey", lw=0.5)
             if row == 2:
-                ax.set_xlabel(f"{chain.robot.joint_names[col]} (rad)", fontsize=7)
+                ax.set_xlabel(f"{joint_names[col]} (rad)", fontsize=7)
             if col == 0:
                 ax.set_ylabel(f"base {axis} residual (mm)")
     axes[0, 0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(out / "residual_components_vs_joints.png", dpi=90)
     plt.close(fig)
-    files.append("residual_components_vs_joints.png")
-    return files
+    return "residual_components_vs_joints.png"
 
 
 def _stats_line(s: dict[str, Any]) -> str:
