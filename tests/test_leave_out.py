@@ -146,3 +146,29 @@ def test_pooled_worse_needs_the_margin_and_more_than_the_scatter():
     assert pooled_worse(0.037, 0.035, 3000)
     assert pooled_worse(0.045, 0.035, 30)
     assert not pooled_worse(0.036, 0.035, 100000)  # beyond the scatter, under the margin
+
+
+def test_the_report_gives_each_left_out_sessions_coverage_and_the_term():
+    from keo_service.io.analysis_report import _leave_out_markdown
+
+    cov = {"within_95_pct": 96.0, "predicted_rms_mm": 0.4, "measured_rms_mm": 0.3}
+    entry = {
+        "session": 1,
+        "fitted_on": [0],
+        "held_out_pos_rms_mm": 0.3,
+        "held_out_pos_max_mm": 0.8,
+        "nominal_pos_rms_mm": 1.0,
+        "within_session_pooled_pos_rms_mm": 0.1,
+        "within_session_own_pos_rms_mm": 0.11,
+        "stated_within": {**cov, "within_95_pct": 45.0, "predicted_rms_mm": 0.15},
+        "stated_off_session": {**cov, "session_mm": 0.38, "session_source": "held-out bands"},
+    }
+    loso = {
+        "entries": [entry],
+        "summary": {"verdict": "two recordings"},
+        "session_term": {"session_mm": 0.25, "sessions": 2},
+    }
+    text = "\n".join(_leave_out_markdown(loso))
+    assert "session 2: 96.0 % with the carried model's between-session term (0.3800 mm" in text
+    assert "45.0 % with its within-session figure alone" in text
+    assert "over 2 sessions left out): 0.2500 mm" in text

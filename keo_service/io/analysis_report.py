@@ -511,6 +511,34 @@ def _leave_out_markdown(loso: dict[str, Any] | None) -> list[str]:
             f"{e['within_session_own_pos_rms_mm']:.4f} | {best_text} |"
         )
     lines += ["", loso["summary"]["verdict"]]
+    lines += _left_out_coverage(loso)
+    return lines
+
+
+def _left_out_coverage(loso: dict[str, Any]) -> list[str]:
+    """How the carried models' stated accuracy covered the sessions left out, and the
+    between-session term this model states from them."""
+    judged = [e for e in loso["entries"] if "stated_off_session" in e]
+    if not judged:
+        return []
+    lines = ["", "Stated accuracy on the session left out (fraction within the 95 % band):", ""]
+    for e in judged:
+        off, own = e["stated_off_session"], e["stated_within"]
+        lines.append(
+            f"- session {e['session'] + 1}: {off['within_95_pct']:.1f} % with the carried "
+            f"model's between-session term ({off['session_mm']:.4f} mm, from the "
+            f"{off['session_source']}; predicted {off['predicted_rms_mm']:.4f} mm RMS, measured "
+            f"{off['measured_rms_mm']:.4f}), {own['within_95_pct']:.1f} % with its "
+            "within-session figure alone"
+        )
+    term = loso.get("session_term")
+    if term:
+        lines += [
+            "",
+            f"Between-session term this model states (what the carried models missed beyond "
+            f"their within-session figure, over {term['sessions']} sessions left out): "
+            f"{term['session_mm']:.4f} mm, added in quadrature off-session.",
+        ]
     return lines
 
 
