@@ -209,16 +209,21 @@ def leave_one_session_out(
         "entries": entries,
         "summary": _summary(entries),
     }
-    judged = [e for e in entries if "stated_within" in e]
-    if judged:  # what the carried models missed beyond what they stated: the session term
-        out["session_term"] = {
-            "session_mm": session_term(
-                [e["held_out_pos_rms_mm"] for e in judged],
-                [e["stated_within"]["predicted_rms_mm"] for e in judged],
-            ),
-            "sessions": len(judged),
-        }
+    term = _session_term(entries)
+    if term is not None:
+        out["session_term"] = term
     return out
+
+
+def _session_term(entries: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """What the carried models missed beyond their within-session statement, over the
+    recordings left out (fit.accuracy.session_term); None when none was judged."""
+    judged = [e for e in entries if "stated_within" in e]
+    if not judged:
+        return None
+    measured = [e["held_out_pos_rms_mm"] for e in judged]
+    stated = [e["stated_within"]["predicted_rms_mm"] for e in judged]
+    return {"session_mm": session_term(measured, stated), "sessions": len(judged)}
 
 
 def pooled_worse(pooled_mm: float, single_mm: float, poses: int) -> bool:
