@@ -175,3 +175,24 @@ def test_parameters_seen_only_together_are_one_combination():
     assert [m["joint"] for m in groups[0]["members"]] == ["j0", "j1"]
     assert [m["ratio"] for m in groups[1]["members"]] == pytest.approx([1.0, -2.0])
     assert all("combination" in r for r in records)
+
+
+def test_a_model_file_without_the_session_term_states_the_bands_default():
+    from keo_service.io.analysis_report import saved_accuracy
+
+    config = load_config(CONFIG)
+    ranges = {"calibrated_q_min": [-1.0] * 6, "calibrated_q_max": [1.0] * 6}
+    older = ModelConfig(accuracy_mm=0.3, accuracy_outside_mm=0.5, **ranges)
+    acc = saved_accuracy(msgspec.structs.replace(config, model=older))
+    assert acc is not None
+    assert (acc.session_mm, acc.session_source) == (pytest.approx(0.4), "held-out bands")
+    stated = ModelConfig(
+        accuracy_mm=0.3,
+        accuracy_outside_mm=0.5,
+        accuracy_session_mm=0.2,
+        accuracy_session_source="leave one session out",
+        **ranges,
+    )
+    acc = saved_accuracy(msgspec.structs.replace(config, model=stated))
+    assert acc is not None
+    assert (acc.session_mm, acc.session_source) == (0.2, "leave one session out")
