@@ -76,6 +76,7 @@ def run(data_dir: Path, work: Path) -> dict[str, Any]:
                 "nominal_pos_rms_mm": rep["baseline"]["validation"]["pos_rms_mm"],
                 "own_model_pos_rms_mm": own[dst]["final"]["validation"]["pos_rms_mm"],
                 "carried_maps": rep.get("carried_maps"),
+                "stated_accuracy": rep.get("predicted_vs_measured"),
             }
         )
     within = {k: v["final"]["validation"]["pos_rms_mm"] for k, v in own.items()}
@@ -101,6 +102,22 @@ def main() -> int:
             f"| {r['model_from']} | {r['applied_to']} | {r['held_out_pos_rms_mm']:.3f} "
             f"({r['held_out_pos_max_mm']:.2f}) | {r['nominal_pos_rms_mm']:.3f} | "
             f"{r['own_model_pos_rms_mm']:.3f} |"
+        )
+    print()
+    print(
+        "| model from | applied to | within the 95 % band: own session's band | with the "
+        "between-session term | predicted / measured RMS, mm |"
+    )
+    print("|---|---|---|---|---|")
+    for r in result["transfer"]:
+        cov = r["stated_accuracy"] or {}
+        if "within_session_band" not in cov:
+            continue
+        print(
+            f"| {r['model_from']} | {r['applied_to']} | "
+            f"{cov['within_session_band']['within_95_pct']:.1f} % | {cov['within_95_pct']:.1f} % "
+            f"(+{cov['session_mm']:.3f} mm) | {cov['predicted_rms_mm']:.3f} / "
+            f"{cov['measured_rms_mm']:.3f} |"
         )
     within = {k: round(v, 4) for k, v in result["within_session"].items()}
     print("within session, held out:", within)

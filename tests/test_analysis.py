@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 from keo_service.core.model_corrections import approach_directions
 from keo_service.fit.analysis import Data, NotIdentifiableError, analyze
 from keo_service.fit.uncertainty import TrackerUncertainty
+from keo_service.io.config import load_config
 from keo_service.io.interchange import read_estimates
 from keo_service.sim.simulate import make_scenario, simulate
 from tests.conftest import DEMO, REPO, UR10_DATA, keo
@@ -228,6 +229,14 @@ def test_registration_only_on_a_moved_tracker(tmp_path):
     # (up to the true base placement error, <1 mm and <1 mrad, that no data can see)
     assert np.allclose(move[:3, 3], [-0.5, -1.5, 0.2], atol=3e-3)
     assert np.allclose(move[:3, :3], np.eye(3), atol=2e-3)
+    # carried to another session, the model states its between-session term (one session:
+    # the bands' default) and the band with it covers at least what the band without it does
+    stated = load_config(a / "an" / "model.toml").model
+    assert stated.accuracy_session_source == "held-out bands"
+    predicted = report["predicted_vs_measured"]
+    assert predicted["session_mm"] == pytest.approx(stated.accuracy_session_mm)
+    assert predicted["within_95_pct"] >= predicted["within_session_band"]["within_95_pct"]
+    assert predicted["predicted_rms_mm"] >= predicted["within_session_band"]["predicted_rms_mm"]
 
 
 @pytest.mark.slow  # the real UR10 data analysed (26 s in CI): the default run stays < 10 min

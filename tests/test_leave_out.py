@@ -88,6 +88,12 @@ def test_left_out_sessions_at_the_noise_and_pooling_no_worse(demo_cell):
         assert not entry["pooled_worse_than_best_single"]
     assert loso["summary"]["pooled_worse_than_best_single"] == []
     assert loso["summary"]["left_out_pos_rms_mm"] < NOISE_MM
+    # nothing differs between the stations but the station: the carried models' stated
+    # accuracy covers the session left out, and what they missed beyond it is below the noise
+    for entry in loso["entries"]:
+        assert entry["stated_off_session"]["within_95_pct"] >= 90.0
+    assert loso["session_term"]["sessions"] == 3
+    assert loso["session_term"]["session_mm"] < NOISE_MM
 
 
 @pytest.mark.slow
@@ -140,3 +146,29 @@ def test_pooled_worse_needs_the_margin_and_more_than_the_scatter():
     assert pooled_worse(0.037, 0.035, 3000)
     assert pooled_worse(0.045, 0.035, 30)
     assert not pooled_worse(0.036, 0.035, 100000)  # beyond the scatter, under the margin
+
+
+def test_the_report_gives_each_left_out_sessions_coverage_and_the_term():
+    from keo_service.io.analysis_report import _leave_out_markdown
+
+    cov = {"within_95_pct": 96.0, "predicted_rms_mm": 0.4, "measured_rms_mm": 0.3}
+    entry = {
+        "session": 1,
+        "fitted_on": [0],
+        "held_out_pos_rms_mm": 0.3,
+        "held_out_pos_max_mm": 0.8,
+        "nominal_pos_rms_mm": 1.0,
+        "within_session_pooled_pos_rms_mm": 0.1,
+        "within_session_own_pos_rms_mm": 0.11,
+        "stated_within": {**cov, "within_95_pct": 45.0, "predicted_rms_mm": 0.15},
+        "stated_off_session": {**cov, "session_mm": 0.38, "session_source": "held-out bands"},
+    }
+    loso = {
+        "entries": [entry],
+        "summary": {"verdict": "two recordings"},
+        "session_term": {"session_mm": 0.25, "sessions": 2},
+    }
+    text = "\n".join(_leave_out_markdown(loso))
+    assert "session 2: 96.0 % with the carried model's between-session term (0.3800 mm" in text
+    assert "45.0 % with its within-session figure alone" in text
+    assert "over 2 sessions left out): 0.2500 mm" in text

@@ -12,7 +12,15 @@ import pytest
 
 from keo_service.core.chain import Chain
 from keo_service.core.model_corrections import MAP_TAPER_RAD, ModelCorrections, taper_weight
-from keo_service.fit.accuracy import BAND_95, Accuracy, coverage, predicted_position_sigma
+from keo_service.fit.accuracy import (
+    BAND_95,
+    Accuracy,
+    coverage,
+    default_session_mm,
+    predicted_position_sigma,
+    session_term,
+    stated_accuracy,
+)
 from keo_service.fit.analysis import _combinations
 from keo_service.fit.effects import JointRipple, effect_from_config
 from keo_service.fit.model import Data, Model
@@ -125,6 +133,37 @@ def test_stated_accuracy_rises_from_inside_to_outside_over_the_taper():
     assert cov["within_95_pct"] == pytest.approx(50.0)
 
 
+def test_off_session_the_between_session_term_adds_in_quadrature():
+    acc = Accuracy(0.3, 0.5, np.array([0.0]), np.array([1.0]), session_mm=0.4)
+    q = np.array([[0.5], [2.0]])
+    assert predicted_position_sigma(acc, q) == pytest.approx([0.3, 0.5])
+    assert predicted_position_sigma(acc, q, off_session=True) == pytest.approx([0.5, np.sqrt(0.41)])
+
+
+def test_the_session_term_is_what_the_carried_models_did_not_state():
+    # 0.5 measured where 0.3 was stated leaves 0.4; a session stated too wide counts zero
+    assert session_term([0.5, 0.1], [0.3, 0.2]) == pytest.approx(np.sqrt(0.16 / 2))
+    assert session_term([], []) == 0.0
+    # one session: the bands' excess over the blocks (3-4-5)
+    assert default_session_mm(0.3, 0.5) == pytest.approx(0.4)
+    assert default_session_mm(0.5, 0.3) == 0.0
+
+
+def test_stated_accuracy_takes_the_measured_session_term_over_the_default():
+    report = {
+        "final": {"validation": {"pos_rms_mm": 0.3}},
+        "baseline": {"validation": {"pos_rms_mm": 0.5}},
+        "effects": [],
+    }
+    q = np.array([[0.0, 1.0], [1.0, 2.0]])
+    acc = stated_accuracy(report, q)
+    assert acc.session_mm == pytest.approx(0.4)
+    assert acc.session_source == "held-out bands"
+    report["leave_one_session_out"] = {"session_term": {"session_mm": 0.25, "sessions": 2}}
+    acc = stated_accuracy(report, q)
+    assert (acc.session_mm, acc.session_source) == (0.25, "leave one session out")
+
+
 def test_parameters_seen_only_together_are_one_combination():
     B = np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, -2.0]])
     records = [
@@ -136,3 +175,24 @@ def test_parameters_seen_only_together_are_one_combination():
     assert [m["joint"] for m in groups[0]["members"]] == ["j0", "j1"]
     assert [m["ratio"] for m in groups[1]["members"]] == pytest.approx([1.0, -2.0])
     assert all("combination" in r for r in records)
+
+
+def test_a_model_file_without_the_session_term_states_the_bands_default():
+    from keo_service.io.analysis_report import saved_accuracy
+
+    config = load_config(CONFIG)
+    ranges = {"calibrated_q_min": [-1.0] * 6, "calibrated_q_max": [1.0] * 6}
+    older = ModelConfig(accuracy_mm=0.3, accuracy_outside_mm=0.5, **ranges)
+    acc = saved_accuracy(msgspec.structs.replace(config, model=older))
+    assert acc is not None
+    assert (acc.session_mm, acc.session_source) == (pytest.approx(0.4), "held-out bands")
+    stated = ModelConfig(
+        accuracy_mm=0.3,
+        accuracy_outside_mm=0.5,
+        accuracy_session_mm=0.2,
+        accuracy_session_source="leave one session out",
+        **ranges,
+    )
+    acc = saved_accuracy(msgspec.structs.replace(config, model=stated))
+    assert acc is not None
+    assert (acc.session_mm, acc.session_source) == (0.2, "leave one session out")

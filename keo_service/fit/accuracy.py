@@ -9,6 +9,17 @@ outside the calibrated range of any joint by d rad moves from the first towards 
 reaching it at `taper_rad` (the maps' fade length) and growing by `growth_mm_per_rad` beyond.
 The 95 % band of the error's length for an isotropic Gaussian error of that RMS is
 BAND_95 x the RMS (chi distribution with 3 degrees of freedom: 2.795 / sqrt(3)).
+
+A model carried to another session (another day, tracker station, mount) meets more than
+what its own held-out poses show: what differs between sessions (the tracker's own
+angle-dependent error, a remount, the temperature) is in no held-out block of the session it
+was fitted on. `session_mm` is that between-session term, added in quadrature when the model
+is judged off-session (`off_session=True`). With two or more sessions it is measured, from
+leave-one-session-out: what the carried models missed beyond what they stated
+(`session_term`). With one session there is nothing to measure it on, and the default is the
+extrapolation bands' excess over the held-out blocks (`default_session_mm`): a session not
+seen is taken to cost what angles not seen cost, a stated assumption (docs/analyze.md gives
+how it covered the UR10 series).
 """
 
 from __future__ import annotations
@@ -31,6 +42,8 @@ class Accuracy:
     upper: np.ndarray
     taper_rad: float = MAP_TAPER_RAD
     growth_mm_per_rad: float = 0.0
+    session_mm: float = 0.0  # the between-session term (off-session use), see module doc
+    session_source: str = "held-out bands"  # how session_mm was found
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -40,6 +53,8 @@ class Accuracy:
             "upper_rad": self.upper.tolist(),
             "taper_rad": self.taper_rad,
             "growth_mm_per_rad": self.growth_mm_per_rad,
+            "session_mm": self.session_mm,
+            "session_source": self.session_source,
         }
 
 
@@ -50,17 +65,36 @@ def distance_outside(q: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.
     return out
 
 
-def predicted_position_sigma(accuracy: Accuracy, q: np.ndarray) -> np.ndarray:
+def predicted_position_sigma(
+    accuracy: Accuracy, q: np.ndarray, off_session: bool = False
+) -> np.ndarray:
     """Expected position error (RMS of its length, mm) of the identified model at joint
     configurations q (N, nq) or (nq,): `keo compensate` writes it per target, `keo analyze`
-    per held-out pose. Multiply by BAND_95 for the 95 % band of the error's length."""
+    per held-out pose. `off_session`: in a session other than the one it was fitted on (the
+    between-session term added in quadrature). Multiply by BAND_95 for the 95 % band of the
+    error's length."""
     q = np.asarray(q, dtype=float)
     d = distance_outside(q, accuracy.lower, accuracy.upper)
     fade = np.clip(d / max(accuracy.taper_rad, 1e-12), 0.0, 1.0)
     inside, outside = accuracy.inside_mm, max(accuracy.outside_mm, accuracy.inside_mm)
     extra = accuracy.growth_mm_per_rad * np.maximum(d - accuracy.taper_rad, 0.0)
-    out: np.ndarray = np.sqrt((inside + (outside - inside) * fade) ** 2 + extra**2)
+    session = accuracy.session_mm if off_session else 0.0
+    out: np.ndarray = np.sqrt((inside + (outside - inside) * fade) ** 2 + extra**2 + session**2)
     return out
+
+
+def default_session_mm(inside_mm: float, outside_mm: float) -> float:
+    """The between-session term when only one session was seen: the extrapolation bands'
+    excess over the held-out blocks, sqrt(outside^2 - inside^2) (see the module doc)."""
+    return float(np.sqrt(max(outside_mm**2 - inside_mm**2, 0.0)))
+
+
+def session_term(measured_rms_mm: list[float], predicted_rms_mm: list[float]) -> float:
+    """The between-session term from sessions left out: per session the part of the measured
+    held-out RMS its carried model did not state (sqrt(measured^2 - predicted^2), 0 where it
+    stated more), pooled as an RMS over the sessions."""
+    excess = [max(m**2 - p**2, 0.0) for m, p in zip(measured_rms_mm, predicted_rms_mm, strict=True)]
+    return float(np.sqrt(np.mean(excess))) if excess else 0.0
 
 
 def coverage(sigma_mm: np.ndarray, error_mm: np.ndarray) -> dict[str, Any]:
@@ -81,11 +115,29 @@ def stated_accuracy(report: dict[str, Any], q: np.ndarray) -> Accuracy:
     """The accuracy `keo analyze` states for its model: inside, the final held-out RMS;
     outside, the physical effects' figure on the extrapolation bands (fit.prior) or their
     held-out RMS, whichever is larger (the maps fade to zero outside); the calibrated ranges
-    from the calibration poses `q`."""
+    from the calibration poses `q`; the between-session term from leave-one-session-out when
+    the report has it (`leave_one_session_out.session_term`), else the bands' default."""
     inside = float(report["final"]["validation"]["pos_rms_mm"])
     physical = [e for e in report["effects"] if "bands" in e]
     candidates = [inside, float(report["baseline"]["validation"]["pos_rms_mm"])]
     if physical:
         last = physical[-1]
         candidates = [inside, last["bands"]["pos_rms_mm_with"], last["validation"]["pos_rms_mm"]]
-    return Accuracy(inside, max(candidates), q.min(axis=0), q.max(axis=0))
+    outside = max(candidates)
+    measured = report.get("leave_one_session_out", {}).get("session_term")
+    if measured is not None:
+        return Accuracy(
+            inside,
+            outside,
+            q.min(axis=0),
+            q.max(axis=0),
+            session_mm=float(measured["session_mm"]),
+            session_source="leave one session out",
+        )
+    return Accuracy(
+        inside,
+        outside,
+        q.min(axis=0),
+        q.max(axis=0),
+        session_mm=default_session_mm(inside, outside),
+    )

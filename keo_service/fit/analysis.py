@@ -39,7 +39,7 @@ from keo_service.fit.model import (
     numeric_jacobian,
     stats,
 )
-from keo_service.fit.prior import choose_weight, prior_rows, scales_of
+from keo_service.fit.prior import PriorChoice, choose_weight, prior_rows, scales_of
 from keo_service.fit.uncertainty import NOISE_RATIO, TrackerUncertainty, floor_report
 
 __all__ = [
@@ -223,6 +223,39 @@ class Analysis:
     x: np.ndarray
 
 
+@dataclass(frozen=True)
+class _Rows:
+    """The poses of one analysis split into fitted and held-out rows, with their gravity
+    torques, and what every trial model shares (chain, references, sessions, noise)."""
+
+    chain: Chain
+    data: Data
+    position_only: bool
+    train_idx: np.ndarray
+    val_idx: np.ndarray
+    train: Data
+    val: Data
+    tau_all: np.ndarray
+    tau_tr: np.ndarray
+    tau_va: np.ndarray
+    refs: tuple[float, float]  # temperature and time references
+    sessions: int
+
+
+@dataclass(frozen=True)
+class _Trial:
+    """A candidate effect fitted on top of the model: the trial model and its parameters,
+    its report entry, the prior's weights with it, whether the extrapolation bands allow it,
+    and its held-out judged RMS."""
+
+    model: Model
+    x: np.ndarray
+    entry: dict[str, Any]
+    weights: dict[str, float]
+    band_ok: bool
+    judged_mm: float
+
+
 def analyze(
     robot: RobotModel,
     data: Data,
@@ -236,23 +269,85 @@ def analyze(
     what remains against the floor (`uncertainty`: the tracker's specification; None: keo's
     assumed default)."""
     say = progress or (lambda _msg: None)
-    chain = Chain(robot)
-    sessions = sessions_of(data)
-    train_idx, val_idx = split_data(data)
-    train, val = data.subset(train_idx), data.subset(val_idx)
-    say(f"{data.n} poses: {train.n} to fit, {val.n} held out")
-    tau_all = chain.gravity_torques(data.q)
-    tau_tr, tau_va = tau_all[train_idx], tau_all[val_idx]
-    t_ref = TimeDrift.reference(data)
-    temp_ref = Temperature.reference(data)
+    rows = _rows(Chain(robot), data, position_only)
+    say(f"{data.n} poses: {rows.train.n} to fit, {rows.val.n} held out")
+    base, x, noise, tools = _register(rows, fixed_model is None)
+    say("registered the tracker and the sensor mount")
+    report: dict[str, Any] = {
+        "baseline": {
+            "train": stats(base, x, rows.train, rows.tau_tr).as_dict(),
+            "validation": stats(base, x, rows.val, rows.tau_va).as_dict(),
+        },
+        "effects": [],
+        "rejected": [],
+    }
+    model = base
+    if fixed_model is not None:  # --registration-only: the saved robot model, new registration
+        model, x = _carried(rows, fixed_model, x, noise, report, say)
+        candidates = ()
+    current_val = stats(model, x, rows.val, rows.tau_va).judged_mm
+    weights: dict[str, float] = {}  # the prior's weight of each kept effect (fit.prior)
+    for name in candidates:
+        tried = _try_effect(rows, model, x, noise, name, weights, report, say)
+        if tried is None:
+            continue
+        entry = tried.entry
+        gain = 1 - tried.judged_mm / current_val
+        entry["held_out_improvement_pct"] = 100 * gain
+        if gain >= KEEP_MARGIN and tried.band_ok:
+            model, x, weights, current_val = tried.model, tried.x, tried.weights, tried.judged_mm
+            report["effects"].append(entry)
+            say(f"kept {name}: held-out position RMS {entry['validation']['pos_rms_mm']:.4f} mm")
+        else:
+            entry["reason"] = _rejection(entry, gain)
+            report["rejected"].append(entry)
+            say(f"not kept {name}: {entry['reason']}")
+    report["prior_weights"] = weights
+    _bands_transfer(report)
+    # refit the registration with everything on all rows? no: final numbers stay held-out
+    report["final"] = {
+        "train": stats(model, x, rows.train, rows.tau_tr).as_dict(),
+        "validation": stats(model, x, rows.val, rows.tau_va).as_dict(),
+    }
+    report["repeatability"] = _repeatability_entry(data)
+    describe_remaining(report, model, x, data, uncertainty or TrackerUncertainty())
+    _registration_entry(report, model, x, noise, rows.sessions, tools)
+    return Analysis(report, model, x)
 
-    refs = (temp_ref, t_ref)
+
+def _rows(chain: Chain, data: Data, position_only: bool) -> _Rows:
+    train_idx, val_idx = split_data(data)
+    tau_all = chain.gravity_torques(data.q)
+    return _Rows(
+        chain,
+        data,
+        position_only,
+        train_idx,
+        val_idx,
+        data.subset(train_idx),
+        data.subset(val_idx),
+        tau_all,
+        tau_all[train_idx],
+        tau_all[val_idx],
+        (Temperature.reference(data), TimeDrift.reference(data)),
+        sessions_of(data),
+    )
+
+
+def _register(
+    rows: _Rows, new_model: bool
+) -> tuple[Model, np.ndarray, float, dict[str, Any] | None]:
+    """The nominal model registered (one tracker registration per session); a new model of
+    several sessions gives each session its own sensor mount when that lowers the held-out
+    error by KEEP_MARGIN (`tools`: the judgement, None when not judged)."""
+    sessions, refs = rows.sessions, rows.refs
+    chain, train, tau_tr, position_only = rows.chain, rows.train, rows.tau_tr, rows.position_only
     base, x, noise = _registered(chain, train, tau_tr, position_only, sessions, 1, refs)
     tools = None
-    if sessions > 1 and fixed_model is None:  # each session its own tool, judged held out
+    if sessions > 1 and new_model:  # each session its own tool, judged held out
         own = _registered(chain, train, tau_tr, position_only, sessions, sessions, refs)
-        shared_mm = stats(base, x, val, tau_va).judged_mm
-        own_mm = stats(own[0], own[1], val, tau_va).judged_mm
+        shared_mm = stats(base, x, rows.val, rows.tau_va).judged_mm
+        own_mm = stats(own[0], own[1], rows.val, rows.tau_va).judged_mm
         tools = {
             "held_out_judged_mm_shared": shared_mm,
             "held_out_judged_mm_per_session": own_mm,
@@ -260,152 +355,176 @@ def analyze(
         }
         if tools["per_session"]:
             base, x, noise = own
-    say("registered the tracker and the sensor mount")
-    report: dict[str, Any] = {
-        "baseline": {
-            "train": stats(base, x, train, tau_tr).as_dict(),
-            "validation": stats(base, x, val, tau_va).as_dict(),
-        },
-        "effects": [],
-        "rejected": [],
-    }
-    model = base
+    return base, x, noise, tools
 
-    if fixed_model is not None:  # --registration-only: the saved robot model, new registration
-        model = Model(
-            chain,
-            position_only,
-            list(fixed_model.effects),
-            np.concatenate([x, fixed_model.x[fixed_model.n_reg :]]),
-            dict(fixed_model.basis),
-            fixed_model.temperature_ref,
-            fixed_model.time_ref,
-        )
-        fixed = np.zeros(model.x.size, dtype=bool)
-        fixed[model.n_reg :] = True
-        x = fit(model, train, tau_tr, model.x, noise, fixed=fixed).x
-        candidates = ()
-        if model.find(JointMaps) is not None:
-            model, x = _judge_carried_maps(model, x, data, train, val, noise, report)
-            kept = model.find(JointMaps) is not None
-            say(f"carried joint maps {'kept' if kept else 'dropped'}")
-    current_val = stats(model, x, val, tau_va).judged_mm
-    weights: dict[str, float] = {}  # the prior's weight of each kept effect (fit.prior)
-    for name in candidates:
-        effect = EFFECTS[name]
-        if not effect.usable(data):
-            continue
-        say(f"trying {name}")
-        found: dict[str, Any] | None = None
-        prepare = getattr(effect, "prepare", None)
-        if prepare is not None:  # an effect whose structure comes from the data (its terms)
-            effect, found = prepare(model, x, train, tau_tr, noise)
-            if not effect.size(chain.nq):
-                say(f"{name}: nothing significant in the residual's spectra")
-                report.setdefault("spectra", {})[name] = found
-                continue
-        trial_basis = dict(model.basis)
-        if effect.reduce:  # never fit what the data cannot tell apart from what is there
-            B, rank, full, null = identifiable_basis(model, train, tau_tr, x, effect)
-            if rank == 0:
-                say(f"{name}: nothing identifiable from these poses")
-                continue
-            trial_basis[name] = B
-            say(f"{name}: {rank} of {full} parameters identifiable from these poses")
-        else:
-            null = np.zeros((0, 0))
-        trial = Model(
-            chain,
-            position_only,
-            [*model.effects, effect],
-            x,
-            trial_basis,
-            temp_ref,
-            t_ref,
-            sessions,
-            model.tools,
-        )
-        size = trial.sizes(chain.nq)[-1]
-        x0 = np.concatenate([x, np.zeros(size)])
-        trial.x = x0
-        trial_weights = dict(weights)
-        choice = None
-        if scales_of(effect, chain.nq) is not None:  # its weight from blocks and bands
-            choice = choose_weight(trial, x0, data, tau_all, train_idx, val_idx, noise, name)
-            trial_weights[name] = choice.weight
-        prior = prior_rows(trial, trial_weights, noise)
-        res = fit(trial, train, tau_tr, x0, noise, prior=prior)
-        val_stats = stats(trial, res.x, val, tau_va)
-        entry: dict[str, Any] = {
-            "name": name,
-            "parameters": _effect_parameters(trial, effect, res.x, res.se),
-            "train": stats(trial, res.x, train, tau_tr).as_dict(),
-            "validation": val_stats.as_dict(),
-            "description": effect.description,
-        }
-        if found is not None:
-            entry["spectra"] = found
+
+def _carried(
+    rows: _Rows,
+    fixed_model: Model,
+    x_reg: np.ndarray,
+    noise: float,
+    report: dict[str, Any],
+    say: Callable[[str], None],
+) -> tuple[Model, np.ndarray]:
+    """A saved robot model with this data's registration (`x_reg`), refitted with the model
+    held; carried joint maps judged per joint (_judge_carried_maps)."""
+    model = Model(
+        rows.chain,
+        rows.position_only,
+        list(fixed_model.effects),
+        np.concatenate([x_reg, fixed_model.x[fixed_model.n_reg :]]),
+        dict(fixed_model.basis),
+        fixed_model.temperature_ref,
+        fixed_model.time_ref,
+    )
+    fixed = np.zeros(model.x.size, dtype=bool)
+    fixed[model.n_reg :] = True
+    x = fit(model, rows.train, rows.tau_tr, model.x, noise, fixed=fixed).x
+    if model.find(JointMaps) is not None:
+        model, x = _judge_carried_maps(model, x, rows.data, rows.train, rows.val, noise, report)
+        kept = model.find(JointMaps) is not None
+        say(f"carried joint maps {'kept' if kept else 'dropped'}")
+    return model, x
+
+
+def _try_effect(
+    rows: _Rows,
+    model: Model,
+    x: np.ndarray,
+    noise: float,
+    name: str,
+    weights: dict[str, float],
+    report: dict[str, Any],
+    say: Callable[[str], None],
+) -> _Trial | None:
+    """Candidate `name` on top of `model`: its structure from the data where it has one,
+    reduced to what the poses identify, its prior's weight from blocks and bands, fitted on
+    the training rows (None: nothing to try)."""
+    chain = rows.chain
+    effect = EFFECTS[name]
+    if not effect.usable(rows.data):
+        return None
+    say(f"trying {name}")
+    found: dict[str, Any] | None = None
+    prepare = getattr(effect, "prepare", None)
+    if prepare is not None:  # an effect whose structure comes from the data (its terms)
+        effect, found = prepare(model, x, rows.train, rows.tau_tr, noise)
+        if not effect.size(chain.nq):
+            say(f"{name}: nothing significant in the residual's spectra")
             report.setdefault("spectra", {})[name] = found
-        band_ok = True
-        if choice is not None:
-            entry["prior"] = choice.as_dict()
-            chosen = next(c for c in choice.table if c["weight"] == choice.weight)
-            entry["bands"] = {
-                "pos_rms_mm_without": choice.without_bands_mm,
-                "pos_rms_mm_with": chosen["bands_pos_rms_mm"],
-            }
-            band_ok = chosen["bands_pos_rms_mm"] <= choice.without_bands_mm
-        if null.size:
-            zeros = np.zeros(null.shape[0])
-            labels = [
-                f"{rec['joint']} {rec['parameter']}"
-                for rec in effect.records(zeros, zeros, chain.robot.joint_names)
-            ]
-            unseen = describe_null_space(null, labels)
-            entry["parameters"]["unidentifiable"] = unseen
-            # a parameter the poses cannot see alone is held at zero: its record says so
-            held = {u["members"][0]["parameter"] for u in unseen if len(u["members"]) == 1}
-            for rec in entry["parameters"].get("records", []):
-                if f"{rec['joint']} {rec['parameter']}" in held:
-                    rec["held"] = True
-        gain = 1 - val_stats.judged_mm / current_val
-        entry["held_out_improvement_pct"] = 100 * gain
-        if gain >= KEEP_MARGIN and band_ok:
-            model, x = trial, res.x
-            weights = trial_weights
-            current_val = val_stats.judged_mm
-            report["effects"].append(entry)
-            say(f"kept {name}: held-out position RMS {val_stats.pos_rms_mm:.4f} mm")
-        else:
-            entry["reason"] = (
-                f"held-out change {100 * gain:+.1f} %, below the {100 * KEEP_MARGIN:.0f} % needed"
-                if gain < KEEP_MARGIN
-                else f"held-out change {100 * gain:+.1f} %, but the extrapolation bands rose "
-                f"({entry['bands']['pos_rms_mm_without']:.4f} -> "
-                f"{entry['bands']['pos_rms_mm_with']:.4f} mm)"
-            )
-            report["rejected"].append(entry)
-            say(f"not kept {name}: {entry['reason']}")
-    report["prior_weights"] = weights
-    judged = [e for e in (*report["effects"], *report["rejected"]) if "prior" in e]
-    if judged:  # one session: the extrapolation bands stand for a session not seen
-        banded = [e for e in report["effects"] if "bands" in e]
-        report["transfer"] = {
-            "kind": "held-out bands at the ends of each joint's range (one session)",
-            "nominal_bands_pos_rms_mm": judged[0]["prior"]["without_effect"]["bands_pos_rms_mm"],
-            "model_bands_pos_rms_mm": (
-                banded[-1]["bands"]["pos_rms_mm_with"]
-                if banded
-                else judged[0]["prior"]["without_effect"]["bands_pos_rms_mm"]
-            ),
-        }
-    # refit the registration with everything on all rows? no: final numbers stay held-out
-    report["final"] = {
-        "train": stats(model, x, train, tau_tr).as_dict(),
-        "validation": stats(model, x, val, tau_va).as_dict(),
+            return None
+    trial_basis = dict(model.basis)
+    if effect.reduce:  # never fit what the data cannot tell apart from what is there
+        B, rank, full, null = identifiable_basis(model, rows.train, rows.tau_tr, x, effect)
+        if rank == 0:
+            say(f"{name}: nothing identifiable from these poses")
+            return None
+        trial_basis[name] = B
+        say(f"{name}: {rank} of {full} parameters identifiable from these poses")
+    else:
+        null = np.zeros((0, 0))
+    trial = Model(
+        chain,
+        rows.position_only,
+        [*model.effects, effect],
+        x,
+        trial_basis,
+        rows.refs[0],
+        rows.refs[1],
+        rows.sessions,
+        model.tools,
+    )
+    x0 = np.concatenate([x, np.zeros(trial.sizes(chain.nq)[-1])])
+    trial.x = x0
+    trial_weights = dict(weights)
+    choice = None
+    if scales_of(effect, chain.nq) is not None:  # its weight from blocks and bands
+        choice = choose_weight(
+            trial, x0, rows.data, rows.tau_all, rows.train_idx, rows.val_idx, noise, name
+        )
+        trial_weights[name] = choice.weight
+    prior = prior_rows(trial, trial_weights, noise)
+    res = fit(trial, rows.train, rows.tau_tr, x0, noise, prior=prior)
+    val_stats = stats(trial, res.x, rows.val, rows.tau_va)
+    entry: dict[str, Any] = {
+        "name": name,
+        "parameters": _effect_parameters(trial, effect, res.x, res.se),
+        "train": stats(trial, res.x, rows.train, rows.tau_tr).as_dict(),
+        "validation": val_stats.as_dict(),
+        "description": effect.description,
     }
-    report["repeatability"] = _repeatability_entry(data)
-    describe_remaining(report, model, x, data, uncertainty or TrackerUncertainty())
+    if found is not None:
+        entry["spectra"] = found
+        report.setdefault("spectra", {})[name] = found
+    band_ok = True if choice is None else _prior_entry(entry, choice)
+    if null.size:
+        _mark_unidentifiable(entry, effect, null, chain.robot.joint_names)
+    return _Trial(trial, res.x, entry, trial_weights, band_ok, val_stats.judged_mm)
+
+
+def _prior_entry(entry: dict[str, Any], choice: PriorChoice) -> bool:
+    """The prior's choice in the entry, with the extrapolation bands without and with the
+    effect; whether the bands allow it (they did not rise)."""
+    entry["prior"] = choice.as_dict()
+    chosen = next(c for c in choice.table if c["weight"] == choice.weight)
+    entry["bands"] = {
+        "pos_rms_mm_without": choice.without_bands_mm,
+        "pos_rms_mm_with": chosen["bands_pos_rms_mm"],
+    }
+    return bool(chosen["bands_pos_rms_mm"] <= choice.without_bands_mm)
+
+
+def _mark_unidentifiable(
+    entry: dict[str, Any], effect: Effect, null: np.ndarray, joint_names: Sequence[str]
+) -> None:
+    """The directions the poses cannot see, in the entry's parameters; a parameter they
+    cannot see alone is held at zero, and its record says so."""
+    zeros = np.zeros(null.shape[0])
+    labels = [
+        f"{rec['joint']} {rec['parameter']}" for rec in effect.records(zeros, zeros, joint_names)
+    ]
+    unseen = describe_null_space(null, labels)
+    entry["parameters"]["unidentifiable"] = unseen
+    held = {u["members"][0]["parameter"] for u in unseen if len(u["members"]) == 1}
+    for rec in entry["parameters"].get("records", []):
+        if f"{rec['joint']} {rec['parameter']}" in held:
+            rec["held"] = True
+
+
+def _rejection(entry: dict[str, Any], gain: float) -> str:
+    """Why a candidate was not kept: too little held-out gain, or the bands rose."""
+    if gain < KEEP_MARGIN:
+        return f"held-out change {100 * gain:+.1f} %, below the {100 * KEEP_MARGIN:.0f} % needed"
+    return (
+        f"held-out change {100 * gain:+.1f} %, but the extrapolation bands rose "
+        f"({entry['bands']['pos_rms_mm_without']:.4f} -> "
+        f"{entry['bands']['pos_rms_mm_with']:.4f} mm)"
+    )
+
+
+def _bands_transfer(report: dict[str, Any]) -> None:
+    """One session: the extrapolation bands stand for a session not seen."""
+    judged = [e for e in (*report["effects"], *report["rejected"]) if "prior" in e]
+    if not judged:
+        return
+    banded = [e for e in report["effects"] if "bands" in e]
+    nominal = judged[0]["prior"]["without_effect"]["bands_pos_rms_mm"]
+    report["transfer"] = {
+        "kind": "held-out bands at the ends of each joint's range (one session)",
+        "nominal_bands_pos_rms_mm": nominal,
+        "model_bands_pos_rms_mm": banded[-1]["bands"]["pos_rms_mm_with"] if banded else nominal,
+    }
+
+
+def _registration_entry(
+    report: dict[str, Any],
+    model: Model,
+    x: np.ndarray,
+    noise: float,
+    sessions: int,
+    tools: dict[str, Any] | None,
+) -> None:
+    """The registration the final model holds: tracker and mount (per session when several)."""
     T_bk, T_ns, _c = model.unpack(x)
     report["registration"] = {
         "T_bk": T_bk.tolist(),
@@ -420,7 +539,6 @@ def analyze(
             report["registration"]["T_ns_sessions"] = [
                 model.mount(x, s).tolist() for s in range(model.tools)
             ]
-    return Analysis(report, model, x)
 
 
 def _registered(
@@ -500,36 +618,7 @@ def _judge_carried_maps(
     names = model.chain.robot.joint_names
 
     def with_joints(keep: list[int]) -> tuple[Model, np.ndarray]:
-        """The model with only the maps of joints `keep` (the others dropped)."""
-        parts = list(model.parts(x))
-        effects: list[Effect] = []
-        values: list[np.ndarray] = []
-        for effect, part in parts:
-            if effect is maps:
-                pieces = split_maps(maps.knots, part)
-                if not keep:
-                    continue
-                knots = tuple(kn if j in keep else np.empty(0) for j, (kn, _v) in enumerate(pieces))
-                effects.append(JointMaps(knots))
-                values.append(np.concatenate([v for j, (_k, v) in enumerate(pieces) if j in keep]))
-            else:
-                effects.append(effect)
-                values.append(part)
-        x_new = np.concatenate([x[: model.n_reg], *values])
-        trial = Model(
-            model.chain,
-            model.position_only,
-            effects,
-            x_new,
-            {},
-            model.temperature_ref,
-            model.time_ref,
-            model.sessions,
-            model.tools,
-        )
-        fixed = np.zeros(x_new.size, dtype=bool)
-        fixed[trial.n_reg :] = True
-        return trial, fit(trial, train, tau_tr, x_new, noise, fixed=fixed).x
+        return _with_maps_of(model, x, maps, keep, train, tau_tr, noise)
 
     joints = [j for j, kn in enumerate(maps.knots) if kn.size]
     current = stats(model, x, train, tau_tr).judged_mm
@@ -562,6 +651,47 @@ def _judge_carried_maps(
         },
     }
     return (kept_model, kept_x) if kept else (without, x_without)
+
+
+def _with_maps_of(
+    model: Model,
+    x: np.ndarray,
+    maps: JointMaps,
+    keep: list[int],
+    train: Data,
+    tau_tr: np.ndarray,
+    noise: float,
+) -> tuple[Model, np.ndarray]:
+    """The carried model with only the maps of joints `keep` (the others dropped), its
+    registration refitted on the training rows with the robot model held."""
+    effects: list[Effect] = []
+    values: list[np.ndarray] = []
+    for effect, part in model.parts(x):
+        if effect is maps:
+            pieces = split_maps(maps.knots, part)
+            if not keep:
+                continue
+            knots = tuple(kn if j in keep else np.empty(0) for j, (kn, _v) in enumerate(pieces))
+            effects.append(JointMaps(knots))
+            values.append(np.concatenate([v for j, (_k, v) in enumerate(pieces) if j in keep]))
+        else:
+            effects.append(effect)
+            values.append(part)
+    x_new = np.concatenate([x[: model.n_reg], *values])
+    trial = Model(
+        model.chain,
+        model.position_only,
+        effects,
+        x_new,
+        {},
+        model.temperature_ref,
+        model.time_ref,
+        model.sessions,
+        model.tools,
+    )
+    fixed = np.zeros(x_new.size, dtype=bool)
+    fixed[trial.n_reg :] = True
+    return trial, fit(trial, train, tau_tr, x_new, noise, fixed=fixed).x
 
 
 def _repeatability_entry(data: Data) -> dict[str, Any] | None:

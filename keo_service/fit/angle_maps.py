@@ -44,8 +44,8 @@ FOLDS = 4
 # residual on top) is chosen per analysis ("auto"), like every effect, by the held-out blocks;
 # "with" / "without" force one. Left as identified, the geometry stays biased by what only the
 # maps carry (a simulated ripple then shows in the maps of joints without one); re-solved, the
-# effects and maps can trade on the calibration poses (UR10 Series B: 0.118 mm held out
-# against 0.108 left as identified; Series A the other way, 0.096 against 0.108).
+# effects and maps can trade on the calibration poses (docs/analyze.md gives both ways on the
+# UR10 series: neither wins on both).
 EFFECTS_WITH_MAPS = "auto"
 MIN_POSES_PER_KNOT = 2.0  # a joint whose range gives fewer poses per knot gets no map
 MIN_SUPPORT = 2  # poses within one spacing of a knot, else the knot is left out (a gap)
@@ -128,8 +128,8 @@ def linearize(
         grads.append(((model.residuals(x, shifted, tau) - r0) / h).reshape(data.n, width))
     # the maps are the residual on top of the physical effects: only the registration is
     # solved with them (the effects' columns left zero, so their step is zero); solving the
-    # effects beside the maps let both grow and cancel (UR10 Series B: 11 mrad maps against
-    # 5-10 mm placement offsets, where the whole error is 1.06 mm)
+    # effects beside the maps let both grow far beyond the robot's whole error and cancel
+    # (docs/analyze.md)
     k = x.size if effects_free else model.n_reg
     J_reg = numeric_jacobian(
         lambda z: model.residuals(np.concatenate([z, x[k:]]), data, tau), x[:k], r0
@@ -255,8 +255,8 @@ def cv_folds(n: int, session: np.ndarray | None = None) -> np.ndarray:
     extrapolation where poses are ordered by configuration (UR10 Series B) and choose the
     settings for the wrong task. Pooled sessions are blocked each on its own (1/40 of its
     poses a block, as one recording alone): blocks of the pooled count would span a small
-    session in a few large chunks, again an extrapolation (UR10 A+B: 252-pose blocks over
-    B's 1145 chose 0.075 rad knots, where B alone and A alone choose 0.03 and 0.02).
+    session in a few large chunks, again an extrapolation that chose far coarser knots than
+    either session alone (docs/results/ur10_notes.md).
     `session`: each pose's recording (None: one)."""
     if session is None:
         return (np.arange(n) // max(2, n // 40)) % FOLDS

@@ -180,6 +180,32 @@ def _with_coupling(
     return trial, x_new
 
 
+@dataclasses.dataclass(frozen=True)
+class _Rows:
+    """The poses a coupling is fitted and judged on, with their gravity torques."""
+
+    data: Data
+    train_idx: np.ndarray
+    train: Data
+    val: Data
+    tau_tr: np.ndarray
+    tau_va: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class _Tried:
+    """The best coupling with joint k's angle: the model with it, its report entry, and its
+    held-out RMS and gains on the blocks and the band."""
+
+    j: int  # the joint whose angle error moves with joint k's angle
+    model: Model
+    x: np.ndarray
+    entry: dict[str, Any]
+    held_mm: float
+    gain: float
+    band_gain: float
+
+
 def try_couplings(
     analysis: Analysis,
     data: Data,
@@ -193,79 +219,96 @@ def try_couplings(
     to `analysis` (model, report effects, final numbers, verdict), the others reported as
     rejected."""
     say = say or (lambda _m: None)
-    model, x = analysis.model, analysis.x
-    nq = model.chain.nq
-    ks = proposed_joints(analysis.report, nq)
+    model = analysis.model
+    ks = proposed_joints(analysis.report, model.chain.nq)
     if not ks:
         return
-    n_reg = model.n_reg
-    val = data.subset(val_idx)
-    train = data.subset(train_idx)
-    tau_va = model.chain.gravity_torques(val.q)
-    tau_tr = model.chain.gravity_torques(train.q)
-    current = stats(model, x, val, tau_va).judged_mm
-
-    def name(j: int) -> str:
-        return joint_names[j] if j < len(joint_names) else f"joint_{j + 1}"
-
+    val, train = data.subset(val_idx), data.subset(train_idx)
+    tau_va, tau_tr = model.chain.gravity_torques(val.q), model.chain.gravity_torques(train.q)
+    rows = _Rows(data, train_idx, train, val, tau_tr, tau_va)
+    current = stats(model, analysis.x, val, tau_va).judged_mm
     for k in ks:
         knots = knots_for(train.q[:, [k]], SPACING)[0]
         if knots.size < 3:
             continue
-        say(f"trying couplings with {name(k)}'s angle (the residual correlates with it)")
-        lin = _Lin(model, x, data)
-        tried = []
-        for j in range(nq):
-            if j == k:
-                continue
-            step, smoothing, se = _fit(lin, data.q, j, k, knots, train_idx, n_reg)
-            values = step[n_reg:]
-            x_reg = x.copy()
-            x_reg[:n_reg] += step[:n_reg]
-            trial, x_new = _with_coupling(model, x_reg, (j, k, knots), values)
-            held = stats(trial, x_new, val, tau_va)
-            tried.append((held.judged_mm, j, trial, x_new, smoothing, se))
-        held_rms, j, trial, x_new, smoothing, se = min(tried, key=lambda t: t[0])
-        gain = 1 - held_rms / current
-        keep_band, band = held_out_band(data, joint=k)
-        band_before, band_after = _band_rms(lin, data.q, j, k, keep_band, band, n_reg)
-        band_gain = 1 - band_after / band_before
-        effect = trial.find(Couplings)
-        assert effect is not None
-        n_new = 1 + knots.size
-        values_all = x_new[-effect.size(nq) :]
-        se_all = np.concatenate([np.zeros(values_all.size - n_new), se[n_reg:]])
-        records = effect.records(values_all, se_all, joint_names)
-        entry: dict[str, Any] = {
-            "name": Couplings.name,
-            "description": Couplings.description,
-            "parameters": {"records": records[-1:], "couplings": [r["text"] for r in records]},
-            "parameter_count": n_new,
-            "knot_spacing_rad": SPACING,
-            "smoothing": smoothing,
-            "train": stats(trial, x_new, train, tau_tr).as_dict(),
-            "validation": stats(trial, x_new, val, tau_va).as_dict(),
-            "held_out_improvement_pct": 100 * gain,
-            "band_split": {
-                "joint": name(k),
-                "held_out_poses": int(band.size),
-                "pos_rms_mm_before": band_before,
-                "pos_rms_mm_after": band_after,
-                "improvement_pct": 100 * band_gain,
-            },
-            "others_tried": {name(jj): rms for rms, jj, *_rest in tried if jj != j},
-        }
-        if gain >= keep_margin and band_gain >= keep_margin:
-            model, x, current = trial, x_new, held_rms
-            analysis.model, analysis.x = model, x
+        name = _name(joint_names, k)
+        say(f"trying couplings with {name}'s angle (the residual correlates with it)")
+        best = _best_coupling(analysis.model, analysis.x, rows, k, knots, current, joint_names)
+        entry = best.entry
+        if best.gain >= keep_margin and best.band_gain >= keep_margin:
+            current = best.held_mm
+            analysis.model, analysis.x = best.model, best.x
             analysis.report["effects"].append(entry)
             analysis.report["final"]["validation"] = entry["validation"]
             analysis.report["final"]["train"] = entry["train"]
-            describe_remaining(analysis.report, model, x, data)
-            say(f"kept coupling: {records[-1]['text']}; held out {held_rms:.4f} mm")
+            describe_remaining(analysis.report, best.model, best.x, data)
+            text = entry["parameters"]["records"][-1]["text"]
+            say(f"kept coupling: {text}; held out {best.held_mm:.4f} mm")
         else:
             analysis.report["rejected"].append(entry)
             say(
-                f"not kept coupling of {name(j)} with {name(k)}: held-out {100 * gain:+.1f} %, "
-                f"band {100 * band_gain:+.1f} %"
+                f"not kept coupling of {_name(joint_names, best.j)} with {name}: "
+                f"held-out {100 * best.gain:+.1f} %, band {100 * best.band_gain:+.1f} %"
             )
+
+
+def _name(joint_names: Sequence[str], j: int) -> str:
+    return joint_names[j] if j < len(joint_names) else f"joint_{j + 1}"
+
+
+def _best_coupling(
+    model: Model,
+    x: np.ndarray,
+    rows: _Rows,
+    k: int,
+    knots: np.ndarray,
+    current: float,
+    joint_names: Sequence[str],
+) -> _Tried:
+    """Every other joint's angle error as a function of joint k's angle, each solved
+    linearised beside the registration; the one that lowers the held-out blocks most, with
+    its band split and report entry."""
+    nq, n_reg, data = model.chain.nq, model.n_reg, rows.data
+    lin = _Lin(model, x, data)
+    tried = []
+    for j in range(nq):
+        if j == k:
+            continue
+        step, smoothing, se = _fit(lin, data.q, j, k, knots, rows.train_idx, n_reg)
+        values = step[n_reg:]
+        x_reg = x.copy()
+        x_reg[:n_reg] += step[:n_reg]
+        trial, x_new = _with_coupling(model, x_reg, (j, k, knots), values)
+        held = stats(trial, x_new, rows.val, rows.tau_va)
+        tried.append((held.judged_mm, j, trial, x_new, smoothing, se))
+    held_rms, j, trial, x_new, smoothing, se = min(tried, key=lambda t: t[0])
+    gain = 1 - held_rms / current
+    keep_band, band = held_out_band(data, joint=k)
+    band_before, band_after = _band_rms(lin, data.q, j, k, keep_band, band, n_reg)
+    band_gain = 1 - band_after / band_before
+    effect = trial.find(Couplings)
+    assert effect is not None
+    n_new = 1 + knots.size
+    values_all = x_new[-effect.size(nq) :]
+    se_all = np.concatenate([np.zeros(values_all.size - n_new), se[n_reg:]])
+    records = effect.records(values_all, se_all, joint_names)
+    entry: dict[str, Any] = {
+        "name": Couplings.name,
+        "description": Couplings.description,
+        "parameters": {"records": records[-1:], "couplings": [r["text"] for r in records]},
+        "parameter_count": n_new,
+        "knot_spacing_rad": SPACING,
+        "smoothing": smoothing,
+        "train": stats(trial, x_new, rows.train, rows.tau_tr).as_dict(),
+        "validation": stats(trial, x_new, rows.val, rows.tau_va).as_dict(),
+        "held_out_improvement_pct": 100 * gain,
+        "band_split": {
+            "joint": _name(joint_names, k),
+            "held_out_poses": int(band.size),
+            "pos_rms_mm_before": band_before,
+            "pos_rms_mm_after": band_after,
+            "improvement_pct": 100 * band_gain,
+        },
+        "others_tried": {_name(joint_names, jj): rms for rms, jj, *_rest in tried if jj != j},
+    }
+    return _Tried(j, trial, x_new, entry, held_rms, gain, band_gain)

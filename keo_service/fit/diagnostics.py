@@ -21,7 +21,7 @@ class Repeatability:
     """Scatter of repeated measurements of the same pose: the pooled RMS distance of each
     measurement from its pose's mean position (degrees of freedom: measurements - poses).
     A pose whose own scatter exceeds OUTLIER_FACTOR x the median pose's is left out and
-    counted (seen in real data: equal joint readings 2 mm apart, not a repeat)."""
+    counted (real data hold equal joint readings far apart: not a repeat)."""
 
     poses: int  # poses measured more than once (kept)
     measurements: int  # measurements of those poses

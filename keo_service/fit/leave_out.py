@@ -20,6 +20,13 @@ from typing import Any
 import numpy as np
 
 from keo_service.core.kinematics import RobotModel
+from keo_service.fit.accuracy import (
+    Accuracy,
+    coverage,
+    predicted_position_sigma,
+    session_term,
+    stated_accuracy,
+)
 from keo_service.fit.analysis import (
     CANDIDATES,
     KEEP_MARGIN,
@@ -83,13 +90,37 @@ def sessions_subset(data: Data, sessions: Sequence[int]) -> Data:
     return dataclasses.replace(sub, session=label, weight=weight)
 
 
-def carried(robot: RobotModel, model: Model, data: Data, position_only: bool) -> dict[str, Any]:
+def stated(result: Analysis, data: Data) -> Accuracy:
+    """The accuracy the model of `result` (fitted on `data`) states, as `keo analyze` writes
+    it to model.toml."""
+    return stated_accuracy(result.report, data.q)
+
+
+def held_out_errors(result: Analysis, data: Data) -> tuple[np.ndarray, np.ndarray]:
+    """The held-out poses' joints and position error lengths (mm) under `result`'s model."""
+    _train, val_idx = split_data(data)
+    val = data.subset(val_idx)
+    model = result.model
+    r = model.residuals(result.x, val, model.chain.gravity_torques(val.q))
+    width = 3 if model.position_only or data.R_ks is None else 6
+    return val.q, np.linalg.norm(r.reshape(-1, width)[:, :3], axis=1) * 1e3
+
+
+def carried(
+    robot: RobotModel,
+    model: Model,
+    data: Data,
+    position_only: bool,
+    accuracy: Accuracy | None = None,
+) -> dict[str, Any]:
     """`model` carried to one recording: the registration (and the mount) refitted on its
     training rows, the robot model as it is (carried maps judged per joint, as with
-    --registration-only); its held-out numbers, and the nominal robot's there."""
+    --registration-only); its held-out numbers, and the nominal robot's there. With the
+    model's stated `accuracy`: how it covered the held-out poses, as stated within its own
+    session (`stated_within`) and with its between-session term (`stated_off_session`)."""
     result = analyze(robot, data, position_only, fixed_model=model)
     rep = result.report
-    out = {
+    out: dict[str, Any] = {
         "held_out_poses": rep["final"]["validation"]["n"],
         "held_out_pos_rms_mm": rep["final"]["validation"]["pos_rms_mm"],
         "held_out_pos_max_mm": rep["final"]["validation"]["pos_max_mm"],
@@ -97,6 +128,14 @@ def carried(robot: RobotModel, model: Model, data: Data, position_only: bool) ->
     }
     if "carried_maps" in rep:
         out["maps_kept"] = rep["carried_maps"]["kept"]
+    if accuracy is not None:
+        q, error_mm = held_out_errors(result, data)
+        out["stated_within"] = coverage(predicted_position_sigma(accuracy, q), error_mm)
+        out["stated_off_session"] = {
+            **coverage(predicted_position_sigma(accuracy, q, off_session=True), error_mm),
+            "session_mm": accuracy.session_mm,
+            "session_source": accuracy.session_source,
+        }
     return out
 
 
@@ -125,26 +164,28 @@ def leave_one_session_out(
             robot, sessions_subset(data, [s]), position_only, uncertainty, None, candidates, on_top
         )
     within = {e["session"]: e["validation"]["pos_rms_mm"] for e in pooled.report["sessions"]}
-    entries = []
+    entries: list[dict[str, Any]] = []
     for s in range(n):
         others = [o for o in range(n) if o != s]
         alone = sessions_subset(data, [s])
         if len(others) == 1:
             model = fitted(own[others[0]])
+            accuracy = stated(own[others[0]], sessions_subset(data, others))
         else:
             say(f"leave one session out: sessions {_names(others)} pooled, session {s + 1} out")
             try:
                 part = sessions_subset(data, others)
-                model = fitted(
-                    fit_full(robot, part, position_only, uncertainty, None, candidates, on_top)
+                part_fit = fit_full(
+                    robot, part, position_only, uncertainty, None, candidates, on_top
                 )
             except NotIdentifiableError as exc:
                 entries.append({"session": s, "fitted_on": others, "error": str(exc)})
                 continue
+            model, accuracy = fitted(part_fit), stated(part_fit, part)
         entry: dict[str, Any] = {
             "session": s,
             "fitted_on": others,
-            **carried(robot, model, alone, position_only),
+            **carried(robot, model, alone, position_only, accuracy),
             "within_session_pooled_pos_rms_mm": within[s],
             "within_session_own_pos_rms_mm": own[s].report["final"]["validation"]["pos_rms_mm"],
         }
@@ -163,7 +204,26 @@ def leave_one_session_out(
             f"(nominal {entry['nominal_pos_rms_mm']:.4f}, within the session "
             f"{within[s]:.4f})"
         )
-    return {"kind": "leave one session out", "entries": entries, "summary": _summary(entries)}
+    out: dict[str, Any] = {
+        "kind": "leave one session out",
+        "entries": entries,
+        "summary": _summary(entries),
+    }
+    term = _session_term(entries)
+    if term is not None:
+        out["session_term"] = term
+    return out
+
+
+def _session_term(entries: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """What the carried models missed beyond their within-session statement, over the
+    recordings left out (fit.accuracy.session_term); None when none was judged."""
+    judged = [e for e in entries if "stated_within" in e]
+    if not judged:
+        return None
+    measured = [e["held_out_pos_rms_mm"] for e in judged]
+    stated = [e["stated_within"]["predicted_rms_mm"] for e in judged]
+    return {"session_mm": session_term(measured, stated), "sessions": len(judged)}
 
 
 def pooled_worse(pooled_mm: float, single_mm: float, poses: int) -> bool:

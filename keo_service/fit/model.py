@@ -499,8 +499,8 @@ def _robust_gauss_newton(
     normal equations (iteratively reweighted least squares; P x P, so a step costs one
     product with the Jacobian, not its SVD). The parameters are few and the model close to
     linear in them: it converges in a few steps. (scipy's trust-region solver with LSMR steps,
-    used here before, crawled: a nominal registration on 20,000 poses was still falling after
-    100 evaluations where the exact solver converged in 4.) Returns x and its residuals."""
+    used here before, crawled on large registrations; docs/analyze.md.) Returns x and its
+    residuals."""
     weight = None if row_w is None else row_w**2
     x = x0.copy()
     r = fun(x)

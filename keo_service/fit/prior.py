@@ -3,9 +3,9 @@ carries to poses the fit never saw: held-out blocks (interpolation) and held-out
 ends of each joint's range (extrapolation). No I/O.
 
 Why: with only the data's interleaved blocks to judge, a fit is free to use terms of many
-times the robot's whole error that cancel on the calibration poses (the UR10's Series B held
-placement offsets of 5-10 mm and a 40 mrad cyclic term against a 1.06 mm error) and nowhere
-else; carried to another session they made the model worse than the nominal robot. A term's
+times the robot's whole error that cancel on the calibration poses and nowhere else; carried
+to another session they made the model worse than the nominal robot (docs/analyze.md gives
+the UR10 figures). A term's
 physical size (`SCALES`: a joint's placement is known to a millimetre, a gear's error to
 about a milliradian) turns that freedom into a cost. The penalty is
 `weight * noise^2 * sum((value / scale)^2)`: at weight 1 a term at its physical size costs as

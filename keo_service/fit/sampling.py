@@ -8,10 +8,8 @@ those are added back: the first sample of every occupied configuration cell (a g
 CELL_RAD on every joint, plus each joint's direction of motion, which backlash depends on)
 that no evenly spaced sample falls in, for at most MISSED_SHARE of the rows (thinned evenly
 if more: those samples are fast motion, and a larger share would weigh it above its time
-again; at a quarter, the 60 s recording's held-out RMS was 2.857 mm against 2.431 mm from all
-samples). Selecting one sample per cell alone over-weighted fast motion (more cells a second),
-where timing errors are largest: on a 60 s simulated recording it gave 4.22 mm held out
-against 2.43 mm from all samples.
+again). Selecting one sample per cell alone over-weighted fast motion (more cells a second),
+where timing errors are largest. docs/analyze.md gives what each choice measured.
 
 Time order is preserved, so the held-out blocks still follow time (drift).
 """

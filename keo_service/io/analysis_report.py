@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 import tomllib
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +19,7 @@ import pinocchio as pin
 from keo_service.core.chain import Chain
 from keo_service.core.errors import KeoError
 from keo_service.core.model_corrections import MAP_TAPER_RAD
-from keo_service.fit.accuracy import Accuracy
+from keo_service.fit.accuracy import Accuracy, default_session_mm
 from keo_service.fit.analysis import Analysis
 from keo_service.fit.effects import JointMaps, config_fields, effect_from_config
 from keo_service.fit.model import Data, Model
@@ -76,11 +77,15 @@ def saved_accuracy(config: Config) -> Accuracy | None:
     m = config.model
     if not m.accuracy_mm or not m.calibrated_q_min:
         return None
+    # a model written before the between-session term states the bands' default
+    session = m.accuracy_session_mm or default_session_mm(m.accuracy_mm, m.accuracy_outside_mm)
     return Accuracy(
         m.accuracy_mm,
         m.accuracy_outside_mm,
         np.asarray(m.calibrated_q_min, dtype=float),
         np.asarray(m.calibrated_q_max, dtype=float),
+        session_mm=session,
+        session_source=m.accuracy_session_source or "held-out bands",
     )
 
 
@@ -93,6 +98,8 @@ def model_config(result: Analysis, base: Config) -> Config:
         {
             "accuracy_mm": acc["inside_mm"],
             "accuracy_outside_mm": acc["outside_mm"],
+            "accuracy_session_mm": acc["session_mm"],
+            "accuracy_session_source": acc["session_source"],
             "calibrated_q_min": acc["lower_rad"],
             "calibrated_q_max": acc["upper_rad"],
         }
@@ -124,6 +131,8 @@ def model_config(result: Analysis, base: Config) -> Config:
 def _plots(
     out: Path, result: Analysis, data: Data, baseline_x: np.ndarray, baseline_model: Model
 ) -> list[str]:
+    """The report's plots (file names, in the order report.md shows them): the joint maps,
+    the residual's spectra, and the residual before and after against the variables."""
     try:
         import matplotlib
     except ImportError:
@@ -139,8 +148,18 @@ def _plots(
     width = 3 if result.model.position_only or data.R_ks is None else 6
     before = baseline_model.residuals(baseline_x, data, tau).reshape(-1, width)[:, :3] * 1e3
     after = result.model.residuals(result.x, data, tau).reshape(-1, width)[:, :3] * 1e3
+    files = _map_plots(plt, out, result.report)
+    files += _spectrum_plots(plt, out, result.report)
+    files.append(_histogram_plot(plt, out, before, after))
+    files.append(_variables_plot(plt, out, data, before, after))
+    files.append(_components_plot(plt, out, data, before, after, chain.robot.joint_names))
+    return files
+
+
+def _map_plots(plt: Any, out: Path, report: dict[str, Any]) -> list[str]:
+    """Each joint map's angle error against its angle, with +/- 2 standard errors."""
     files = []
-    maps_entry = next((e for e in result.report["effects"] if "maps" in e["parameters"]), None)
+    maps_entry = next((e for e in report["effects"] if "maps" in e["parameters"]), None)
     for m in maps_entry["parameters"]["maps"] if maps_entry else []:
         knots, values, se = (
             np.asarray(m[k]) * 1e3 if k != "knots" else np.asarray(m[k])
@@ -157,7 +176,13 @@ def _plots(
         fig.savefig(out / name, dpi=110)
         plt.close(fig)
         files.append(name)
-    for effect_name, spectra in result.report.get("spectra", {}).items():
+    return files
+
+
+def _spectrum_plots(plt: Any, out: Path, report: dict[str, Any]) -> list[str]:
+    """Each joint's residual periodogram, the terms taken dashed."""
+    files = []
+    for spectra in report.get("spectra", {}).values():
         for joint, sp in spectra.items():
             fig, ax = plt.subplots(figsize=(6, 2.5))
             ax.plot(sp["periods_rad"], sp["amplitude_mrad"], lw=0.8)
@@ -172,7 +197,11 @@ def _plots(
             fig.savefig(out / name, dpi=110)
             plt.close(fig)
             files.append(name)
-        del effect_name
+    return files
+
+
+def _histogram_plot(plt: Any, out: Path, before: np.ndarray, after: np.ndarray) -> str:
+    """The position residual's length, nominal against identified."""
     fig, ax = plt.subplots(figsize=(6, 3.5))
     bins = np.linspace(0, max(np.linalg.norm(before, axis=1).max(), 1e-3), 50).tolist()
     ax.hist(np.linalg.norm(before, axis=1), bins=bins, alpha=0.6, label="nominal model")
@@ -183,7 +212,11 @@ def _plots(
     fig.tight_layout()
     fig.savefig(out / "residual_histogram.png", dpi=110)
     plt.close(fig)
-    files.append("residual_histogram.png")
+    return "residual_histogram.png"
+
+
+def _variables_plot(plt: Any, out: Path, data: Data, before: np.ndarray, after: np.ndarray) -> str:
+    """The residual's length against each joint, time and the tracker's extra columns."""
     variables = {f"q{j + 1} (rad)": data.q[:, j] for j in range(data.q.shape[1])}
     variables["time (s)"] = data.t
     for k, v in data.extra.items():
@@ -202,7 +235,18 @@ def _plots(
     fig.tight_layout()
     fig.savefig(out / "residual_vs_variables.png", dpi=90)
     plt.close(fig)
-    files.append("residual_vs_variables.png")
+    return "residual_vs_variables.png"
+
+
+def _components_plot(
+    plt: Any,
+    out: Path,
+    data: Data,
+    before: np.ndarray,
+    after: np.ndarray,
+    joint_names: Sequence[str],
+) -> str:
+    """Each base-frame component of the residual against each joint's angle."""
     nq = data.q.shape[1]
     fig, axes = plt.subplots(3, nq, figsize=(2.6 * nq, 7), squeeze=False, sharey="row")
     for row, axis in enumerate("xyz"):
@@ -212,15 +256,14 @@ def _plots(
             ax.plot(data.q[:, col], after[:, row], ".", ms=2, alpha=0.4, label="identified")
             ax.axhline(0.0, color="grey", lw=0.5)
             if row == 2:
-                ax.set_xlabel(f"{chain.robot.joint_names[col]} (rad)", fontsize=7)
+                ax.set_xlabel(f"{joint_names[col]} (rad)", fontsize=7)
             if col == 0:
                 ax.set_ylabel(f"base {axis} residual (mm)")
     axes[0, 0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(out / "residual_components_vs_joints.png", dpi=90)
     plt.close(fig)
-    files.append("residual_components_vs_joints.png")
-    return files
+    return "residual_components_vs_joints.png"
 
 
 def _stats_line(s: dict[str, Any]) -> str:
@@ -403,6 +446,13 @@ def _carried_markdown(report: dict[str, Any]) -> list[str]:
             f"held-out poses ({predicted['outside_calibrated_range_pct']:.0f} % outside its "
             f"calibrated joint ranges) and measured {predicted['measured_rms_mm']:.4f} mm; "
             f"{predicted['within_95_pct']:.0f} % of the poses lie within its 95 % band"
+            + (
+                f" (its between-session term {predicted['session_mm']:.4f} mm, from the "
+                f"{predicted['session_source']}, added in quadrature; without it "
+                f"{predicted['within_session_band']['within_95_pct']:.0f} %)"
+                if "session_mm" in predicted
+                else ""
+            )
         )
     return lines
 
@@ -461,6 +511,34 @@ def _leave_out_markdown(loso: dict[str, Any] | None) -> list[str]:
             f"{e['within_session_own_pos_rms_mm']:.4f} | {best_text} |"
         )
     lines += ["", loso["summary"]["verdict"]]
+    lines += _left_out_coverage(loso)
+    return lines
+
+
+def _left_out_coverage(loso: dict[str, Any]) -> list[str]:
+    """How the carried models' stated accuracy covered the sessions left out, and the
+    between-session term this model states from them."""
+    judged = [e for e in loso["entries"] if "stated_off_session" in e]
+    if not judged:
+        return []
+    lines = ["", "Stated accuracy on the session left out (fraction within the 95 % band):", ""]
+    for e in judged:
+        off, own = e["stated_off_session"], e["stated_within"]
+        lines.append(
+            f"- session {e['session'] + 1}: {off['within_95_pct']:.1f} % with the carried "
+            f"model's between-session term ({off['session_mm']:.4f} mm, from the "
+            f"{off['session_source']}; predicted {off['predicted_rms_mm']:.4f} mm RMS, measured "
+            f"{off['measured_rms_mm']:.4f}), {own['within_95_pct']:.1f} % with its "
+            "within-session figure alone"
+        )
+    term = loso.get("session_term")
+    if term:
+        lines += [
+            "",
+            f"Between-session term this model states (what the carried models missed beyond "
+            f"their within-session figure, over {term['sessions']} sessions left out): "
+            f"{term['session_mm']:.4f} mm, added in quadrature off-session.",
+        ]
     return lines
 
 
@@ -548,7 +626,13 @@ def _accuracy_markdown(report: dict[str, Any]) -> list[str]:
         "",
         f"Stated accuracy (model.toml; `predicted_position_sigma`): {acc['inside_mm']:.4f} mm "
         f"RMS within the calibrated joint ranges, {acc['outside_mm']:.4f} mm at "
-        f"{acc['taper_rad']:g} rad or more outside (the extrapolation bands' figure).",
+        f"{acc['taper_rad']:g} rad or more outside (the extrapolation bands' figure)"
+        + (
+            f"; in another session {acc['session_mm']:.4f} mm more in quadrature (the "
+            f"between-session term, from the {acc['session_source']})."
+            if "session_mm" in acc
+            else "."
+        ),
     ]
     cov = acc.get("held_out_coverage")
     if cov and cov.get("n"):

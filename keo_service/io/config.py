@@ -260,6 +260,10 @@ class ModelConfig(_Section):
     # the model's stated accuracy off its calibrated joint ranges (fit.accuracy: held-out
     # position RMS on extrapolation bands, mm); inside them it is accuracy_mm below
     accuracy_outside_mm: float = 0.0
+    # and what a session other than the calibration's adds to it in quadrature (mm; from
+    # leave-one-session-out, or the bands' default with one session), and how it was found
+    accuracy_session_mm: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
+    accuracy_session_source: str = ""
     temperature_m_per_c: list[float] = msgspec.field(default_factory=list)
     temperature_ref_c: float = 0.0
     time_drift_m_per_s: list[float] = msgspec.field(default_factory=list)

@@ -272,6 +272,12 @@ KEYS: dict[str, tuple[str, str]] = {
     "model.accuracy_mm": ("mm", "the model's held-out position RMS (keo compensate's accuracy)"),
     "model.accuracy_mrad": ("mrad", "and its orientation RMS"),
     "model.accuracy_outside_mm": ("mm", "held-out position RMS on extrapolation bands"),
+    "model.accuracy_session_mm": (
+        "mm",
+        "what another session adds to the stated accuracy in quadrature (from "
+        "leave-one-session-out, else the bands' default; 0: that default)",
+    ),
+    "model.accuracy_session_source": ("", "how accuracy_session_mm was found"),
     "model.ripple_joints": ("", "per periodic joint error term: the joint (0-based)"),
     "model.ripple_periods_rad": ("rad", "per term: the period in that joint's angle"),
     "model.ripple_sin": ("rad", "per term: amplitude of sin(2 pi q / period)"),

@@ -383,16 +383,20 @@ def _state_accuracy(
     if saved is None:
         say("the model states no accuracy (written by an older keo): nothing to compare")
         return
-    sigma = predicted_position_sigma(saved, val.q)
-    cov = coverage(sigma, error_mm)
+    # a new session: the stated accuracy with its between-session term (fit.accuracy)
+    cov = coverage(predicted_position_sigma(saved, val.q, off_session=True), error_mm)
     outside = distance_outside(val.q, saved.lower, saved.upper) > 0
     cov["outside_calibrated_range_pct"] = 100.0 * float(np.mean(outside))
+    cov["session_mm"] = saved.session_mm
+    cov["session_source"] = saved.session_source
+    cov["within_session_band"] = coverage(predicted_position_sigma(saved, val.q), error_mm)
     report["predicted_vs_measured"] = cov
     say(
         f"the model predicted {cov['predicted_rms_mm']:.4f} mm RMS on this session's "
         f"held-out poses ({cov['outside_calibrated_range_pct']:.0f} % outside its calibrated "
-        f"joint ranges); measured {cov['measured_rms_mm']:.4f} mm, "
-        f"{cov['within_95_pct']:.0f} % of the poses within its 95 % band"
+        f"joint ranges, {saved.session_mm:.4f} mm between sessions); measured "
+        f"{cov['measured_rms_mm']:.4f} mm, {cov['within_95_pct']:.0f} % of the poses within "
+        "its 95 % band"
     )
 
 
