@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -143,6 +144,27 @@ def test_twenty_seconds_show_no_drift_beyond_their_windows(demo_cell):
     assert not fit.drift_significant, (fit.drift, fit.drift_se)
     assert fit.drift == 0.0
     assert any("too short" in n for n in fit.notes), fit.notes
+
+
+@pytest.mark.parametrize("seed", [5, 17, 24])
+def test_the_drift_note_names_the_floor_it_was_judged_at(demo_cell, seed):
+    """Review of issue 45: a note said 'too short to show one below 572 ppm (1047.7 +/-
+    190.6 ppm ...)' -- the drift it printed beyond the floor it named, the floor from the
+    windows' se while the drift was judged at the larger of two. The note now states the se
+    the drift was judged at (the fit's drift_se), and the drift it prints is within the
+    floor."""
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "20"}), seed=seed)
+    fit = fit_run(demo_cell, run)
+    assert not fit.drift_significant
+    note = next(n for n in fit.notes if n.startswith("no clock drift shown"))
+    found = re.search(r"below (\S+) ppm \(the fit gives (\S+) \+/- (\S+) ppm", note)
+    assert found is not None, note
+    floor, drift, se = (float(x) for x in found.groups())
+    assert se == pytest.approx(fit.drift_se * 1e6, abs=0.051)
+    assert abs(drift) <= floor
+    assert floor >= 3 * se  # Student's t of a few windows: wider than a normal's 3 se
+    if floor < 100:  # the span that would show 100 ppm is named only when this one cannot
+        assert "would show" not in note
 
 
 def test_cli_reports_delay_and_the_reference_method(demo_cell, tmp_path):

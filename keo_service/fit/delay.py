@@ -306,12 +306,10 @@ def _judge_drift(
             )
         return claimed, drift_se
     windows = _windows(last.X_p[:, 0], last.y_p, trk_t, last.nch)
-    slope_se, note = _drift_from_windows(windows, trk_t, drift, claimed)
-    drift_se = max(drift_se, slope_se)
-    shown = claimed and abs(drift) > _shown_factor(len(windows)) * drift_se
-    if not shown:
+    drift_se, note = _drift_from_windows(windows, trk_t, drift, drift_se, claimed)
+    if note:
         notes.append(note)
-    return shown, drift_se
+    return not note, drift_se
 
 
 def fit_delay(
@@ -542,11 +540,16 @@ SHOWN_PROBABILITY = 0.99865  # one-sided: a drift beyond 3 sigma of a normal, ei
 
 
 def _drift_from_windows(
-    windows: list[tuple[float, float, float]], t: np.ndarray, drift: float, claimed: bool
+    windows: list[tuple[float, float, float]],
+    t: np.ndarray,
+    drift: float,
+    drift_se: float,
+    claimed: bool,
 ) -> tuple[float, str]:
-    """The drift's standard error from the recording's windows (`_windows`): a weighted line
-    through the windows' delays, its slope's se scaled by the windows' scatter about the line
-    beyond their own se (chi^2 per degree of freedom, when above one). And, for a drift not
+    """The drift's standard error: the larger of the samples' (`drift_se`) and the recording's
+    windows' (`_windows`: a weighted line through the windows' delays, its slope's se scaled by
+    the windows' scatter about the line beyond their own se, chi^2 per degree of freedom when
+    above one). And, for a drift not
     shown, a note with the smallest drift this recording can show (`_shown_factor` se) and the
     span that would show SHOWN_PPM (the slope's se falls as the span to the power 1.5 at a
     fixed window count and sample rate)."""
@@ -564,16 +567,21 @@ def _drift_from_windows(
     coef = cov_line @ (A * w[:, None]).T @ v
     chi2 = float(np.sum(w * (v - A @ coef) ** 2))
     slope_se = math.sqrt(float(cov_line[1, 1]) * max(1.0, chi2 / (len(v) - 2)))
+    # the drift is judged at the larger of the samples' and the windows' standard errors:
+    # the note states that one, so the drift it prints is always within the floor it names
+    se = max(drift_se, slope_se)
     k = _shown_factor(len(v))
-    if claimed and abs(drift) > k * slope_se:
-        return slope_se, ""
-    needed = span * (k * slope_se / (SHOWN_PPM * 1e-6)) ** (2 / 3)
-    return slope_se, (
+    if claimed and abs(drift) > k * se:
+        return se, ""
+    note = (
         f"no clock drift shown: this {span:.0f} s recording is too short to show one below "
-        f"{k * slope_se * 1e6:.3g} ppm ({drift * 1e6:.1f} +/- {slope_se * 1e6:.1f} ppm from "
-        f"the scatter of {len(v)} stretches); about {needed:.0f} s of such motion would show "
-        f"{SHOWN_PPM:g} ppm"
+        f"{k * se * 1e6:.3g} ppm (the fit gives {drift * 1e6:.1f} +/- {se * 1e6:.1f} ppm, "
+        f"the scatter of {len(v)} stretches counted)"
     )
+    if k * se > SHOWN_PPM * 1e-6:
+        needed = span * (k * se / (SHOWN_PPM * 1e-6)) ** (2 / 3)
+        note += f"; about {needed:.0f} s of such motion would show {SHOWN_PPM:g} ppm"
+    return se, note
 
 
 def _sample_interval(t: np.ndarray) -> float:
