@@ -9,6 +9,7 @@ import datetime
 import math
 import re
 import time
+from types import SimpleNamespace
 
 import msgspec
 import numpy as np
@@ -443,3 +444,20 @@ def test_a_source_on_the_host_clock_reads_as_the_time_of_day():
         "configured, confirmed by the fit at 05:54:12 UTC"
     )
     assert _when("fit at 42.5 s") == "fit at 42.5 s"  # a simulation's own clock: no date
+
+
+def test_the_log_says_when_the_delay_in_use_moved_beyond_its_standard_error(demo_cell):
+    """Review of issue 45: the delay in use moved 27.75 -> 27.97 ms with no log line (the
+    decision's kind had not changed). A move beyond the delay's standard error since the last
+    line is logged; a refinement within it is not."""
+    tracker = OnlineDelayTracker(demo_cell)
+    service = SimpleNamespace(_delay_said_value=tracker.delay_now())  # None: unknown
+    assert not KeoService._delay_moved(service, tracker)  # nothing in use, nothing moved
+    feed(tracker, [(25.3543e-3, 769.7e-6)])
+    assert KeoService._delay_moved(service, tracker)  # the first fit taken
+    service._delay_said_value = tracker.delay_now()
+    feed(tracker, [(30.4065e-3, 300.5e-6), (29.85e-3, 200e-6)], t0=5.0)
+    assert tracker.delay_now() == pytest.approx(30.0e-3, abs=0.3e-3)
+    assert KeoService._delay_moved(service, tracker)  # 25.4 -> 30 ms
+    service._delay_said_value = tracker.delay_now() - 0.5 * (tracker.applied_se or 0.0)
+    assert not KeoService._delay_moved(service, tracker)  # within its standard error

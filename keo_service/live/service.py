@@ -130,6 +130,7 @@ class KeoService:
         self._delay_tracker: OnlineDelayTracker | None = None
         self._delay_followed: float | None = None  # the delay last set from the tracker
         self._delay_said = ""  # the kind of the tracker's decision last logged
+        self._delay_said_value: float | None = None  # the delay in use then (s)
         self._fit_cpu_s = 0.0  # the delay fits' CPU time in the worker, all of them (s)
         self._fits: FitWorker | None = None  # the fits' worker process, while running
         if config.timing.track_delay:
@@ -138,6 +139,7 @@ class KeoService:
             self._delay_tracker = OnlineDelayTracker(
                 cell, None, *delay_prior(config.timing), max_gap_s=config.timing.max_gap_s
             )
+            self._delay_said_value = self._delay_tracker.delay_now()
         # the outputs, in order: bus, corrections, ROS 2, Rerun (`keo_service.live.sinks`)
         self.sinks = Sinks()
         self._viz: RerunSink | None = None
@@ -535,9 +537,21 @@ class KeoService:
                 self._follow_tracked_delay(tracker)
             # said when the kind of decision changes (a refusal's advice once, not at every
             # stretch); every decision stays in the status line and at debug level
+            # and when the delay in use moved by more than its standard error since last said
             said, self._delay_said = self._delay_said, tracker.state
-            level = logging.INFO if tracker.state != said else logging.DEBUG
+            moved = self._delay_moved(tracker)
+            level = logging.INFO if tracker.state != said or moved else logging.DEBUG
+            if level == logging.INFO:
+                self._delay_said_value = tracker.delay_now()
             log.log(level, "delay tracking: %s", tracker.last_result)
+
+    def _delay_moved(self, tracker: OnlineDelayTracker) -> bool:
+        """Whether the delay in use is further from the one last logged than its standard
+        error: a change a user would want in the log, not a refinement within the noise."""
+        now, before = tracker.delay_now(), self._delay_said_value
+        if now is None or before is None:
+            return now is not before
+        return abs(now - before) > (tracker.applied_se or 0.0)
 
     async def _sink_loop(self, sink: Sink) -> None:
         """A sink's own cycle (the corrections' validity, Rerun's status snapshots), its
