@@ -694,17 +694,28 @@ class OnlineDelayTracker:
                 f"{said}; kept: {agreed}, but the newest stretch's motion cannot separate "
                 f"a delay from a tool error to better than {newest.sep_se * 1e6:.0f} us"
             )
+        return f"{said}; {self._change_if_better(t, (c, se_c, agreed), applied, z)}"
+
+    def _change_if_better(
+        self, t: float, consensus: tuple[float, float, str], applied: float, z: float
+    ) -> str:
+        """Gate (c) of `_decide`: the change is taken only when, on the newest stretch's
+        samples, the residual scatter is lower with the consensus (value, se, how many agree)
+        than with the delay in use, `z` sigma from it: the data must show the improvement,
+        not only the fits' standard errors."""
+        c, se_c, agreed = consensus
+        newest = self._recent[-1]
         old = math.hypot(newest.rms, (applied - newest.value) * newest.speed)
         new = math.hypot(newest.rms, (c - newest.value) * newest.speed)
         if not new < old:
             self.counters["changes_not_better"] += 1
-            return f"{said}; kept: scatter {new * 1e6:.1f} um with it, {old * 1e6:.1f} um without"
+            return f"kept: scatter {new * 1e6:.1f} um with it, {old * 1e6:.1f} um without"
         self._take(c, se_c, t, step=True)
         self._trend.start(c, se_c * se_c, newest.t)
         self._trend_fits = 0
         self.counters["changes"] += 1
         return (
-            f"{said}; changed: {agreed} ({z:.1f} sigma from {applied * 1e6:.1f} us), scatter "
+            f"changed: {agreed} ({z:.1f} sigma from {applied * 1e6:.1f} us), scatter "
             f"on the newest stretch {old * 1e6:.1f} -> {new * 1e6:.1f} um"
         )
 

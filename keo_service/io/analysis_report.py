@@ -273,7 +273,8 @@ def _stats_line(s: dict[str, Any]) -> str:
     )
 
 
-def markdown(report: dict[str, Any], plots: list[str]) -> str:
+# complexity (C901): one section per optional part of the analysis
+def markdown(report: dict[str, Any], plots: list[str]) -> str:  # noqa: C901
     lines = [
         "# keo analyze",
         "",
@@ -345,7 +346,8 @@ def markdown(report: dict[str, Any], plots: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _parameters_markdown(effects: list[dict[str, Any]]) -> list[str]:
+# complexity (C901): per effect its maps, spectra, records and combinations, each optional
+def _parameters_markdown(effects: list[dict[str, Any]]) -> list[str]:  # noqa: C901
     """Each kept effect's parameters (value +/- standard error), combinations the poses
     see only together once, and what the poses cannot tell apart."""
     lines: list[str] = []

@@ -594,7 +594,8 @@ class KeoService:
             query.reply(topic(self.cell, "status"), self._status_bytes)
 
 
-async def run_service(
+# complexity (C901): start-up in order, each optional part (ROS 2, Rerun, systemd) a branch
+async def run_service(  # noqa: C901
     config: Config,
     rrd: Path | None = None,
     viewer: str | None = None,
