@@ -295,6 +295,20 @@ session.close()
 """
 
 
+def _listening(watch, access, tries: int = 3):
+    """A peer session listening on a free loopback port, with another port if one was taken
+    between asking and binding: a zenoh session's outgoing links take ephemeral ports from
+    the same range (CI saw "Address already in use" once)."""
+    for attempt in range(tries):
+        endpoint = f"tls/localhost:{free_port()}"
+        try:
+            return endpoint, open_session("peer", [endpoint], tls=watch.bus, access=access)
+        except zenoh.ZError as exc:
+            if "Address already in use" not in str(exc) or attempt == tries - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
 def test_a_client_peer_linked_directly_cannot_put(demo_config, tmp_path):
     """No hub in between: peer processes link straight to a listening keo session and put
     encoder samples and corrections. The encoder identity's samples arrive; a client
@@ -310,12 +324,10 @@ def test_a_client_peer_linked_directly_cannot_put(demo_config, tmp_path):
         for name in ("enc.demo", "hmi.demo", "watch.demo")
     }
     watch = load_config(cfg["watch.demo"])
-    guarded, open_ = f"tls/localhost:{free_port()}", f"tls/localhost:{free_port()}"
     # two listening leaves with the operator's certificate: one with keo's rules, one without
-    receivers = {
-        guarded: open_session("peer", [guarded], tls=watch.bus, access=leaf_access(watch)),
-        open_: open_session("peer", [open_], tls=watch.bus, access=None),
-    }
+    guarded, guarded_session = _listening(watch, leaf_access(watch))
+    open_, open_session_ = _listening(watch, None)
+    receivers = {guarded: guarded_session, open_: open_session_}
     subs = {ep: BlockingSubscription(s, "keo/demo/**") for ep, s in receivers.items()}
     n = 40
     runs = {  # seq base -> (identity, endpoint, rules on the putting side)

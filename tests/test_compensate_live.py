@@ -260,6 +260,7 @@ def run_closed_loop(
 
 
 @pytest.mark.e2e
+@pytest.mark.slow  # 17 s of a live correction loop; the default run stays under 10 min
 def test_a_constant_tool_error_is_compensated_and_stops_when_the_beam_breaks(tmp_path):
     config = closed_loop_config()
     brk = 8.0

@@ -177,6 +177,7 @@ def test_chain_as_processes(live_config, demo_cell, tmp_path):
     assert all(len(e.estimate) == 6 and len(e.channels) == 6 for e in estimates)
 
 
+@pytest.mark.slow  # 17 s; the default run stays under 10 min on 2 cores
 def test_echo_prints_estimates_as_json(live_config, demo_cell, tmp_path):
     """The clients first, then the devices, which play until every client has had what it
     needs: nothing assumes when a process is up (they start late on a loaded machine)."""

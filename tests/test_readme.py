@@ -66,6 +66,7 @@ def user_folder(tmp_path: Path) -> Path:
 
 
 @pytest.mark.e2e
+@pytest.mark.slow  # 40 s: a whole demo; the default run stays under 10 min on 2 cores
 def test_the_client_snippets_run_against_the_demo_as_the_readme_starts_it(tmp_path):
     """`keo demo --listen ...` as the README writes it, then both client snippets unchanged
     but for the port (a free one, so that tests never meet)."""

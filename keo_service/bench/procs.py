@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import os
 import signal
@@ -12,11 +13,21 @@ import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
+_GIVEN: collections.deque[int] = collections.deque(maxlen=256)  # the ports handed out last
+
 
 def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A TCP port free on the loopback now, and none of the last ports this process was
+    given: the kernel may hand the same port to two binds in a row once the first socket is
+    closed, and two endpoints of one test then collide ("Address already in use")."""
+    for _ in range(64):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind(("127.0.0.1", 0))
+            port = int(s.getsockname()[1])
+        if port not in _GIVEN:
+            _GIVEN.append(port)
+            return port
+    raise OSError("no free loopback port that was not just handed out (64 tries)")
 
 
 class ProcessGroup:
