@@ -19,7 +19,7 @@ from keo_service.bench.demo import loopback_config
 from keo_service.fit.delay_online import (
     DelayMeasurement,
     OnlineDelayTracker,
-    stale_joint_intervals,
+    resent_joint_intervals,
 )
 from keo_service.live.bus import session_for_client
 from keo_service.live.messages import (
@@ -182,7 +182,7 @@ def test_fits_are_refused_across_an_encoder_gap(demo_cell):
 
 
 @pytest.mark.parametrize("frozen", [(4.0, 5.0), (2.0, 3.5)])
-def test_stale_joints_after_an_encoder_stall_are_left_out_of_the_fit(demo_cell, frozen):
+def test_joint_rows_resent_after_an_encoder_stall_are_left_out_of_the_fit(demo_cell, frozen):
     """A stalled encoder sender that resends its newest row: the stamps go on while the
     joints stand still, then jump to where the arm is. Fitted, those samples read a delay
     into a made-up motion (the fit refused, blaming the motion). Left out, the stretch's
@@ -202,14 +202,14 @@ def test_stale_joints_after_an_encoder_stall_are_left_out_of_the_fit(demo_cell, 
     assert found.delay_s == pytest.approx(0.028, abs=3 * found.se_s + 0.1e-3)
 
 
-def test_stale_joint_intervals_only_where_repeated_rows_end_in_a_jump():
+def test_resent_joint_intervals_only_where_repeated_rows_end_in_a_jump():
     ramp = np.linspace(0.0, 1.0, 11)[:, None] * np.ones((1, 6))
-    assert not stale_joint_intervals(ramp).any()  # steady motion
+    assert not resent_joint_intervals(ramp).any()  # steady motion
     start = np.vstack([np.zeros((5, 6)), ramp[:6] ** 2])  # from rest, speeding up
-    assert not stale_joint_intervals(start).any()
+    assert not resent_joint_intervals(start).any()
     stalled = ramp.copy()
     stalled[4:8] = stalled[3]  # four rows resent, then the jump back onto the ramp
-    assert stale_joint_intervals(stalled).tolist() == [False] * 3 + [True] * 5 + [False] * 2
+    assert resent_joint_intervals(stalled).tolist() == [False] * 3 + [True] * 5 + [False] * 2
 
 
 # ---- the service ------------------------------------------------------------------------------

@@ -986,7 +986,7 @@ def _covered(
     k = np.searchsorted(enc_t, at)
     inside = (k > 0) & (k < enc_t.size)
     k = np.clip(k, 1, enc_t.size - 1)
-    sound = (np.diff(enc_t) <= max_gap_s) & ~stale_joint_intervals(enc_q)
+    sound = (np.diff(enc_t) <= max_gap_s) & ~resent_joint_intervals(enc_q)
     keep = inside & sound[k - 1]
     return enc_t, enc_q, trk_t[keep], trk_p[keep], None if trk_q is None else trk_q[keep]
 
@@ -1008,8 +1008,10 @@ def _without_fit_values(decision: str) -> str:
     return decision
 
 
-def stale_joint_intervals(enc_q: np.ndarray, ratio: float = 4.0, floor: float = 1e-3) -> np.ndarray:
-    """Per encoder interval, True where the joints are stale: a run of repeated rows that
+def resent_joint_intervals(
+    enc_q: np.ndarray, ratio: float = 4.0, floor: float = 1e-3
+) -> np.ndarray:
+    """Per encoder interval, True where its joints were resent: a run of repeated rows that
     ends in a jump (a step `ratio` times larger than the step after it and over `floor`
     rad). That is what an encoder stream looks like after its sender stalled and resent its
     newest row: the stamps go on while the joints stand still, then catch up at once. The
@@ -1018,15 +1020,15 @@ def stale_joint_intervals(enc_q: np.ndarray, ratio: float = 4.0, floor: float = 
     if enc_q.ndim != 2 or enc_q.shape[0] < 3:
         return np.zeros(max(enc_q.shape[0] - 1, 0), dtype=bool)
     step = np.max(np.abs(np.diff(enc_q, axis=0)), axis=1)
-    stale = np.zeros(step.size, dtype=bool)
+    resent = np.zeros(step.size, dtype=bool)
     after = np.append(step[1:], np.inf)
     for jump in np.flatnonzero((step > floor) & (step > ratio * after)):
         start = jump
         while start > 0 and step[start - 1] == 0.0:
             start -= 1
-        if start < jump:  # repeated rows before the jump: stale, the jump with them
-            stale[start : jump + 1] = True
-    return stale
+        if start < jump:  # repeated rows before the jump: resent, the jump with them
+            resent[start : jump + 1] = True
+    return resent
 
 
 @dataclass(frozen=True)
