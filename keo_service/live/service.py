@@ -41,6 +41,7 @@ from keo_service.live.messages import (
 )
 from keo_service.live.sinks import EstimateBusSink, RerunSink, Sinks
 from keo_service.live.supervise import supervise
+from keo_service.live.tool_speed import ToolSpeed
 
 # keys a SIGHUP applies without a restart
 HOT_KEYS = frozenset({"observer.gain", "timing.delay_s", "timing.drift_ppm", "timing.drift_ref_s"})
@@ -127,6 +128,7 @@ class KeoService:
         self.cell = config.cell
         cell = cell_from_config(config)
         self.estimator = Estimator(cell, estimator_settings(config))
+        self._tool_speed = ToolSpeed(cell)  # sampled in the status cycle, not per estimate
         self._delay_tracker: OnlineDelayTracker | None = None
         self._delay_followed: float | None = None  # the delay last set from the tracker
         self._delay_said = ""  # the kind of the tracker's decision last logged
@@ -388,6 +390,7 @@ class KeoService:
             seq=self._seq,
             delay_s=self.estimator.delay.at(estimate.stamp),
             delay_se_s=self.delay_se(),
+            tool_speed_m_s=self._tool_speed.at(estimate.stamp),
         )
         tracker = self._delay_tracker
         if tracker is not None and not tracker.settled:
@@ -470,6 +473,7 @@ class KeoService:
     async def _status_loop(self) -> None:
         while not self._stop.is_set():
             self._resolve_if_quiet()
+            self._tool_speed.sample(self.estimator.last)
             self._refresh_status()
             await asyncio.sleep(STATUS_PERIOD_S)
 
