@@ -461,3 +461,52 @@ def test_the_log_says_when_the_delay_in_use_moved_beyond_its_standard_error(demo
     assert KeoService._delay_moved(service, tracker)  # 25.4 -> 30 ms
     service._delay_said_value = tracker.delay_now() - 0.5 * (tracker.applied_se or 0.0)
     assert not KeoService._delay_moved(service, tracker)  # within its standard error
+
+
+def test_the_fits_scatter_is_measured_among_fits_of_unequal_precision():
+    """Issue 45 item 2, the all-joints-slow rows with geometric errors (86.7-87.6 % of fits
+    within 2.5 se): precise fits (se 20 us) scattered by 600 us, their stretches' error model
+    biased, among fits whose se counts a large error-model disagreement (1.5 ms). The
+    scatter beyond the fits' own se (tau) was the values' spread less the median of their
+    variances, which the rough fits set: tau at its floor, the precise fits 30 se off. Drawn
+    with a known tau (600 us), the estimate finds it."""
+    from keo_service.fit.delay_online import excess_variance
+
+    rng = np.random.default_rng(3)
+    found = []
+    for _ in range(200):
+        se = np.where(rng.random(16) < 0.5, 20e-6, 1.5e-3)
+        values = rng.normal(0.0, np.sqrt(se**2 + (600e-6) ** 2))
+        found.append(math.sqrt(excess_variance(values, se, (2e-6) ** 2)))
+    # 16 values: the estimate scatters (its median within 20 % of the truth)
+    assert np.median(found) == pytest.approx(600e-6, rel=0.2)
+
+
+def test_one_wild_fit_does_not_set_the_scatter_of_the_others():
+    """The issue's cell from delay_s = 0: a first fit 6.5 se off the truth (25.35 +/- 0.77
+    ms), then two right ones (30.41 +/- 0.30, 29.85 +/- 0.20 ms). The others' scatter is
+    theirs (a few hundred us), not the wild fit's (Paule-Mandel over all three: 2.7 ms)."""
+    from keo_service.fit.delay_online import excess_variance
+
+    values = np.array([25.3543e-3, 30.4065e-3, 29.85e-3])
+    se = np.array([769.7e-6, 300.5e-6, 200e-6])
+    assert math.sqrt(excess_variance(values, se, (2e-6) ** 2)) < 1e-3
+    # and with the fits agreeing within their se there is nothing beyond them
+    assert excess_variance(np.array([30.0e-3, 30.1e-3, 29.95e-3]), se, 4e-12) == 4e-12
+
+
+def test_one_precise_fit_among_rough_ones_does_not_settle_the_delay(demo_cell):
+    """MotoROS stop-and-go from delay_s = 0 (seed 0 of the matrix): two rough fits (se 0.64
+    ms) and one precise stretch 2.9 se off (253 us, se 87 us at 0.13 m/s) settled the delay
+    243 us off, 56 um at the moves' speed, unflagged. The precision to settle must be shown
+    by two stretches, the later confirming the earlier; a second precise fit settles it."""
+    truth = 30e-3
+    tracker = OnlineDelayTracker(demo_cell)
+    for i, (err, se, speed) in enumerate(
+        [(21.6e-6, 643e-6, 0.135), (33.0e-6, 638e-6, 0.053), (-252.7e-6, 86.9e-6, 0.128)]
+    ):
+        tracker.combine(DelayMeasurement(truth + err, se, speed, 2.7 + 5.0 * i))
+        assert not tracker.settled, tracker.last_result
+    tracker.combine(DelayMeasurement(truth + 20e-6, 90e-6, 0.16, 27.8))
+    assert tracker.settled, tracker.last_result
+    assert abs(tracker.delay_now() - truth) * 0.16 < 20e-6, tracker.last_result

@@ -584,20 +584,21 @@ class OnlineDelayTracker:
         return math.sqrt(fit_se * fit_se + self._tau2())
 
     def _tau2(self) -> float:
-        """tau^2 from the recent fits (of settled mappings when there are three): their
-        scatter about their median, robustly (the median absolute deviation as a normal's
-        sigma, so that one wild fit among three does not make every fit look wild), less their
-        own variance; `first_tau_s`^2 until three fits say."""
+        """tau^2 from the recent fits (all the segment keeps, up to 16, of settled mappings
+        when there are three): the scatter of their values beyond their own standard errors
+        (`excess_variance`); `first_tau_s`^2 until three fits say. All of them, not the five
+        of the consensus: neighbouring stretches of a slow motion share much of their error
+        model's bias, so the scatter shows only over more than the motion's period, and a
+        scale from five values (four degrees of freedom) lets 2.5 of it cover a normal fit
+        93 % of the time at best."""
         fits = [f for f in self._recent if not f.young]
         if len(fits) < 3:
             fits = list(self._recent)
-        fits = fits[-self.settings.consensus_fits :]
         if len(fits) < 3:
             return self.settings.first_tau_s**2
         values = np.array([f.value for f in fits])
-        spread = _mad_sigma(values) ** 2
-        own = float(np.median([f.se**2 for f in fits]))
-        return max(self.min_wander_s**2, spread - own)
+        ses = np.array([f.se for f in fits])
+        return excess_variance(values, ses, self.min_wander_s**2)
 
     def consensus(self) -> tuple[float, float, list[_Fit]] | None:
         """The recent fits' robust consensus: the weighted median, then the weighted mean of
@@ -736,8 +737,11 @@ class OnlineDelayTracker:
         # speed, whose fits agree on a value the motion cannot tell from a tool error)
         separates = not newest.sep_se * newest.speed > self.settings.settle_m
         # fits of one motion are biased alike (the stamps' errors and the stretches'
-        # error model change slowly): their mean is known no better than the best of them
-        se_settle = max(se_c, min(self.honest_se(f.se) for f in members))
+        # error model change slowly): their mean is known no better than the best of them;
+        # and one precise fit among rough ones is that fit alone, whose own se may miss (a
+        # stretch 2.9 se off settled a MotoROS stop-and-go run 243 us off): two stretches
+        # must each know the delay that well, a later one confirming an earlier one
+        se_settle = max(se_c, sorted(self.honest_se(f.se) for f in members)[1])
         if grown and separates and se_settle * speed <= self.settings.settle_m:
             self.settled = True
             self._trend.start(c, se_c * se_c, newest.t)
@@ -964,6 +968,59 @@ def _reported_se(own_se: float, model: float, sep: float) -> float:
     fitted precisely and wrongly). docs/timing-delay.md has the coverage each brought."""
     se = own_se if not math.isfinite(model) else math.hypot(own_se, model)
     return max(se, sep) if math.isfinite(sep) else se
+
+
+def excess_variance(values: np.ndarray, se: np.ndarray, floor: float) -> float:
+    """tau^2, the variance the values scatter by beyond their own standard errors.
+
+    Paule and Mandel's estimator of the "dark uncertainty" between laboratories that measured
+    one quantity (a random effect, as in key comparisons; stretches of one motion are such
+    laboratories, each with its own error model's bias): the tau^2 at which the values'
+    weighted scatter about their weighted mean, each weighted by 1 / (se^2 + tau^2), is what
+    n values of those variances show (chi^2 = n - 1). Fits of unequal precision need it: the
+    median of the fits' variances taken off a common scatter (the estimator before) let fits
+    whose se counts a large error-model disagreement hide the scatter of precise fits ten
+    times their se apart. Taken over the values within `SCATTER_SIGMAS` of their weighted
+    median, starting from the robust scatter (their median absolute deviation less their
+    median variance) and growing with what the members show, so that one wild value (a first
+    fit 6.5 se off in the issue's cell) does not set the scatter of the others. At least
+    `floor`."""
+    tau2 = max(floor, _mad_sigma(values) ** 2 - float(np.median(se * se)))
+    for _ in range(20):
+        sig = np.sqrt(se * se + tau2)
+        order = np.argsort(values)
+        cw = np.cumsum(1.0 / sig[order] ** 2)
+        centre = float(values[order][np.searchsorted(cw, 0.5 * cw[-1])])
+        members = np.abs(values - centre) <= SCATTER_SIGMAS * sig
+        if members.sum() < 2:
+            return tau2
+        grown = max(tau2, _paule_mandel(values[members], se[members], floor))
+        if grown <= tau2 * 1.001:
+            return grown
+        tau2 = grown
+    return tau2
+
+
+SCATTER_SIGMAS = 4.0  # a fit this far off the others' weighted median does not set their scatter
+
+
+def _paule_mandel(values: np.ndarray, se: np.ndarray, floor: float) -> float:
+    """The tau^2 at which sum w (x - mean_w)^2 = n - 1, w = 1 / (se^2 + tau^2) (at least
+    `floor`), by bisection in log tau^2: the weighted scatter falls as tau^2 grows."""
+    n = values.size
+
+    def excess(tau2: float) -> float:
+        w = 1.0 / (se * se + tau2)
+        mean = float(np.sum(w * values) / np.sum(w))
+        return float(np.sum(w * (values - mean) ** 2)) - (n - 1)
+
+    if n < 2 or excess(floor) <= 0.0:
+        return floor
+    lo, hi = math.log(floor), math.log(max(floor, float(np.ptp(values)) ** 2) * 4.0)
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if excess(math.exp(mid)) > 0.0 else (lo, mid)
+    return math.exp(hi)
 
 
 def _triples(items: list[_T]) -> list[tuple[_T, _T, _T]]:
