@@ -30,7 +30,8 @@ from keo_service.live.messages import (
     encode,
     topic,
 )
-from keo_service.live.service import KeoService, _when
+from keo_service.live.service import KeoService, _delay_state_of
+from keo_service.live.status_view import delay_tracking_text
 from keo_service.sim.simulate import make_scenario, simulate
 
 SPEED = 0.24  # m/s, the tool speed of issue 31's runs
@@ -425,25 +426,44 @@ def test_separable_se_matches_the_analytic_information_of_a_varying_speed():
 
 def test_the_status_line_shows_one_delay_and_the_log_keeps_the_fits(demo_cell):
     """Issue 45 item 4: the status says the delay in use once; the decision's reason speaks
-    of the fits without giving a second, different delay. The log line keeps each value."""
+    of the fits without giving a second, different delay. The log line keeps each value. The
+    decision is data (verdict, reason, the fit's value and se, time), rendered to words in one
+    place; before, the words were cut out of the log line by patterns."""
     us_value = re.compile(r"\d+\.\d+ \+/- \d+\.\d+ us|\d+\.\d+ us")
     configured = OnlineDelayTracker(demo_cell, prior_s=0.030, prior_se_s=0.0005)
     unknown = OnlineDelayTracker(demo_cell)
+    fits = [(29.9e-3, 300e-6), (30.2e-3, 250e-6), (29.7e-3, 2e-3), (3.3e-3, 1e-3)]
     for tracker in (configured, unknown):
-        feed(tracker, [(29.9e-3, 300e-6), (30.2e-3, 250e-6), (29.7e-3, 2e-3), (3.3e-3, 1e-3)])
+        feed(tracker, fits)
         assert us_value.search(tracker.last_result), tracker.last_result
-        words = tracker.last_decision()
+        decision = tracker.decision
+        assert decision.verdict in {"kept", "unsettled", "settled", "changed"}, decision
+        assert not us_value.search(decision.reason), decision
+        # the newest fit's value is in the data, not in the words
+        assert decision.fit_s == pytest.approx(fits[-1][0])
+        assert decision.fit_se_s >= fits[-1][1]
+        state = _delay_state_of(tracker)
+        words = delay_tracking_text(state)
         assert not us_value.search(words), words
-        assert words.split(":")[0] in {"kept", "unsettled", "settled", "changed"}, words
+        assert words.endswith(f"{decision.verdict}: {decision.reason}"), words
+        # the wire form round-trips, and the document's plain values render the same words
+        doc = msgspec.to_builtins(state)
+        assert delay_tracking_text(doc) == words
+    assert delay_tracking_text(_delay_state_of(configured)).startswith("configured")
+    assert delay_tracking_text(_delay_state_of(unknown)).startswith("fit at")
 
 
 def test_a_source_on_the_host_clock_reads_as_the_time_of_day():
     stamp = datetime.datetime(2026, 11, 28, 5, 54, 12, tzinfo=datetime.UTC).timestamp()
-    assert _when(f"fit at {stamp + 0.4:.1f} s") == "fit at 05:54:12 UTC"
-    assert _when(f"configured, confirmed by the fit at {stamp:.1f} s") == (
-        "configured, confirmed by the fit at 05:54:12 UTC"
+    text = delay_tracking_text({"source": "fit", "source_t": stamp + 0.4, "settled": True})
+    assert text == "fit at 05:54:12 UTC"
+    confirmed = {"source": "confirmed", "source_t": stamp, "verdict": "kept", "reason": "r"}
+    assert delay_tracking_text(confirmed) == (
+        "configured, confirmed by the fit at 05:54:12 UTC; kept: r"
     )
-    assert _when("fit at 42.5 s") == "fit at 42.5 s"  # a simulation's own clock: no date
+    # a simulation's own clock: no date; unsettled said
+    text = delay_tracking_text({"source": "fit", "source_t": 42.5, "settled": False})
+    assert text == "fit at 42.5 s, unsettled"
 
 
 def test_the_log_says_when_the_delay_in_use_moved_beyond_its_standard_error(demo_cell):
