@@ -368,9 +368,28 @@ async def test_estimates_are_flagged_until_an_unknown_delay_settles(demo_config)
         async with KeoService(config) as service:
             msg = service.to_message(record)
             status = service.status()
+            # the tool's speed: none without joints; from two estimates with joints, the
+            # nominal tool point's displacement over their time (the status cycle samples)
+            q = np.full(6, 0.3)
+            moved = [
+                Estimate(t, [0.0] * 6, [0.0] * 6, (), t, record.channels, q + 0.1 * t)
+                for t in (2.0, 2.1)
+            ]
+            for est in moved:
+                service._tool_speed.sample(est)
+            fast = service.to_message(moved[-1])
+        assert msg.tool_speed_m_s is None
+        assert fast.tool_speed_m_s is not None
+        assert 0.01 < fast.tool_speed_m_s < 5.0
         assert ("delay_unsettled" in msg.flags) == flagged
         assert status.delay_tracking is not None
         assert status.delay_tracking.startswith("unknown, unsettled" if flagged else "configured")
+        # the same words as data, in the status and in every estimate
+        assert status.delay_state is not None
+        assert msg.delay_state == status.delay_state
+        assert status.delay_state.source == ("unknown" if flagged else "configured")
+        assert status.delay_state.settled is not flagged
+        assert status.delay_state.verdict == "waiting"
         if not flagged:
             assert msg.delay_se_s == pytest.approx(0.0005)  # the configured prior's default
 
