@@ -195,12 +195,19 @@ def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
     good = [m for m in est if not set(m.flags) - {"delay_unsettled"}]
     g_stamps = np.array([m.stamp for m in good])
     err = np.array([m.estimate for m in good]) - truth
-    # judged: from SETTLE_S after the start and after each restart until the next kill
+    # judged: from SETTLE_S after the start and after each restart until the next kill. After
+    # the start (delay_s = 0) an estimate the tracker flags as unsettled is not judged: issue
+    # 45's rule (flagged until the delay is known, within 50 um 20 s after the motion starts,
+    # checked by the delay scenario matrix) replaces issue 31's 10 s there; it failed at load
+    # 5-12 when fits under load came with se of 300 us. After each restart the delay is known
+    # and every estimate is judged, flagged or not.
+    unsettled = np.array(["delay_unsettled" in m.flags for m in good])
     starts = [t0 + SETTLE_S] + [r + SETTLE_S for r in restarts]
     ends = [t0 + k for k in KILLS] + [t0 + PLAY_S]
     judged = np.zeros(g_stamps.size, dtype=bool)
     for a, b in zip(starts, ends, strict=True):
         judged |= (g_stamps > a) & (g_stamps < b)
+    judged &= ~(unsettled & (g_stamps < t0 + KILLS[0]))
     # the delay each estimate needed: its tracker sample's stamp error minus that of the
     # encoder's stamps then (their median over half a second), plus the injected delay; the
     # stamps' errors walk with load (by 90 us in the last 10 s of one run), so the delay in use
@@ -243,7 +250,7 @@ def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
 
     def phase(a: float, b: float) -> dict[str, float]:
         """The judged estimates' error in one mapping's life [um, urad]."""
-        w = (g_stamps > a) & (g_stamps < b)
+        w = judged & (g_stamps > a) & (g_stamps < b)
         if not w.any():  # no estimate judged in this phase: reported, and the asserts fail
             return {
                 "max_um": math.inf,
