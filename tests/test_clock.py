@@ -180,3 +180,33 @@ def test_a_stretch_of_faster_delivery_does_not_move_the_stamps(rate_hz, drift_pp
     t = s.h - s.h[0]
     before = np.median(err[(t > 20.0) & (t < 30.0)])
     assert np.max(np.abs(err[t > 30.0] - before)) < 20e-6
+
+
+@pytest.mark.parametrize(
+    ("rise", "tolerance_s"), [((0.0, 10.4, 0.07), 60e-6), ((5.0, 12.0, 0.06), 5e-6)]
+)
+def test_a_host_that_ran_behind_for_seconds_is_no_clock_step(rise, tolerance_s):
+    """The host falls 60-70 ms behind the stream for 10-12 s (a loaded CI machine: the case a
+    CI run caught, two false steps at 10.4 s and stamps off by 0.64 ms p99), then catches up.
+    No step is called: the lag comes back down a sample period per sample, to where it was or
+    below. Once caught up the stamps sit on the floor again: within `tolerance_s` of the
+    truth (60 us while the drift is learned anew after a backlog from the start)."""
+    s = stream(25.0, seed=0, rise=rise, late_s=0.006, burst_every_s=0.2)
+    mapper = ClockMapper()
+    err = mapped_errors(mapper, s)
+    assert mapper.steps == 0
+    caught_up = s.h - s.h[0] > rise[0] + rise[1] + 1.0
+    assert np.max(np.abs(err[caught_up])) < tolerance_s
+
+
+def test_a_forward_device_clock_step_after_a_backlog_is_still_a_step():
+    """After a 70 ms backlog (3-10 s) the device clock jumps 60 ms ahead at 14 s: the lag
+    falls at once, below anything the window saw: one step, relearned."""
+    s = stream(25.0, drift_ppm=0.0, seed=3, rise=(3.0, 7.0, 0.07), late_s=0.002)
+    jumped = s.h - s.h[0] > 14.0
+    d = np.where(jumped, s.d + 0.06, s.d)
+    mapper = ClockMapper()
+    out = np.array([mapper.map(di, ri) for di, ri in zip(d, s.r, strict=True)])
+    assert mapper.steps == 1
+    settled = s.h - s.h[0] > 16.0
+    assert np.max(np.abs(out[settled] - s.h[settled] - FLOOR_S)) < 15e-6

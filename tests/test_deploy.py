@@ -173,8 +173,10 @@ def test_compose_commands_two_cells_through_a_router(tmp_path):
             ):
                 procs.start(f"{cell}-{name}", localize(commands[name], cfg, router, work))
         config1 = load_config(cells["cell1"])
-        wait_for_status(config1)
-        wait_for_status(load_config(cells["cell2"]))
+        # eleven processes start at once (each imports numpy, pinocchio and zenoh): on a
+        # loaded 2-core machine the router answered after more than 20 s once
+        wait_for_status(config1, timeout=60.0)
+        wait_for_status(load_config(cells["cell2"]), timeout=60.0)
         # a client elsewhere subscribes to keo/*/estimate and sees every cell
         seen: dict[str, int] = {}
         session = session_for_client(config1, retry_for=10)

@@ -71,3 +71,49 @@ async def test_a_late_row_describes_the_instant_it_goes_out(demo_cell):
     moving = described > 1.2
     assert moving.sum() > 150
     assert np.max(np.linalg.norm(seen - truth, axis=1)[moving]) < 0.2e-6
+
+
+async def test_a_device_clock_never_goes_back_when_this_process_wakes_late(demo_cell):
+    """Planned stalls (rows held up to 20 ms, then out together) while this process is
+    blocked for 60 ms at a time (a loaded machine): a row sent late on time describes the
+    instant it goes out, and a held-up row after it used to describe its planned instant,
+    earlier (a CI run saw device stamps go back by more than 50 ms: false clock steps). Now
+    no described instant goes back, and each pose is still the motion's at its instant."""
+    played = simulate(demo_cell, make_scenario("path", SETS), seed=3)
+    dense = simulate(demo_cell, make_scenario("path", {**SETS, "tracker_rate_hz": "10000"}), 3)
+    t0 = time.time() + 0.5
+    port = free_port()
+    settings = MockSettings(
+        host="127.0.0.1",
+        port=port,
+        t0=t0,
+        device_clock=(OFFSET_S, DRIFT_PPM),
+        late_ms=20.0,
+        burst_every_s=0.1,
+    )
+    mock = MockTracker(played.tracker, settings, instants=played.physical_t)
+    await mock.start()
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    rows: list[dict] = []
+
+    async def block_the_loop() -> None:
+        while True:
+            await asyncio.sleep(0.05)
+            time.sleep(0.06)  # the whole process stalls: the mock wakes late
+
+    blocker = asyncio.create_task(block_the_loop())
+    try:
+        await reader.readuntil(b"\n")  # hello
+        while time.time() < t0 + 3.5:
+            rows.append(json.loads(await reader.readuntil(b"\n")))
+    finally:
+        blocker.cancel()
+        writer.close()
+        await mock.close()
+    described = np.array([(row["t"] - OFFSET_S) / (1 + DRIFT_PPM * 1e-6) for row in rows])
+    assert len(rows) > 200
+    assert np.all(np.diff(described) > 0)
+    truth = np.column_stack([np.interp(described, dense.tracker.t, c) for c in dense.tracker.p.T])
+    seen = np.array([row["p"] for row in rows]) * 1e-3
+    moving = described > 1.2
+    assert np.max(np.linalg.norm(seen - truth, axis=1)[moving]) < 0.2e-6

@@ -203,7 +203,10 @@ async def test_adapter_maps_a_drifting_bursty_controller_onto_the_host_clock(dem
         sub.undeclare()
         service_side.close()
         await mock.close()
-    assert len(samples) > 0.95 * 500 * seconds
+    # every package the controller sent arrived (a loaded machine connects late: the count
+    # the controller sent, not the scenario's, is what the adapter could have)
+    assert len(mock.sent) > 0.6 * 500 * seconds
+    assert len(samples) > 0.99 * len(mock.sent)
     device_stamp = np.array([s.device_stamp for s in samples])
     true = t0 + (device_stamp - offset) / (1 + drift_ppm * 1e-6)  # the true sampling instants
     mapped = np.array([s.stamp for s in samples]) - true

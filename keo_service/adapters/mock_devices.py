@@ -31,6 +31,8 @@ from keo_service.io.config import Config
 
 log = logging.getLogger("keo.mock")
 STATUS_PERIOD_S = 0.5
+# the least a device's clock advances between two rows it sends (a microsecond tick)
+MIN_MOCK_STEP_S = 1e-6
 
 
 def wall_clock_t0(period_s: float, now: float | None = None) -> float:
@@ -178,6 +180,7 @@ class _MockServer(TcpMockServer):
             send = times if self.send_offsets is None else self.send_offsets
             i = first
             client = self.clients
+            last = -math.inf  # the newest instant a row described
             try:
                 while i < times.size:
                     if self.play_until is not None and start + float(times[i]) > self.play_until:
@@ -186,10 +189,18 @@ class _MockServer(TcpMockServer):
                     due = time.time() - start
                     planned = float(times[i])
                     on_time = self.resample and send[i] <= times[i]
-                    chunk = [frame(i, max(planned, due) if on_time else planned)]
+                    at = max(planned, due) if on_time else planned
+                    # a device's clock never goes back: after a row stamped late (this
+                    # process woke late), a held-up row describes an instant no earlier
+                    at = max(at, last + MIN_MOCK_STEP_S) if self.resample else at
+                    chunk = [frame(i, at)]
+                    last = at
                     i += 1
                     while i < times.size and send[i] <= due and send[i] > times[i]:
-                        chunk.append(frame(i, float(times[i])))  # held up by a stall
+                        at = float(times[i])  # held up by a stall
+                        at = max(at, last + MIN_MOCK_STEP_S) if self.resample else at
+                        chunk.append(frame(i, at))
+                        last = at
                         i += 1
                     writer.write(b"".join(chunk))
                     await writer.drain()
@@ -566,7 +577,7 @@ class MockRtdeController(TcpMockServer):
         if self.play_until is not None:
             n = int(np.searchsorted(send, self.play_until - start, side="right"))
         i = int(np.searchsorted(send, time.time() - start))  # a late client: from now on
-        first = i
+        first, last = i, -math.inf  # last: the newest instant a package described
         made = i - 1  # follow: samples made so far, each ahead of its planned time
 
         def make(k: int) -> None:
@@ -587,8 +598,11 @@ class MockRtdeController(TcpMockServer):
             while i < n and send[i] <= now:  # everything due: one write, as a burst arrives
                 at, joints, speed = float(times[i]), q[i], qd[i]
                 if track is not None:
-                    if send[i] <= times[i]:  # on time: the instant it goes out (Resampled)
-                        at = max(at, time.time() - start)
+                    # on time: the instant it goes out (Resampled); the controller's clock
+                    # never goes back: after a package stamped late (this process woke late),
+                    # a held-up one describes an instant no earlier
+                    on_time = time.time() - start if send[i] <= times[i] else at
+                    at = last = max(at, on_time, last + MIN_MOCK_STEP_S)
                     joints, speed = track.at(at), track.velocity(at)
                 elif self.follow is not None:
                     if made < i:

@@ -37,13 +37,17 @@ taken from the newest blocks only (`hold_s` seconds), so a wrong prior costs abo
 `drift * hold_s / 2`. (A drift fitted from two blocks, as the first version did, turns one
 slow block after a restart into a steep slope: docs/timing-delay.md.)
 
-A device clock that steps (controller restart, resync) shows as samples arriving earlier than
-the line allows (more than `step_threshold_s`) or device time going backwards: after
-`step_confirm` such samples in a row the mapper forgets the old line and learns anew (a first
-offset at once, the drift held at the previous one until the span supports a new one). Late
-samples never count as a step: a stalled host delays them, and their mapped stamps are what
-removes the stall. (A host clock stepping forward looks like lateness: the line follows it once
-the old minima leave the window.)
+A device clock that steps (controller restart, resync) shows as device time going backwards,
+or as samples arriving earlier than any block of the window allowed (more than
+`step_threshold_s` below the lowest block minimum, not below the median line) where the lag
+fell at once from one sample to the next: after `step_confirm` such samples in a row the mapper
+forgets the old line and learns anew (a first offset at once, the drift held at the previous
+one until the span supports a new one). A backlog clearing is none of these: a host that fell
+behind for seconds (a loaded CI machine, a busy cell PC) delivers late samples whose lag falls
+back by at most one sample period per sample, to where it had been before. Late samples never
+count as a step: a stalled host delays them, and their mapped stamps are what removes the
+stall. (A host clock stepping forward looks like lateness: the line follows it once the old
+minima leave the window.)
 
 A device's oscillator does not change when its connection does: a new connection (or a
 restarted adapter, from the mapping it saved: `export` / `resume`) continues the mapping it
@@ -146,6 +150,8 @@ class ClockMapper:
         self._last_device = -math.inf
         self._outliers = 0
         self._checking = False
+        self._floor_gap = 0.0  # the line's offset above the window's lowest block minimum
+        self._last_residual: float | None = None  # the previous sample's lag above the line
 
     @property
     def drift(self) -> float:
@@ -280,11 +286,23 @@ class ClockMapper:
         if self._offset is None:
             return False
         gone_back = device_stamp < self._last_device - self.step_threshold_s
-        # early beyond the threshold is impossible without a step (latency is never negative);
-        # late is only a stalled host or network, which the mapping is there to remove
-        early = host_t < self.predict(device_stamp) - self.step_threshold_s
-        # a continued line is not trusted yet: far late is as suspect as far early
-        late = self._checking and host_t > self.predict(device_stamp) + self.step_threshold_s
+        residual = host_t - self.predict(device_stamp)
+        fell = self._last_residual
+        self._last_residual = residual
+        if self._checking:
+            # a continued line is not trusted yet: far late is as suspect as far early
+            early = residual < -self.step_threshold_s
+            late = residual > self.step_threshold_s
+        else:
+            # earlier than the lowest block of the window by more than the threshold is
+            # impossible without a step (latency is never negative); the line itself is a
+            # median and sits above the floor while the host runs behind
+            early = residual < -self._floor_gap - self.step_threshold_s
+            if early and self._outliers == 0 and fell is not None:
+                # a step starts where the lag falls at once; a backlog clearing falls by at
+                # most one sample period per sample
+                early = fell - residual > self.step_threshold_s
+            late = False
         if not (gone_back or early or late):
             self._outliers = 0
             return False
@@ -304,8 +322,17 @@ class ClockMapper:
         d = np.fromiter((b[0] for b in self._blocks), float, n)
         y = np.fromiter((b[1] for b in self._blocks), float, n)
         ref = float(d[-1])
+        # blocks a backlog held beyond the threshold, once the lag has come back down after
+        # them, say how far behind the host ran, not where the floor is: left out of the
+        # line, which then neither tilts across the backlog's end nor waits for it to leave
+        # the window. A rise still going on (the newest blocks) stays in: it may be the host
+        # clock stepping forward, which the line follows as the window turns over.
+        base = y - self._drift * (d - ref)
+        low = base <= np.min(base[d >= ref - self.window_s]) + self.step_threshold_s
+        kept = low | (np.arange(n) > np.flatnonzero(low)[-1])
+        d, y = d[kept], y[kept]
         self._span = float(d[-1] - d[0])
-        if n >= self.min_drift_blocks and self._span >= self.min_drift_span_s:
+        if d.size >= self.min_drift_blocks and self._span >= self.min_drift_span_s:
             slope = pairwise_median_slope(d, y, self.min_drift_span_s / 4)
             slope = min(max(slope, -self.max_drift), self.max_drift)
             self._held = False
@@ -314,12 +341,15 @@ class ClockMapper:
             slope = self.prior_drift
             self._held = True
             recent = d >= ref - self.hold_s
+        window = d >= ref - self.window_s
+        floor = float(np.min(y[window] - slope * (d[window] - ref)))
         above = y[recent] - slope * (d[recent] - ref)
         # held: a few blocks, the first of a connection waiting longest (a backlog): low ones
         quantile = HELD_QUANTILE if self._held else self.offset_quantile
-        offset = float(np.quantile(above, quantile))
+        offset = float(np.quantile(above, quantile)) if above.size else floor
+        self._floor_gap = offset - floor
         self._ref, self._offset, self._drift = ref, offset, slope
-        self._residual = float(np.sqrt(np.mean((above - offset) ** 2)))
+        self._residual = float(np.sqrt(np.mean((above - offset) ** 2))) if above.size else 0.0
 
     def state(self) -> ClockState:
         return ClockState(

@@ -7,7 +7,6 @@ import collections
 import dataclasses
 import itertools
 import math
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -62,6 +61,49 @@ class DelayRefused:
     counter: str
     reason: str
     t: float = math.nan  # the stream time the stretch ends at (nan: not known)
+
+
+@dataclass(frozen=True)
+class DelayDecision:
+    """What the tracker last decided about the delay in use, its words and its numbers apart:
+    the status line, the estimate message and the Rerun view show the words
+    (`keo_service.live.status_view.delay_tracking_text`: one delay, the one in use), the log
+    line (`OnlineDelayTracker.last_result`) the numbers too.
+
+    Attributes:
+        verdict: the kind of decision, one word: waiting, kept, unsettled, settled, changed,
+            refined, restarted.
+        reason: why, in words, without the delays the fits gave (a count of fits, sigmas,
+            the residual scatter in um may be there: they are no second delay).
+        fit_s: the newest fit the decision was about, s (nan: none).
+        fit_se_s: its standard error with the fits' scatter beyond their own, s.
+        speed_m_s: the tool's RMS speed over its stretch, m/s.
+        consensus_s: the recent fits' consensus it weighed, s (nan: none).
+        consensus_se_s: its standard error, s.
+        t: the stream time of the stretch's end, s (nan: no stretch)."""
+
+    verdict: str
+    reason: str
+    fit_s: float = math.nan
+    fit_se_s: float = math.nan
+    speed_m_s: float = math.nan
+    consensus_s: float = math.nan
+    consensus_se_s: float = math.nan
+    t: float = math.nan
+
+    def log_text(self) -> str:
+        """The log's line: the words with the fit's and the consensus's values."""
+        words = f"{self.verdict}: {self.reason}"
+        if math.isfinite(self.consensus_s):
+            words += (
+                f" (consensus {self.consensus_s * 1e6:.1f} +/- {self.consensus_se_s * 1e6:.1f} us)"
+            )
+        if not math.isfinite(self.fit_s):
+            return words
+        return (
+            f"fit {self.fit_s * 1e6:.1f} +/- {self.fit_se_s * 1e6:.1f} us "
+            f"at {self.speed_m_s * 1e3:.0f} mm/s; {words}"
+        )
 
 
 @dataclass(frozen=True)
@@ -231,14 +273,17 @@ class OnlineDelayTracker:
         self.applied: float | None = prior_s if known else None
         self.applied_se: float | None = prior_se_s if known else None
         self.settled = known  # False: every estimate is flagged until the fits agree
-        self.source = "configured" if known else "unknown"  # where the delay in use comes from
+        # where the delay in use comes from: configured, confirmed (configured, a precise fit
+        # agreed), fit or unknown; and the stream time of the fit behind it (nan: none)
+        self.source_kind = "configured" if known else "unknown"
+        self.source_t = math.nan
         self.step = False  # the last change is a step (confirmed), not a refinement to slew to
         self._applied_t = math.nan  # the stream time it describes
         self._estimate_t = math.nan  # the stream time `estimate` describes
         self.counters: collections.Counter[str] = collections.Counter()
-        self.last_result: str = "waiting for motion"
-        # the kind of the last decision (kept, unsettled, settled, changed, refined, or why a
-        # stretch gave no fit): the service says a decision when its kind changes
+        self.decision = DelayDecision("waiting", "no stretch fitted yet")
+        # the kind of the last decision (its verdict, or the counter of a stretch that gave no
+        # fit): the service says a decision when its kind changes
         self.state = "waiting"
 
     # ---- samples (on the event loop: cheap) ---------------------------------------------
@@ -302,10 +347,22 @@ class OnlineDelayTracker:
             self._newest[stream] = Anchor(t, device_stamp, drift)
         return device_stamp if stream in self._newest else None
 
-    def last_decision(self) -> str:
-        """The last decision and its reason without the delays the fits gave: the status shows
-        one delay, the one in use (the log keeps each fit's value with the decision)."""
-        return _without_fit_values(self.last_result)
+    @property
+    def last_result(self) -> str:
+        """The last decision as the log says it: with the fit's and the consensus's values."""
+        return self.decision.log_text()
+
+    @property
+    def source(self) -> str:
+        """Where the delay in use comes from, in words (stream times as they are)."""
+        if self.source_kind == "confirmed":
+            return f"configured, confirmed by the fit at {self.source_t:.1f} s"
+        if self.source_kind == "fit":
+            return f"fit at {self.source_t:.1f} s"
+        return self.source_kind
+
+    def _set_source(self, kind: str, t: float = math.nan) -> None:
+        self.source_kind, self.source_t = kind, t
 
     @property
     def _carried(self) -> bool:
@@ -314,7 +371,7 @@ class OnlineDelayTracker:
         and a young mapping's line moves while its stamps stay right (a held drift), so a
         configured delay moves with them only once a fit precise enough to matter agreed
         with it (`source` then says so). One fact, read off `source`."""
-        return self.source != "configured"
+        return self.source_kind != "configured"
 
     def delay_now(self) -> float | None:
         """The delay to use now: the estimate last applied, carried along as the mapped
@@ -395,7 +452,7 @@ class OnlineDelayTracker:
         self._suspect = None
         self._segment += 1
         self._recent.clear()
-        if not self.source.startswith("configured"):  # found under the old mapping: again
+        if self.source_kind not in ("configured", "confirmed"):  # found under the old mapping
             self.settled = False
         if self.se is not None:  # the delay in use is less sure under the new mapping
             self.se = math.hypot(self.se, self.restart_sigma_s)
@@ -405,7 +462,10 @@ class OnlineDelayTracker:
             self._start = t + self.settle_s
             self._young_until = t + self.young_s
         self.counters["restarts"] += 1
-        self.last_result = f"restarted: {why}; fitting again after {self.settle_s:g} s"
+        self.decision = DelayDecision(
+            "restarted", f"{why}; fitting again after {self.settle_s:g} s", t=t
+        )
+        self.state = "restarted"
 
     # ---- fits ---------------------------------------------------------------------------
 
@@ -550,7 +610,8 @@ class OnlineDelayTracker:
             self._fit_stretch(own * speed)  # the length for the fits' own precision
         if not (math.isfinite(value) and math.isfinite(se) and se > 0) or se > self.max_se_s:
             self.counters["fits_refused_imprecise"] += 1
-            self.last_result = "kept: the fit gave no usable value"
+            self.decision = DelayDecision("kept", "the fit gave no usable value", t=found.t)
+            self.state = "fits_refused_imprecise"
             return None
         self.counters["fits_accepted"] += 1  # usable: they join the recent fits
         self._recent.append(
@@ -565,17 +626,25 @@ class OnlineDelayTracker:
             )
         )
         if not self._carried and self._confirms(self._recent[-1]):
-            self.source = f"configured, confirmed by the fit at {found.t:.1f} s"
+            self._set_source("confirmed", found.t)
         before = self.applied
-        decision = self._decide(found.t)
-        self.state = decision.split("; ", 1)[-1].split(":")[0]
+        newest = self._recent[-1]
+        decision = dataclasses.replace(
+            self._decide(found.t),
+            fit_s=newest.value,
+            fit_se_s=self.honest_se(newest.se),
+            speed_m_s=newest.speed,
+            t=found.t,
+        )
+        self.decision, self.state = decision, decision.verdict
         if self.applied != before:
-            self.last_result = decision
             return self.delay_now()
         refined = self._refine(found, provisional) if self.settled else None
-        self.last_result = decision if refined is None else f"{decision.split(';')[0]}; {refined}"
-        self.state = "refined" if refined is not None else self.state
-        return None if refined is None else self.delay_now()
+        if refined is None:
+            return None
+        self.decision = dataclasses.replace(decision, verdict="refined", reason=refined)
+        self.state = "refined"
+        return self.delay_now()
 
     def honest_se(self, fit_se: float) -> float:
         """A fit's standard error with the scatter of fits beyond their own standard errors:
@@ -584,20 +653,21 @@ class OnlineDelayTracker:
         return math.sqrt(fit_se * fit_se + self._tau2())
 
     def _tau2(self) -> float:
-        """tau^2 from the recent fits (of settled mappings when there are three): their
-        scatter about their median, robustly (the median absolute deviation as a normal's
-        sigma, so that one wild fit among three does not make every fit look wild), less their
-        own variance; `first_tau_s`^2 until three fits say."""
+        """tau^2 from the recent fits (all the segment keeps, up to 16, of settled mappings
+        when there are three): the scatter of their values beyond their own standard errors
+        (`excess_variance`); `first_tau_s`^2 until three fits say. All of them, not the five
+        of the consensus: neighbouring stretches of a slow motion share much of their error
+        model's bias, so the scatter shows only over more than the motion's period, and a
+        scale from five values (four degrees of freedom) lets 2.5 of it cover a normal fit
+        93 % of the time at best."""
         fits = [f for f in self._recent if not f.young]
         if len(fits) < 3:
             fits = list(self._recent)
-        fits = fits[-self.settings.consensus_fits :]
         if len(fits) < 3:
             return self.settings.first_tau_s**2
         values = np.array([f.value for f in fits])
-        spread = _mad_sigma(values) ** 2
-        own = float(np.median([f.se**2 for f in fits]))
-        return max(self.min_wander_s**2, spread - own)
+        ses = np.array([f.se for f in fits])
+        return excess_variance(values, ses, self.min_wander_s**2)
 
     def consensus(self) -> tuple[float, float, list[_Fit]] | None:
         """The recent fits' robust consensus: the weighted median, then the weighted mean of
@@ -626,7 +696,7 @@ class OnlineDelayTracker:
         se = math.sqrt(1.0 / float(np.sum(w)) * max(1.0, chi2 / (inside.sum() - 1)))
         return mean, se, [f for f, k in zip(fits, inside, strict=True) if k]
 
-    def _decide(self, t: float) -> str:
+    def _decide(self, t: float) -> DelayDecision:
         """The gate of a change of the delay in use. Unknown (nothing configured): the
         newest usable fit until two agree, then their consensus (a step: anything measured
         beats nothing), and the delay is settled once three agree to `settle_m` at the tool's
@@ -639,10 +709,6 @@ class OnlineDelayTracker:
         the residual scatter is lower with the consensus than with the delay in use."""
         cons = self.consensus()
         newest = self._recent[-1]
-        said = (
-            f"fit {newest.value * 1e6:.1f} +/- {self.honest_se(newest.se) * 1e6:.1f} us "
-            f"at {newest.speed * 1e3:.0f} mm/s"
-        )
         precise = newest.se * newest.speed <= self.max_apply_m
         if cons is None and self.applied is None and (precise or not newest.young):
             # nothing is known: one usable fit beats nothing (flagged, and the fits that
@@ -651,14 +717,18 @@ class OnlineDelayTracker:
             # left the delay at 0 for many seconds); but a young clock mapping's rough fit
             # is not taken alone (its stamps still move; docs/timing-delay.md)
             self._take(newest.value, self.honest_se(newest.se), t, step=True)
-            return f"{said}; unsettled: the first fit, in use until fits agree"
+            return DelayDecision("unsettled", "the first fit, in use until fits agree")
         if cons is None:
             self.counters["fits_without_consensus"] += 1
-            return f"{said}; kept: the recent fits do not agree yet"
+            return DelayDecision("kept", "the recent fits do not agree yet")
         c, se_c, members = cons
-        agreed = f"{len(members)} fits agree on {c * 1e6:.1f} +/- {se_c * 1e6:.1f} us"
+        agreed = f"{len(members)} fits agree"
+
+        def decided(verdict: str, reason: str) -> DelayDecision:
+            return DelayDecision(verdict, reason, consensus_s=c, consensus_se_s=se_c)
+
         if not self.settled or self.applied is None:
-            return f"{said}; {self._decide_unsettled(t, cons, agreed)}"
+            return decided(*self._decide_unsettled(t, cons, agreed))
         applied = self.applied
         # the delay in use walks on since it was set (device clocks' stamps move with load)
         since = 0.0 if math.isnan(self._applied_t) else max(0.0, t - self._applied_t)
@@ -666,15 +736,12 @@ class OnlineDelayTracker:
         z = abs(c - applied) / math.sqrt(se_c**2 + applied_se**2)
         if z < self.settings.change_sigmas:
             self.counters["fits_agree"] += 1
-            return f"{said}; kept: {agreed}, {z:.1f} sigma from the delay in use"
+            return decided("kept", f"{agreed}, {z:.1f} sigma from the delay in use")
         if not se_c < applied_se:
             # automation may only improve on the delay in use: a value known less precisely
             # than it (a configured delay's `delay_se_s`) is no improvement, however far off
             self.counters["changes_less_precise"] += 1
-            return (
-                f"{said}; kept: {agreed}, known less precisely than the delay in use "
-                f"(+/- {applied_se * 1e6:.1f} us)"
-            )
+            return decided("kept", f"{agreed}, known less precisely than the delay in use")
         side = math.copysign(1.0, c - applied)
         tau2 = self._tau2()
         confirming = [
@@ -685,20 +752,21 @@ class OnlineDelayTracker:
         ]
         if len(confirming) < 2 or confirming[-1] is not newest:
             self.counters["changes_unconfirmed"] += 1
-            return f"{said}; kept: {agreed}, waiting for a later stretch to confirm"
+            return decided("kept", f"{agreed}, waiting for a later stretch to confirm")
         if self.settings.change_sigmas * newest.sep_se > abs(c - applied):
             # nan (not measured) passes; the newest stretch's motion must show the change
             # beyond what a constant tool error and a slow drift can take
             self.counters["changes_not_separable"] += 1
-            return (
-                f"{said}; kept: {agreed}, but the newest stretch's motion cannot separate "
-                f"a delay from a tool error to better than {newest.sep_se * 1e6:.0f} us"
+            return decided(
+                "kept",
+                f"{agreed}, but the newest stretch's motion cannot separate a delay from a "
+                f"tool error to better than {newest.sep_se * 1e6:.0f} us",
             )
-        return f"{said}; {self._change_if_better(t, (c, se_c, agreed), applied, z)}"
+        return decided(*self._change_if_better(t, (c, se_c, agreed), applied, z))
 
     def _change_if_better(
         self, t: float, consensus: tuple[float, float, str], applied: float, z: float
-    ) -> str:
+    ) -> tuple[str, str]:
         """Gate (c) of `_decide`: the change is taken only when, on the newest stretch's
         samples, the residual scatter is lower with the consensus (value, se, how many agree)
         than with the delay in use, `z` sigma from it: the data must show the improvement,
@@ -709,19 +777,20 @@ class OnlineDelayTracker:
         new = math.hypot(newest.rms, (c - newest.value) * newest.speed)
         if not new < old:
             self.counters["changes_not_better"] += 1
-            return f"kept: scatter {new * 1e6:.1f} um with it, {old * 1e6:.1f} um without"
+            return "kept", f"scatter {new * 1e6:.1f} um with it, {old * 1e6:.1f} um without"
         self._take(c, se_c, t, step=True)
         self._trend.start(c, se_c * se_c, newest.t)
         self._trend_fits = 0
         self.counters["changes"] += 1
         return (
-            f"changed: {agreed} ({z:.1f} sigma from {applied * 1e6:.1f} us), scatter "
-            f"on the newest stretch {old * 1e6:.1f} -> {new * 1e6:.1f} um"
+            "changed",
+            f"{agreed}, {z:.1f} sigma from the delay before; scatter on the newest stretch "
+            f"{old * 1e6:.1f} -> {new * 1e6:.1f} um",
         )
 
     def _decide_unsettled(
         self, t: float, cons: tuple[float, float, list[_Fit]], agreed: str
-    ) -> str:
+    ) -> tuple[str, str]:
         """While the delay is not settled the consensus is taken at once; it settles once three
         fits of settled mappings agree to `settle_m` at the tool's speed and the motion
         separates a delay."""
@@ -736,15 +805,18 @@ class OnlineDelayTracker:
         # speed, whose fits agree on a value the motion cannot tell from a tool error)
         separates = not newest.sep_se * newest.speed > self.settings.settle_m
         # fits of one motion are biased alike (the stamps' errors and the stretches'
-        # error model change slowly): their mean is known no better than the best of them
-        se_settle = max(se_c, min(self.honest_se(f.se) for f in members))
+        # error model change slowly): their mean is known no better than the best of them;
+        # and one precise fit among rough ones is that fit alone, whose own se may miss (a
+        # stretch 2.9 se off settled a MotoROS stop-and-go run 243 us off): two stretches
+        # must each know the delay that well, a later one confirming an earlier one
+        se_settle = max(se_c, sorted(self.honest_se(f.se) for f in members)[1])
         if grown and separates and se_settle * speed <= self.settings.settle_m:
             self.settled = True
             self._trend.start(c, se_c * se_c, newest.t)
             self._trend_fits = 0
-            return f"settled: {agreed}"
+            return "settled", agreed
         to = self.settings.settle_m * 1e6
-        return f"unsettled: {agreed}, in use until they agree to {to:g} um at speed"
+        return "unsettled", f"{agreed}, in use until they agree to {to:g} um at speed"
 
     def _confirms(self, fit: _Fit) -> bool:
         """Does this fit confirm the configured delay in use: precise to `max_apply_m` at its
@@ -762,14 +834,14 @@ class OnlineDelayTracker:
     def _take(self, value: float, se: float, t: float, step: bool) -> None:
         self.applied, self.applied_se, self._applied_t = value, se, t
         self.estimate, self.se, self._estimate_t = value, se, t
-        self.source = f"fit at {t:.1f} s"
+        self._set_source("fit", t)
         self.step = step
 
     def _refine(self, found: DelayMeasurement, provisional: bool) -> str | None:
         """The running estimate (a Kalman filter over the fits, `delay_trend`), applied as a
         refinement when it is known to `max_apply_m` at the tool's speed and moves the delay
         by at most three times that there (larger changes go through `_decide`). None when
-        it did not refine the delay in use."""
+        it did not refine the delay in use; else the reason, in words."""
         value, speed = found.delay_s, found.speed_rms
         # the running estimate follows the delay's walk between stretches: what a fit knows
         # of that is its own standard error; the error models' share and the motion's floor
@@ -815,12 +887,12 @@ class OnlineDelayTracker:
             return None
         self.applied_se = self.se
         self.applied, self._applied_t = self.estimate, self._estimate_t
-        self.source = f"fit at {self._estimate_t:.1f} s"
+        self._set_source("fit", self._estimate_t)
         self.step = False
         self.counters["refinements"] += 1
         return (
-            f"refined: delay {self.estimate * 1e6:.1f} +/- {self.se * 1e6:.1f} us "
-            f"({self._trend.chosen}, {self._trend.rate * 1e6:+.1f} us/s)"
+            f"by the running estimate ({self._trend.chosen} view, "
+            f"{self._trend.rate * 1e6:+.1f} us/s)"
         )
 
     def _refused(self, found: DelayRefused) -> None:
@@ -829,7 +901,7 @@ class OnlineDelayTracker:
         if found.counter == "fits_not_identifiable" and not found.t <= self._young_until:
             self._fit_stretch(math.inf)
         self.counters[found.counter] += 1
-        self.last_result = f"kept: {found.reason}"
+        self.decision = DelayDecision("kept", found.reason, t=found.t)
         self.state = found.counter
 
     def _fit_stretch(self, precision_m: float) -> None:
@@ -862,10 +934,6 @@ class OnlineDelayTracker:
             together = math.sqrt(se * se + suspect[1] ** 2 + tau2 + walked)
             if abs(value - suspect[0]) <= self.outlier_sigmas * together:
                 return suspect
-        self.last_result = (
-            f"disagrees with {level * 1e6:.1f} +/- {spread * 1e6:.1f} us "
-            "(one more like it and it is taken)"
-        )
         return False
 
     def _se_at(self, t: float) -> float | None:
@@ -923,7 +991,9 @@ class OnlineDelayTracker:
         self.applied = prior_s if known else None
         self.applied_se = prior_se_s if known else None
         self.settled = known
-        self.source = "configured" if known else "unknown"
+        self._set_source("configured" if known else "unknown")
+        self.decision = DelayDecision("restarted", "the delay was set anew (a reload)")
+        self.state = "restarted"
 
 
 # the other error model's residual this many times the chosen one's: rejected by the data
@@ -966,6 +1036,59 @@ def _reported_se(own_se: float, model: float, sep: float) -> float:
     return max(se, sep) if math.isfinite(sep) else se
 
 
+def excess_variance(values: np.ndarray, se: np.ndarray, floor: float) -> float:
+    """tau^2, the variance the values scatter by beyond their own standard errors.
+
+    Paule and Mandel's estimator of the "dark uncertainty" between laboratories that measured
+    one quantity (a random effect, as in key comparisons; stretches of one motion are such
+    laboratories, each with its own error model's bias): the tau^2 at which the values'
+    weighted scatter about their weighted mean, each weighted by 1 / (se^2 + tau^2), is what
+    n values of those variances show (chi^2 = n - 1). Fits of unequal precision need it: the
+    median of the fits' variances taken off a common scatter (the estimator before) let fits
+    whose se counts a large error-model disagreement hide the scatter of precise fits ten
+    times their se apart. Taken over the values within `SCATTER_SIGMAS` of their weighted
+    median, starting from the robust scatter (their median absolute deviation less their
+    median variance) and growing with what the members show, so that one wild value (a first
+    fit 6.5 se off in the issue's cell) does not set the scatter of the others. At least
+    `floor`."""
+    tau2 = max(floor, _mad_sigma(values) ** 2 - float(np.median(se * se)))
+    for _ in range(20):
+        sig = np.sqrt(se * se + tau2)
+        order = np.argsort(values)
+        cw = np.cumsum(1.0 / sig[order] ** 2)
+        centre = float(values[order][np.searchsorted(cw, 0.5 * cw[-1])])
+        members = np.abs(values - centre) <= SCATTER_SIGMAS * sig
+        if members.sum() < 2:
+            return tau2
+        grown = max(tau2, _paule_mandel(values[members], se[members], floor))
+        if grown <= tau2 * 1.001:
+            return grown
+        tau2 = grown
+    return tau2
+
+
+SCATTER_SIGMAS = 4.0  # a fit this far off the others' weighted median does not set their scatter
+
+
+def _paule_mandel(values: np.ndarray, se: np.ndarray, floor: float) -> float:
+    """The tau^2 at which sum w (x - mean_w)^2 = n - 1, w = 1 / (se^2 + tau^2) (at least
+    `floor`), by bisection in log tau^2: the weighted scatter falls as tau^2 grows."""
+    n = values.size
+
+    def excess(tau2: float) -> float:
+        w = 1.0 / (se * se + tau2)
+        mean = float(np.sum(w * values) / np.sum(w))
+        return float(np.sum(w * (values - mean) ** 2)) - (n - 1)
+
+    if n < 2 or excess(floor) <= 0.0:
+        return floor
+    lo, hi = math.log(floor), math.log(max(floor, float(np.ptp(values)) ** 2) * 4.0)
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if excess(math.exp(mid)) > 0.0 else (lo, mid)
+    return math.exp(hi)
+
+
 def _triples(items: list[_T]) -> list[tuple[_T, _T, _T]]:
     """Each item with its two neighbours: (a, b, c) for every b between them."""
     return list(zip(items, items[1:], items[2:], strict=False))
@@ -989,23 +1112,6 @@ def _covered(
     sound = (np.diff(enc_t) <= max_gap_s) & ~resent_joint_intervals(enc_q)
     keep = inside & sound[k - 1]
     return enc_t, enc_q, trk_t[keep], trk_p[keep], None if trk_q is None else trk_q[keep]
-
-
-_US = r"-?\d+(?:\.\d+)? \+/- \d+(?:\.\d+)? us"
-_FIT_VALUES = (
-    (re.compile(rf"^fit {_US} at \d+ mm/s; "), ""),
-    (re.compile(rf" on {_US}"), ""),
-    (re.compile(rf"disagrees with {_US}"), "disagrees with the recent fits"),
-    (re.compile(r" \(\+/- \d+(?:\.\d+)? us\)"), ""),
-    (re.compile(r" from -?\d+(?:\.\d+)? us\)"), " from the delay before)"),
-)
-
-
-def _without_fit_values(decision: str) -> str:
-    """`last_result` with the fitted delays taken out (the phrases `_decide` writes)."""
-    for pattern, words in _FIT_VALUES:
-        decision = pattern.sub(words, decision)
-    return decision
 
 
 def resent_joint_intervals(

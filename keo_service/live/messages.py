@@ -134,6 +134,36 @@ class TrackerSample(_Message, frozen=True, tag=_tag("tracker")):
     clock_drift: float | None = None
 
 
+class DelayState(msgspec.Struct, frozen=True, kw_only=True):
+    """The delay in use's source and the online tracker's last decision, as data: the status
+    line's words (`delay_tracking`) are rendered from it in one place
+    (`keo_service.live.status_view.delay_tracking_text`).
+
+    Attributes:
+        source: where the delay in use comes from: "configured", "confirmed" (configured, and
+            a precise fit agreed), "fit" or "unknown" (nothing configured, none found yet).
+        source_t: the stream time of the fit behind it, s (None: configured or unknown).
+        settled: whether the delay in use is known to 20 um at the tool's speed (else every
+            estimate carries the flag "delay_unsettled").
+        verdict: the last decision, one word: waiting, kept, unsettled, settled, changed,
+            refined, restarted.
+        reason: why, in words (no delay values in it: the one delay is `delay_s`).
+        fit_s: the newest fit that decision was about, s (None: no fit).
+        fit_se_s: its standard error, s, with the fits' scatter beyond their own (None: no
+            fit).
+        decided_t: the stream time of the stretch it was about, s (None: none).
+    """
+
+    source: str
+    source_t: float | None = None
+    settled: bool = True
+    verdict: str = ""
+    reason: str = ""
+    fit_s: float | None = None
+    fit_se_s: float | None = None
+    decided_t: float | None = None
+
+
 class EstimateMessage(_Message, frozen=True, tag=_tag("estimate")):
     """keo/<cell>/estimate: the observer's output for one tracker sample, as published.
 
@@ -156,6 +186,8 @@ class EstimateMessage(_Message, frozen=True, tag=_tag("estimate")):
             or tracked); None when nobody measured it.
         tool_speed_m_s: the tool's speed at this estimate, m/s, from the joint velocities;
             None where they are not known.
+        delay_state: the delay in use's source and the online tracker's last decision
+            (`DelayState`); None when tracking is off.
     """
 
     stamp: float
@@ -169,6 +201,7 @@ class EstimateMessage(_Message, frozen=True, tag=_tag("estimate")):
     device_stamp: float | None = None
     delay_se_s: float | None = None
     tool_speed_m_s: float | None = None
+    delay_state: DelayState | None = None
 
 
 def estimate_message(
@@ -179,6 +212,7 @@ def estimate_message(
     delay_s: float,
     delay_se_s: float | None = None,
     tool_speed_m_s: float | None = None,
+    delay_state: DelayState | None = None,
     more_flags: tuple[str, ...] = (),
 ) -> EstimateMessage:
     """The wire form of the estimator's record (`core.estimator.Estimate`): its fields under
@@ -197,6 +231,7 @@ def estimate_message(
         device_stamp=estimate.device_stamp,
         delay_se_s=delay_se_s,
         tool_speed_m_s=tool_speed_m_s,
+        delay_state=delay_state,
     )
 
 
@@ -219,8 +254,10 @@ class ServiceStatus(_Message, frozen=True, tag=_tag("status")):
         counters: rejects, held steps and the rest, by name.
         last_estimate: the newest estimate, if any.
         messages: the newest findings in words (at most 10), newest last.
-        delay_tracking: what online delay tracking last did, in words; None when it is off.
+        delay_tracking: the delay's source and what online delay tracking last did, in words
+            (rendered from `delay_state`); None when it is off.
         delay_se_s: the standard error of the delay in use, s, when known.
+        delay_state: the same as data (`DelayState`); None when tracking is off.
         clock_domains: each stream's clock domain as its samples declare it
             ({"encoder": "device", ...}).
         adapters: each adapter's own status (`AdapterStatus`), by adapter name, as the
@@ -243,6 +280,7 @@ class ServiceStatus(_Message, frozen=True, tag=_tag("status")):
     delay_se_s: float | None = None
     clock_domains: dict[str, str] = msgspec.field(default_factory=dict)
     adapters: dict[str, AdapterStatus] = msgspec.field(default_factory=dict)
+    delay_state: DelayState | None = None
 
 
 class CorrectionMessage(_Message, frozen=True, tag=_tag("correction")):

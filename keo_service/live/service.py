@@ -14,7 +14,7 @@ import asyncio
 import collections
 import gc
 import logging
-import re
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -31,6 +31,7 @@ from keo_service.io.config import Config
 from keo_service.live.bus import AsyncSubscription, session_for_service
 from keo_service.live.messages import (
     AdapterStatus,
+    DelayState,
     EstimateMessage,
     JointSample,
     ServiceStatus,
@@ -41,27 +42,27 @@ from keo_service.live.messages import (
     topic,
 )
 from keo_service.live.sinks import EstimateBusSink, RerunSink, Sinks
+from keo_service.live.status_view import delay_tracking_text
 from keo_service.live.supervise import supervise
+from keo_service.live.tool_speed import ToolSpeed
 
 # keys a SIGHUP applies without a restart
 HOT_KEYS = frozenset({"observer.gain", "timing.delay_s", "timing.drift_ppm", "timing.drift_ref_s"})
 
 
-_STREAM_TIME = re.compile(r"at (\d+(?:\.\d+)?) s")
-
-
-def _when(source: str) -> str:
-    """The delay's source with a stream time on the host clock (seconds since the epoch) as
-    the time of day a user can match with the log, UTC; a stream time of another clock stays
-    as it is."""
-
-    def clock(match: re.Match[str]) -> str:
-        t = float(match.group(1))
-        if t < 1e9:  # a device's or a simulation's own time: no date behind it
-            return match.group(0)
-        return "at " + time.strftime("%H:%M:%S UTC", time.gmtime(t))
-
-    return _STREAM_TIME.sub(clock, source)
+def _delay_state_of(tracker: OnlineDelayTracker) -> DelayState:
+    """The tracker's source and last decision as the wire's `DelayState`."""
+    decision, fit = tracker.decision, tracker.decision.fit_s
+    return DelayState(
+        source=tracker.source_kind,
+        source_t=tracker.source_t if math.isfinite(tracker.source_t) else None,
+        settled=tracker.settled,
+        verdict=decision.verdict,
+        reason=decision.reason,
+        fit_s=fit if math.isfinite(fit) else None,
+        fit_se_s=decision.fit_se_s if math.isfinite(fit) else None,
+        decided_t=decision.t if math.isfinite(decision.t) else None,
+    )
 
 
 def _flatten(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -129,10 +130,13 @@ class KeoService:
         self.cell = config.cell
         cell = cell_from_config(config)
         self.estimator = Estimator(cell, estimator_settings(config))
+        self._tool_speed = ToolSpeed(cell)  # sampled in the status cycle, not per estimate
         self._delay_tracker: OnlineDelayTracker | None = None
         self._delay_followed: float | None = None  # the delay last set from the tracker
         self._delay_said = ""  # the kind of the tracker's decision last logged
         self._delay_said_value: float | None = None  # the delay in use then (s)
+        self._delay_state: DelayState | None = None  # the tracker's, as last made
+        self._delay_state_for: object = None  # the tracker's decision it was made from
         self._fit_cpu_s = 0.0  # the delay fits' CPU time in the worker, all of them (s)
         self._fits: FitWorker | None = None  # the fits' worker process, while running
         if config.timing.track_delay:
@@ -399,16 +403,22 @@ class KeoService:
             seq=self._seq,
             delay_s=self.estimator.delay.at(estimate.stamp),
             delay_se_s=self.delay_se(),
+            tool_speed_m_s=self._tool_speed.at(estimate.stamp),
+            delay_state=self.delay_state(),
             # the delay in use is not known yet (found from the motion): every estimate says so
             more_flags=UNSETTLED if tracker is not None and not tracker.settled else (),
         )
 
-    def _delay_line(self) -> str:
-        """The delay in use's source and the tracker's last decision, one line."""
+    def delay_state(self) -> DelayState | None:
+        """The delay's source and the tracker's last decision (None: tracking off), made anew
+        only when the tracker decided something (one identity test per estimate)."""
         tracker = self._delay_tracker
-        assert tracker is not None
-        state = "" if tracker.settled else ", unsettled"
-        return f"{_when(tracker.source)}{state}; {tracker.last_decision()}"
+        if tracker is None:
+            return None
+        if tracker.decision is not self._delay_state_for:
+            self._delay_state_for = tracker.decision
+            self._delay_state = _delay_state_of(tracker)
+        return self._delay_state
 
     def delay_se(self) -> float | None:
         """The standard error of the delay in use: the tracker's (the configured prior's, or
@@ -443,6 +453,7 @@ class KeoService:
             counters["delay_fit_cpu_ms"] = round(1e3 * self._fit_cpu_s)
         last = self.estimator.last
         delay = self.estimator.delay
+        delay_state = self.delay_state()
         return ServiceStatus(
             cell=self.cell,
             health=self.health(now),
@@ -458,8 +469,9 @@ class KeoService:
             last_estimate=None if last is None else self.to_message(last),
             # the estimator's rejects, then the service's own findings: the newest ten
             messages=[*self.estimator.messages, *self._messages][-10:],
-            delay_tracking=None if self._delay_tracker is None else self._delay_line(),
+            delay_tracking=None if delay_state is None else delay_tracking_text(delay_state),
             delay_se_s=self.delay_se(),
+            delay_state=delay_state,
             adapters=dict(self._adapters),
         )
 
@@ -478,6 +490,7 @@ class KeoService:
     async def _status_loop(self) -> None:
         while not self._stop.is_set():
             self._resolve_if_quiet()
+            self._tool_speed.sample(self.estimator.last)
             self._refresh_status()
             await asyncio.sleep(STATUS_PERIOD_S)
 

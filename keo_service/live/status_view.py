@@ -11,6 +11,7 @@ same one `keo status --json` prints; fields missing from it are left out, never 
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -77,6 +78,47 @@ def _counters(counters: Any) -> list[str]:
     return items
 
 
+def _stream_time(t: float) -> str:
+    """A stream time on the host clock (seconds since the epoch) as the time of day in UTC, one
+    a user can match with the log; a device's or a simulation's own time as it is."""
+    if t < 1e9:
+        return f"{t:.1f} s"
+    return time.strftime("%H:%M:%S UTC", time.gmtime(t))
+
+
+def _field(state: Any, name: str) -> Any:
+    """A field of a `DelayState`, as the struct or as the status document's plain values."""
+    return state.get(name) if isinstance(state, Mapping) else getattr(state, name, None)
+
+
+def delay_tracking_text(state: Any) -> str:
+    """The delay in use's source and the tracker's last decision, one line: the words of
+    `keo status`, the status document's `delay_tracking` (and so the Rerun view's event log).
+    The one place a `DelayState` (or its plain values) becomes text; the decision's reason
+    carries no delay of a fit, so the line shows one delay, the one in use."""
+    source = str(_field(state, "source") or "?")
+    t = _number(_field(state, "source_t"))
+    if source == "confirmed":
+        where = "configured, confirmed by the fit" + ("" if t is None else f" at {_stream_time(t)}")
+    elif source == "fit":
+        where = "fit" + ("" if t is None else f" at {_stream_time(t)}")
+    else:
+        where = source
+    if _field(state, "settled") is False:
+        where += ", unsettled"
+    verdict, reason = _field(state, "verdict"), _field(state, "reason")
+    decision = str(verdict or "") + (f": {reason}" if reason else "")
+    return f"{where}; {decision}" if decision else where
+
+
+def _unknown(doc: dict[str, Any]) -> bool:
+    """Nothing configured and nothing found yet (an older service says it only in words)."""
+    state = doc.get("delay_state")
+    if isinstance(state, Mapping):
+        return state.get("source") == "unknown"
+    return str(doc.get("delay_tracking") or "").startswith("unknown")
+
+
 def _delay(doc: dict[str, Any]) -> str:
     delay = _number(doc.get("delay_s"))
     if delay is None:
@@ -85,7 +127,7 @@ def _delay(doc: dict[str, Any]) -> str:
     text = f"{delay * 1e3:.2f} ms"
     if se is not None:
         text += f" ± {se * 1e3:.2f} ms"
-    elif str(doc.get("delay_tracking") or "").startswith("unknown"):
+    elif _unknown(doc):
         text = f"not known yet ({text} in use)"
     else:
         text += " (configured, no standard error yet)"
