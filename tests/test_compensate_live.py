@@ -456,3 +456,24 @@ def test_feedforward_is_the_models_inverse_and_invalid_outside_its_range(demo_ce
     assert not c.valid
     assert c.reason == "outside_calibrated_range"
     assert np.all(c.translation == 0.0)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-12, 1e-8, 3e-8, 1e-3, 0.5, 3.0])
+def test_a_corrections_inverse_is_pinocchios_inverse(angle):
+    """`invert` (Rodrigues on plain floats, one per live correction) gives the inverse
+    transform Pinocchio gives (SE3 of exp3, inverted), from tiny angles through the series'
+    threshold to nearly a half turn."""
+    import numpy as np
+    import pinocchio as pin
+
+    from keo_service.core.compensation import invert
+
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        axis = rng.normal(size=3)
+        r = axis / np.linalg.norm(axis) * angle
+        p = rng.normal(0.0, 2e-3, 3)
+        want = pin.SE3(pin.exp3(r), p).inverse()
+        got_p, got_r = invert(p, r)
+        assert np.max(np.abs(got_p - want.translation)) <= 1e-15
+        assert np.max(np.abs(pin.exp3(got_r) - want.rotation)) <= 1e-15

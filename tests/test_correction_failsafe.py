@@ -405,3 +405,23 @@ def _message(estimate):
     from keo_service.live.messages import estimate_message
 
     return estimate_message(estimate, host_ns=0, seq=0, delay_s=0.0)
+
+
+@pytest.mark.parametrize(("step_s", "cycle_s"), [(0.001, 0.002), (0.004, 0.004), (0.5, 0.1)])
+def test_the_correction_cycle_follows_the_observer_within_its_bounds(demo_config, step_s, cycle_s):
+    """Without `[compensation] rate_hz` the cycle is the observer's period (the estimates'
+    mean step in stream time), no faster than RTDE's 2 ms and no slower than 0.1 s: at 1 kHz
+    estimates the cycle is 2 ms, not a second timer at the estimate rate."""
+    from keo_service.core.estimator import Estimate
+
+    session = open_session("peer")
+    pub = compensation.CorrectionPublisher(demo_config, session)
+    channels = ("px", "py", "pz", "rx", "ry", "rz")
+    try:
+        assert demo_config.compensation.rate_hz == 0.0
+        for i in range(20):
+            pub.publish(Estimate(1.0 + i * step_s, [0.0] * 6, [1e-5] * 6, (), None, channels))
+        assert pub.cycle_s == pytest.approx(cycle_s)
+    finally:
+        pub.close()
+        session.close()

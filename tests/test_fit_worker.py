@@ -137,3 +137,47 @@ def test_the_bench_counts_the_services_workers_in_its_cpu():
     assert out["own_cpu_pct"] == pytest.approx(30.0)
     relay = {"processes": {"service": proc(25.0), "mock-robot": proc(8.0)}}
     assert _fold_service_workers(relay)["processes"]["service"] == proc(25.0)
+
+
+@pytest.mark.parametrize("quats", [True, False])
+def test_a_stretch_built_in_pieces_is_the_whole_stretchs_arrays(quats):
+    """`stretch_window` (a stretch's arrays a few rows at a time, the loop free between the
+    pieces) gives exactly what `stretch_arrays` gives in one go: mapped and unmapped stamps
+    under their lines, joints, positions, quaternions or None for a single reflector, and
+    the encoder rows running out before the tracker's."""
+    import numpy as np
+
+    from keo_service.fit.delay_online import Stretch, stretch_arrays
+    from keo_service.fit.stamp_lines import Anchor
+    from keo_service.live.fit_worker import stretch_window
+
+    rng = np.random.default_rng(5)
+    enc = [
+        (0.004 * i, rng.normal(size=6), None if i % 7 == 0 else 100.0 + 0.004 * i)
+        for i in range(300)
+    ]
+    trk = [
+        (
+            0.001 * i,
+            rng.normal(size=3),
+            rng.normal(size=4) if quats else None,
+            None if i % 11 == 0 else 50.0 + 0.001 * i,
+        )
+        for i in range(1100)
+    ]
+    stretch = Stretch(enc, trk, Anchor(0.5, 100.5, 3e-6), Anchor(0.2, 50.2, -2e-6))
+    want = stretch_arrays(stretch)
+    for chunk in (64, 256, 5000):
+        got = asyncio.run(stretch_window(stretch, chunk))
+        for g, w in zip(got, want, strict=True):
+            if w is None:
+                assert g is None
+            else:
+                assert g is not None
+                assert g.shape == w.shape
+                assert np.array_equal(g, w)
+    # no encoder rows at all: the same empty joints array as in one go
+    bare = Stretch([], trk, None, None)
+    got = asyncio.run(stretch_window(bare, 64))
+    assert got[1].shape == stretch_arrays(bare)[1].shape == (0, 0)
+    assert np.array_equal(got[2], stretch_arrays(bare)[2])

@@ -45,6 +45,7 @@ STAGES: dict[str, list[tuple[str, str]]] = {
         ("keo_service.fit.delay_online", "OnlineDelayTracker.due"),
         ("keo_service.fit.delay_online", "OnlineDelayTracker.take"),
         ("keo_service.fit.delay_online", "OnlineDelayTracker.combine"),
+        ("keo_service.fit.delay_online", "stretch_arrays"),
     ],
     "correction (per sample and per estimate)": [
         ("keo_service.live.compensation", "CorrectionSink.on_input"),

@@ -367,9 +367,22 @@ def exp3(r: np.ndarray) -> np.ndarray:
 
 
 def invert(translation: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The inverse of the transform (p, r): (-R^T p, -r)."""
-    R = exp3(np.asarray(rotation, dtype=float))
-    return -(R.T @ np.asarray(translation, dtype=float)), -np.asarray(rotation, dtype=float)
+    """The inverse of the transform (p, r): (-R^T p, -r), with R^T p by Rodrigues on plain
+    floats, p - a (r x p) + b r x (r x p) (the terms of `exp3`, transposed): no 3x3 matrix
+    is built, a live correction takes one per estimate (docs/performance.md)."""
+    px, py, pz = np.asarray(translation, dtype=float).tolist()
+    r = np.asarray(rotation, dtype=float)
+    rx, ry, rz = r.tolist()
+    t2 = rx * rx + ry * ry + rz * rz
+    if t2 < 1e-16:  # theta < 1e-8: exp3's series
+        a, b = 1.0 - t2 / 6.0, 0.5 - t2 / 24.0
+    else:
+        theta = math.sqrt(t2)
+        a, b = math.sin(theta) / theta, (1.0 - math.cos(theta)) / t2
+    cx, cy, cz = ry * pz - rz * py, rz * px - rx * pz, rx * py - ry * px  # r x p
+    dx, dy, dz = ry * cz - rz * cy, rz * cx - rx * cz, rx * cy - ry * cx  # r x (r x p)
+    back = np.array([px - a * cx + b * dx, py - a * cy + b * dy, pz - a * cz + b * dz])
+    return -back, -r
 
 
 def compose(
@@ -397,9 +410,10 @@ class CompensationLimits:
 
 
 def _clamp_norm(v: np.ndarray, limit: float) -> tuple[np.ndarray, bool]:
-    # the same sqrt(v . v) that `np.linalg.norm` takes for a vector, without its dispatch
-    # (four calls per live correction: a fifth of its cost, docs/performance.md)
-    size = math.sqrt(float(v @ v))
+    # the same sqrt(v . v) that `np.linalg.norm` takes for a vector, on plain floats (four
+    # calls per live correction: a fifth of its cost, docs/performance.md)
+    x, y, z = v.tolist()
+    size = math.sqrt(x * x + y * y + z * z)
     if size > limit:
         return v * (limit / size), True
     return v, False

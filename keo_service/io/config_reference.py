@@ -301,7 +301,7 @@ KEYS: dict[str, tuple[str, str]] = {
     "compensation.rate_hz": (
         "Hz",
         "the correction's own cycle: validity checked and the correction renewed or "
-        "invalidated at least this often; 0: the observer's period",
+        "invalidated at least this often; 0: the observer's period, at least 2 ms",
     ),
     "compensation.stale_after_s": (
         "s",

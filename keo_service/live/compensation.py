@@ -9,13 +9,14 @@ pose (T_cmd = T_goal * C); zero when none was received, it is not valid or it is
 `[compensation] max_age_s`.
 
 Validity is also timer-driven (`tick`, run on the correction's own cycle: `[compensation]
-rate_hz`, else the observer's period): a correction is valid only while the newest encoder
-sample, the newest tracker pose and the newest estimate arrived within `[compensation]
-stale_after_s` (host time), besides the estimate's own verdict (held, outside the calibrated
-range). The first cycle where one of them fails publishes a zero, invalid correction with the
-reason (counted in `corrections_stale`, logged); while nothing new comes, a cycle renews the
-newest correction (an invalid one only while some input still arrives), so a stalled stream
-is never silent for much longer than a cycle and an idle cell's is.
+rate_hz`, else the observer's period, at least 2 ms): a correction is valid only while the
+newest encoder sample, the newest tracker pose and the newest estimate arrived within
+`[compensation] stale_after_s` (host time), besides the estimate's own verdict (held,
+outside the calibrated range). The first cycle where one of them fails publishes a zero,
+invalid correction with the reason (counted in `corrections_stale`, logged); while nothing
+new comes, a cycle renews the newest correction (an invalid one only while some input still
+arrives), so a stalled stream is never silent for much longer than a cycle and an idle
+cell's is.
 """
 
 from __future__ import annotations
@@ -47,7 +48,10 @@ __all__ = ["CorrectionPublisher", "CorrectionSink", "correction_to_send"]
 
 log = logging.getLogger("keo.compensation")
 DEFAULT_CYCLE_S = 0.01  # the correction's cycle before the observer's period is known
-CYCLE_BOUNDS_S = (0.001, 0.1)  # the observer's period as the cycle, kept within these
+# the observer's period as the cycle, kept within these: no faster than RTDE's 2 ms, the
+# fastest controller cycle a correction feeds (at the estimates' 1 ms the cycle was a second
+# timer at the estimate rate, renewing a correction at every late tick: docs/performance.md)
+CYCLE_BOUNDS_S = (0.002, 0.1)
 # a quiet cycle renews the newest correction once this many cycles passed without a put (not
 # one: estimates at the cycle's own rate would be doubled by every tick that comes late)
 RENEW_AFTER = 1.5

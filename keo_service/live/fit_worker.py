@@ -34,11 +34,20 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     import numpy as np
 
-    from keo_service.fit.delay_online import DelayMeasurement, DelayRefused, OnlineDelayTracker
+    from keo_service.fit.delay_online import (
+        DelayMeasurement,
+        DelayRefused,
+        OnlineDelayTracker,
+        Stretch,
+    )
 
     Window = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]
 
-__all__ = ["FitWorker"]
+__all__ = ["FitWorker", "stretch_window"]
+
+# rows of a stretch turned into arrays at a time, the event loop serving samples between two
+# such pieces: a whole stretch (2-2.5 s at 1 kHz) in one go held the loop for several ms
+STRETCH_CHUNK = 256
 
 # the thread counts numpy's BLAS builds read at their import: one, in the worker
 BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
@@ -67,6 +76,37 @@ def _measure(
     start = time.process_time()
     found = _worker["tracker"].measure(window, current, guess)
     return found, time.process_time() - start
+
+
+async def stretch_window(stretch: Stretch, chunk: int = STRETCH_CHUNK) -> Window:
+    """`stretch_arrays(stretch)`, the same arrays, built `chunk` rows at a time with the
+    event loop free between the pieces (each row maps on its own: the pieces joined are the
+    whole)."""
+    from keo_service.fit.delay_online import Stretch, stretch_arrays
+
+    enc, trk = stretch.enc, stretch.trk
+    rows = max(len(enc), len(trk))
+    if rows <= chunk:
+        return stretch_arrays(stretch)
+    import numpy as np
+
+    parts = []
+    for i in range(0, rows, chunk):
+        piece = Stretch(enc[i : i + chunk], trk[i : i + chunk], stretch.enc_line, stretch.trk_line)
+        parts.append((stretch_arrays(piece), len(piece.enc), len(piece.trk)))
+        await asyncio.sleep(0)  # the samples that came meanwhile go first
+    with_enc = [arrays for arrays, n_enc, _ in parts if n_enc]
+    with_trk = [arrays for arrays, _, n_trk in parts if n_trk]
+    enc_t = np.concatenate([arrays[0] for arrays, _, _ in parts])
+    enc_q = np.concatenate([a[1] for a in with_enc]) if with_enc else np.empty((0, 0))
+    trk_t = np.concatenate([arrays[2] for arrays, _, _ in parts])
+    trk_p = np.concatenate([a[3] for a in with_trk]) if with_trk else np.array([])
+    quats = [a[4] for a in with_trk]
+    kept = [q for q in quats if q is not None]
+    trk_q: np.ndarray | None = None
+    if len(kept) == len(quats):  # one piece of a single reflector's: None, as in one go
+        trk_q = np.concatenate(kept) if kept else np.array([])
+    return enc_t, enc_q, trk_t, trk_p, trk_q
 
 
 @contextlib.contextmanager

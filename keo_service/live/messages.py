@@ -213,17 +213,19 @@ def estimate_message(
     delay_se_s: float | None = None,
     tool_speed_m_s: float | None = None,
     delay_state: DelayState | None = None,
+    more_flags: tuple[str, ...] = (),
 ) -> EstimateMessage:
     """The wire form of the estimator's record (`core.estimator.Estimate`): its fields under
-    the same names, with what the publisher adds (receipt clock, sequence, the delay in use).
-    The one place an `EstimateMessage` is made from an estimate."""
+    the same names, with what the publisher adds (receipt clock, sequence, the delay in use,
+    `more_flags` after the estimate's own). The one place an `EstimateMessage` is made from
+    an estimate."""
     return EstimateMessage(
         stamp=estimate.stamp,
         host_ns=host_ns,
         channels=list(estimate.channels),
         measured=estimate.measured_values(),
         estimate=estimate.estimate_values(),
-        flags=list(estimate.flags),
+        flags=[*estimate.flags, *more_flags],
         delay_s=delay_s,
         seq=seq,
         device_stamp=estimate.device_stamp,

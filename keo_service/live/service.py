@@ -16,6 +16,7 @@ import gc
 import logging
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -87,6 +88,7 @@ STATUS_PERIOD_S = 0.1
 # waits at most this long (its stretches are 2-2.5 s)
 DELAY_POLL_S = 0.25
 STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "stale"
+UNSETTLED = ("delay_unsettled",)  # the flag of an estimate made with a delay not settled yet
 
 
 MAX_ADAPTERS = 16  # adapters whose newest state change the service keeps (bounded)
@@ -98,9 +100,9 @@ class RateMeter:
 
     def __init__(self, window: int = 200) -> None:
         self._times: collections.deque[float] = collections.deque(maxlen=window)
-
-    def tick(self, now: float) -> None:
-        self._times.append(now)
+        # one arrival at monotonic time `now`: the deque's own append (no Python call per
+        # sample on the data path)
+        self.tick: Callable[[float], None] = self._times.append
 
     def rate(self, now: float) -> float:
         if len(self._times) < 2 or now - self._times[-1] > 2.0:
@@ -293,13 +295,18 @@ class KeoService:
         async for batch in self._sub.batches():
             self._handle(batch)
 
-    def _handle(self, batch: list[tuple[str, bytes]]) -> None:
+    # complexity (C901): the per-sample path keeps its checks inline (a stream's clock notes
+    # only when a sample has flags or a new domain): a Python call per sample is a real share
+    # of its cost (docs/performance.md)
+    def _handle(self, batch: list[tuple[str, bytes]]) -> None:  # noqa: C901
         """One wake-up's samples (key, payload), in arrival order, each through the
         estimator and its estimates out before the next sample (synchronous: no await)."""
         sinks = self.sinks
         inputs = sinks.takes_input
         estimator = self.estimator
         tracker = self._delay_tracker
+        domains = self._clock_domains
+        tick_tracker, tick_encoder = self._rates["tracker"].tick, self._rates["encoder"].tick
         for key, payload in batch:
             now = time.monotonic()
             try:
@@ -311,8 +318,9 @@ class KeoService:
             self.received += 1
             self._last_arrival = self._progress_at = now
             if isinstance(msg, TrackerSample):
-                self._note_sample("tracker", msg)
-                self._rates["tracker"].tick(now)
+                if msg.flags or (msg.clock and domains.get("tracker") != msg.clock):
+                    self._note_sample("tracker", msg)
+                tick_tracker(now)
                 if inputs:
                     sinks.on_input(msg)  # before the estimates it may cause
                 out = estimator.on_tracker(
@@ -325,8 +333,9 @@ class KeoService:
                 if tracker is not None:
                     self._track_delay(tracker, msg)
             elif isinstance(msg, JointSample):
-                self._note_sample("encoder", msg)
-                self._rates["encoder"].tick(now)
+                if msg.flags or (msg.clock and domains.get("encoder") != msg.clock):
+                    self._note_sample("encoder", msg)
+                tick_encoder(now)
                 out = estimator.on_encoder(msg.stamp, msg.joints)
                 if inputs:
                     sinks.on_input(msg)
@@ -360,7 +369,8 @@ class KeoService:
     def _note_sample(self, stream: str, msg: JointSample | TrackerSample) -> None:
         """Record the clock domain a stream's samples declare and count their stamp flags;
         warn once per change when the domain is not the configured one (a delay calibrated
-        under the config's domains need not hold for these stamps)."""
+        under the config's domains need not hold for these stamps). The data path calls it
+        only for a sample with flags or a domain other than the one noted."""
         for flag in msg.flags:
             self._clock_flags[f"{stream}_{flag}"] += 1
         if not msg.clock or self._clock_domains.get(stream) == msg.clock:
@@ -386,7 +396,8 @@ class KeoService:
         self.sinks.on_estimate(estimate, self.to_message(estimate))
 
     def to_message(self, estimate: Estimate) -> EstimateMessage:
-        msg = estimate_message(
+        tracker = self._delay_tracker
+        return estimate_message(
             estimate,
             host_ns=time.time_ns(),
             seq=self._seq,
@@ -394,12 +405,9 @@ class KeoService:
             delay_se_s=self.delay_se(),
             tool_speed_m_s=self._tool_speed.at(estimate.stamp),
             delay_state=self.delay_state(),
-        )
-        tracker = self._delay_tracker
-        if tracker is not None and not tracker.settled:
             # the delay in use is not known yet (found from the motion): every estimate says so
-            msg = msgspec.structs.replace(msg, flags=[*msg.flags, "delay_unsettled"])
-        return msg
+            more_flags=UNSETTLED if tracker is not None and not tracker.settled else (),
+        )
 
     def delay_state(self) -> DelayState | None:
         """The delay's source and the tracker's last decision (None: tracking off), made anew
@@ -527,11 +535,12 @@ class KeoService:
 
     async def _delay_loop(self) -> None:
         """Online delay tracking: take each stretch from the tracker's bounded buffers and
-        build its arrays on the loop, between samples; fit it in the worker process (one fit
-        at a time, `live/fit_worker.py`), fold the result in on the loop, between samples,
-        and set the estimator's delay (a step for a confirmed change, a slew for a
-        refinement). A fit of data from before a time base started anew is dropped."""
-        from keo_service.fit.delay_online import stretch_arrays
+        build its arrays on the loop, a few hundred rows at a time between samples
+        (`stretch_window`); fit it in the worker process (one fit at a time,
+        `live/fit_worker.py`), fold the result in on the loop, between samples, and set the
+        estimator's delay (a step for a confirmed change, a slew for a refinement). A fit of
+        data from before a time base started anew is dropped."""
+        from keo_service.live.fit_worker import stretch_window
 
         tracker, fits = self._delay_tracker, self._fits
         assert tracker is not None
@@ -540,8 +549,8 @@ class KeoService:
             if not tracker.due():  # else a stretch is waiting already (a slow fit, a replay)
                 await asyncio.sleep(DELAY_POLL_S)
                 continue
-            window = stretch_arrays(tracker.take())
-            restarts = tracker.counters["restarts"]
+            restarts = tracker.counters["restarts"]  # before the samples the pieces let in
+            window = await stretch_window(tracker.take())
             current = self.estimator.delay.offset_s
             found, cpu_s = await fits.measure(window, current, tracker.guess(current))
             self._fit_cpu_s += cpu_s
