@@ -243,7 +243,8 @@ def cmd_compensate(args: argparse.Namespace) -> int:
                 if outside["unseen_orientation"]
                 else ""
             )
-            + ": the model's accuracy there is not known (--accuracy: outside_region_mm)"
+            + ": the accuracy stated there (--accuracy) is the model's extrapolation figure, "
+            "none for an orientation not seen (outside_region_mm)"
         )
     acc = summary["model_accuracy_mm"]
     later = summary["accuracy_mm_rms"]

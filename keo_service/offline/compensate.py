@@ -30,7 +30,7 @@ from keo_service.core.compensation import (
 )
 from keo_service.core.model_corrections import approach_directions
 from keo_service.core.rotations import quaternion_matrices
-from keo_service.fit.accuracy import distance_outside, predicted_position_sigma
+from keo_service.fit.accuracy import predicted_position_sigma
 from keo_service.io.analysis_report import saved_accuracy
 from keo_service.io.cell import tool_model
 from keo_service.io.config import Config, load_config
@@ -50,8 +50,8 @@ class CompensateResult:
         accuracy_mm: (N,) the model's predicted position accuracy (RMS, mm) at each target in
             a session other than the one it was calibrated in (the usual case: compensation
             runs on later days), the between-session term `[model] accuracy_session_mm`
-            included; NaN outside the calibrated region, farther than the maps' fade length
-            outside a joint's calibrated range, or where the model states none.
+            included; NaN where the model states none or for a tool orientation no
+            calibration pose had.
         summary: what the command prints (`--json`): counts of the flags, the corrections'
             RMS and max (mm, mrad), the residuals' max (um, urad), the region, the stated
             accuracy and its between-session term.
@@ -96,24 +96,23 @@ def predicted_accuracy(config: Config, result: Compensated) -> tuple[np.ndarray,
     maps' fade length outside them. Returns (in another session, in the calibration session):
     the first adds the between-session term `[model] accuracy_session_mm` in quadrature,
     because a program is compensated on days after the calibration, and what differs between
-    sessions is in no held-out pose of the session the model was fitted on
-    (docs/analyze.md gives how each covers the other UR10 series). NaN outside the
-    calibrated region, beyond the fade length, or where the model states none."""
+    sessions is in no held-out pose of the session the model was fitted on. Stated outside
+    the calibrated region too, where the rule was judged (docs/analyze.md: each UR10 series'
+    model on the other's poses, most of them outside its region); NaN where the model states
+    none, or for a tool orientation no calibration pose had."""
     n = len(result.flags)
     stated = saved_accuracy(config)
     m = config.model
     if stated is None:  # a model.toml without calibrated ranges: one figure everywhere
         same = np.full(n, m.accuracy_mm if m.accuracy_mm > 0.0 else np.nan)
         later = np.sqrt(same**2 + m.accuracy_session_mm**2)
-        outside = np.array(["outside_calibrated_range" in f for f in result.flags], dtype=bool)
     else:
         same = predicted_position_sigma(stated, result.q)
         later = predicted_position_sigma(stated, result.q, off_session=True)
-        outside = distance_outside(result.q, stated.lower, stated.upper) > stated.taper_rad
     if result.outside_region_m is not None:
-        outside |= result.outside_region_m > 0.0
-    same[outside] = np.nan
-    later[outside] = np.nan
+        unseen = np.isinf(result.outside_region_m)
+        same[unseen] = np.nan
+        later[unseen] = np.nan
     return later, same
 
 
