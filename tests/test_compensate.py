@@ -293,6 +293,57 @@ def test_flags(analyzed):
     assert slow.flags[0] == ["not_converged"]
 
 
+def test_the_stated_accuracy_per_target_carries_the_between_session_term(analyzed, tmp_path):
+    """A program is compensated on a day after the calibration: each target's accuracy_mm is
+    the model's held-out RMS with the between-session term of model.toml added in quadrature
+    (the rule `keo analyze` judges a carried model by), accuracy_same_session_mm the same
+    without it; expected values from the numbers model.toml states, not from the code."""
+    import msgspec
+
+    from keo_service.offline.compensate import compensate as compensate_file
+
+    config = analyzed["model_config"]
+    m = config.model
+    assert m.accuracy_mm > 0.0
+    assert m.calibrated_q_min
+    stated = msgspec.structs.replace(
+        config,
+        model=msgspec.structs.replace(m, accuracy_session_mm=0.3, accuracy_session_source="test"),
+    )
+    lo, hi = np.asarray(m.calibrated_q_min), np.asarray(m.calibrated_q_max)
+    program = np.asarray(analyzed["program"], dtype=float)
+    inside = np.all((program > lo + 0.02) & (program < hi - 0.02), axis=1)
+    assert inside.sum() >= 5
+    base = program[np.flatnonzero(inside)[0]]
+    near, far = base.copy(), base.copy()
+    near[1] = hi[1] + 0.05  # within the maps' fade length: between the two stated figures
+    far[1] = hi[1] + 0.5  # far beyond it: the extrapolation figure
+    rows = np.vstack([program[inside], near, far])
+    targets = write_csv(tmp_path / "program.csv", JOINTS, [list(map(float, q)) for q in rows])
+    found = compensate_file(stated, targets, tmp_path / "out.csv", accuracy_columns=True)
+    n = int(inside.sum())
+    region = found.result.outside_region_m
+    judged = np.arange(n) if region is None else np.flatnonzero(np.isfinite(region[:n]))
+    assert judged.size >= 5
+    same = found.accuracy_same_session_mm
+    assert same is not None
+    assert np.allclose(same[judged], m.accuracy_mm, rtol=1e-9)
+    assert np.allclose(found.accuracy_mm[judged], np.hypot(m.accuracy_mm, 0.3), rtol=1e-9)
+    if region is None or np.isfinite(region[n]):
+        top = max(m.accuracy_outside_mm, m.accuracy_mm)
+        assert m.accuracy_mm <= same[n] <= top
+        assert found.accuracy_mm[n] == pytest.approx(np.hypot(same[n], 0.3), rel=1e-9)
+    if region is None or np.isfinite(region[n + 1]):
+        top = max(m.accuracy_outside_mm, m.accuracy_mm)
+        assert same[n + 1] == pytest.approx(top, rel=1e-9)
+        assert found.accuracy_mm[n + 1] == pytest.approx(np.hypot(top, 0.3), rel=1e-9)
+    assert found.summary["accuracy_session_mm"] == 0.3
+    assert found.summary["accuracy_session_source"] == "test"
+    out = pl.read_csv(tmp_path / "out.csv")
+    assert out.columns.index("accuracy_same_session_mm") == out.columns.index("accuracy_mm") + 1
+    assert np.allclose(out["accuracy_mm"].to_numpy()[judged], found.accuracy_mm[judged])
+
+
 def test_refusals_exit_2_with_a_clear_message(analyzed, tmp_path, capsys):
     def compensate_cli(analyzed, targets, out):
         return compensate_in_process(capsys, analyzed["model_path"], targets, out)

@@ -243,15 +243,24 @@ def cmd_compensate(args: argparse.Namespace) -> int:
                 if outside["unseen_orientation"]
                 else ""
             )
-            + ": the model's accuracy there is not known (--accuracy: outside_region_mm)"
+            + ": the accuracy stated there (--accuracy) is the model's extrapolation figure, "
+            "none for an orientation not seen (outside_region_mm)"
         )
     acc = summary["model_accuracy_mm"]
+    later = summary["accuracy_mm_rms"]
+    session = summary["accuracy_session_mm"]
     print(
         f"wrote {summary['out']}: {summary['targets']} targets ({summary['form']}); "
         f"correction {summary['correction_mm']['rms']:.4f} mm RMS, "
         f"{summary['correction_mm']['max']:.4f} mm max, "
         f"{summary['correction_mrad']['rms']:.4f} mrad RMS"
         + (f"; model accuracy {acc:.4f} mm RMS (held out)" if acc else "")
+        + (
+            f", {later:.4f} mm RMS at these targets in a later session (between sessions "
+            f"{session:.4f} mm, from {summary['accuracy_session_source'] or 'the model file'})"
+            if acc and later is not None and session
+            else ""
+        )
         + f"; {flags}"
     )
     return common.EXIT_OK
@@ -366,6 +375,7 @@ def _register_model(add: common.AddCommand) -> None:
         "--accuracy",
         action="store_true",
         help="add the columns predicted_mm, predicted_mrad (the model's deviation from the "
-        "nominal robot at each target) and accuracy_mm (its predicted accuracy there)",
+        "nominal robot at each target), accuracy_mm (its predicted accuracy there in a later "
+        "session) and accuracy_same_session_mm (in the calibration session)",
     )
     p.add_argument("--json", action="store_true")

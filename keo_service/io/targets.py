@@ -8,8 +8,10 @@ an optional first column `id` or `t` is carried through as written. Output: that
 `q1..qN` (corrected joints, rad), `x,y,z,qw,qx,qy,qz` (the nominal-model tool pose to command),
 `correction_mm`, `correction_mrad` (the commanded pose against the target), `residual_um` (of
 the model solve), with `--accuracy` `predicted_mm`, `predicted_mrad` (the model's predicted
-deviation from the nominal robot at the target) and `accuracy_mm` (the model's predicted
-accuracy there, NaN outside the calibrated range or region) and `outside_region_mm` (how far
+deviation from the nominal robot at the target), `accuracy_mm` (the model's predicted
+accuracy there in a later session, its between-session term included; NaN outside the
+calibrated range or region), `accuracy_same_session_mm` (the same without that term) and
+`outside_region_mm` (how far
 the target lies outside the box the calibration poses' tool swept in its orientation band, inf
 for a band none had), and `flags` (`|`-separated, empty when none; each with its detail: which
 joint and how far outside).
@@ -121,9 +123,11 @@ def write_compensated(
     targets: Targets,
     result: Compensated,
     accuracy: np.ndarray | None = None,
+    same_session: np.ndarray | None = None,
 ) -> None:
     """The output file (columns: see the module); `accuracy`: the predicted accuracy per
-    target (mm): with it, the columns predicted_mm, predicted_mrad and accuracy_mm."""
+    target (mm): with it, the columns predicted_mm, predicted_mrad and accuracy_mm;
+    `same_session`: the accuracy without the between-session term (accuracy_same_session_mm)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     columns: list[pl.Series] = []
@@ -143,6 +147,8 @@ def write_compensated(
         columns.append(pl.Series("predicted_mm", result.predicted_m * 1e3))
         columns.append(pl.Series("predicted_mrad", result.predicted_rad * 1e3))
         columns.append(pl.Series("accuracy_mm", accuracy))
+        if same_session is not None:
+            columns.append(pl.Series("accuracy_same_session_mm", same_session))
         if result.outside_region_m is not None:
             columns.append(pl.Series("outside_region_mm", result.outside_region_m * 1e3))
     details = result.details or result.flags

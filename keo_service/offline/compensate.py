@@ -30,6 +30,8 @@ from keo_service.core.compensation import (
 )
 from keo_service.core.model_corrections import approach_directions
 from keo_service.core.rotations import quaternion_matrices
+from keo_service.fit.accuracy import predicted_position_sigma
+from keo_service.io.analysis_report import saved_accuracy
 from keo_service.io.cell import tool_model
 from keo_service.io.config import Config, load_config
 from keo_service.io.targets import Targets, read_targets, write_compensated
@@ -45,11 +47,17 @@ class CompensateResult:
             correction (m, rad) and the solve's residual (m, rad), the flags per target.
         targets: the targets as read (`io.targets.Targets`).
         region: the model's calibrated region; None for a model.toml that does not state it.
-        accuracy_mm: (N,) the model's predicted position accuracy at each target, mm; NaN
-            outside the calibrated region or where the model states none.
+        accuracy_mm: (N,) the model's predicted position accuracy (RMS, mm) at each target in
+            a session other than the one it was calibrated in (the usual case: compensation
+            runs on later days), the between-session term `[model] accuracy_session_mm`
+            included; NaN where the model states none or for a tool orientation no
+            calibration pose had.
         summary: what the command prints (`--json`): counts of the flags, the corrections'
-            RMS and max (mm, mrad), the residuals' max (um, urad), the region.
+            RMS and max (mm, mrad), the residuals' max (um, urad), the region, the stated
+            accuracy and its between-session term.
         out: the output file written, None when none was asked for.
+        accuracy_same_session_mm: (N,) the same without the between-session term: what the
+            model states for the session it was calibrated in.
     """
 
     result: Compensated
@@ -58,6 +66,7 @@ class CompensateResult:
     accuracy_mm: np.ndarray
     summary: dict[str, Any]
     out: Path | None
+    accuracy_same_session_mm: np.ndarray | None = None
 
 
 def compensate_targets(model: ToolModel, targets: Targets) -> Compensated:
@@ -80,18 +89,31 @@ def compensate_targets(model: ToolModel, targets: Targets) -> Compensated:
     return solve_targets(model, R_goal, p_goal, seeds, direction, seeds_are_nominal=nominal)
 
 
-def predicted_accuracy(config: Config, result: Compensated) -> np.ndarray:
-    """The model's predicted position accuracy (mm) at each target: its held-out RMS
-    (`[model] accuracy_mm`) inside the calibrated region, NaN outside it or where the model
-    states none (a per-configuration uncertainty replaces this where the model has one)."""
-    acc = config.model.accuracy_mm
-    out = np.full(len(result.flags), acc if acc > 0.0 else np.nan)
-    for i, flags in enumerate(result.flags):
-        if "outside_calibrated_range" in flags:
-            out[i] = np.nan
+def predicted_accuracy(config: Config, result: Compensated) -> tuple[np.ndarray, np.ndarray]:
+    """The model's predicted position accuracy (RMS, mm) at each target's compensated joints,
+    by the rule `keo analyze` states and judges it with (`fit.accuracy`): its held-out RMS
+    inside the calibrated joint ranges, rising to the extrapolation bands' figure over the
+    maps' fade length outside them. Returns (in another session, in the calibration session):
+    the first adds the between-session term `[model] accuracy_session_mm` in quadrature,
+    because a program is compensated on days after the calibration, and what differs between
+    sessions is in no held-out pose of the session the model was fitted on. Stated outside
+    the calibrated region too, where the rule was judged (docs/analyze.md: each UR10 series'
+    model on the other's poses, most of them outside its region); NaN where the model states
+    none, or for a tool orientation no calibration pose had."""
+    n = len(result.flags)
+    stated = saved_accuracy(config)
+    m = config.model
+    if stated is None:  # a model.toml without calibrated ranges: one figure everywhere
+        same = np.full(n, m.accuracy_mm if m.accuracy_mm > 0.0 else np.nan)
+        later = np.sqrt(same**2 + m.accuracy_session_mm**2)
+    else:
+        same = predicted_position_sigma(stated, result.q)
+        later = predicted_position_sigma(stated, result.q, off_session=True)
     if result.outside_region_m is not None:
-        out[result.outside_region_m > 0.0] = np.nan
-    return out
+        unseen = np.isinf(result.outside_region_m)
+        same[unseen] = np.nan
+        later[unseen] = np.nan
+    return later, same
 
 
 def _rms(v: np.ndarray) -> float:
@@ -144,7 +166,8 @@ def compensate(
         targets: the targets CSV (`keo_service.io.targets`): a joint program `q1..qN` (rad)
             or tool poses `x,y,z,qw,qx,qy,qz` (m, scalar-first quaternion).
         out: where to write the output CSV; None: write nothing.
-        accuracy_columns: also write predicted_mm, predicted_mrad, accuracy_mm and
+        accuracy_columns: also write predicted_mm, predicted_mrad, accuracy_mm (in a later
+            session), accuracy_same_session_mm (in the calibration session) and
             outside_region_mm.
 
     Returns:
@@ -159,15 +182,27 @@ def compensate(
     model = tool_model(config, require_effects=True)
     read = read_targets(targets, model.nq)
     result = compensate_targets(model, read)
-    accuracy = predicted_accuracy(config, result)
+    accuracy, same_session = predicted_accuracy(config, result)
     out_path = None if out is None else Path(out)
     if out_path is not None:
-        write_compensated(out_path, read, result, accuracy if accuracy_columns else None)
+        write_compensated(
+            out_path,
+            read,
+            result,
+            accuracy if accuracy_columns else None,
+            same_session if accuracy_columns else None,
+        )
     counts = dict.fromkeys(FLAGS, 0)
     for row in result.flags:
         for f in row:
             counts[f] += 1
     ok = np.array([not ({"unreachable", "not_converged"} & set(f)) for f in result.flags])
+    saved = saved_accuracy(config)
+    session_mm = saved.session_mm if saved is not None else config.model.accuracy_session_mm
+    session_source = (
+        saved.session_source if saved is not None else config.model.accuracy_session_source
+    )
+    stated = np.isfinite(accuracy)
     pred_m = result.predicted_m if result.predicted_m is not None else np.zeros(0)
     pred_r = result.predicted_rad if result.predicted_rad is not None else np.zeros(0)
     summary: dict[str, Any] = {
@@ -187,6 +222,10 @@ def compensate(
         "predicted_mm_rms": _rms(pred_m * 1e3) if pred_m.size else None,
         "predicted_mrad_rms": _rms(pred_r * 1e3) if pred_r.size else None,
         "model_accuracy_mm": config.model.accuracy_mm or None,
+        "accuracy_session_mm": session_mm,
+        "accuracy_session_source": session_source,
+        "accuracy_mm_rms": _rms(accuracy[stated]) if stated.any() else None,
+        "accuracy_stated_targets": int(stated.sum()),
         "model_accuracy_mrad": config.model.accuracy_mrad or None,
         "residual_um_max": float(np.max(result.residual_m[ok]) * 1e6) if ok.any() else None,
         "residual_urad_max": float(np.max(result.residual_rad[ok]) * 1e6) if ok.any() else None,
@@ -195,4 +234,4 @@ def compensate(
         if result.outside_region_m is None
         else _outside_region(result.outside_region_m),
     }
-    return CompensateResult(result, read, model.region, accuracy, summary, out_path)
+    return CompensateResult(result, read, model.region, accuracy, summary, out_path, same_session)
