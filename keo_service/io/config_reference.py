@@ -269,7 +269,11 @@ KEYS: dict[str, tuple[str, str]] = {
         "base frame over the calibration poses: [[model.calibrated_region]] tables with band, "
         "poses, lower, upper",
     ),
-    "model.accuracy_mm": ("mm", "the model's held-out position RMS (keo compensate's accuracy)"),
+    "model.accuracy_mm": (
+        "mm",
+        "the model's held-out position RMS within its own session (keo compensate adds "
+        "accuracy_session_mm in quadrature for a later session)",
+    ),
     "model.accuracy_mrad": ("mrad", "and its orientation RMS"),
     "model.accuracy_outside_mm": ("mm", "held-out position RMS on extrapolation bands"),
     "model.accuracy_session_mm": (
