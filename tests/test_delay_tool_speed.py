@@ -10,7 +10,7 @@ import pinocchio as pin
 import pytest
 
 from keo_service.core.estimator import Estimate
-from keo_service.live.tool_speed import ToolSpeed
+from keo_service.core.tool_speed import ToolSpeed
 
 
 def _analytic_speed(cell, q, qdot):

@@ -26,6 +26,7 @@ import zenoh
 from keo_service.core.errors import KeoError
 from keo_service.core.estimator import Estimate, Estimator
 from keo_service.core.timing import DelayModel
+from keo_service.core.tool_speed import ToolSpeed
 from keo_service.io.cell import cell_from_config, delay_model, delay_prior, estimator_settings
 from keo_service.io.config import Config
 from keo_service.live.bus import AsyncSubscription, session_for_service
@@ -44,7 +45,6 @@ from keo_service.live.messages import (
 from keo_service.live.sinks import EstimateBusSink, RerunSink, Sinks
 from keo_service.live.status_view import delay_tracking_text
 from keo_service.live.supervise import supervise
-from keo_service.live.tool_speed import ToolSpeed
 
 # keys a SIGHUP applies without a restart
 HOT_KEYS = frozenset({"observer.gain", "timing.delay_s", "timing.drift_ppm", "timing.drift_ref_s"})
