@@ -797,8 +797,10 @@ class OnlineDelayTracker:
         c, se_c, members = cons
         newest = self._recent[-1]
         speed = float(np.median([f.speed for f in members]))
+        taken = "in use"
         if newest.young and newest in members:  # its stamps are the most settled
             c, se_c = newest.value, self.honest_se(newest.se)
+            taken = "the newest fit in use (young clock mappings: its stamps are the newest)"
         self._take(c, se_c, t, step=True)
         grown = len(members) >= 3 and not any(f.young for f in members)
         # and the motion itself separates a delay (not so for one joint at constant
@@ -816,7 +818,7 @@ class OnlineDelayTracker:
             self._trend_fits = 0
             return "settled", agreed
         to = self.settings.settle_m * 1e6
-        return "unsettled", f"{agreed}, in use until they agree to {to:g} um at speed"
+        return "unsettled", f"{agreed}, {taken} until they agree to {to:g} um at speed"
 
     def _confirms(self, fit: _Fit) -> bool:
         """Does this fit confirm the configured delay in use: precise to `max_apply_m` at its
