@@ -135,7 +135,7 @@ def test_a_new_clock_epoch_or_a_seq_going_back_without_one_starts_the_fits_anew(
     assert len(tracker._trk) == 300
     _samples(tracker, np.arange(3.0, 10.0, 0.01), epoch=1, seq0=301)  # an adapter restarted
     assert tracker.counters["restarts"] == 1
-    assert tracker._trk[0][0] >= 3.0 + 4.0  # before the epoch and 4 s after it: left out
+    assert tracker._trk.first() >= 3.0 + 4.0  # before the epoch and 4 s after it: left out
     assert tracker.delay_now() == pytest.approx(50e-6)  # the delay in use stays ...
     assert tracker.applied_se is not None
     assert se_before is not None

@@ -140,44 +140,55 @@ def test_the_bench_counts_the_services_workers_in_its_cpu():
 
 
 @pytest.mark.parametrize("quats", [True, False])
-def test_a_stretch_built_in_pieces_is_the_whole_stretchs_arrays(quats):
-    """`stretch_window` (a stretch's arrays a few rows at a time, the loop free between the
-    pieces) gives exactly what `stretch_arrays` gives in one go: mapped and unmapped stamps
-    under their lines, joints, positions, quaternions or None for a single reflector, and
-    the encoder rows running out before the tracker's."""
+def test_a_stretchs_arrays_map_its_stamps_row_by_row(quats):
+    """`stretch_window` (on the loop: a stretch's rows as arrays, its mapped stamps under
+    their lines) gives what mapping each row on its own gives: a device stamp carried by the
+    stream's line, its own stamp without one; joints, positions, quaternions or None for a
+    single reflector; and no encoder rows at all as an empty (0, 0) joints array."""
+    import math
+
     import numpy as np
 
-    from keo_service.fit.delay_online import Stretch, stretch_arrays
+    from keo_service.fit.delay_online import Stretch
     from keo_service.fit.stamp_lines import Anchor
     from keo_service.live.fit_worker import stretch_window
 
     rng = np.random.default_rng(5)
+    nan = math.nan
     enc = [
-        (0.004 * i, rng.normal(size=6), None if i % 7 == 0 else 100.0 + 0.004 * i)
+        (0.004 * i, *rng.normal(size=6), nan if i % 7 == 0 else 100.0 + 0.004 * i)
         for i in range(300)
     ]
     trk = [
         (
             0.001 * i,
-            rng.normal(size=3),
-            rng.normal(size=4) if quats else None,
-            None if i % 11 == 0 else 50.0 + 0.001 * i,
+            *rng.normal(size=3),
+            *(rng.normal(size=4) if quats else (nan,) * 4),
+            nan if i % 11 == 0 else 50.0 + 0.001 * i,
         )
         for i in range(1100)
     ]
-    stretch = Stretch(enc, trk, Anchor(0.5, 100.5, 3e-6), Anchor(0.2, 50.2, -2e-6))
-    want = stretch_arrays(stretch)
-    for chunk in (64, 256, 5000):
-        got = asyncio.run(stretch_window(stretch, chunk))
-        for g, w in zip(got, want, strict=True):
-            if w is None:
-                assert g is None
-            else:
-                assert g is not None
-                assert g.shape == w.shape
-                assert np.array_equal(g, w)
-    # no encoder rows at all: the same empty joints array as in one go
-    bare = Stretch([], trk, None, None)
-    got = asyncio.run(stretch_window(bare, 64))
-    assert got[1].shape == stretch_arrays(bare)[1].shape == (0, 0)
-    assert np.array_equal(got[2], stretch_arrays(bare)[2])
+    enc_line, trk_line = Anchor(0.5, 100.5, 3e-6), Anchor(0.2, 50.2, -2e-6)
+
+    def row_stamp(line, row):
+        device = row[-1]
+        if math.isnan(device):
+            return row[0]
+        return line.stamp + (device - line.device) * (1.0 + line.drift)
+
+    stretch = Stretch(np.array(enc), np.array(trk), enc_line, trk_line)
+    got = asyncio.run(stretch_window(stretch))
+    assert np.array_equal(got[0], [row_stamp(enc_line, r) for r in enc])
+    assert np.array_equal(got[1], [r[1:7] for r in enc])
+    assert np.array_equal(got[2], [row_stamp(trk_line, r) for r in trk])
+    assert np.array_equal(got[3], [r[1:4] for r in trk])
+    if quats:
+        assert got[4] is not None
+        assert np.array_equal(got[4], [r[4:8] for r in trk])
+    else:
+        assert got[4] is None
+    # no encoder rows at all: an empty joints array, as the fit expects
+    bare = Stretch(np.empty((0, 8)), np.array(trk), None, None)
+    got = asyncio.run(stretch_window(bare))
+    assert got[1].shape == (0, 0)
+    assert np.array_equal(got[2], [r[0] for r in trk])

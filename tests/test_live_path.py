@@ -194,12 +194,16 @@ def test_the_delay_trackers_buffers_take_finite_samples_only(
     demo_cell, position, quaternion, joints, kept
 ):
     """A non-finite coordinate keeps a sample out of the delay tracker's buffers (its fits
-    would fail on it), whatever the check is made with; the buffered rows are arrays."""
+    would fail on it), whatever the check is made with; the buffered rows are float arrays."""
     from keo_service.fit.delay_online import OnlineDelayTracker
 
     tracker = OnlineDelayTracker(demo_cell, None, 0.0, 0.001)
     tracker.add_encoder(1.0, joints)
     tracker.add_tracker(1.0, position, quaternion)
     assert (len(tracker._enc), len(tracker._trk)) == kept
-    for row in [*tracker._enc, *tracker._trk]:
-        assert isinstance(row[1], np.ndarray)
+    enc = tracker._enc.between(-np.inf, np.inf)  # stamp, joints, device stamp (nan: none)
+    trk = tracker._trk.between(-np.inf, np.inf)  # stamp, position, quaternion, device stamp
+    assert (enc.shape[0], trk.shape[0]) == kept
+    assert enc.dtype == trk.dtype == np.float64
+    assert np.isfinite(enc[:, :-1]).all()
+    assert np.isfinite(trk[:, :4]).all()

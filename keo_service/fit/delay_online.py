@@ -233,17 +233,16 @@ class OnlineDelayTracker:
         self.min_wander_s = st.min_wander_s
         self.restart_sigma_s = st.restart_sigma_s
         self.max_apply_m = st.max_apply_m
-        # (stamp, joints, device stamp or None)
-        self._enc: collections.deque[tuple[float, np.ndarray, float | None]] = collections.deque(
-            maxlen=st.max_samples
-        )
-        # (stamp, position, quaternion or None, device stamp or None)
-        self._trk: collections.deque[tuple[float, np.ndarray, np.ndarray | None, float | None]] = (
-            collections.deque(maxlen=st.max_samples)
-        )
-        # each mapped stream's newest sample on its clock mapping's line; the lines the
-        # running estimate is expressed under; those of the stretch being fitted
-        self._newest: dict[str, Anchor] = {}
+        # each stream's samples as rows of floats (`_Rows`): (stamp, joints..., device stamp)
+        # and (stamp, x, y, z, qw, qx, qy, qz, device stamp), nan for what a sample lacks
+        self._enc = _Rows(st.max_samples)
+        self._trk = _Rows(st.max_samples)
+        # each mapped stream's newest sample on its clock mapping's line, as (stamp, device
+        # stamp, drift): kept per sample, made an `Anchor` only when one is asked for
+        # (`_newest`); the lines the running estimate is expressed under; those of the stretch
+        # being fitted
+        self._newest_rows: dict[str, tuple[float, float, float]] = {}
+        self._newest_made: dict[str, Anchor] | None = None
         self._frame: dict[str, Anchor] = {}
         self._fitting_frame: dict[str, Anchor] | None = None
         self._start = -math.inf  # stream time from which samples count
@@ -308,9 +307,12 @@ class OnlineDelayTracker:
         # finite checks on the floats as they came: numpy's isfinite().all() on a row cost
         # several times the rest of this call (docs/performance.md)
         isfinite = math.isfinite
-        newer = not self._enc or t > self._enc[-1][0]
-        if isfinite(t) and all(map(isfinite, q)) and newer:
-            self._enc.append((t, np.asarray(q, dtype=float), device))
+        rows = self._enc
+        if isfinite(t) and all(map(isfinite, q)) and t > rows.last:
+            if rows.width and len(q) + 2 != rows.width:
+                self.counters["encoder_wrong_length"] += 1
+                return
+            rows.append((t, *q, math.nan if device is None else device))
 
     def add_tracker(
         self,
@@ -331,9 +333,13 @@ class OnlineDelayTracker:
             return
         isfinite = math.isfinite  # as in add_encoder: no numpy for the checks
         finite = all(map(isfinite, p)) and (quat is None or all(map(isfinite, quat)))
-        if isfinite(t) and finite and (not self._trk or t > self._trk[-1][0]):
-            q_arr = None if quat is None else np.asarray(quat, dtype=float)
-            self._trk.append((t, np.asarray(p, dtype=float), q_arr, device))
+        rows = self._trk
+        if isfinite(t) and finite and t > rows.last:
+            if len(p) != 3 or (quat is not None and len(quat) != 4):
+                self.counters["tracker_wrong_length"] += 1
+                return
+            dev = math.nan if device is None else device
+            rows.append((t, *p, *(_NO_QUAT if quat is None else quat), dev))
 
     def _line(
         self, stream: str, t: float, device_stamp: float | None, drift: float | None
@@ -344,8 +350,16 @@ class OnlineDelayTracker:
         if device_stamp is None or not math.isfinite(device_stamp):
             return None
         if drift is not None and math.isfinite(drift) and math.isfinite(t):
-            self._newest[stream] = Anchor(t, device_stamp, drift)
-        return device_stamp if stream in self._newest else None
+            self._newest_rows[stream] = (t, device_stamp, drift)
+            self._newest_made = None
+        return device_stamp if stream in self._newest_rows else None
+
+    @property
+    def _newest(self) -> dict[str, Anchor]:
+        """Each mapped stream's newest sample on its line, as anchors (made once per change)."""
+        if self._newest_made is None:
+            self._newest_made = {k: Anchor(*v) for k, v in self._newest_rows.items()}
+        return self._newest_made
 
     @property
     def last_result(self) -> str:
@@ -383,7 +397,14 @@ class OnlineDelayTracker:
             return None
         if not self._carried:
             return self.applied
-        return self.applied + self._moved(self._newest, self._applied_t)
+        # `_moved(self._newest, ...)` on the lines' plain floats: this runs per sample
+        at = self._applied_t
+        where = None if math.isnan(at) else at
+        rows, frame = self._newest_rows, self._frame
+        return self.applied + (
+            _moved_row(rows.get("tracker"), frame.get("tracker"), where)
+            - _moved_row(rows.get("encoder"), frame.get("encoder"), where)
+        )
 
     def _moved(self, lines: dict[str, Anchor], at: float) -> float:
         """How far the delay the stamps need at stream time `at` moved from the running
@@ -442,7 +463,8 @@ class OnlineDelayTracker:
     def restart(self, t: float, why: str) -> None:
         """A stream's time base started anew at stream time t: drop what came before."""
         self.applied = self.delay_now()  # as in use now; the new mapping's lines are new
-        self._newest.clear()
+        self._newest_rows.clear()
+        self._newest_made = None
         self._frame = {}
         self._fitting_frame = None
         self._enc.clear()
@@ -470,14 +492,15 @@ class OnlineDelayTracker:
     # ---- fits ---------------------------------------------------------------------------
 
     def due(self) -> bool:
-        return bool(self._trk) and self._trk[-1][0] - self._trk[0][0] >= self._span()
+        trk = self._trk
+        return len(trk) > 0 and trk.last - trk.first() >= self._span()
 
     def _span(self) -> float:
         """The stretch to fit next: shorter while the clock mappings are young."""
         young = (
-            bool(self._newest)  # only mapped stamps are young (receipt and shared ones are not)
-            and bool(self._trk)
-            and self._trk[0][0] + self.young_span_s <= self._young_until
+            bool(self._newest_rows)  # only mapped stamps are young (not receipt or shared ones)
+            and len(self._trk) > 0
+            and self._trk.first() + self.young_span_s <= self._young_until
         )
         return self.young_span_s if young else self._stretch_s
 
@@ -486,18 +509,17 @@ class OnlineDelayTracker:
         return stretch_arrays(self.take())
 
     def take(self) -> Stretch:
-        """The stretch to fit, consumed from the buffers (on the loop: list copies only, the
-        arrays are built by `stretch_arrays` in the worker), with each stream's newest line,
-        which the next `combine` takes the fit to be under: the next fit sees only newer
-        samples."""
-        first = self._trk[0][0]
-        trk = [s for s in self._trk if s[0] <= first + self._span()]
-        end = trk[-1][0]
-        enc = [s for s in self._enc if first - 1.0 <= s[0] <= end + 1.0]
-        while self._trk and self._trk[0][0] <= end:
-            self._trk.popleft()
-        while self._enc and self._enc[0][0] < end - 1.0:
-            self._enc.popleft()
+        """The stretch to fit, consumed from the buffers (on the loop: slices of their arrays;
+        the stamps are mapped by `stretch_arrays`), with each stream's newest line, which the
+        next `combine` takes the fit to be under: the next fit sees only newer samples. The
+        tracker's samples from the first to `_span()` after it; the encoder's from 1 s before
+        the first to 1 s after the last of those; the encoder's kept from 1 s before the last
+        on, for the next stretch."""
+        first = self._trk.first()
+        trk = self._trk.take_through(first + self._span())
+        end = float(trk[-1, 0])
+        enc = self._enc.between(first - 1.0, end + 1.0)
+        self._enc.drop_before(end - 1.0)
         # the whole stretch under each stream's newest line (see fit/stamp_lines.py)
         self._fitting_frame = dict(self._newest)
         return Stretch(enc, trk, self._newest.get("encoder"), self._newest.get("tracker"))
@@ -1141,11 +1163,12 @@ def resent_joint_intervals(
 
 @dataclass(frozen=True)
 class Stretch:
-    """A stretch taken from the buffers: (stamp, joints, device stamp) and (stamp, position,
-    quaternion, device stamp) rows, and each stream's line then (None: not mapped)."""
+    """A stretch taken from the buffers: the encoder's rows (stamp, joints..., device stamp)
+    and the tracker's (stamp, x, y, z, qw, qx, qy, qz, device stamp), nan where a sample had
+    no device stamp or no quaternion, and each stream's line then (None: not mapped)."""
 
-    enc: list[tuple[float, np.ndarray, float | None]]
-    trk: list[tuple[float, np.ndarray, np.ndarray | None, float | None]]
+    enc: np.ndarray
+    trk: np.ndarray
     enc_line: Anchor | None
     trk_line: Anchor | None
 
@@ -1153,26 +1176,141 @@ class Stretch:
 def stretch_arrays(
     stretch: Stretch,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """A stretch's arrays, its mapped stamps under the stream's line (anywhere: a worker)."""
+    """A stretch's arrays, its mapped stamps under the stream's line: (encoder stamps,
+    joints, tracker stamps, positions, quaternions or None when a sample had none)."""
     enc, trk = stretch.enc, stretch.trk
-    enc_t = _on_line(stretch.enc_line, [(s[0], s[2]) for s in enc])
-    enc_q = np.array([s[1] for s in enc]) if enc else np.empty((0, 0))
-    trk_t = _on_line(stretch.trk_line, [(s[0], s[3]) for s in trk])
-    trk_p = np.array([s[1] for s in trk])
-    quats = [s[2] for s in trk]
-    trk_q = None if any(q is None for q in quats) else np.array(quats)
+    enc_t = _on_line(stretch.enc_line, enc[:, 0], enc[:, -1])
+    enc_q = np.ascontiguousarray(enc[:, 1:-1]) if enc.shape[0] else np.empty((0, 0))
+    trk_t = _on_line(stretch.trk_line, trk[:, 0], trk[:, -1])
+    if not trk.shape[0]:
+        return enc_t, enc_q, trk_t, np.array([]), np.array([])
+    trk_p = np.ascontiguousarray(trk[:, 1:4])
+    quats = trk[:, 4:8]
+    trk_q = None if np.isnan(quats[:, 0]).any() else np.ascontiguousarray(quats)
     return enc_t, enc_q, trk_t, trk_p, trk_q
 
 
-def _on_line(anchor: Anchor | None, stamps: list[tuple[float, float | None]]) -> np.ndarray:
-    """The stamps (stamp, device stamp) of a stream under its line: a sample's device stamp
-    carried by the line, its own stamp when it has none."""
-    t = np.array([s for s, _ in stamps], dtype=float)
+def _on_line(anchor: Anchor | None, stamps: np.ndarray, device: np.ndarray) -> np.ndarray:
+    """The stamps of a stream under its line: a sample's device stamp (nan: none) carried by
+    the line, its own stamp when it has none."""
+    t = np.array(stamps, dtype=float)
     if anchor is not None and t.size:
-        device = np.array([math.nan if d is None else d for _, d in stamps])
         mapped = ~np.isnan(device)
         t[mapped] = anchor.at(device[mapped])
     return t
+
+
+_NO_QUAT = (math.nan,) * 4  # a tracker row's quaternion for a single reflector's sample
+
+
+def _moved_row(
+    newer: tuple[float, float, float] | None, older: Anchor | None, at: float | None
+) -> float:
+    """`moved(Anchor(*newer), older, at)`: the same operations on plain floats (no anchor
+    made per sample)."""
+    if newer is None or older is None:
+        return 0.0
+    stamp, device, drift = newer
+    d = device if at is None else device + (at - stamp) / (1.0 + drift)
+    return (stamp - older.stamp) + (
+        (d - device) * (1.0 + drift) - (d - older.device) * (1.0 + older.drift)
+    )
+
+
+class _Rows:
+    """One stream's samples, oldest first, at most `maxlen` of them (the oldest dropped, as
+    from a bounded deque), each a row of floats of one width, stamps rising in column 0.
+
+    Per sample a tuple is appended to a list; every `block` rows the list becomes rows of an
+    array allocated ahead (grown by doubling, compacted when its end is reached), so that a
+    stretch is a slice of it: no array per sample, no walk over a deque. `last` is the newest
+    stamp (-inf when empty: any finite stamp is newer)."""
+
+    def __init__(self, maxlen: int, block: int = 256) -> None:
+        self.maxlen = max(int(maxlen), 1)
+        self.block = block
+        self.width = 0  # the rows' width, from the first row (0: none yet)
+        self.last = -math.inf
+        self._pending: list[tuple[float, ...]] = []
+        self._rows: np.ndarray | None = None  # allocated at the first block (a copy sent
+        self._head = 0  # to the fit worker at start carries none); rows [_head, _end) of
+        self._end = 0  # it are held, then `_pending`
+
+    def __len__(self) -> int:
+        return self._end - self._head + len(self._pending)
+
+    def append(self, row: tuple[float, ...]) -> None:
+        if not self.width:
+            self.width = len(row)
+        if self._end - self._head + len(self._pending) >= self.maxlen:  # full: drop the oldest
+            if self._end > self._head:
+                self._head += 1
+            else:
+                self._pending.pop(0)
+        self._pending.append(row)
+        self.last = row[0]
+        if len(self._pending) >= self.block:
+            self._flush()
+
+    def first(self) -> float:
+        """The oldest stamp (the buffer is not empty)."""
+        if self._end > self._head:
+            assert self._rows is not None
+            return float(self._rows[self._head, 0])
+        return self._pending[0][0]
+
+    def clear(self) -> None:
+        self._pending = []
+        self._head = self._end = 0
+        self.last = -math.inf
+
+    def _flush(self) -> None:
+        if not self._pending:
+            return
+        new = np.array(self._pending, dtype=float)
+        self._pending = []
+        n, held = new.shape[0], self._end - self._head
+        rows = self._rows
+        if rows is None or self._end + n > rows.shape[0]:
+            size = 4 * self.block if rows is None else rows.shape[0]
+            while size < 2 * (held + n):  # room for as many again before the next move
+                size *= 2
+            moved = np.empty((size, self.width)) if rows is None or size > rows.shape[0] else rows
+            if rows is not None and held:
+                moved[:held] = rows[self._head : self._end]
+            self._rows, rows, self._head, self._end = moved, moved, 0, held
+        rows[self._end : self._end + n] = new
+        self._end += n
+
+    def _held(self) -> np.ndarray:
+        self._flush()
+        if self._rows is None:
+            return np.empty((0, max(self.width, 1)))
+        return self._rows[self._head : self._end]
+
+    def take_through(self, stamp: float) -> np.ndarray:
+        """The rows with stamps up to `stamp` (a copy), dropped from the buffer."""
+        held = self._held()
+        k = int(np.searchsorted(held[:, 0], stamp, side="right"))
+        out = held[:k].copy()
+        self._head += k
+        if self._head == self._end:
+            self.last = -math.inf
+        return out
+
+    def between(self, lo: float, hi: float) -> np.ndarray:
+        """The rows with stamps from `lo` to `hi` (a copy)."""
+        held = self._held()
+        a = int(np.searchsorted(held[:, 0], lo, side="left"))
+        b = int(np.searchsorted(held[:, 0], hi, side="right"))
+        return held[a : max(a, b)].copy()
+
+    def drop_before(self, stamp: float) -> None:
+        """Drop the rows with stamps before `stamp`."""
+        held = self._held()
+        self._head += int(np.searchsorted(held[:, 0], stamp, side="left"))
+        if self._head == self._end:
+            self.last = -math.inf
 
 
 def _quat_matrices(q: np.ndarray) -> np.ndarray:

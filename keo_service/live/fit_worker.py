@@ -4,10 +4,9 @@ A fit is a sizeable piece of numpy and Python every stretch (2-2.5 s of data). O
 the service it held the GIL in its Python parts, and the samples that arrived meanwhile
 waited for it; numpy's BLAS also ran threads of its own for the fit's linear algebra, which
 on a small machine spun on the cores the data path needed (docs/performance.md has the
-figures). Here the
-service's event loop only takes the stretch from the tracker's bounded buffers and builds its
-arrays (between samples), hands them to one worker process and awaits the result, which it
-folds in between samples as before.
+figures). Here the service's event loop only takes the stretch from the tracker's bounded
+buffers (slices of its row arrays) and maps its stamps (between samples), hands them to one
+worker process and awaits the result, which it folds in between samples as before.
 
 Bounded: one process, one fit at a time (the delay loop awaits each before it takes the next
 stretch), a stretch's arrays as its only input. The worker holds a copy of the tracker made
@@ -45,10 +44,6 @@ if TYPE_CHECKING:
 
 __all__ = ["FitWorker", "stretch_window"]
 
-# rows of a stretch turned into arrays at a time, the event loop serving samples between two
-# such pieces: a whole stretch (2-2.5 s at 1 kHz) in one go held the loop for several ms
-STRETCH_CHUNK = 256
-
 # the thread counts numpy's BLAS builds read at their import: one, in the worker
 BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -78,35 +73,13 @@ def _measure(
     return found, time.process_time() - start
 
 
-async def stretch_window(stretch: Stretch, chunk: int = STRETCH_CHUNK) -> Window:
-    """`stretch_arrays(stretch)`, the same arrays, built `chunk` rows at a time with the
-    event loop free between the pieces (each row maps on its own: the pieces joined are the
-    whole)."""
-    from keo_service.fit.delay_online import Stretch, stretch_arrays
+async def stretch_window(stretch: Stretch) -> Window:
+    """`stretch_arrays(stretch)`: the stretch is slices of the tracker's row arrays, so its
+    arrays take a few vector operations (built from rows in pieces before, with the loop
+    served between them: a whole stretch at once held it for several ms)."""
+    from keo_service.fit.delay_online import stretch_arrays
 
-    enc, trk = stretch.enc, stretch.trk
-    rows = max(len(enc), len(trk))
-    if rows <= chunk:
-        return stretch_arrays(stretch)
-    import numpy as np
-
-    parts = []
-    for i in range(0, rows, chunk):
-        piece = Stretch(enc[i : i + chunk], trk[i : i + chunk], stretch.enc_line, stretch.trk_line)
-        parts.append((stretch_arrays(piece), len(piece.enc), len(piece.trk)))
-        await asyncio.sleep(0)  # the samples that came meanwhile go first
-    with_enc = [arrays for arrays, n_enc, _ in parts if n_enc]
-    with_trk = [arrays for arrays, _, n_trk in parts if n_trk]
-    enc_t = np.concatenate([arrays[0] for arrays, _, _ in parts])
-    enc_q = np.concatenate([a[1] for a in with_enc]) if with_enc else np.empty((0, 0))
-    trk_t = np.concatenate([arrays[2] for arrays, _, _ in parts])
-    trk_p = np.concatenate([a[3] for a in with_trk]) if with_trk else np.array([])
-    quats = [a[4] for a in with_trk]
-    kept = [q for q in quats if q is not None]
-    trk_q: np.ndarray | None = None
-    if len(kept) == len(quats):  # one piece of a single reflector's: None, as in one go
-        trk_q = np.concatenate(kept) if kept else np.array([])
-    return enc_t, enc_q, trk_t, trk_p, trk_q
+    return stretch_arrays(stretch)
 
 
 @contextlib.contextmanager

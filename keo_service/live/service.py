@@ -534,12 +534,12 @@ class KeoService:
                 self.estimator.set_delay_target(target)
 
     async def _delay_loop(self) -> None:
-        """Online delay tracking: take each stretch from the tracker's bounded buffers and
-        build its arrays on the loop, a few hundred rows at a time between samples
-        (`stretch_window`); fit it in the worker process (one fit at a time,
-        `live/fit_worker.py`), fold the result in on the loop, between samples, and set the
-        estimator's delay (a step for a confirmed change, a slew for a refinement). A fit of
-        data from before a time base started anew is dropped."""
+        """Online delay tracking: take each stretch from the tracker's bounded buffers (slices
+        of its row arrays) and map its stamps on the loop (`stretch_window`); fit it in the
+        worker process (one fit at a time, `live/fit_worker.py`), fold the result in on the
+        loop, between samples, and set the estimator's delay (a step for a confirmed change, a
+        slew for a refinement). A fit of data from before a time base started anew is
+        dropped."""
         from keo_service.live.fit_worker import stretch_window
 
         tracker, fits = self._delay_tracker, self._fits
@@ -549,7 +549,7 @@ class KeoService:
             if not tracker.due():  # else a stretch is waiting already (a slow fit, a replay)
                 await asyncio.sleep(DELAY_POLL_S)
                 continue
-            restarts = tracker.counters["restarts"]  # before the samples the pieces let in
+            restarts = tracker.counters["restarts"]  # before the samples the fit lets in
             window = await stretch_window(tracker.take())
             current = self.estimator.delay.offset_s
             found, cpu_s = await fits.measure(window, current, tracker.guess(current))
