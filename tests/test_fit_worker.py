@@ -141,7 +141,7 @@ def test_the_bench_counts_the_services_workers_in_its_cpu():
 
 @pytest.mark.parametrize("quats", [True, False])
 def test_a_stretchs_arrays_map_its_stamps_row_by_row(quats):
-    """`stretch_window` (on the loop: a stretch's rows as arrays, its mapped stamps under
+    """`stretch_arrays` (on the loop: a stretch's rows as arrays, its mapped stamps under
     their lines) gives what mapping each row on its own gives: a device stamp carried by the
     stream's line, its own stamp without one; joints, positions, quaternions or None for a
     single reflector; and no encoder rows at all as an empty (0, 0) joints array."""
@@ -149,9 +149,8 @@ def test_a_stretchs_arrays_map_its_stamps_row_by_row(quats):
 
     import numpy as np
 
-    from keo_service.fit.delay_online import Stretch
+    from keo_service.fit.delay_online import Stretch, stretch_arrays
     from keo_service.fit.stamp_lines import Anchor
-    from keo_service.live.fit_worker import stretch_window
 
     rng = np.random.default_rng(5)
     nan = math.nan
@@ -177,7 +176,7 @@ def test_a_stretchs_arrays_map_its_stamps_row_by_row(quats):
         return line.stamp + (device - line.device) * (1.0 + line.drift)
 
     stretch = Stretch(np.array(enc), np.array(trk), enc_line, trk_line)
-    got = asyncio.run(stretch_window(stretch))
+    got = stretch_arrays(stretch)
     assert np.array_equal(got[0], [row_stamp(enc_line, r) for r in enc])
     assert np.array_equal(got[1], [r[1:7] for r in enc])
     assert np.array_equal(got[2], [row_stamp(trk_line, r) for r in trk])
@@ -189,6 +188,6 @@ def test_a_stretchs_arrays_map_its_stamps_row_by_row(quats):
         assert got[4] is None
     # no encoder rows at all: an empty joints array, as the fit expects
     bare = Stretch(np.empty((0, 8)), np.array(trk), None, None)
-    got = asyncio.run(stretch_window(bare))
+    got = stretch_arrays(bare)
     assert got[1].shape == (0, 0)
     assert np.array_equal(got[2], [r[0] for r in trk])

@@ -37,12 +37,11 @@ if TYPE_CHECKING:
         DelayMeasurement,
         DelayRefused,
         OnlineDelayTracker,
-        Stretch,
     )
 
     Window = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]
 
-__all__ = ["FitWorker", "stretch_window"]
+__all__ = ["FitWorker"]
 
 # the thread counts numpy's BLAS builds read at their import: one, in the worker
 BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
@@ -71,15 +70,6 @@ def _measure(
     start = time.process_time()
     found = _worker["tracker"].measure(window, current, guess)
     return found, time.process_time() - start
-
-
-async def stretch_window(stretch: Stretch) -> Window:
-    """`stretch_arrays(stretch)`: the stretch is slices of the tracker's row arrays, so its
-    arrays take a few vector operations (built from rows in pieces before, with the loop
-    served between them: a whole stretch at once held it for several ms)."""
-    from keo_service.fit.delay_online import stretch_arrays
-
-    return stretch_arrays(stretch)
 
 
 @contextlib.contextmanager

@@ -535,12 +535,12 @@ class KeoService:
 
     async def _delay_loop(self) -> None:
         """Online delay tracking: take each stretch from the tracker's bounded buffers (slices
-        of its row arrays) and map its stamps on the loop (`stretch_window`); fit it in the
+        of its row arrays) and map its stamps on the loop (`stretch_arrays`); fit it in the
         worker process (one fit at a time, `live/fit_worker.py`), fold the result in on the
         loop, between samples, and set the estimator's delay (a step for a confirmed change, a
         slew for a refinement). A fit of data from before a time base started anew is
         dropped."""
-        from keo_service.live.fit_worker import stretch_window
+        from keo_service.fit.delay_online import stretch_arrays
 
         tracker, fits = self._delay_tracker, self._fits
         assert tracker is not None
@@ -550,7 +550,7 @@ class KeoService:
                 await asyncio.sleep(DELAY_POLL_S)
                 continue
             restarts = tracker.counters["restarts"]  # before the samples the fit lets in
-            window = await stretch_window(tracker.take())
+            window = stretch_arrays(tracker.take())
             current = self.estimator.delay.offset_s
             found, cpu_s = await fits.measure(window, current, tracker.guess(current))
             self._fit_cpu_s += cpu_s
