@@ -181,8 +181,15 @@ def test_status_table_against_a_running_service(tmp_path):
     }
     assert rows["encoder"][:3] == ("receiving", "motoros", f"127.0.0.1:{robot_port}"), table
     assert rows["tracker"][:3] == ("receiving", "line", f"127.0.0.1:{proxy.port}"), table
-    assert float(rows["encoder"][3]) == pytest.approx(39.5, rel=0.3)
-    assert float(rows["tracker"][3]) == pytest.approx(99.6, rel=0.3)
+    # each adapter's rate as its status documents before and after said it (the rate's own
+    # accuracy is tested on AdapterHealth; an adapter starved on a loaded machine publishes
+    # below the device's rate, as one did at 26 Hz 4 s after it connected, at load 9)
+    for name in rows:
+        said = [doc["adapters"][name]["rate_hz"] for doc in (before, after)]
+        # (a 5 s window may swing a little between the three reads: 10 %)
+        low, high = 0.9 * min(said) - 0.06, 1.1 * max(said) + 0.06
+        assert low <= float(rows[name][3]) <= high, (name, said, table)
+        assert 0.0 < float(rows[name][3]) <= 1.3 * {"encoder": 39.5, "tracker": 99.6}[name]
     assert all(float(r[4]) < 2.0 for r in rows.values())
     # the tracker's rejects: counted by reason, the newest messages listed
     tracker_part = table[table.index("  tracker:\n") :]
