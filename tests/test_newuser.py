@@ -236,7 +236,9 @@ def test_mocks_started_by_hand_from_an_init_config_give_estimates(tmp_path, robo
         ("tracker", 99.6),
     ):
         assert adapters[name]["state"] == "receiving", adapters[name]
-        assert adapters[name]["rate_hz"] == pytest.approx(expected_hz, rel=0.4), adapters[name]
+        # the device's rate, not another stream's or a multiple of it; an adapter starved
+        # on a loaded machine publishes below it for a while (26 of 40 Hz seen at load 9)
+        assert 0.5 * expected_hz <= adapters[name]["rate_hz"] <= 1.4 * expected_hz, adapters[name]
         assert adapters[name]["counters"]["published"] > 0
         assert adapters[name]["last_error"] == ""
     # the streams agree: the delay the service sees is the scenario's 28 ms, not seconds
