@@ -369,12 +369,12 @@ async def test_estimates_are_flagged_until_an_unknown_delay_settles(demo_config)
         async with KeoService(config) as service:
             msg = service.to_message(record)
             status = service.status()
-            # the tool's speed: none without joints; from two estimates with joints, the
-            # nominal tool point's displacement over their time (the status cycle samples)
+            # the tool's speed: none without joints; from four estimates with joints, the
+            # slope of the nominal tool point's path over their time (the status cycle samples)
             q = np.full(6, 0.3)
             moved = [
                 Estimate(t, [0.0] * 6, [0.0] * 6, (), t, record.channels, q + 0.1 * t)
-                for t in (2.0, 2.1)
+                for t in (2.0, 2.1, 2.2, 2.3)
             ]
             for est in moved:
                 service._tool_speed.sample(est)

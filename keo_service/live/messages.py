@@ -195,8 +195,9 @@ class EstimateMessage(_Message, frozen=True, tag=_tag("estimate")):
         device_stamp: the tracker's own time of the sample behind it, s, where it gives one.
         delay_se_s: the standard error of the delay in use, s, when it is known (calibrated
             or tracked); None when nobody measured it.
-        tool_speed_m_s: the tool's speed at this estimate, m/s, from the joint velocities;
-            None where they are not known.
+        tool_speed_m_s: the nominal tool point's speed at this estimate, m/s, from the
+            joints of the estimates of the last 0.6 s (`core.tool_speed`); None before four
+            were sampled, or after a pause.
         delay_state: the delay in use's source and the online tracker's last decision
             (`DelayState`); None when tracking is off.
     """
