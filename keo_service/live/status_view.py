@@ -161,7 +161,7 @@ class DelayLog:
         self._source = source
         refined = refinements - self._refinements
         t = _number(_field(state, "decided_t"))
-        due = t is None or not t - self._refined_said_t < self.every_s
+        due = t is None or not 0.0 <= t - self._refined_said_t < self.every_s  # or went back
         said = kind if kind != "refined" else self._kind
         if (said != self._kind or moved) and not (kind == "refined" and refined > 0):
             out.append((logging.INFO, f"delay tracking: {text}"))
