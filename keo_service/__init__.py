@@ -36,6 +36,7 @@ __version__ = "0.1.0"
 
 _EXPORTS = {
     "AdapterStatus": "keo_service.live.messages",
+    "DelayState": "keo_service.live.messages",
     "Client": "keo_service.live.client",
     "SyncClient": "keo_service.live.client",
     "ClientError": "keo_service.live.client",
@@ -77,6 +78,7 @@ __all__ = [
     "ConfigError",
     "DataFormatError",
     "DelayResult",
+    "DelayState",
     "Estimate",
     "EstimateMessage",
     "EstimateResult",
@@ -107,6 +109,7 @@ if TYPE_CHECKING:
     from keo_service.live.client import Client, ClientError, SyncClient
     from keo_service.live.messages import (
         AdapterStatus,
+        DelayState,
         EstimateMessage,
         JointSample,
         RobotStatus,

@@ -6,10 +6,11 @@ from __future__ import annotations
 
 import asyncio
 import datetime
+import itertools
+import logging
 import math
 import re
 import time
-from types import SimpleNamespace
 
 import msgspec
 import numpy as np
@@ -31,7 +32,7 @@ from keo_service.live.messages import (
     topic,
 )
 from keo_service.live.service import KeoService, _delay_state_of
-from keo_service.live.status_view import delay_tracking_text
+from keo_service.live.status_view import DelayLog, delay_tracking_text
 from keo_service.sim.simulate import make_scenario, simulate
 
 SPEED = 0.24  # m/s, the tool speed of issue 31's runs
@@ -368,12 +369,12 @@ async def test_estimates_are_flagged_until_an_unknown_delay_settles(demo_config)
         async with KeoService(config) as service:
             msg = service.to_message(record)
             status = service.status()
-            # the tool's speed: none without joints; from two estimates with joints, the
-            # nominal tool point's displacement over their time (the status cycle samples)
+            # the tool's speed: none without joints; from four estimates with joints, the
+            # slope of the nominal tool point's path over their time (the status cycle samples)
             q = np.full(6, 0.3)
             moved = [
                 Estimate(t, [0.0] * 6, [0.0] * 6, (), t, record.channels, q + 0.1 * t)
-                for t in (2.0, 2.1)
+                for t in (2.0, 2.1, 2.2, 2.3)
             ]
             for est in moved:
                 service._tool_speed.sample(est)
@@ -485,21 +486,84 @@ def test_a_source_on_the_host_clock_reads_as_the_time_of_day():
     assert text == "fit at 42.5 s, unsettled"
 
 
+def _log_after(log: DelayLog, tracker: OnlineDelayTracker) -> list[tuple[int, str]]:
+    """The lines the service logs after a decision (`KeoService._delay_loop`)."""
+    return log.lines(
+        tracker.state,
+        tracker.last_result,
+        tracker.delay_now(),
+        tracker.applied_se,
+        _delay_state_of(tracker),
+        tracker.counters["refinements"],
+    )
+
+
+def _info(lines: list[tuple[int, str]]) -> list[str]:
+    return [text for level, text in lines if level == logging.INFO]
+
+
 def test_the_log_says_when_the_delay_in_use_moved_beyond_its_standard_error(demo_cell):
     """Review of issue 45: the delay in use moved 27.75 -> 27.97 ms with no log line (the
     decision's kind had not changed). A move beyond the delay's standard error since the last
-    line is logged; a refinement within it is not."""
+    line is logged; the same decision again is not."""
     tracker = OnlineDelayTracker(demo_cell)
-    service = SimpleNamespace(_delay_said_value=tracker.delay_now())  # None: unknown
-    assert not KeoService._delay_moved(service, tracker)  # nothing in use, nothing moved
+    log = DelayLog(tracker.delay_now())  # None: unknown
     feed(tracker, [(25.3543e-3, 769.7e-6)])
-    assert KeoService._delay_moved(service, tracker)  # the first fit taken
-    service._delay_said_value = tracker.delay_now()
+    assert _info(_log_after(log, tracker))  # the first fit taken
     feed(tracker, [(30.4065e-3, 300.5e-6), (29.85e-3, 200e-6)], t0=5.0)
     assert tracker.delay_now() == pytest.approx(30.0e-3, abs=0.3e-3)
-    assert KeoService._delay_moved(service, tracker)  # 25.4 -> 30 ms
-    service._delay_said_value = tracker.delay_now() - 0.5 * (tracker.applied_se or 0.0)
-    assert not KeoService._delay_moved(service, tracker)  # within its standard error
+    assert _info(_log_after(log, tracker))  # 25.4 -> 30 ms
+    assert not _info(_log_after(log, tracker))  # nothing changed since
+
+
+def test_the_log_says_a_confirmation_and_the_refinements_within_the_se(demo_cell):
+    """Review of issue 45: the fits confirmed a configured 30.000 +/- 0.5 ms and then refined
+    it within its se, with no line in the log (only moves beyond the se were said). Precise
+    fits (20 us at 0.24 m/s) 40 us below it, every 5 s: one INFO line names the confirmation
+    with the delay in use; the refinements are said with the delay in use and the one before,
+    at most once per 30 s of stream time; a configured delay the fits neither confirm nor
+    move says nothing beyond the decision's kind, once."""
+    rng = np.random.default_rng(45)
+    tracker = OnlineDelayTracker(demo_cell, prior_s=0.030, prior_se_s=0.0005)
+    log = DelayLog(tracker.delay_now())
+    said: list[tuple[float, str]] = []
+    for i in range(20):  # 100 s of stretches
+        t = 5.0 * (i + 1)
+        tracker.combine(DelayMeasurement(29.96e-3 + rng.normal(0.0, 5e-6), 20e-6, SPEED, t))
+        said += [(t, text) for text in _info(_log_after(log, tracker))]
+    confirmed = [text for _, text in said if "confirmed by the fit" in text]
+    assert len(confirmed) == 1, said
+    assert confirmed[0].startswith(
+        "delay in use 30.000 ms ± 0.500 ms: configured, confirmed by the fit at 5.0 s; kept"
+    ), confirmed
+    refined = [(t, text) for t, text in said if "refinement" in text]
+    assert tracker.counters["refinements"] >= 10, tracker.counters
+    assert 2 <= len(refined) <= 4, refined  # 100 s at most one per 30 s; a refinement each 5 s
+    assert all(b[0] - a[0] >= 30.0 for a, b in itertools.pairwise(refined)), refined
+    first = refined[0][1]
+    assert re.match(
+        r"delay in use 29\.96\d ms ± 0\.0\d\d ms \(1 refinement, was 30\.000 ms\)", first
+    )
+    assert re.search(r"\(\d+ refinements, was 29\.96\d ms\)", refined[1][1]), refined
+    assert "; refined: by the running estimate" in first, first
+    # every refinement counted in the lines: none lost between them
+    counts = [
+        int(m.group(1)) if (m := re.search(r"\((\d+) refinements", x)) else 1 for _, x in refined
+    ]
+    assert sum(counts) <= tracker.counters["refinements"]
+    assert sum(counts) > tracker.counters["refinements"] - 7  # at most 30 s unsaid at the end
+
+    # nothing changed: rough fits that neither confirm nor move the configured delay
+    quiet = OnlineDelayTracker(demo_cell, prior_s=0.030, prior_se_s=0.0005)
+    log = DelayLog(quiet.delay_now())
+    lines = []
+    for i in range(20):
+        quiet.combine(DelayMeasurement(0.030 + rng.normal(0.0, 300e-6), 300e-6, SPEED, 5.0 * i))
+        lines += _info(_log_after(log, quiet))
+    assert quiet.delay_now() == 0.030
+    assert quiet.source_kind == "configured"
+    assert len(lines) <= 2, lines  # the first decision, and "agree" once the fits do
+    assert not [x for x in lines if x.startswith("delay in use")], lines
 
 
 def test_the_fits_scatter_is_measured_among_fits_of_unequal_precision():

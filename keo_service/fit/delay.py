@@ -208,7 +208,9 @@ class _Round:
     nch: int
     inflate: float  # variance inflation for the residual's autocorrelation
     speed_rms: float  # m/s
-    turning: float = 0.0  # the tool velocity's second singular value over its first
+    spread_deg: float = 0.0  # the tool velocity's directions, 95 % within this of one, deg
+    speed_change: float = 0.0  # the moving tool's speed: its 5-95 % range over its median
+    rest: float = 0.0  # the share of the time the tool is at rest
 
 
 def _linearised_round(
@@ -239,8 +241,7 @@ def _linearised_round(
             f"moving {100 * moving.mean():.0f} % of the time): a delay only shows while it "
             "moves; record motion with changes of speed or direction"
         )
-    sv = np.linalg.svd(motion, compute_uv=False)
-    turning = float(sv[1] / sv[0]) if sv[0] > 0 else 0.0  # 0: one direction of motion
+    spread_deg, speed_change = _motion_variety(motion[moving])
     vel = np.hstack([v, w]) if R_bs is not None else v
     if features == "tool":  # errors and velocities in the tool frame: R_bt^T x
         for part in (slice(0, 3), slice(3, 6))[: err.shape[1] // 3]:
@@ -280,7 +281,36 @@ def _linearised_round(
     # the speed a delay error is weighed at: the tool point's, unless only the tool turns
     point_rms = float(np.sqrt(np.mean(np.sum(v_point**2, axis=1))))
     speed_rms = point_rms if point_rms >= 2 * MIN_SPEED else float(np.sqrt(np.mean(speed**2)))
-    return _Round(beta, cov, resid, scale, moving, X_p, y_p, nch, inflate, speed_rms, turning)
+    return _Round(
+        beta,
+        cov,
+        resid,
+        scale,
+        moving,
+        X_p,
+        y_p,
+        nch,
+        inflate,
+        speed_rms,
+        spread_deg,
+        speed_change,
+        1.0 - float(moving.mean()),
+    )
+
+
+def _motion_variety(motion: np.ndarray) -> tuple[float, float]:
+    """What a delay is told apart by, measured on the moving samples' tool velocities (a turn
+    scaled to metres as in the fit): how far their directions spread about the principal one
+    (the 95th percentile of the angle, deg; a reversal along one line is no spread) and how
+    much the speed changes (its 5-95 % range over its median)."""
+    speed = np.linalg.norm(motion, axis=1)
+    if speed.size < 2 or not np.all(speed > 0):
+        return 0.0, 0.0
+    unit = motion / speed[:, None]
+    axis = np.linalg.svd(unit, full_matrices=False)[2][0]
+    angle = np.degrees(np.arccos(np.clip(np.abs(unit @ axis), 0.0, 1.0)))
+    lo, mid, hi = np.percentile(speed, [5.0, 50.0, 95.0])
+    return float(np.percentile(angle, 95.0)), float((hi - lo) / mid)
 
 
 def _judge_drift(
@@ -459,19 +489,37 @@ def _gauss_newton(
     return delay, drift, iterations, last
 
 
+ONE_DIRECTION_DEG = 5.0  # velocity directions within this of one: "along one direction"
+STEADY_SPEED = 0.1  # a speed range within this share of the speed: "at constant speed"
+
+
 def _not_separable(last: _Round, se: float, span_s: float) -> DelayNotIdentifiableError:
-    """Why the motion gives no delay, with advice that follows the motion measured: only a
-    motion along one direction is told that it moves along one direction."""
+    """Why the motion gives no delay, with what was measured of it: a motion is told that it
+    moves at constant velocity along one direction only when its velocity directions, its
+    speed and its rests show so (the words came where the tool's direction turned 17-27
+    degrees and all joints moved); otherwise what it had, and that the stretch is too short
+    for the error model."""
+    measured = (
+        f"the tool's velocity within {last.spread_deg:.0f} deg of one direction, its speed "
+        f"changing by {100 * last.speed_change:.0f} %, at rest {100 * last.rest:.0f} % of the "
+        f"time over {span_s:.1f} s"
+    )
+    steady = (
+        last.spread_deg < ONE_DIRECTION_DEG
+        and last.speed_change < STEADY_SPEED
+        and last.rest < 0.05
+    )
     advice = (
-        "a move at constant velocity along one direction is not enough: include rests, "
-        "changes of speed or of direction"
-        if last.turning < 0.2
-        else f"the motion turns, but {span_s:.1f} s of it are too "
-        "few for this error model: a longer stretch (or recording) helps"
+        f"{measured}: a move at constant velocity along one direction cannot show a delay; "
+        "include rests, changes of speed or of direction"
+        if steady
+        else f"{measured}: too little for this error model, a longer stretch (or recording) "
+        "or larger changes of direction help"
     )
     return DelayNotIdentifiableError(
         f"the motion cannot separate a delay from a configuration-dependent error "
-        f"(standard error {se * 1e3:.1f} ms > {MAX_SE_S * 1e3:.0f} ms); {advice}"
+        f"(standard error {se * 1e3:.1f} ms > {MAX_SE_S * 1e3:.0f} ms, "
+        f"{se * last.speed_rms * 1e3:.2f} mm at the tool's speed); {advice}"
     )
 
 

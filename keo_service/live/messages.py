@@ -135,23 +135,34 @@ class TrackerSample(_Message, frozen=True, tag=_tag("tracker")):
 
 
 class DelayState(msgspec.Struct, frozen=True, kw_only=True):
-    """The delay in use's source and the online tracker's last decision, as data: the status
-    line's words (`delay_tracking`) are rendered from it in one place
+    """Where the delay in use comes from and what the online delay tracker last decided, as
+    data. Every `EstimateMessage` and `ServiceStatus` carries one in `delay_state` (None when
+    `timing.track_delay` is off); the delay itself and its standard error are the message's
+    `delay_s` and `delay_se_s`, so there is one delay, never a second. The status line's
+    words (`delay_tracking`) are rendered from it in one place
     (`keo_service.live.status_view.delay_tracking_text`).
 
+        msg = sync_client.latest()                  # the newest EstimateMessage, or None
+        if msg is not None and (state := msg.delay_state) is not None and not state.settled:
+            ...                                     # "delay_unsettled" is in msg.flags too
+
     Attributes:
-        source: where the delay in use comes from: "configured", "confirmed" (configured, and
-            a precise fit agreed), "fit" or "unknown" (nothing configured, none found yet).
-        source_t: the stream time of the fit behind it, s (None: configured or unknown).
-        settled: whether the delay in use is known to 20 um at the tool's speed (else every
-            estimate carries the flag "delay_unsettled").
-        verdict: the last decision, one word: waiting, kept, unsettled, settled, changed,
-            refined, restarted.
+        source: where the delay in use comes from: "configured" (`timing.delay_s`),
+            "confirmed" (configured, and a precise fit agreed with it), "fit" (found or
+            refined by the fits) or "unknown" (nothing configured, nothing found yet).
+        source_t: the stream time of the fit behind the delay in use, s on the service's
+            time base (seconds since the epoch for host-clock stamps); None: configured or
+            unknown.
+        settled: whether the delay in use is known to 20 um at the tool's speed; while
+            False every estimate carries the flag "delay_unsettled".
+        verdict: the tracker's last decision, one word: "waiting", "kept", "unsettled",
+            "settled", "changed", "refined" or "restarted".
         reason: why, in words (no delay values in it: the one delay is `delay_s`).
-        fit_s: the newest fit that decision was about, s (None: no fit).
-        fit_se_s: its standard error, s, with the fits' scatter beyond their own (None: no
-            fit).
-        decided_t: the stream time of the stretch it was about, s (None: none).
+        fit_s: the newest fit that decision was about, s; None: no fit.
+        fit_se_s: its standard error, s, the fits' scatter beyond their own included; None:
+            no fit.
+        decided_t: the stream time of the end of the stretch that decision was about, s;
+            None: no stretch yet.
     """
 
     source: str
@@ -184,8 +195,9 @@ class EstimateMessage(_Message, frozen=True, tag=_tag("estimate")):
         device_stamp: the tracker's own time of the sample behind it, s, where it gives one.
         delay_se_s: the standard error of the delay in use, s, when it is known (calibrated
             or tracked); None when nobody measured it.
-        tool_speed_m_s: the tool's speed at this estimate, m/s, from the joint velocities;
-            None where they are not known.
+        tool_speed_m_s: the nominal tool point's speed at this estimate, m/s, from the
+            joints of the estimates of the last 0.6 s (`core.tool_speed`); None before four
+            were sampled, or after a pause.
         delay_state: the delay in use's source and the online tracker's last decision
             (`DelayState`); None when tracking is off.
     """

@@ -43,7 +43,7 @@ from keo_service.live.messages import (
     topic,
 )
 from keo_service.live.sinks import EstimateBusSink, RerunSink, Sinks
-from keo_service.live.status_view import delay_tracking_text
+from keo_service.live.status_view import DelayLog, delay_tracking_text
 from keo_service.live.supervise import supervise
 
 # keys a SIGHUP applies without a restart
@@ -133,8 +133,7 @@ class KeoService:
         self._tool_speed = ToolSpeed(cell)  # sampled in the status cycle, not per estimate
         self._delay_tracker: OnlineDelayTracker | None = None
         self._delay_followed: float | None = None  # the delay last set from the tracker
-        self._delay_said = ""  # the kind of the tracker's decision last logged
-        self._delay_said_value: float | None = None  # the delay in use then (s)
+        self._delay_log = DelayLog(None)  # what of the tracker's decisions the log says
         self._delay_state: DelayState | None = None  # the tracker's, as last made
         self._delay_state_for: object = None  # the tracker's decision it was made from
         self._fit_cpu_s = 0.0  # the delay fits' CPU time in the worker, all of them (s)
@@ -145,7 +144,7 @@ class KeoService:
             self._delay_tracker = OnlineDelayTracker(
                 cell, None, *delay_prior(config.timing), max_gap_s=config.timing.max_gap_s
             )
-            self._delay_said_value = self._delay_tracker.delay_now()
+            self._delay_log = DelayLog(self._delay_tracker.delay_now())
         # the outputs, in order: bus, corrections, ROS 2, Rerun (`keo_service.live.sinks`)
         self.sinks = Sinks()
         self._viz: RerunSink | None = None
@@ -558,22 +557,17 @@ class KeoService:
                 tracker.combine(found)
                 self._follow_tracked_delay(tracker)
             # said when the kind of decision changes (a refusal's advice once, not at every
-            # stretch); every decision stays in the status line and at debug level
-            # and when the delay in use moved by more than its standard error since last said
-            said, self._delay_said = self._delay_said, tracker.state
-            moved = self._delay_moved(tracker)
-            level = logging.INFO if tracker.state != said or moved else logging.DEBUG
-            if level == logging.INFO:
-                self._delay_said_value = tracker.delay_now()
-            log.log(level, "delay tracking: %s", tracker.last_result)
-
-    def _delay_moved(self, tracker: OnlineDelayTracker) -> bool:
-        """Whether the delay in use is further from the one last logged than its standard
-        error: a change a user would want in the log, not a refinement within the noise."""
-        now, before = tracker.delay_now(), self._delay_said_value
-        if now is None or before is None:
-            return now is not before
-        return abs(now - before) > (tracker.applied_se or 0.0)
+            # stretch) or the delay in use moved beyond its se; a confirmation and the
+            # refinements (bounded) on their own lines; every decision at debug level
+            for level, text in self._delay_log.lines(
+                tracker.state,
+                tracker.last_result,
+                tracker.delay_now(),
+                tracker.applied_se,
+                self.delay_state(),
+                tracker.counters["refinements"],
+            ):
+                log.log(level, "%s", text)
 
     async def _sink_loop(self, sink: Sink) -> None:
         """A sink's own cycle (the corrections' validity, Rerun's status snapshots), its
@@ -604,6 +598,7 @@ class KeoService:
             if self._delay_tracker is not None:
                 # tracking goes on from the delay set by hand, a prior as at start
                 self._delay_tracker.forget(*delay_prior(timing))
+                self._delay_log.forget(self._delay_tracker.delay_now())
         hot = {k: v for k, v in msgspec.structs.asdict(new).items() if k in ("observer", "timing")}
         self.config = msgspec.structs.replace(self.config, **hot) if applied else self.config
         self._refresh_status()

@@ -10,6 +10,7 @@ same one `keo status --json` prints; fields missing from it are left out, never 
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Mapping
@@ -109,6 +110,82 @@ def delay_tracking_text(state: Any) -> str:
     verdict, reason = _field(state, "verdict"), _field(state, "reason")
     decision = str(verdict or "") + (f": {reason}" if reason else "")
     return f"{where}; {decision}" if decision else where
+
+
+REFINEMENTS_SAID_S = 30.0  # the log says the delay's refinements at most this often (stream s)
+
+
+def _ms(value: float) -> str:
+    return f"{value * 1e3:.3f} ms"
+
+
+class DelayLog:
+    """Which of the online delay tracker's decisions the service's log says, and in what
+    words. A user reading the log must be able to follow the delay in use: every decision is
+    logged with the fits' values (`text`, the tracker's own line), at INFO when its kind
+    changes or the delay in use moved beyond its standard error since last said, else at
+    DEBUG; and the delay in use's quiet changes get their own INFO line, with the value in
+    use, rendered through `delay_tracking_text`: the configured delay confirmed by a fit
+    (once per confirmation), and the refinements within its standard error (at most one line
+    per `every_s` of stream time, counting those between; a refinement alone changes no
+    kind, so a run of them toggled nothing and was never said)."""
+
+    def __init__(self, delay_s: float | None, every_s: float = REFINEMENTS_SAID_S) -> None:
+        self.every_s = every_s
+        self._kind = ""  # the kind of decision last said (a refinement is no kind of its own)
+        self._value = delay_s  # the delay in use last said (s)
+        self._source = ""  # the source last seen
+        self._refinements = 0  # the tracker's refinements counted when last said
+        self._refined_said_t = -math.inf  # the stream time of the last refinement line
+
+    def lines(
+        self,
+        kind: str,
+        text: str,
+        delay_s: float | None,
+        se_s: float | None,
+        state: Any,
+        refinements: int,
+    ) -> list[tuple[int, str]]:
+        """The (level, words) to log after a decision: `kind` and `text` the tracker's
+        (`state`, `last_result`), `delay_s` and `se_s` the delay in use now, `state` the
+        `DelayState`, `refinements` the tracker's count of them so far."""
+        out: list[tuple[int, str]] = []
+        before, now = self._value, delay_s
+        if now is None or before is None:
+            moved = now is not before
+        else:
+            moved = abs(now - before) > (se_s or 0.0)
+        source = str(_field(state, "source") or "")
+        confirmed = source == "confirmed" and self._source != "confirmed"
+        self._source = source
+        refined = refinements - self._refinements
+        t = _number(_field(state, "decided_t"))
+        due = t is None or not 0.0 <= t - self._refined_said_t < self.every_s  # or went back
+        said = kind if kind != "refined" else self._kind
+        if (said != self._kind or moved) and not (kind == "refined" and refined > 0):
+            out.append((logging.INFO, f"delay tracking: {text}"))
+        else:
+            out.append((logging.DEBUG, f"delay tracking: {text}"))
+        self._kind = said
+        in_use = "delay in use ?" if now is None else f"delay in use {_ms(now)}"
+        if se_s is not None:
+            in_use += f" ± {_ms(se_s)}"
+        if confirmed:
+            out.append((logging.INFO, f"{in_use}: {delay_tracking_text(state)}"))
+        if refined > 0 and (due or moved):
+            count = "1 refinement" if refined == 1 else f"{refined} refinements"
+            was = "" if before is None else f", was {_ms(before)}"
+            out.append((logging.INFO, f"{in_use} ({count}{was}): {delay_tracking_text(state)}"))
+            self._refinements = refinements
+            self._refined_said_t = -math.inf if t is None else t
+        if out[0][0] == logging.INFO or len(out) > 1:
+            self._value = now
+        return out
+
+    def forget(self, delay_s: float | None) -> None:
+        """A delay set anew (a reload): said from it on."""
+        self._value = delay_s
 
 
 def _unknown(doc: dict[str, Any]) -> bool:
