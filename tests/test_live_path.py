@@ -207,3 +207,32 @@ def test_the_delay_trackers_buffers_take_finite_samples_only(
     assert enc.dtype == trk.dtype == np.float64
     assert np.isfinite(enc[:, :-1]).all()
     assert np.isfinite(trk[:, :4]).all()
+
+
+def test_estimates_carry_the_configured_delays_se_with_tracking_off_also_after_a_reload(
+    demo_config, monkeypatch
+):
+    """With tracking off an estimate carries the configured `timing.delay_se_s` (none for
+    `delay_s = 0`); a reload that changes the delay brings the new section's value. The
+    service reads it once per config, not per estimate, so a stale copy would show here."""
+    from keo_service.core.estimator import Estimate
+    from keo_service.live.service import KeoService
+
+    base = loopback_config(demo_config)
+
+    def with_timing(**kw: object):
+        return msgspec.structs.replace(
+            base, timing=msgspec.structs.replace(base.timing, track_delay=False, **kw)
+        )
+
+    service = KeoService(with_timing(delay_s=0.012, delay_se_s=0.0007))
+    monkeypatch.setattr(service, "_refresh_status", lambda: None)  # no session here
+    estimate = Estimate(1.0, [0.0] * 6, [0.0] * 6, (), 0.99, ("px", "py", "pz", "rx", "ry", "rz"))
+    message = service.to_message(estimate)
+    assert (message.delay_se_s, message.delay_state, message.flags) == (0.0007, None, [])
+    applied, _ = service.reload(with_timing(delay_s=0.015, delay_se_s=0.0003))
+    assert "timing.delay_s" in applied
+    assert service.to_message(estimate).delay_se_s == 0.0003
+    service.reload(with_timing(delay_s=0.0, delay_se_s=0.0003))
+    assert service.to_message(estimate).delay_se_s is None
+    assert service.delay_se() is None

@@ -31,13 +31,13 @@ from keo_service.io.cell import cell_from_config, delay_model, delay_prior, esti
 from keo_service.io.config import Config
 from keo_service.live.bus import AsyncSubscription, session_for_service
 from keo_service.live.messages import (
+    DECODER,
     AdapterStatus,
     DelayState,
     EstimateMessage,
     JointSample,
     ServiceStatus,
     TrackerSample,
-    decode,
     encode,
     estimate_message,
     topic,
@@ -163,6 +163,10 @@ class KeoService:
         self._progress_at = time.monotonic()
         self._started = time.monotonic()
         self._rates = {"encoder": RateMeter(), "tracker": RateMeter(), "estimate": RateMeter()}
+        self._tick_estimate = self._rates["estimate"].tick
+        # the configured delay's standard error, what estimates carry with tracking off (made
+        # once, and again at a reload, instead of per estimate)
+        self._configured_se = delay_prior(config.timing)[1]
         self._status_bytes = b""
         self._last_estimate_wall = 0.0
         self._seq = 0
@@ -294,10 +298,10 @@ class KeoService:
         async for batch in self._sub.batches():
             self._handle(batch)
 
-    # complexity (C901): the per-sample path keeps its checks inline (a stream's clock notes
-    # only when a sample has flags or a new domain): a Python call per sample is a real share
-    # of its cost (docs/performance.md)
-    def _handle(self, batch: list[tuple[str, bytes]]) -> None:  # noqa: C901
+    # complexity (C901, PLR0912): the per-sample path keeps its checks inline (a stream's
+    # clock notes only when a sample has flags or a new domain): a Python call per sample is
+    # a real share of its cost (docs/performance.md)
+    def _handle(self, batch: list[tuple[str, bytes]]) -> None:  # noqa: C901, PLR0912
         """One wake-up's samples (key, payload), in arrival order, each through the
         estimator and its estimates out before the next sample (synchronous: no await)."""
         sinks = self.sinks
@@ -306,23 +310,31 @@ class KeoService:
         tracker = self._delay_tracker
         domains = self._clock_domains
         tick_tracker, tick_encoder = self._rates["tracker"].tick, self._rates["encoder"].tick
+        # bound once per wake-up, not looked up per sample: the decoder's own method (raises
+        # what `messages.decode` raises), the clock, the publish step
+        decode_payload, monotonic, publish = DECODER.decode, time.monotonic, self._publish
+        on_tracker, on_encoder, track = (
+            estimator.on_tracker,
+            estimator.on_encoder,
+            self._track_delay,
+        )
+        received, now = 0, 0.0
         for key, payload in batch:
-            now = time.monotonic()
+            now = monotonic()
             try:
-                msg = decode(payload)
+                msg = decode_payload(payload)
             except msgspec.DecodeError as exc:
                 self.decode_errors += 1
                 self._messages.append(f"undecodable payload on {key}: {exc}")
                 continue
-            self.received += 1
-            self._last_arrival = self._progress_at = now
+            received += 1
             if isinstance(msg, TrackerSample):
                 if msg.flags or (msg.clock and domains.get("tracker") != msg.clock):
                     self._note_sample("tracker", msg)
                 tick_tracker(now)
                 if inputs:
                     sinks.on_input(msg)  # before the estimates it may cause
-                out = estimator.on_tracker(
+                out = on_tracker(
                     msg.stamp,
                     msg.position,
                     msg.quaternion,
@@ -330,21 +342,25 @@ class KeoService:
                     device_stamp=msg.device_stamp,
                 )
                 if tracker is not None:
-                    self._track_delay(tracker, msg)
+                    track(tracker, msg)
             elif isinstance(msg, JointSample):
                 if msg.flags or (msg.clock and domains.get("encoder") != msg.clock):
                     self._note_sample("encoder", msg)
                 tick_encoder(now)
-                out = estimator.on_encoder(msg.stamp, msg.joints)
+                out = on_encoder(msg.stamp, msg.joints)
                 if inputs:
                     sinks.on_input(msg)
                 if tracker is not None:
-                    self._track_delay(tracker, msg)
+                    track(tracker, msg)
             else:
                 estimator.counters["unexpected_message"] += 1
                 continue
             for estimate in out:
-                self._publish(estimate, now)
+                publish(estimate, now)
+        # the wake-up's count and newest arrival, once (nothing reads them mid-batch)
+        if received:
+            self.received += received
+            self._last_arrival = self._progress_at = now
 
     async def _adapter_events(self) -> None:
         """The adapters' state changes (silent, back, reconnected, wrong protocol): into the
@@ -389,23 +405,36 @@ class KeoService:
     def _publish(self, estimate: Estimate, now: float) -> None:
         """One estimate out to every configured sink (`keo_service.live.sinks`)."""
         self._seq += 1
-        self._rates["estimate"].tick(now)
+        self._tick_estimate(now)
         if not estimate.held:
             self._last_estimate_wall = now
         self.sinks.on_estimate(estimate, self.to_message(estimate))
 
     def to_message(self, estimate: Estimate) -> EstimateMessage:
+        """The estimate's wire form, with the delay's state as now. Per estimate: what
+        `delay_se` and `delay_state` say, read here without a call each."""
         tracker = self._delay_tracker
+        more: tuple[str, ...] = ()
+        if tracker is None:
+            se, state = self._configured_se, None
+        else:
+            se = tracker.applied_se
+            if tracker.decision is not self._delay_state_for:
+                self._delay_state_for = tracker.decision
+                self._delay_state = _delay_state_of(tracker)
+            state = self._delay_state
+            # the delay in use is not known yet (found from the motion): every estimate says so
+            if not tracker.settled:
+                more = UNSETTLED
         return estimate_message(
             estimate,
             host_ns=time.time_ns(),
             seq=self._seq,
             delay_s=self.estimator.delay.at(estimate.stamp),
-            delay_se_s=self.delay_se(),
+            delay_se_s=se,
             tool_speed_m_s=self._tool_speed.at(estimate.stamp),
-            delay_state=self.delay_state(),
-            # the delay in use is not known yet (found from the motion): every estimate says so
-            more_flags=UNSETTLED if tracker is not None and not tracker.settled else (),
+            delay_state=state,
+            more_flags=more,
         )
 
     def delay_state(self) -> DelayState | None:
@@ -423,7 +452,7 @@ class KeoService:
         """The standard error of the delay in use: the tracker's (the configured prior's, or
         that of the fits it came from); without tracking, the configured one, if any."""
         if self._delay_tracker is None:
-            return delay_prior(self.config.timing)[1]
+            return self._configured_se
         return self._delay_tracker.applied_se
 
     # ---- status -----------------------------------------------------------------------------
@@ -601,6 +630,7 @@ class KeoService:
                 self._delay_log.forget(self._delay_tracker.delay_now())
         hot = {k: v for k, v in msgspec.structs.asdict(new).items() if k in ("observer", "timing")}
         self.config = msgspec.structs.replace(self.config, **hot) if applied else self.config
+        self._configured_se = delay_prior(self.config.timing)[1]
         self._refresh_status()
         return applied, restart
 
