@@ -658,7 +658,24 @@ def _outliers_markdown(report: dict[str, Any]) -> list[str]:
             continue
         text = ", ".join(f"row {r['row']} ({r['pos_mm']:.3f} mm)" for r in rows[:10])
         more = f" and {len(rows) - 10} more" if len(rows) > 10 else ""
-        lines.append(f"- {label.replace('_', ' ')} poses: {len(rows)}: {text}{more}")
+        far = sum("outside_fitted_rad" in r for r in rows)
+        where = f"; {far} outside the joint angles the fit saw" if far else ""
+        lines.append(f"- {label.replace('_', ' ')} poses: {len(rows)}{where}: {text}{more}")
+    for run in out.get("runs", []):
+        far = run["outside_fitted_rad"]
+        why = (
+            "outside the joint angles the fit saw ("
+            + ", ".join(f"{name} by up to {d:.3f} rad" for name, d in far.items())
+            + f", {run['outside_fitted']} of the {run['poses']} poses): the model "
+            "extrapolates there"
+            if far
+            else "inside the joint angles the fit saw: look at the measurement"
+        )
+        lines.append(
+            f"- run of {run['poses']} consecutive {run['set'].replace('_', ' ')} poses, rows "
+            f"{run['first_row']}-{run['last_row']} ({run['pos_mm_min']:.3f}-"
+            f"{run['pos_mm_max']:.3f} mm), {why}; not rejected"
+        )
     return lines
 
 
