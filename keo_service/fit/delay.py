@@ -491,14 +491,14 @@ def _gauss_newton(
 
 ONE_DIRECTION_DEG = 5.0  # velocity directions within this of one: "along one direction"
 STEADY_SPEED = 0.1  # a speed range within this share of the speed: "at constant speed"
+NEVER_AT_REST = 0.05  # at rest less than this share of the time: "without rests"
 
 
 def _not_separable(last: _Round, se: float, span_s: float) -> DelayNotIdentifiableError:
     """Why the motion gives no delay, with what was measured of it: a motion is told that it
     moves at constant velocity along one direction only when its velocity directions, its
-    speed and its rests show so (the words came where the tool's direction turned 17-27
-    degrees and all joints moved); otherwise what it had, and that the stretch is too short
-    for the error model."""
+    speed and its rests show so (a motion that turns and changes speed is not helped by that
+    advice); otherwise what it had, and that the stretch is too short for the error model."""
     measured = (
         f"the tool's velocity within {last.spread_deg:.0f} deg of one direction, its speed "
         f"changing by {100 * last.speed_change:.0f} %, at rest {100 * last.rest:.0f} % of the "
@@ -507,7 +507,7 @@ def _not_separable(last: _Round, se: float, span_s: float) -> DelayNotIdentifiab
     steady = (
         last.spread_deg < ONE_DIRECTION_DEG
         and last.speed_change < STEADY_SPEED
-        and last.rest < 0.05
+        and last.rest < NEVER_AT_REST
     )
     advice = (
         f"{measured}: a move at constant velocity along one direction cannot show a delay; "

@@ -411,30 +411,18 @@ class KeoService:
         self.sinks.on_estimate(estimate, self.to_message(estimate))
 
     def to_message(self, estimate: Estimate) -> EstimateMessage:
-        """The estimate's wire form, with the delay's state as now. Per estimate: what
-        `delay_se` and `delay_state` say, read here without a call each."""
+        """The estimate's wire form, with the delay's state as now."""
         tracker = self._delay_tracker
-        more: tuple[str, ...] = ()
-        if tracker is None:
-            se, state = self._configured_se, None
-        else:
-            se = tracker.applied_se
-            if tracker.decision is not self._delay_state_for:
-                self._delay_state_for = tracker.decision
-                self._delay_state = _delay_state_of(tracker)
-            state = self._delay_state
-            # the delay in use is not known yet (found from the motion): every estimate says so
-            if not tracker.settled:
-                more = UNSETTLED
         return estimate_message(
             estimate,
             host_ns=time.time_ns(),
             seq=self._seq,
             delay_s=self.estimator.delay.at(estimate.stamp),
-            delay_se_s=se,
+            delay_se_s=self.delay_se(),
             tool_speed_m_s=self._tool_speed.at(estimate.stamp),
-            delay_state=state,
-            more_flags=more,
+            delay_state=self.delay_state(),
+            # the delay in use is not known yet (found from the motion): every estimate says so
+            more_flags=UNSETTLED if tracker is not None and not tracker.settled else (),
         )
 
     def delay_state(self) -> DelayState | None:
