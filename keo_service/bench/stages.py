@@ -41,7 +41,10 @@ STAGES: dict[str, list[tuple[str, str]]] = {
         ("keo_service.core.estimator", "Estimator.on_encoder"),
     ],
     "delay tracker (per sample, on the loop)": [
-        ("keo_service.live.service", "KeoService._track_delay"),
+        ("keo_service.fit.delay_online", "OnlineDelayTracker.add_tracker"),
+        ("keo_service.fit.delay_online", "OnlineDelayTracker.add_encoder"),
+        ("keo_service.fit.delay_online", "OnlineDelayTracker.delay_now"),
+        ("keo_service.live.service", "KeoService._follow_tracked_delay"),
     ],
     "delay tracker (its loop's share on the event loop)": [
         ("keo_service.fit.delay_online", "OnlineDelayTracker.due"),

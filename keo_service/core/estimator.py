@@ -34,6 +34,7 @@ from keo_service.core.observer import KinematicErrorObserver
 from keo_service.core.rejects import RejectLog
 from keo_service.core.rules import (
     CAP_MIN_INTERVALS,
+    CAP_REFRESH,
     MAX_MESSAGES,
     MAX_PENDING,
     OBSERVER_REJECTED,
@@ -371,7 +372,8 @@ class Estimator:
         self._last_tracker_t = t
         self.counters["tracker_samples"] += 1
         if self._interpolating and not self._pending:
-            target = self._delay.encoder_time(t)
+            delay = self._delay  # `DelayModel.encoder_time`, its arithmetic inline
+            target = t - (delay.offset_s + delay.drift * (t - delay.t_ref))
             if self.encoder.newest_t >= target:  # the steady state: nothing waits
                 return [self._resolve_at(t, target, sensor, device_stamp)]
         return self._enqueue(_TrackerSample(t, sensor, device_stamp))
@@ -466,11 +468,13 @@ class Estimator:
     def _resolve_at(
         self, t: float, target: float, sensor: list[float], device_stamp: float | None
     ) -> Estimate:
-        q = self.encoder.interpolate(target, self._max_gap_s)
-        reason = held_reason(q, target, self.encoder.newest_t, self._buffer_s)
-        if reason is not None:
+        encoder = self.encoder
+        q = encoder.interpolate(target, self._max_gap_s)
+        # `held_reason`'s two tests inline; it names the reason when one holds
+        if not isinstance(q, np.ndarray) or target < encoder.newest_t - self._buffer_s:
+            reason = held_reason(q, target, encoder.newest_t, self._buffer_s)
+            assert reason is not None
             return self._held(t, reason, target, device_stamp)
-        assert isinstance(q, np.ndarray)
         if self._folded_only is not None:
             measured = measured_error_folded(self._folded_only, self._folded_data, q, sensor)
         else:
@@ -496,21 +500,23 @@ class Estimator:
         joints: np.ndarray,
         device_stamp: float | None = None,
     ) -> Estimate:
-        assert self.observer is not None
+        observer = self.observer
+        assert observer is not None
         assert self.channels is not None
-        if self._last_update_t is None:
+        last = self._last_update_t
+        if last is None:
             if self.settings.start == "first":
-                self.observer.reset(measured)
+                observer.reset(measured)
             else:
-                self.observer.reset()
+                observer.reset()
                 # the reference start: zero state, first step as if one sample period passed
-                self.observer.update(measured, 1.0 / self.settings.sample_rate_hz)
+                observer.update(measured, 1.0 / self.settings.sample_rate_hz)
         else:
             cap = self._step_cap
-            if cap is None or cap_is_due(self._dt_seen, cap):
+            if cap is None or self._dt_seen % CAP_REFRESH == 0:  # `cap_is_due`, inline
                 cap = self._max_step()
-            dt = t - self._last_update_t
-            if not self.observer.update(measured, cap if dt > cap else dt):
+            dt = t - last
+            if not observer.update(measured, cap if dt > cap else dt):
                 self.counters[OBSERVER_REJECTED] += 1
                 return self._held(t, OBSERVER_REJECTED, encoder_stamp, device_stamp)
         self._last_update_t = t
@@ -522,7 +528,7 @@ class Estimator:
         est = Estimate(
             t,
             measured,
-            self.observer.values,
+            observer.values,
             flags,
             encoder_stamp,
             self.channels,

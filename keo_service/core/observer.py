@@ -35,7 +35,9 @@ class KinematicErrorObserver:
         # less than the equivalent numpy calls (docs/performance.md)
         self._neg_gain = [-g for g in gain.tolist()]
         self._one_neg_gain = self._neg_gain[0] if len(set(self._neg_gain)) == 1 else None
-        self._state = [0.0] * gain.size
+        # the state as plain floats: a list the observer never changes (each step makes a new
+        # one), so it may be kept as it is; an attribute, read once per estimate
+        self.values: list[float] = [0.0] * gain.size
         self._initialized = False
         self.rejected = 0
         self.updates = 0
@@ -52,13 +54,7 @@ class KinematicErrorObserver:
 
     @property
     def estimate(self) -> np.ndarray:
-        return np.array(self._state)
-
-    @property
-    def values(self) -> list[float]:
-        """The state as plain floats: a list the observer never changes (each step makes a
-        new one), so it may be kept as it is."""
-        return self._state
+        return np.array(self.values)
 
     def set_gain(self, gains: Sequence[float] | np.ndarray) -> None:
         """Change gains without touching the state (used by a live reload)."""
@@ -74,7 +70,7 @@ class KinematicErrorObserver:
         value = np.zeros_like(self._gain) if initial is None else np.asarray(initial, dtype=float)
         if value.shape != self._gain.shape or not np.all(np.isfinite(value)):
             raise ValueError(f"initial state must be {self.channels} finite numbers")
-        self._state = value.tolist()
+        self.values = value.tolist()
         self._initialized = True
 
     def update(self, measured: np.ndarray | Sequence[float], dt: float) -> bool:
@@ -82,21 +78,35 @@ class KinematicErrorObserver:
         that is not a finite positive number, the wrong number of values, or values that are
         not finite numbers (or would take the state out of the finite numbers)."""
         if type(measured) is list:
-            values = measured
+            meas = measured
         else:
-            values = measured.tolist() if isinstance(measured, np.ndarray) else list(measured)
-        if not 0.0 < dt < math.inf or len(values) != len(self._state):
+            meas = measured.tolist() if isinstance(measured, np.ndarray) else list(measured)
+        old = self.values
+        n = len(old)
+        if not 0.0 < dt < math.inf or len(meas) != n:
             self.rejected += 1
             return False
         try:
             if self._one_neg_gain is not None:  # one gain for all: one exponential
                 a = math.expm1(self._one_neg_gain * dt)
-                state = [s - a * (m - s) for s, m in zip(self._state, values, strict=True)]
+                if n == 6:  # the 6-DoF probe's step spelled out: no comprehension's frame
+                    s0, s1, s2, s3, s4, s5 = old
+                    m0, m1, m2, m3, m4, m5 = meas
+                    state = [
+                        s0 - a * (m0 - s0),
+                        s1 - a * (m1 - s1),
+                        s2 - a * (m2 - s2),
+                        s3 - a * (m3 - s3),
+                        s4 - a * (m4 - s4),
+                        s5 - a * (m5 - s5),
+                    ]
+                else:
+                    state = [s - a * (m - s) for s, m in zip(old, meas, strict=True)]
             else:
                 expm1 = math.expm1
                 state = [
                     s - expm1(g * dt) * (m - s)
-                    for s, g, m in zip(self._state, self._neg_gain, values, strict=True)
+                    for s, g, m in zip(old, self._neg_gain, meas, strict=True)
                 ]
             # one check of the result covers the input; a finite sum proves it
             finite = math.isfinite(sum(state)) or all(map(math.isfinite, state))
@@ -105,7 +115,7 @@ class KinematicErrorObserver:
         if not finite:
             self.rejected += 1
             return False
-        self._state = state
+        self.values = state
         self.updates += 1
         return True
 

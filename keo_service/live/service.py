@@ -298,10 +298,10 @@ class KeoService:
         async for batch in self._sub.batches():
             self._handle(batch)
 
-    # complexity (C901, PLR0912): the per-sample path keeps its checks inline (a stream's
-    # clock notes only when a sample has flags or a new domain): a Python call per sample is
-    # a real share of its cost (docs/performance.md)
-    def _handle(self, batch: list[tuple[str, bytes]]) -> None:  # noqa: C901, PLR0912
+    # complexity (C901, PLR0912, PLR0915): the per-sample path keeps its checks and the delay
+    # tracker's intake inline (a stream's clock notes only when a sample has flags or a new
+    # domain): a Python call per sample is a real share of its cost (docs/performance.md)
+    def _handle(self, batch: list[tuple[str, bytes]]) -> None:  # noqa: C901, PLR0912, PLR0915
         """One wake-up's samples (key, payload), in arrival order, each through the
         estimator and its estimates out before the next sample (synchronous: no await)."""
         sinks = self.sinks
@@ -313,11 +313,13 @@ class KeoService:
         # bound once per wake-up, not looked up per sample: the decoder's own method (raises
         # what `messages.decode` raises), the clock, the publish step
         decode_payload, monotonic, publish = DECODER.decode, time.monotonic, self._publish
-        on_tracker, on_encoder, track = (
-            estimator.on_tracker,
-            estimator.on_encoder,
-            self._track_delay,
-        )
+        on_tracker, on_encoder = estimator.on_tracker, estimator.on_encoder
+        # the delay tracker's intake, bound too: each sample straight into its buffers, and
+        # the tracked delay looked at (each sample may bring a moved clock line), the
+        # estimator told only when it moved (`_follow_tracked_delay`)
+        if tracker is not None:
+            add_tracker, add_encoder = tracker.add_tracker, tracker.add_encoder
+            delay_now = tracker.delay_now
         received, now = 0, 0.0
         for key, payload in batch:
             now = monotonic()
@@ -342,7 +344,20 @@ class KeoService:
                     device_stamp=msg.device_stamp,
                 )
                 if tracker is not None:
-                    track(tracker, msg)
+                    if msg.position is not None:
+                        add_tracker(
+                            msg.stamp,
+                            msg.position,
+                            msg.quaternion,
+                            msg.clock_epoch,
+                            msg.seq,
+                            bool(msg.flags),
+                            msg.device_stamp,
+                            msg.clock_drift,
+                        )
+                    target = delay_now()
+                    if target is not None and target != self._delay_followed:
+                        self._follow_tracked_delay(tracker, target)
             elif isinstance(msg, JointSample):
                 if msg.flags or (msg.clock and domains.get("encoder") != msg.clock):
                     self._note_sample("encoder", msg)
@@ -351,7 +366,18 @@ class KeoService:
                 if inputs:
                     sinks.on_input(msg)
                 if tracker is not None:
-                    track(tracker, msg)
+                    add_encoder(
+                        msg.stamp,
+                        msg.joints,
+                        msg.clock_epoch,
+                        msg.seq,
+                        bool(msg.flags),
+                        msg.device_stamp,
+                        msg.clock_drift,
+                    )
+                    target = delay_now()
+                    if target is not None and target != self._delay_followed:
+                        self._follow_tracked_delay(tracker, target)
             else:
                 estimator.counters["unexpected_message"] += 1
                 continue
@@ -510,36 +536,9 @@ class KeoService:
             self._refresh_status()
             await asyncio.sleep(STATUS_PERIOD_S)
 
-    def _track_delay(self, tracker: OnlineDelayTracker, msg: JointSample | TrackerSample) -> None:
-        """One sample into the delay tracker with its clock fields; then the tracked delay, as
-        the streams' clock mappings move their lines (each sample may bring a moved line)."""
-        if isinstance(msg, JointSample):
-            tracker.add_encoder(
-                msg.stamp,
-                msg.joints,
-                msg.clock_epoch,
-                msg.seq,
-                bool(msg.flags),
-                msg.device_stamp,
-                msg.clock_drift,
-            )
-        elif msg.position is not None:
-            tracker.add_tracker(
-                msg.stamp,
-                msg.position,
-                msg.quaternion,
-                msg.clock_epoch,
-                msg.seq,
-                bool(msg.flags),
-                msg.device_stamp,
-                msg.clock_drift,
-            )
-        self._follow_tracked_delay(tracker)
-
-    def _follow_tracked_delay(self, tracker: OnlineDelayTracker) -> None:
-        """The estimator slews to the tracked delay when it changed (a fit applied, a line
-        moved); nothing before one was applied."""
-        target = tracker.delay_now()
+    def _follow_tracked_delay(self, tracker: OnlineDelayTracker, target: float | None) -> None:
+        """The estimator slews to the tracked delay (`target`: the tracker's `delay_now()`)
+        when it changed (a fit applied, a line moved); nothing before one was applied."""
         if target is not None and target != self._delay_followed:
             self._delay_followed = target
             if tracker.step:  # a confirmed change, or the delay found while unknown: at once
@@ -572,7 +571,7 @@ class KeoService:
             self._fit_cpu_s += cpu_s
             if tracker.counters["restarts"] == restarts:
                 tracker.combine(found)
-                self._follow_tracked_delay(tracker)
+                self._follow_tracked_delay(tracker, tracker.delay_now())
             # said when the kind of decision changes (a refusal's advice once, not at every
             # stretch) or the delay in use moved beyond its se; a confirmation and the
             # refinements (bounded) on their own lines; every decision at debug level
