@@ -93,17 +93,21 @@ def test_bad_steps_are_rejected_and_state_kept():
         KinematicErrorObserver([1.0, 0.0])
 
 
-def test_a_step_that_would_leave_the_finite_numbers_is_refused():
-    obs = KinematicErrorObserver([2.0, 2.0, 2.0], initial=[1.0, -1e308, 3.0])
-    assert not obs.update([0.0, 1e308, 0.0], 1.0)  # finite in, m - e overflows
-    assert not obs.update([0.0, "1", 0.0], 0.01)
-    assert not obs.update([0.0, 0.0, 0.0], math.nan)
-    assert obs.rejected == 3
-    assert obs.values == [1.0, -1e308, 3.0]
+@pytest.mark.parametrize("extra", [0, 3])  # a position-only and a 6-DoF probe's step
+def test_a_step_that_would_leave_the_finite_numbers_is_refused(extra):
+    pad = [0.5] * extra
+    obs = KinematicErrorObserver([2.0] * (3 + extra), initial=[1.0, -1e308, 3.0, *pad])
+    assert not obs.update([0.0, 1e308, 0.0, *pad], 1.0)  # finite in, m - e overflows
+    assert not obs.update([0.0, "1", 0.0, *pad], 0.01)
+    assert not obs.update([0.0, 0.0, 0.0, *pad], math.nan)
+    assert not obs.update([0.0, 0.0, 0.0, *pad, 0.0], 0.01)  # one value too many
+    assert not obs.update([*pad, math.inf, 0.0, 0.0], 0.01)
+    assert obs.rejected == 5
+    assert obs.values == [1.0, -1e308, 3.0, *pad]
     # a finite state whose sum overflows is still a finite state
-    obs.reset([0.0, 0.0, 0.0])
-    assert obs.update([1e308, 1e308, 1e308], 1e3)
-    assert obs.values == [1e308, 1e308, 1e308]
+    obs.reset([0.0] * (3 + extra))
+    assert obs.update([1e308] * (3 + extra), 1e3)
+    assert obs.values == [1e308] * (3 + extra)
 
 
 @pytest.mark.parametrize("gains", [[0.7] * 6, [3.0, 3.0, 3.0, 0.5, 0.5, 0.5], [1, 2, 3, 4, 5, 6]])
