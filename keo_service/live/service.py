@@ -439,13 +439,14 @@ class KeoService:
     def to_message(self, estimate: Estimate) -> EstimateMessage:
         """The estimate's wire form, with the delay's state as now."""
         tracker = self._delay_tracker
+        stamp, delay = estimate.stamp, self.estimator.delay
         return estimate_message(
             estimate,
             host_ns=time.time_ns(),
             seq=self._seq,
-            delay_s=self.estimator.delay.at(estimate.stamp),
+            delay_s=delay.offset_s + delay.drift * (stamp - delay.t_ref),  # `delay.at(stamp)`
             delay_se_s=self.delay_se(),
-            tool_speed_m_s=self._tool_speed.at(estimate.stamp),
+            tool_speed_m_s=self._tool_speed.at(stamp),
             delay_state=self.delay_state(),
             # the delay in use is not known yet (found from the motion): every estimate says so
             more_flags=UNSETTLED if tracker is not None and not tracker.settled else (),
