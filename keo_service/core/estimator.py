@@ -82,6 +82,8 @@ class Estimate:
             with, or None.
         device_stamp: the tracker's own time of the sample (s, its clock), or None when it
             gives none.
+        held: no measured error this step (`measured` is None; the reason is the only
+            flag): the estimate held.
     """
 
     __slots__ = (
@@ -91,6 +93,7 @@ class Estimate:
         "device_stamp",
         "encoder_stamp",
         "flags",
+        "held",
         "joints",
         "stamp",
     )
@@ -108,6 +111,9 @@ class Estimate:
     ) -> None:
         self.stamp = stamp
         self._measured = measured
+        # no measured error this step (the reason is the only flag); the estimate held. An
+        # attribute, not a property: the service reads it for every estimate it publishes
+        self.held = measured is None
         self._estimate = estimate
         self.flags = flags
         self.encoder_stamp = encoder_stamp
@@ -142,11 +148,6 @@ class Estimate:
         """`estimate` as plain floats (m, rad), without making an array."""
         e = self._estimate
         return e.tolist() if isinstance(e, np.ndarray) else e
-
-    @property
-    def held(self) -> bool:
-        """No measured error this step (the reason is the only flag); the estimate held."""
-        return self._measured is None
 
     def __repr__(self) -> str:
         return (
