@@ -196,3 +196,52 @@ def test_a_model_file_without_the_session_term_states_the_bands_default():
     acc = saved_accuracy(msgspec.structs.replace(config, model=stated))
     assert acc is not None
     assert (acc.session_mm, acc.session_source) == (0.2, "leave one session out")
+
+
+def _held_out_beyond_the_training_range() -> tuple[Data, np.ndarray, np.ndarray]:
+    """Poses whose held-out rows reach 0.05-0.08 rad below the training rows on joint 2 (as
+    UR10 Series A's elbow-up run, rows 9965-9975, lies below its fitted shoulder_lift
+    angles). Returns the data and the training and held-out rows."""
+    from keo_service.fit.analysis import split_data
+
+    rng = np.random.default_rng(7)
+    n = 1200
+    q = rng.uniform(-1.0, 1.0, size=(n, 6))
+    data = Data(q, np.zeros((n, 3)), None, np.arange(n, dtype=float))
+    train, val = split_data(data)
+    run = val[5:16]
+    q[run, 1] = q[train, 1].min() - np.linspace(0.05, 0.08, run.size)
+    return data, train, val
+
+
+def test_the_stated_ranges_are_the_training_poses_not_the_held_out_ones():
+    # the old ranges came from every pose: the held-out run was stated at the in-range
+    # figure (a band of 2.33 x 0.1 mm) where its measured error was 0.5 mm
+    from keo_service.fit.analysis import Analysis
+    from keo_service.fit.leave_out import stated
+
+    data, train, val = _held_out_beyond_the_training_range()
+    report = {
+        "final": {"validation": {"pos_rms_mm": 0.1}},
+        "baseline": {"validation": {"pos_rms_mm": 0.8}},
+        "effects": [],
+    }
+    acc = stated(Analysis(report, None, None), data)  # type: ignore[arg-type]
+    assert acc.lower == pytest.approx(data.q[train].min(axis=0))
+    assert acc.upper == pytest.approx(data.q[train].max(axis=0))
+    assert acc.lower[1] > data.q[val, 1].min() + 0.04
+    sigma = predicted_position_sigma(acc, data.q[val])
+    far = data.q[val, 1] < acc.lower[1] - MAP_TAPER_RAD / 2
+    assert far.sum() >= 5
+    assert np.all(sigma[far] > sigma[~far].max())
+
+
+def test_the_model_file_states_the_training_poses_as_its_calibrated_region():
+    from keo_service.io.model_file import pinned_config
+
+    config = load_config(CONFIG)
+    data, train, _val = _held_out_beyond_the_training_range()
+    out = pinned_config(config, data.q, True, 0.1, calibrated_q=data.q[train])
+    assert out.model.calibrated_q_min == pytest.approx(data.q[train].min(axis=0).tolist())
+    assert out.model.calibrated_q_max == pytest.approx(data.q[train].max(axis=0).tolist())
+    assert sum(b.poses for b in out.model.calibrated_region) == train.size

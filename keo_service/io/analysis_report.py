@@ -20,7 +20,7 @@ from keo_service.core.chain import Chain
 from keo_service.core.errors import KeoError
 from keo_service.core.model_corrections import MAP_TAPER_RAD
 from keo_service.fit.accuracy import Accuracy, default_session_mm
-from keo_service.fit.analysis import Analysis
+from keo_service.fit.analysis import Analysis, split_data
 from keo_service.fit.effects import JointMaps, config_fields, effect_from_config
 from keo_service.fit.model import Data, Model
 from keo_service.fit.uncertainty import TrackerUncertainty
@@ -811,12 +811,14 @@ def write_analysis(
 
     out.mkdir(parents=True, exist_ok=True)
     final = report["final"]["validation"]
+    train_idx, _val_idx = split_data(data)
     improved = model_file.pinned_config(
         improved,
         data.q,
         result.model.position_only or data.R_ks is None,
         final["pos_rms_mm"],
         final.get("rot_rms_mrad") or 0.0,
+        calibrated_q=data.q[train_idx],
     )
     report["calibrated_region"] = model_file.region_report(improved)
     plots = _plots(out, result, data, base_x, baseline)
