@@ -245,3 +245,65 @@ def test_the_model_file_states_the_training_poses_as_its_calibrated_region():
     assert out.model.calibrated_q_min == pytest.approx(data.q[train].min(axis=0).tolist())
     assert out.model.calibrated_q_max == pytest.approx(data.q[train].max(axis=0).tolist())
     assert sum(b.poses for b in out.model.calibrated_region) == train.size
+
+
+def _taper_case(error, seed: int = 1, n: int = 3000) -> dict:
+    """One joint whose angle error is `error(q)` (injected), seen through random position
+    gradients, a joint offset and scale beside the maps (as the registration and geometry
+    take a map's mean and slope): the fade length choose_taper picks on its bands."""
+    from keo_service.fit.angle_maps import _Linearized, choose_taper
+
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-1.0, 1.0, size=(n, 1))
+    grad = rng.normal(0.0, 1.0, size=(n, 3))
+    r0 = grad * error(q[:, 0])[:, None] + rng.normal(0.0, 2e-6, size=(n, 3))
+    J = np.column_stack([grad.ravel(), (grad * q).ravel()])
+    return choose_taper(_Linearized(r0, [grad], J), q, np.arange(n), 0.05, 1e-2, 2)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_fade_length_follows_what_the_error_does_beyond_the_range(seed):
+    from keo_service.fit.angle_maps import TAPERS
+
+    # an error that changes slowly goes on near the map's edge value: the longest fade
+    slow = _taper_case(lambda q: 1e-3 * np.cos(1.5 * q), seed)
+    assert slow["taper_rad"] == max(TAPERS)
+    # a ripple of 0.06 rad has moved on within a fraction of its period: cut at the edge
+    fast = _taper_case(lambda q: 1e-3 * np.sin(2 * np.pi * q / 0.06), seed)
+    assert fast["taper_rad"] == min(TAPERS)
+    assert len(fast["per_band_pos_rms_mm"]) == 2  # the low and the high end of the range
+
+
+def test_the_model_file_carries_the_fade_length_and_older_files_load_with_the_default():
+    from keo_service.core.errors import ConfigError
+    from keo_service.fit.effects import JointMaps
+
+    knots = [[0.0, 0.5, 1.0]] + [[]] * 5
+    values = [[1e-3, -1e-3, 2e-3]] + [[]] * 5
+    q = np.zeros((1, 6))
+    q[0, 0] = 1.025  # 0.025 rad beyond the last knot
+    older = ModelConfig(effects=["joint_maps"], map_knots=knots, map_values=values)
+    corr = corrections_from_config(older, 6, "m.toml")
+    assert corr is not None
+    assert corr.map_taper == MAP_TAPER_RAD
+    assert corr.map_error(q)[0, 0] == pytest.approx(2e-3 * (1 - 0.025 / MAP_TAPER_RAD))
+    chosen = msgspec.structs.replace(older, map_taper_rad=0.05)
+    corr = corrections_from_config(chosen, 6, "m.toml")
+    assert corr is not None
+    assert corr.map_error(q)[0, 0] == pytest.approx(1e-3)
+    effect, x = effect_from_config("joint_maps", msgspec.structs.asdict(chosen))
+    assert isinstance(effect, JointMaps)
+    assert effect.taper == 0.05
+    assert effect.to_config(x, 6)["map_taper_rad"] == 0.05
+    effect, _x = effect_from_config("joint_maps", msgspec.structs.asdict(older))
+    assert isinstance(effect, JointMaps)
+    assert effect.taper == MAP_TAPER_RAD
+    # model.toml writes a fade of 0 (cut at the edge) and reads it back as 0
+    from keo_service.io.model_file import model_toml
+
+    config = msgspec.structs.replace(
+        load_config(CONFIG), model=msgspec.structs.replace(chosen, map_taper_rad=0.0)
+    )
+    assert "map_taper_rad = 0.0" in model_toml(config, Path(CONFIG).parent)
+    with pytest.raises(ConfigError, match="map_taper_rad"):
+        corrections_from_config(msgspec.structs.replace(older, map_taper_rad=-0.1), 6, "m.toml")

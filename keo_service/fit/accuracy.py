@@ -127,12 +127,14 @@ def stated_accuracy(report: dict[str, Any], q_fitted: np.ndarray) -> Accuracy:
         candidates = [inside, last["bands"]["pos_rms_mm_with"], last["validation"]["pos_rms_mm"]]
     outside = max(candidates)
     measured = report.get("leave_one_session_out", {}).get("session_term")
+    taper = map_taper(report)
     if measured is not None:
         return Accuracy(
             inside,
             outside,
             q_fitted.min(axis=0),
             q_fitted.max(axis=0),
+            taper,
             session_mm=float(measured["session_mm"]),
             session_source="leave one session out",
         )
@@ -141,5 +143,15 @@ def stated_accuracy(report: dict[str, Any], q_fitted: np.ndarray) -> Accuracy:
         outside,
         q_fitted.min(axis=0),
         q_fitted.max(axis=0),
+        taper,
         session_mm=default_session_mm(inside, outside),
     )
+
+
+def map_taper(report: dict[str, Any]) -> float:
+    """The fade length of the kept joint maps (fit.angle_maps.choose_taper), MAP_TAPER_RAD
+    without maps or without a chosen one."""
+    for entry in report.get("effects", []):
+        if entry.get("name") == "joint_maps" and "taper" in entry:
+            return float(entry["taper"]["taper_rad"])
+    return MAP_TAPER_RAD

@@ -219,7 +219,13 @@ def model_toml(config: Config, out_dir: Path) -> str:
             keep = set(section)
         entry = {k: v for k, v in section.items() if k in keep and v is not None}
         if name == "model":  # empty lists say nothing: leave them out
-            entry = {k: v for k, v in entry.items() if v not in ([], 0.0) or k == "effects"}
+            entry = {
+                k: v
+                for k, v in entry.items()
+                if v not in ([], 0.0) or k in ("effects", "map_taper_rad")
+            }
+            if not entry.get("map_knots"):  # a fade length without maps says nothing
+                entry.pop("map_taper_rad", None)
         if entry:
             doc[name] = entry
     for section, key in PATH_KEYS:
