@@ -307,3 +307,40 @@ def test_the_model_file_carries_the_fade_length_and_older_files_load_with_the_de
     assert "map_taper_rad = 0.0" in model_toml(config, Path(CONFIG).parent)
     with pytest.raises(ConfigError, match="map_taper_rad"):
         corrections_from_config(msgspec.structs.replace(older, map_taper_rad=-0.1), 6, "m.toml")
+
+
+@pytest.mark.parametrize("fade", [0.03, 0.25])
+def test_a_joint_without_a_map_is_trusted_as_far_as_the_models_own_fade(tmp_path, fade):
+    """`keo compensate` flags a target outside the calibrated range where the model's
+    corrections stop being trusted: for a joint with a map its knots, for one without the
+    calibration poses' range widened by the fade the model file states (`[model]
+    map_taper_rad`), not by the default of older files. Expected ranges from the numbers
+    written in the file."""
+    from keo_service.io.cell import tool_model
+
+    q_min = [-1.0, -2.0, -0.5, -1.5, 0.2, -3.0]
+    q_max = [1.0, -0.4, 2.0, 0.5, 1.2, 3.0]
+    path = tmp_path / "model.toml"
+    path.write_text(
+        f'cell = "ur10"\n[robot]\nurdf = "{CONFIG.parent / "robots" / "ur10.urdf"}"\n'
+        "[tool]\nxyz = [0.0, 0.0, 0.109]\n"
+        '[model]\neffects = ["joint_maps"]\n'
+        "map_knots = [[-0.8, 0.0, 0.9], [], [], [], [], []]\n"
+        "map_values = [[1e-3, -1e-3, 2e-3], [], [], [], [], []]\n"
+        f"map_taper_rad = {fade}\ncalibrated_q_min = {q_min}\ncalibrated_q_max = {q_max}\n",
+        encoding="utf-8",
+    )
+    model = tool_model(load_config(str(path)), require_effects=True)
+    widened = [(lo - fade, hi + fade) for lo, hi in zip(q_min, q_max, strict=True)]
+    expected = [(-0.8, 0.9), *widened[1:]]  # joint 1: its map's knots
+    for got, want in zip(model.calibrated_ranges(), expected, strict=True):
+        assert got == pytest.approx(want)
+    # joint 3 (no map) just inside and just beyond the stated fade past its poses' range
+    inside, beyond = np.zeros((2, 6)) + 0.5, np.zeros(6)
+    inside[:, 1] = -1.0
+    inside[0, 2] = q_max[2] + 0.9 * fade
+    inside[1, 2] = q_max[2] + 1.1 * fade
+    assert model.outside_calibrated_range(inside).tolist() == [False, True]
+    beyond[:] = inside[1]
+    (((joint, by),),) = model.beyond_ranges(beyond)
+    assert (joint, by) == (2, pytest.approx(0.1 * fade))
