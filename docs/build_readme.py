@@ -84,7 +84,8 @@ def ur10_table(folder: Path) -> str:  # noqa: C901
                 f"Series {fit_on}'s maps on Series {reg_on}: "
                 f"{carried['poses_outside_calibrated_range_pct']:.0f} % of its poses lie outside "
                 "the angles they were calibrated on, on some joint (there that joint's map "
-                "fades to zero over 0.1 rad; the other joints' maps apply).",
+                f"fades to zero over {carried.get('taper_rad', 0.1):g} rad; the other joints' "
+                "maps apply).",
                 "",
             ]
     for series in ("A", "B"):

@@ -12,7 +12,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from keo_service.core.estimator import Estimator
-from keo_service.core.model_corrections import MAP_TAPER_RAD, approach_directions
+from keo_service.core.model_corrections import approach_directions
 from keo_service.fit.analysis import KEEP_MARGIN, MAPS, Data, analyze, split
 from keo_service.fit.angle_maps import hat_basis, try_maps
 from keo_service.fit.uncertainty import TrackerUncertainty
@@ -117,13 +117,15 @@ def test_the_live_estimator_applies_a_map_as_the_analysis_predicts(demo_config, 
         assert np.max(np.abs(live - expected)) < 1e-9
     assert np.isfinite(offline).all()
     # beyond the calibrated range: flagged and counted; the map fades from its edge value to
-    # zero over MAP_TAPER_RAD (it held the edge value before, which made a model carried to
-    # angles it never saw worse than the nominal robot there: issue 46)
+    # zero over the model's fade length (it held the edge value before, which made a model
+    # carried to angles it never saw worse than the nominal robot there: issue 46)
     knots, values = cell.corrections.maps[1]
+    taper = cell.corrections.map_taper  # as model.toml states it (chosen by the analysis)
+    assert taper == result.model.effects[-1].taper
     q = np.array(data.q[0])
-    q[1] = knots[-1] + 0.5 * MAP_TAPER_RAD
+    q[1] = knots[-1] + 0.5 * taper
     half = cell.corrections.map_error(q[None, :])[0, 1]
-    assert half == pytest.approx(0.5 * values[-1], abs=1e-15)
+    assert half == pytest.approx((0.5 if taper > 0 else 1.0) * values[-1], abs=1e-15)
     q[1] = knots[-1] + 0.5
     edge = cell.corrections.map_error(q[None, :])[0, 1]
     assert edge == 0.0

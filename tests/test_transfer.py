@@ -196,3 +196,151 @@ def test_a_model_file_without_the_session_term_states_the_bands_default():
     acc = saved_accuracy(msgspec.structs.replace(config, model=stated))
     assert acc is not None
     assert (acc.session_mm, acc.session_source) == (0.2, "leave one session out")
+
+
+def _held_out_beyond_the_training_range() -> tuple[Data, np.ndarray, np.ndarray]:
+    """Poses whose held-out rows reach 0.05-0.08 rad below the training rows on joint 2 (as
+    UR10 Series A's elbow-up run, rows 9965-9975, lies below its fitted shoulder_lift
+    angles). Returns the data and the training and held-out rows."""
+    from keo_service.fit.analysis import split_data
+
+    rng = np.random.default_rng(7)
+    n = 1200
+    q = rng.uniform(-1.0, 1.0, size=(n, 6))
+    data = Data(q, np.zeros((n, 3)), None, np.arange(n, dtype=float))
+    train, val = split_data(data)
+    run = val[5:16]
+    q[run, 1] = q[train, 1].min() - np.linspace(0.05, 0.08, run.size)
+    return data, train, val
+
+
+def test_the_stated_ranges_are_the_training_poses_not_the_held_out_ones():
+    # the old ranges came from every pose: the held-out run was stated at the in-range
+    # figure (a band of 2.33 x 0.1 mm) where its measured error was 0.5 mm
+    from keo_service.fit.analysis import Analysis
+    from keo_service.fit.leave_out import stated
+
+    data, train, val = _held_out_beyond_the_training_range()
+    report = {
+        "final": {"validation": {"pos_rms_mm": 0.1}},
+        "baseline": {"validation": {"pos_rms_mm": 0.8}},
+        "effects": [],
+    }
+    acc = stated(Analysis(report, None, None), data)  # type: ignore[arg-type]
+    assert acc.lower == pytest.approx(data.q[train].min(axis=0))
+    assert acc.upper == pytest.approx(data.q[train].max(axis=0))
+    assert acc.lower[1] > data.q[val, 1].min() + 0.04
+    sigma = predicted_position_sigma(acc, data.q[val])
+    far = data.q[val, 1] < acc.lower[1] - MAP_TAPER_RAD / 2
+    assert far.sum() >= 5
+    assert np.all(sigma[far] > sigma[~far].max())
+
+
+def test_the_model_file_states_the_training_poses_as_its_calibrated_region():
+    from keo_service.io.model_file import pinned_config
+
+    config = load_config(CONFIG)
+    data, train, _val = _held_out_beyond_the_training_range()
+    out = pinned_config(config, data.q, True, 0.1, calibrated_q=data.q[train])
+    assert out.model.calibrated_q_min == pytest.approx(data.q[train].min(axis=0).tolist())
+    assert out.model.calibrated_q_max == pytest.approx(data.q[train].max(axis=0).tolist())
+    assert sum(b.poses for b in out.model.calibrated_region) == train.size
+
+
+def _taper_case(error, seed: int = 1, n: int = 3000) -> dict:
+    """One joint whose angle error is `error(q)` (injected), seen through random position
+    gradients, a joint offset and scale beside the maps (as the registration and geometry
+    take a map's mean and slope): the fade length choose_taper picks on its bands."""
+    from keo_service.fit.angle_maps import _Linearized, choose_taper
+
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-1.0, 1.0, size=(n, 1))
+    grad = rng.normal(0.0, 1.0, size=(n, 3))
+    r0 = grad * error(q[:, 0])[:, None] + rng.normal(0.0, 2e-6, size=(n, 3))
+    J = np.column_stack([grad.ravel(), (grad * q).ravel()])
+    return choose_taper(_Linearized(r0, [grad], J), q, np.arange(n), 0.05, 1e-2, 2)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_fade_length_follows_what_the_error_does_beyond_the_range(seed):
+    from keo_service.fit.angle_maps import TAPERS
+
+    # an error that changes slowly goes on near the map's edge value: the longest fade
+    slow = _taper_case(lambda q: 1e-3 * np.cos(1.5 * q), seed)
+    assert slow["taper_rad"] == max(TAPERS)
+    # a ripple of 0.06 rad has moved on within a fraction of its period: cut at the edge
+    fast = _taper_case(lambda q: 1e-3 * np.sin(2 * np.pi * q / 0.06), seed)
+    assert fast["taper_rad"] == min(TAPERS)
+    assert len(fast["per_band_pos_rms_mm"]) == 2  # the low and the high end of the range
+
+
+def test_the_model_file_carries_the_fade_length_and_older_files_load_with_the_default():
+    from keo_service.core.errors import ConfigError
+    from keo_service.fit.effects import JointMaps
+
+    knots = [[0.0, 0.5, 1.0]] + [[]] * 5
+    values = [[1e-3, -1e-3, 2e-3]] + [[]] * 5
+    q = np.zeros((1, 6))
+    q[0, 0] = 1.025  # 0.025 rad beyond the last knot
+    older = ModelConfig(effects=["joint_maps"], map_knots=knots, map_values=values)
+    corr = corrections_from_config(older, 6, "m.toml")
+    assert corr is not None
+    assert corr.map_taper == MAP_TAPER_RAD
+    assert corr.map_error(q)[0, 0] == pytest.approx(2e-3 * (1 - 0.025 / MAP_TAPER_RAD))
+    chosen = msgspec.structs.replace(older, map_taper_rad=0.05)
+    corr = corrections_from_config(chosen, 6, "m.toml")
+    assert corr is not None
+    assert corr.map_error(q)[0, 0] == pytest.approx(1e-3)
+    effect, x = effect_from_config("joint_maps", msgspec.structs.asdict(chosen))
+    assert isinstance(effect, JointMaps)
+    assert effect.taper == 0.05
+    assert effect.to_config(x, 6)["map_taper_rad"] == 0.05
+    effect, _x = effect_from_config("joint_maps", msgspec.structs.asdict(older))
+    assert isinstance(effect, JointMaps)
+    assert effect.taper == MAP_TAPER_RAD
+    # model.toml writes a fade of 0 (cut at the edge) and reads it back as 0
+    from keo_service.io.model_file import model_toml
+
+    config = msgspec.structs.replace(
+        load_config(CONFIG), model=msgspec.structs.replace(chosen, map_taper_rad=0.0)
+    )
+    assert "map_taper_rad = 0.0" in model_toml(config, Path(CONFIG).parent)
+    with pytest.raises(ConfigError, match="map_taper_rad"):
+        corrections_from_config(msgspec.structs.replace(older, map_taper_rad=-0.1), 6, "m.toml")
+
+
+@pytest.mark.parametrize("fade", [0.03, 0.25])
+def test_a_joint_without_a_map_is_trusted_as_far_as_the_models_own_fade(tmp_path, fade):
+    """`keo compensate` flags a target outside the calibrated range where the model's
+    corrections stop being trusted: for a joint with a map its knots, for one without the
+    calibration poses' range widened by the fade the model file states (`[model]
+    map_taper_rad`), not by the default of older files. Expected ranges from the numbers
+    written in the file."""
+    from keo_service.io.cell import tool_model
+
+    q_min = [-1.0, -2.0, -0.5, -1.5, 0.2, -3.0]
+    q_max = [1.0, -0.4, 2.0, 0.5, 1.2, 3.0]
+    path = tmp_path / "model.toml"
+    path.write_text(
+        f'cell = "ur10"\n[robot]\nurdf = "{CONFIG.parent / "robots" / "ur10.urdf"}"\n'
+        "[tool]\nxyz = [0.0, 0.0, 0.109]\n"
+        '[model]\neffects = ["joint_maps"]\n'
+        "map_knots = [[-0.8, 0.0, 0.9], [], [], [], [], []]\n"
+        "map_values = [[1e-3, -1e-3, 2e-3], [], [], [], [], []]\n"
+        f"map_taper_rad = {fade}\ncalibrated_q_min = {q_min}\ncalibrated_q_max = {q_max}\n",
+        encoding="utf-8",
+    )
+    model = tool_model(load_config(str(path)), require_effects=True)
+    widened = [(lo - fade, hi + fade) for lo, hi in zip(q_min, q_max, strict=True)]
+    expected = [(-0.8, 0.9), *widened[1:]]  # joint 1: its map's knots
+    for got, want in zip(model.calibrated_ranges(), expected, strict=True):
+        assert got == pytest.approx(want)
+    # joint 3 (no map) just inside and just beyond the stated fade past its poses' range
+    inside, beyond = np.zeros((2, 6)) + 0.5, np.zeros(6)
+    inside[:, 1] = -1.0
+    inside[0, 2] = q_max[2] + 0.9 * fade
+    inside[1, 2] = q_max[2] + 1.1 * fade
+    assert model.outside_calibrated_range(inside).tolist() == [False, True]
+    beyond[:] = inside[1]
+    (((joint, by),),) = model.beyond_ranges(beyond)
+    assert (joint, by) == (2, pytest.approx(0.1 * fade))

@@ -147,23 +147,25 @@ class ToolModel:
 
     def calibrated_ranges(self) -> list[tuple[float, float] | None]:
         """Each joint's calibrated range: its map's knots, beyond which the map fades out;
-        for a joint without a map the calibration poses' range widened by the fade's width
-        (`MAP_TAPER_RAD`), beyond which nothing identified there was seen (None: neither is
-        known, the model is taken as defined everywhere)."""
+        for a joint without a map the calibration poses' range widened by the fade the model
+        uses (its `map_taper`, `[model] map_taper_rad`; `MAP_TAPER_RAD` without corrections),
+        beyond which nothing identified there was seen (None: neither is known, the model is
+        taken as defined everywhere). The same fade as the maps', so a flag and the stated
+        accuracy's rise start where the model's corrections stop being trusted."""
         from keo_service.core.model_corrections import MAP_TAPER_RAD
 
-        maps: list[tuple[float, float] | None] = (
-            [None] * self.nq if self.corrections is None else self.corrections.map_ranges()
-        )
+        if self.corrections is None:
+            maps: list[tuple[float, float] | None] = [None] * self.nq
+            taper = MAP_TAPER_RAD
+        else:
+            maps = self.corrections.map_ranges()
+            taper = float(self.corrections.map_taper)
         if self.region is None or self.region.q_min.size != self.nq:
             return maps
         return [
             rng
             if rng is not None
-            else (
-                float(self.region.q_min[j]) - MAP_TAPER_RAD,
-                float(self.region.q_max[j]) + MAP_TAPER_RAD,
-            )
+            else (float(self.region.q_min[j]) - taper, float(self.region.q_max[j]) + taper)
             for j, rng in enumerate(maps)
         ]
 

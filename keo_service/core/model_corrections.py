@@ -7,9 +7,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 # Outside its calibrated angles a joint-angle map (and a coupling's map) fades linearly from
-# its edge value to zero over this distance (rad): a table says nothing about angles it never
+# its edge value to zero over a distance (rad): a table says nothing about angles it never
 # saw, and holding its edge value there made a model carried to new angles worse than the
-# nominal robot. About a quarter of the strain-wave ripple's period seen in the UR10 maps.
+# nominal robot. `keo analyze` chooses the joint maps' distance per analysis on the held-out
+# bands at the ends of each joint's range (fit.angle_maps.choose_taper) and writes it to
+# model.toml (`[model] map_taper_rad`); this is the distance of a model file without that key
+# and of the couplings' maps. About a quarter of the strain-wave ripple's period seen in the
+# UR10 maps.
 MAP_TAPER_RAD = 0.1
 
 
@@ -23,9 +27,12 @@ def taper_weight(q: np.ndarray, lo: float, hi: float, taper: float = MAP_TAPER_R
     return out
 
 
-def tapered_interp(q: np.ndarray, knots: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Linear interpolation between knots, the edge value fading to zero outside them."""
-    out: np.ndarray = np.interp(q, knots, values) * taper_weight(q, knots[0], knots[-1])
+def tapered_interp(
+    q: np.ndarray, knots: np.ndarray, values: np.ndarray, taper: float = MAP_TAPER_RAD
+) -> np.ndarray:
+    """Linear interpolation between knots, the edge value fading to zero over `taper` rad
+    outside them."""
+    out: np.ndarray = np.interp(q, knots, values) * taper_weight(q, knots[0], knots[-1], taper)
     return out
 
 
@@ -38,8 +45,9 @@ class ModelCorrections:
     cyclic: np.ndarray = field(default=None)  # type: ignore[arg-type]  # (nq, H, 2): a, b
     placement: np.ndarray = field(default=None)  # type: ignore[arg-type]  # (nq, 6)
     # joint-angle error maps: per joint (knots [rad], values [rad]), piecewise linear in the
-    # joint's own angle, fading to zero over MAP_TAPER_RAD outside the knots; empty: no map
+    # joint's own angle, fading to zero over `map_taper` rad outside the knots; empty: no map
     maps: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
+    map_taper: float = MAP_TAPER_RAD
     # couplings across joints: (j, k, slope, knots, values): joint j's angle error moves with
     # joint k's angle, slope x (q_k - centre of the knots) + a piecewise-linear map of q_k
     couplings: tuple[tuple[int, int, float, np.ndarray, np.ndarray], ...] = ()
@@ -127,12 +135,12 @@ class ModelCorrections:
 
     def map_error(self, q: np.ndarray) -> np.ndarray:
         """The maps' angle error at joints q (..., nq): linear between knots, fading to zero
-        over MAP_TAPER_RAD beyond them (never extrapolated, never held). Each joint's map on
+        over `map_taper` rad beyond them (never extrapolated, never held). Each joint's map on
         its own: a pose outside one joint's range keeps the other joints' maps."""
         out = np.zeros(np.shape(q))
         for j, (knots, values) in enumerate(self.maps):
             if knots.size:
-                out[..., j] = tapered_interp(q[..., j], knots, values)
+                out[..., j] = tapered_interp(q[..., j], knots, values, self.map_taper)
         return out
 
 

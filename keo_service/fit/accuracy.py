@@ -111,11 +111,13 @@ def coverage(sigma_mm: np.ndarray, error_mm: np.ndarray) -> dict[str, Any]:
     }
 
 
-def stated_accuracy(report: dict[str, Any], q: np.ndarray) -> Accuracy:
+def stated_accuracy(report: dict[str, Any], q_fitted: np.ndarray) -> Accuracy:
     """The accuracy `keo analyze` states for its model: inside, the final held-out RMS;
     outside, the physical effects' figure on the extrapolation bands (fit.prior) or their
     held-out RMS, whichever is larger (the maps fade to zero outside); the calibrated ranges
-    from the calibration poses `q`; the between-session term from leave-one-session-out when
+    from the poses the model was fitted on, `q_fitted` (the training rows only: a held-out
+    pose beyond them is extrapolation, and stating it at the in-range figure is what the
+    coverage check exists to catch); the between-session term from leave-one-session-out when
     the report has it (`leave_one_session_out.session_term`), else the bands' default."""
     inside = float(report["final"]["validation"]["pos_rms_mm"])
     physical = [e for e in report["effects"] if "bands" in e]
@@ -125,19 +127,31 @@ def stated_accuracy(report: dict[str, Any], q: np.ndarray) -> Accuracy:
         candidates = [inside, last["bands"]["pos_rms_mm_with"], last["validation"]["pos_rms_mm"]]
     outside = max(candidates)
     measured = report.get("leave_one_session_out", {}).get("session_term")
+    taper = map_taper(report)
     if measured is not None:
         return Accuracy(
             inside,
             outside,
-            q.min(axis=0),
-            q.max(axis=0),
+            q_fitted.min(axis=0),
+            q_fitted.max(axis=0),
+            taper,
             session_mm=float(measured["session_mm"]),
             session_source="leave one session out",
         )
     return Accuracy(
         inside,
         outside,
-        q.min(axis=0),
-        q.max(axis=0),
+        q_fitted.min(axis=0),
+        q_fitted.max(axis=0),
+        taper,
         session_mm=default_session_mm(inside, outside),
     )
+
+
+def map_taper(report: dict[str, Any]) -> float:
+    """The fade length of the kept joint maps (fit.angle_maps.choose_taper), MAP_TAPER_RAD
+    without maps or without a chosen one."""
+    for entry in report.get("effects", []):
+        if entry.get("name") == "joint_maps" and "taper" in entry:
+            return float(entry["taper"]["taper_rad"])
+    return MAP_TAPER_RAD

@@ -609,8 +609,8 @@ def _judge_carried_maps(
     them; the held-out blocks stay untouched for the figures): joint by joint, a map whose
     removal lowers the error is dropped; then the maps left must lower the error by
     KEEP_MARGIN against the same model without any. Outside its calibrated angles each map
-    fades to zero (core.model_corrections.MAP_TAPER_RAD), so a pose outside on one joint keeps the
-    other joints' maps."""
+    fades to zero (over the distance the model states, `JointMaps.taper`), so a pose outside on
+    one joint keeps the other joints' maps."""
     maps = model.find(JointMaps)
     assert maps is not None
     tau_tr = model.chain.gravity_torques(train.q)
@@ -638,6 +638,7 @@ def _judge_carried_maps(
     lo, hi = maps.ranges()
     outside = (data.q < lo) | (data.q > hi)
     report["carried_maps"] = {
+        "taper_rad": maps.taper,
         "held_out_pos_rms_mm_with": stats(kept_model, kept_x, val, tau_va).judged_mm,
         "held_out_pos_rms_mm_without": stats(without, x_without, val, tau_va).judged_mm,
         "fitted_rows_pos_rms_mm_with": with_maps_tr,
@@ -672,7 +673,7 @@ def _with_maps_of(
             if not keep:
                 continue
             knots = tuple(kn if j in keep else np.empty(0) for j, (kn, _v) in enumerate(pieces))
-            effects.append(JointMaps(knots))
+            effects.append(JointMaps(knots, maps.taper))
             values.append(np.concatenate([v for j, (_k, v) in enumerate(pieces) if j in keep]))
         else:
             effects.append(effect)

@@ -8,9 +8,9 @@ other kept parameter are solved together with the maps in the same linear system
 Jacobian columns beside the maps'), with a penalty on the maps' second differences
 (smoothness) and a tiny ridge (a constant or linear map is the same as a joint offset or a
 scale and would otherwise be undetermined). Knot spacing and smoothing weight are chosen by
-cross-validation over blocks of the training poses. Outside its knots a map fades to zero over
-core.model_corrections.MAP_TAPER_RAD (each joint on its own); the live estimator flags such samples
-(`outside_calibrated_range`).
+cross-validation over blocks of the training poses. Outside its knots a map fades to zero (each
+joint on its own) over a distance chosen on held-out bands at the ends of each joint's range
+(choose_taper); the live estimator flags such samples (`outside_calibrated_range`).
 
 One residual evaluation per joint gives every pose's derivative at once (each pose depends
 only on its own joints), so building the system costs a few evaluations, and each solve is a
@@ -27,12 +27,12 @@ import numpy as np
 from scipy import sparse
 from scipy.linalg import block_diag, cho_factor, cho_solve
 
-from keo_service.core.model_corrections import taper_weight
+from keo_service.core.model_corrections import MAP_TAPER_RAD, taper_weight
 from keo_service.fit.analysis import KEEP_MARGIN, describe_remaining
 from keo_service.fit.effects import JointMaps
 from keo_service.fit.model import Data, Model, numeric_jacobian, stats
 from keo_service.fit.model import fit as robust_fit
-from keo_service.fit.prior import prior_rows
+from keo_service.fit.prior import extrapolation_bands, prior_rows
 
 SPACINGS = (0.02, 0.03, 0.05, 0.075, 0.1)  # rad between knots
 SMOOTHING = (1e-3, 1e-2, 1e-1, 1.0, 10.0)  # weight of the second-difference penalty
@@ -53,6 +53,9 @@ EFFECTS_WITH_MAPS = "auto"
 MODE_MARGIN = KEEP_MARGIN
 MIN_POSES_PER_KNOT = 2.0  # a joint whose range gives fewer poses per knot gets no map
 MIN_SUPPORT = 2  # poses within one spacing of a knot, else the knot is left out (a gap)
+# the fade lengths outside the knots (rad) choose_taper judges: from cut at the edge to about
+# a strain-wave ripple's period
+TAPERS = (0.0, 0.025, 0.05, 0.1, 0.2, 0.4)
 
 
 @dataclasses.dataclass
@@ -88,19 +91,22 @@ def knots_for(q: np.ndarray, spacing: float) -> tuple[np.ndarray, ...]:
     return tuple(out)
 
 
-def hat_weights(q: np.ndarray, knots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def hat_weights(
+    q: np.ndarray, knots: np.ndarray, taper: float = MAP_TAPER_RAD
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per angle the left knot's index and the two knots' weights of linear interpolation,
-    both scaled by the taper outside the knots (as core.model_corrections.tapered_interp)."""
+    both scaled by the taper (`taper` rad) outside the knots (as
+    core.model_corrections.tapered_interp)."""
     qc = np.clip(q, knots[0], knots[-1])
     i = np.clip(np.searchsorted(knots, qc) - 1, 0, knots.size - 2)
     w = (qc - knots[i]) / (knots[i + 1] - knots[i])
-    fade = taper_weight(q, float(knots[0]), float(knots[-1]))
+    fade = taper_weight(q, float(knots[0]), float(knots[-1]), taper)
     return i, (1.0 - w) * fade, w * fade
 
 
-def hat_basis(q: np.ndarray, knots: np.ndarray) -> np.ndarray:
+def hat_basis(q: np.ndarray, knots: np.ndarray, taper: float = MAP_TAPER_RAD) -> np.ndarray:
     """(N, K) weights of linear interpolation between knots (fading to zero outside)."""
-    i, left, right = hat_weights(q, knots)
+    i, left, right = hat_weights(q, knots, taper)
     out = np.zeros((q.size, knots.size))
     rows = np.arange(q.size)
     out[rows, i] = left
@@ -182,7 +188,9 @@ class _Design:
         return out
 
 
-def _design(lin: _Linearized, q: np.ndarray, knots: Sequence[np.ndarray]) -> _Design:
+def _design(
+    lin: _Linearized, q: np.ndarray, knots: Sequence[np.ndarray], taper: float = MAP_TAPER_RAD
+) -> _Design:
     n, width = lin.r0.shape
     rows, cols, vals = [], [], []
     offset = 0
@@ -190,7 +198,7 @@ def _design(lin: _Linearized, q: np.ndarray, knots: Sequence[np.ndarray]) -> _De
     for j, kn in enumerate(knots):
         if not kn.size:
             continue
-        i, left, right = hat_weights(q[:, j], kn)
+        i, left, right = hat_weights(q[:, j], kn, taper)
         grad = lin.joint_grad[j]  # (n, width)
         for col, weight in ((i, left), (i + 1, right)):
             rows.append(row_of)
@@ -479,10 +487,13 @@ def try_maps(
         return
     if model.sessions > 1 and model.tools == 1:
         model, x, fit = _session_tools(analysis, fit, data, train_idx, val_idx, keep_margin, say)
+    lin = linearize(model, x, data, chain.gravity_torques(data.q))
+    taper = choose_taper(lin, data.q, train_idx, fit.spacing, fit.smoothing, x.size)
+    fit = with_taper(fit, taper["taper_rad"])
     before = stats(model, x, val, tau_va)
     after = stats(fit.model, fit.x, val, tau_va)
     gain = 1 - after.judged_mm / before.judged_mm
-    band, band_before, band_after, curve = _band_and_curve(model, x, fit, data, train_idx, val_idx)
+    band, band_before, band_after, curve = _band_and_curve(lin, x, fit, data, train_idx, val_idx)
     band_gain = 1 - band_after / band_before
     entry: dict[str, Any] = {
         "name": JointMaps.name,
@@ -493,6 +504,7 @@ def try_maps(
         "smoothing": fit.smoothing,
         "cv_pos_rms_mm": fit.cv_rms_mm,
         "effects_beside_maps": effects_mode,
+        "taper": taper,
         "train": stats(fit.model, fit.x, train, tau_tr).as_dict(),
         "validation": after.as_dict(),
         "held_out_improvement_pct": 100 * gain,
@@ -524,8 +536,74 @@ def try_maps(
         say(f"not kept joint_maps: held-out {100 * gain:+.1f} %, band {100 * band_gain:+.1f} %")
 
 
+def with_taper(fit: MapFit, taper: float) -> MapFit:
+    """`fit` with its maps fading over `taper` rad outside their knots (the values as
+    fitted: the training poses lie within the knots, so the fit does not depend on it)."""
+    maps = fit.model.effects[-1]
+    assert isinstance(maps, JointMaps)
+    effects = [*fit.model.effects[:-1], JointMaps(maps.knots, taper)]
+    return dataclasses.replace(fit, model=dataclasses.replace(fit.model, effects=effects))
+
+
+def choose_taper(
+    lin: _Linearized,
+    q: np.ndarray,
+    train_idx: np.ndarray,
+    spacing: float,
+    smoothing: float,
+    n_other: int,
+    tapers: Sequence[float] = TAPERS,
+) -> dict[str, Any]:
+    """The distance over which the maps fade to zero outside their knots, chosen on the
+    extrapolation bands (fit.prior.extrapolation_bands of the training poses: the lowest and
+    highest part of each joint's range): per band the maps (at the chosen knot spacing and
+    smoothing) and the registration are solved on the training poses outside it, linearized
+    in `lin`, so the band lies beyond the knots of its own joint, and the band's poses are
+    judged at each fade length; the length with the lowest mean square over the bands is
+    kept. Only the band's own joint is outside there, so this judges what the fade does where
+    a map is carried to angles it never saw. Why per analysis: the right length depends on
+    how fast the robot's error changes beyond the range (a gear ripple's period, a slope), and
+    the only poses that speak for it without being the figures' own held-out poses are
+    these. No bands (no joint moves enough): the default, MAP_TAPER_RAD."""
+    width = lin.r0.shape[1]
+    bands = extrapolation_bands(q[train_idx])
+    per_taper: dict[float, list[float]] = {float(t): [] for t in tapers}
+    rows_out = []
+    for label, rows in bands:
+        band = train_idx[rows]
+        fit_idx = np.setdiff1d(train_idx, band)
+        knots = knots_for(q[fit_idx], spacing)
+        if not any(k.size for k in knots):
+            continue
+        P = _penalty(n_other, knots)
+        AtA, g = _design(lin, q, knots).rows(fit_idx, width).normal()
+        step = _solve(AtA, g, P.T @ P, smoothing)
+        sub = _Linearized(
+            lin.r0[band],
+            [grad[band] for grad in lin.joint_grad],
+            lin.J[(band[:, None] * width + np.arange(width)).ravel()],
+        )
+        entry: dict[str, Any] = {"band": label, "poses": int(band.size)}
+        for t, squares in per_taper.items():
+            r = _design(sub, q[band], knots, t).apply(step).reshape(-1, width)
+            rms = _pos_rms_mm(r)
+            squares.append(rms**2)
+            entry[f"{t:g}"] = rms
+        rows_out.append(entry)
+    if not rows_out:
+        return {"taper_rad": MAP_TAPER_RAD, "judged_on": "default (no extrapolation bands)"}
+    score = {t: float(np.sqrt(np.mean(ms))) for t, ms in per_taper.items()}
+    best = min(score, key=lambda t: score[t])
+    return {
+        "taper_rad": best,
+        "judged_on": "extrapolation bands (each band's joint beyond the maps' knots)",
+        "bands_pos_rms_mm": {f"{t:g}": v for t, v in score.items()},
+        "per_band_pos_rms_mm": rows_out,
+    }
+
+
 def _band_and_curve(
-    model: Model,
+    lin: _Linearized,
     x: np.ndarray,
     fit: MapFit,
     data: Data,
@@ -533,8 +611,8 @@ def _band_and_curve(
     val_idx: np.ndarray,
 ) -> tuple[np.ndarray, float, float, list[dict[str, Any]]]:
     """The maps' second split (a band of joint 1's angle held out, a region of the workspace:
-    its poses and RMS without and with the maps, linearized) and their learning curve."""
-    lin = linearize(model, x, data, model.chain.gravity_torques(data.q))
+    its poses and RMS without and with the maps, linearized at the model before the maps,
+    `lin`) and their learning curve."""
     keep_band, band = held_out_band(data)
     knots = knots_for(data.q[keep_band], fit.spacing)
     band_before = _linear_rms(lin, data.q, knots, keep_band, band, fit.smoothing, x.size, False)

@@ -16,7 +16,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from keo_service.core.model_corrections import ModelCorrections
+from keo_service.core.model_corrections import MAP_TAPER_RAD, ModelCorrections
 from keo_service.fit.model import Data, Effect, Model
 
 
@@ -248,6 +248,8 @@ class JointMaps:
     after the other effects."""
 
     knots: tuple[np.ndarray, ...] = ()
+    # the fade to zero outside the knots (rad; fit.angle_maps.choose_taper)
+    taper: float = MAP_TAPER_RAD
     name: ClassVar[str] = "joint_maps"
     description: ClassVar[str] = (
         "joint-angle error maps: angle error vs the joint's own angle (rad)"
@@ -261,7 +263,7 @@ class JointMaps:
         return True
 
     def correct(self, corr: ModelCorrections, values: np.ndarray) -> ModelCorrections:
-        return dataclasses.replace(corr, maps=split_maps(self.knots, values))
+        return dataclasses.replace(corr, maps=split_maps(self.knots, values), map_taper=self.taper)
 
     def sensor_offset(self, values: np.ndarray, data: Data, model: Model) -> np.ndarray | None:
         return None
@@ -302,12 +304,14 @@ class JointMaps:
         return {
             "map_knots": [k.tolist() for k, _v in maps],
             "map_values": [v.tolist() for _k, v in maps],
+            "map_taper_rad": self.taper,
         }
 
     def from_config(self, section: Mapping[str, Any]) -> tuple[Effect, np.ndarray]:
         knots = tuple(np.asarray(k, dtype=float) for k in section["map_knots"])
         values = [v for joint in section["map_values"] for v in joint]
-        return JointMaps(knots), np.asarray(values, dtype=float)
+        taper = float(section.get("map_taper_rad", MAP_TAPER_RAD))
+        return JointMaps(knots, taper), np.asarray(values, dtype=float)
 
 
 @dataclass(frozen=True, eq=False)

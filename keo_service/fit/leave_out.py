@@ -92,8 +92,10 @@ def sessions_subset(data: Data, sessions: Sequence[int]) -> Data:
 
 def stated(result: Analysis, data: Data) -> Accuracy:
     """The accuracy the model of `result` (fitted on `data`) states, as `keo analyze` writes
-    it to model.toml."""
-    return stated_accuracy(result.report, data.q)
+    it to model.toml: its calibrated ranges those of the training rows (split_data), the
+    poses the model was fitted on."""
+    train_idx, _val_idx = split_data(data)
+    return stated_accuracy(result.report, data.q[train_idx])
 
 
 def held_out_errors(result: Analysis, data: Data) -> tuple[np.ndarray, np.ndarray]:

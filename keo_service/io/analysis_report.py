@@ -20,7 +20,7 @@ from keo_service.core.chain import Chain
 from keo_service.core.errors import KeoError
 from keo_service.core.model_corrections import MAP_TAPER_RAD
 from keo_service.fit.accuracy import Accuracy, default_session_mm
-from keo_service.fit.analysis import Analysis
+from keo_service.fit.analysis import Analysis, split_data
 from keo_service.fit.effects import JointMaps, config_fields, effect_from_config
 from keo_service.fit.model import Data, Model
 from keo_service.fit.uncertainty import TrackerUncertainty
@@ -84,6 +84,7 @@ def saved_accuracy(config: Config) -> Accuracy | None:
         m.accuracy_outside_mm,
         np.asarray(m.calibrated_q_min, dtype=float),
         np.asarray(m.calibrated_q_max, dtype=float),
+        m.map_taper_rad,
         session_mm=session,
         session_source=m.accuracy_session_source or "held-out bands",
     )
@@ -432,7 +433,8 @@ def _carried_markdown(report: dict[str, Any]) -> list[str]:
             + ("kept" if carried["kept"] else "dropped, the model is written without them")
             + f"; {carried['poses_outside_calibrated_range_pct']:.0f} % of these poses lie "
             "outside the angles the maps were calibrated on, on some joint (there that joint's "
-            f"map fades to zero over {MAP_TAPER_RAD:g} rad; the other joints' maps apply)"
+            f"map fades to zero over {carried.get('taper_rad', MAP_TAPER_RAD):g} rad; the other "
+            "joints' maps apply)"
             + (
                 "; maps of "
                 + ", ".join(d["joint"] for d in carried.get("joints_dropped", []))
@@ -754,8 +756,10 @@ def _maps_markdown(entry: dict[str, Any]) -> list[str]:
         f"### {JointMaps.name}: knots every {entry['knot_spacing_rad']:g} rad, smoothing "
         f"{entry['smoothing']:g} (chosen by cross-validation), {entry['parameter_count']} values",
         "",
-        f"Outside its calibrated range each joint's map fades to zero over {MAP_TAPER_RAD:g} "
-        "rad (the other joints' maps still apply) and `keo run` flags the estimate "
+        f"Outside its calibrated range each joint's map fades to zero over "
+        f"{entry.get('taper', {}).get('taper_rad', MAP_TAPER_RAD):g} rad (chosen on held-out "
+        "bands at the ends of each joint's range; the other joints' maps still apply) and "
+        "`keo run` flags the estimate "
         "`outside_calibrated_range`. A map whose peak is below its median standard error is "
         "marked: its shape is not resolved by these poses.",
         "",
@@ -811,12 +815,14 @@ def write_analysis(
 
     out.mkdir(parents=True, exist_ok=True)
     final = report["final"]["validation"]
+    train_idx, _val_idx = split_data(data)
     improved = model_file.pinned_config(
         improved,
         data.q,
         result.model.position_only or data.R_ks is None,
         final["pos_rms_mm"],
         final.get("rot_rms_mrad") or 0.0,
+        calibrated_q=data.q[train_idx],
     )
     report["calibrated_region"] = model_file.region_report(improved)
     plots = _plots(out, result, data, base_x, baseline)

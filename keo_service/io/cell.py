@@ -151,7 +151,12 @@ def corrections_from_config(model: ModelConfig, nq: int, source: str) -> ModelCo
         return None
     shapes = {"cyclic": (nq, 2, 2), "placement": (nq, 6)}
     given = {k: v.reshape(shapes.get(k, (nq,))) for k, v in values.items() if v is not None}
-    return ModelCorrections(nq, **given, maps=maps, couplings=couplings, ripple=ripple)
+    taper = float(model.map_taper_rad)
+    if not (np.isfinite(taper) and taper >= 0):
+        raise ConfigError(source, "model.map_taper_rad", "a distance in rad, 0 or more")
+    return ModelCorrections(
+        nq, **given, maps=maps, couplings=couplings, ripple=ripple, map_taper=taper
+    )
 
 
 def _ripple_from_config(

@@ -17,6 +17,7 @@ import tomli_w
 
 from keo_service.core.compensation import DEFAULT_MAX_AGE_S, CompensationLimits
 from keo_service.core.errors import ConfigError
+from keo_service.core.model_corrections import MAP_TAPER_RAD
 from keo_service.core.settings import EstimatorSettings
 from keo_service.io.protocols import PROTOCOLS
 from keo_service.io.protocols import names as protocol_names
@@ -244,6 +245,9 @@ class ModelConfig(_Section):
     # (rad); an empty list: no map for that joint
     map_knots: list[list[float]] = msgspec.field(default_factory=list)
     map_values: list[list[float]] = msgspec.field(default_factory=list)
+    # rad: each map fades to zero over this distance outside its knots (keo analyze chooses
+    # it; files written before that get the distance they were made with)
+    map_taper_rad: float = MAP_TAPER_RAD
     # couplings across joints (keo analyze): per coupling [j, k] (joint j's angle error moves
     # with joint k's angle, 0-based), the slope (rad/rad, about the knots' centre), and a map
     # of joint k's angle (knots rad, increasing; values rad)

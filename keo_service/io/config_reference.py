@@ -233,6 +233,11 @@ KEYS: dict[str, tuple[str, str]] = {
         "per joint: the joint-angle map's knots (increasing); empty: no map",
     ),
     "model.map_values": ("rad", "per joint: the angle error at each knot"),
+    "model.map_taper_rad": (
+        "rad",
+        "outside its knots each map fades linearly to zero over this distance (keo analyze "
+        "chooses it on held-out bands at the ends of the joint ranges); absent: 0.1",
+    ),
     "model.temperature_m_per_c": ("m/degC", "sensor drift with temperature (reported)"),
     "model.temperature_ref_c": ("degC", "the temperature where that drift is zero"),
     "model.time_drift_m_per_s": ("m/s", "sensor drift with time (reported)"),

@@ -58,10 +58,14 @@ def pinned_config(
     position_only: bool,
     accuracy_mm: float = 0.0,
     accuracy_mrad: float = 0.0,
+    calibrated_q: np.ndarray | None = None,
 ) -> Config:
     """`config` (with the fit's registration in [tracker] xyz/rpy, its probe in probe_xyz/rpy
     and its effects in [model], all for the raw chain) restated in the nominal robot's frames
-    over the calibration joints q, with the calibrated region and the accuracy."""
+    over the calibration joints q, with the calibrated region and the accuracy. The region
+    (joint ranges, tool boxes) is that of `calibrated_q` (None: q): `keo analyze` gives the
+    training rows, the poses the model was fitted on, so a held-out pose beyond them counts
+    as outside, as it does for the maps' knots and the stated accuracy."""
     robot = robot_from_config(config)
     corrections = corrections_from_config(config.model, robot.nq, config.source)
     T_bk = pin.SE3(
@@ -88,7 +92,7 @@ def pinned_config(
         accuracy_mrad=float(accuracy_mrad or 0.0),
     )
     out = msgspec.structs.replace(config, tracker=tracker, model=model)
-    region = calibrated_region(tool_model(out), q)
+    region = calibrated_region(tool_model(out), q if calibrated_q is None else calibrated_q)
     model = msgspec.structs.replace(
         model,
         calibrated_q_min=region.q_min.tolist(),
@@ -215,7 +219,13 @@ def model_toml(config: Config, out_dir: Path) -> str:
             keep = set(section)
         entry = {k: v for k, v in section.items() if k in keep and v is not None}
         if name == "model":  # empty lists say nothing: leave them out
-            entry = {k: v for k, v in entry.items() if v not in ([], 0.0) or k == "effects"}
+            entry = {
+                k: v
+                for k, v in entry.items()
+                if v not in ([], 0.0) or k in ("effects", "map_taper_rad")
+            }
+            if not entry.get("map_knots"):  # a fade length without maps says nothing
+                entry.pop("map_taper_rad", None)
         if entry:
             doc[name] = entry
     for section, key in PATH_KEYS:

@@ -21,7 +21,6 @@ from keo_service.fit.accuracy import (
     coverage,
     distance_outside,
     predicted_position_sigma,
-    stated_accuracy,
 )
 from keo_service.fit.analysis import (
     KEEP_MARGIN,
@@ -33,7 +32,7 @@ from keo_service.fit.analysis import (
 from keo_service.fit.angle_maps import try_maps
 from keo_service.fit.coupling import try_couplings
 from keo_service.fit.diagnostics import repeatability, residual_components
-from keo_service.fit.leave_out import leave_one_session_out
+from keo_service.fit.leave_out import leave_one_session_out, stated
 from keo_service.fit.model import Data, Model, fit, initial_registration_sessions
 from keo_service.fit.sampling import MAX_ROWS, informative_rows, selection_report
 from keo_service.fit.uncertainty import iso_path_figures, iso_pose_figures
@@ -369,7 +368,7 @@ def _state_accuracy(
         all_mm, error_mm, data, train_idx, val_idx, chain.robot.joint_names
     )
     if carried is None:
-        acc = stated_accuracy(report, data.q)
+        acc = stated(result, data)  # its ranges from the training rows
         report["accuracy"] = acc.as_dict()
         report["accuracy"]["held_out_coverage"] = coverage(
             predicted_position_sigma(acc, val.q), error_mm
