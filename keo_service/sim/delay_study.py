@@ -369,7 +369,11 @@ def run_tracker(
                         (
                             found.delay_s - streams.case.delay_s,
                             found.se_s,
-                            tracker.honest_se(found.se_s),
+                            tracker.honest_se(
+                                found.own_se_s if math.isfinite(found.own_se_s) else found.se_s,
+                                found.model_s,
+                                found.sep_se_s,
+                            ),
                         )
                     )
                 else:
