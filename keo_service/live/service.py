@@ -301,7 +301,7 @@ class KeoService:
     # complexity (C901, PLR0912, PLR0915): the per-sample path keeps its checks and the delay
     # tracker's intake inline (a stream's clock notes only when a sample has flags or a new
     # domain): a Python call per sample is a real share of its cost (docs/performance.md)
-    def _handle(self, batch: list[tuple[str, bytes]]) -> None:  # noqa: C901, PLR0912, PLR0915
+    def _handle(self, batch: list[tuple[str, bytes]]) -> None:  # noqa: C901, PLR0912
         """One wake-up's samples (key, payload), in arrival order, each through the
         estimator and its estimates out before the next sample (synchronous: no await)."""
         sinks = self.sinks
@@ -343,21 +343,17 @@ class KeoService:
                     ok=msg.status == "ok",
                     device_stamp=msg.device_stamp,
                 )
-                if tracker is not None:
-                    if msg.position is not None:
-                        add_tracker(
-                            msg.stamp,
-                            msg.position,
-                            msg.quaternion,
-                            msg.clock_epoch,
-                            msg.seq,
-                            bool(msg.flags),
-                            msg.device_stamp,
-                            msg.clock_drift,
-                        )
-                    target = delay_now()
-                    if target is not None and target != self._delay_followed:
-                        self._follow_tracked_delay(tracker, target)
+                if tracker is not None and msg.position is not None:
+                    add_tracker(
+                        msg.stamp,
+                        msg.position,
+                        msg.quaternion,
+                        msg.clock_epoch,
+                        msg.seq,
+                        bool(msg.flags),
+                        msg.device_stamp,
+                        msg.clock_drift,
+                    )
             elif isinstance(msg, JointSample):
                 if msg.flags or (msg.clock and domains.get("encoder") != msg.clock):
                     self._note_sample("encoder", msg)
@@ -375,12 +371,13 @@ class KeoService:
                         msg.device_stamp,
                         msg.clock_drift,
                     )
-                    target = delay_now()
-                    if target is not None and target != self._delay_followed:
-                        self._follow_tracked_delay(tracker, target)
             else:
                 estimator.counters["unexpected_message"] += 1
                 continue
+            if tracker is not None:  # the delay the next sample is resolved with
+                target = delay_now()
+                if target is not None and target != self._delay_followed:
+                    self._follow_tracked_delay(tracker, target)
             for estimate in out:
                 publish(estimate, now)
         # the wake-up's count and newest arrival, once (nothing reads them mid-batch)
