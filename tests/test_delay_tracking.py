@@ -613,3 +613,32 @@ def test_one_precise_fit_among_rough_ones_does_not_settle_the_delay(demo_cell):
     tracker.combine(DelayMeasurement(truth + 20e-6, 90e-6, 0.16, 27.8))
     assert tracker.settled, tracker.last_result
     assert abs(tracker.delay_now() - truth) * 0.16 < 20e-6, tracker.last_result
+
+
+def test_a_precise_fit_gets_the_scatter_that_fits_with_disagreeing_models_show(demo_cell):
+    """The 1 kHz rows with geometric errors (93.2-93.6 % of fits within 2.5 se): fits
+    scatter by hundreds of us beyond their own se as the robot's geometry biases each
+    stretch's error model; on some stretches the two error models disagree widely (their
+    reported se is a millisecond), on others the second model is rejected and the fit comes
+    with its own se alone (20 us). tau was measured beyond the reported se: the rough fits
+    took the scatter into their own se, tau fell to its floor, and the precise fits were 12
+    se off. Measured beyond the fits' own se, the scatter drawn (600 us, known) is found and
+    a precise fit's se carries it."""
+    rng = np.random.default_rng(5)
+    truth = 0.030
+    tracker = OnlineDelayTracker(demo_cell, prior_s=truth, prior_se_s=0.0005)
+    for i in range(16):
+        value = truth + rng.normal(0.0, 600e-6)
+        if i % 2:  # the two models disagree by 1.5 ms: reported with it
+            found = DelayMeasurement(
+                value, 1.5e-3, SPEED, 5.0 * (i + 1), own_se_s=20e-6, model_s=1.5e-3
+            )
+        else:
+            found = DelayMeasurement(value, 20e-6, SPEED, 5.0 * (i + 1), own_se_s=20e-6)
+        tracker.combine(found)
+    precise = tracker.honest_se(20e-6)
+    assert precise == pytest.approx(600e-6, rel=0.4)  # 16 values: their scatter scatters
+    # the error model's share is counted once, the larger of its two measures
+    assert tracker.honest_se(20e-6, model_s=1.5e-3) == pytest.approx(math.hypot(20e-6, 1.5e-3))
+    # the motion's separability stays a floor
+    assert tracker.honest_se(20e-6, sep_se_s=5e-3) == pytest.approx(5e-3)

@@ -146,6 +146,8 @@ class _Fit:
     rms: float  # the residual scatter at the fitted delay (m, moving samples)
     young: bool = False  # of a young clock mapping's stamps, which still move
     sep_se: float = math.nan  # `separable_se` of its stretch (nan: not measured)
+    own_se: float = math.nan  # its own (clustered) standard error (nan: `se`)
+    model: float = math.nan  # its two error models' disagreement (nan: not measured)
 
 
 class OnlineDelayTracker:
@@ -261,6 +263,8 @@ class OnlineDelayTracker:
         )
         # every fit of the current segment, whatever became of it: the consensus is theirs
         self._recent: collections.deque[_Fit] = collections.deque(maxlen=16)
+        # tau^2 of the recent fits, keyed by their count and the newest (`_tau2`)
+        self._tau2_cache: tuple[tuple[int, _Fit | None], float] = ((-1, None), math.nan)
         self._segment = 0
         self._suspect: tuple[float, float, float] | None = None  # an outlier fit, to compare
         self._trend_fits = 0  # fits the running estimate has taken since it started
@@ -645,6 +649,8 @@ class OnlineDelayTracker:
                 found.rms_m,
                 young=provisional,
                 sep_se=found.sep_se_s,
+                own_se=found.own_se_s,
+                model=found.model_s,
             )
         )
         if not self._carried and self._confirms(self._recent[-1]):
@@ -654,7 +660,7 @@ class OnlineDelayTracker:
         decision = dataclasses.replace(
             self._decide(found.t),
             fit_s=newest.value,
-            fit_se_s=self.honest_se(newest.se),
+            fit_se_s=self._honest(newest),
             speed_m_s=newest.speed,
             t=found.t,
         )
@@ -668,11 +674,25 @@ class OnlineDelayTracker:
         self.state = "refined"
         return self.delay_now()
 
-    def honest_se(self, fit_se: float) -> float:
-        """A fit's standard error with the scatter of fits beyond their own standard errors:
-        within a stretch the residual cannot show how far the stretch's error model is off,
-        between stretches it does."""
-        return math.sqrt(fit_se * fit_se + self._tau2())
+    def honest_se(
+        self, own_se: float, model_s: float = math.nan, sep_se_s: float = math.nan
+    ) -> float:
+        """A fit's standard error with its error model's share. Within a stretch the
+        residual cannot show how far the stretch's error model is off; two things can:
+        between stretches, the scatter of the fits beyond their own standard errors (tau,
+        `_tau2`), and within it, how far its two error models' fits disagree (`model_s`).
+        Both evaluate the same error, so the larger counts, added to the fit's own
+        (clustered) se; the motion's separability (`sep_se_s`, `separable_se`) is a floor.
+        nan for `model_s` or `sep_se_s`: not measured."""
+        model2 = model_s * model_s if math.isfinite(model_s) else 0.0
+        var = own_se * own_se + max(model2, self._tau2())
+        if math.isfinite(sep_se_s):
+            var = max(var, sep_se_s * sep_se_s)
+        return math.sqrt(var)
+
+    def _honest(self, fit: _Fit) -> float:
+        """`honest_se` of a recent fit."""
+        return self.honest_se(_own(fit), fit.model, fit.sep_se)
 
     def _tau2(self) -> float:
         """tau^2 from the recent fits (all the segment keeps, up to 16, of settled mappings
@@ -681,15 +701,25 @@ class OnlineDelayTracker:
         of the consensus: neighbouring stretches of a slow motion share much of their error
         model's bias, so the scatter shows only over more than the motion's period, and a
         scale from five values (four degrees of freedom) lets 2.5 of it cover a normal fit
-        93 % of the time at best."""
+        93 % of the time at best. Beyond their own (clustered) standard errors, not the ones
+        reported with the error models' disagreement: tau is that same error, measured
+        between stretches, and fits whose models disagreed widely took the scatter of the
+        others into their own se, so tau fell to its floor while a precise fit whose two
+        models were wrong alike was reported with its own se alone (docs/timing-delay.md)."""
+        key = (len(self._recent), self._recent[-1] if self._recent else None)
+        if self._tau2_cache[0] == key:
+            return self._tau2_cache[1]
         fits = [f for f in self._recent if not f.young]
         if len(fits) < 3:
             fits = list(self._recent)
         if len(fits) < 3:
-            return self.settings.first_tau_s**2
-        values = np.array([f.value for f in fits])
-        ses = np.array([f.se for f in fits])
-        return excess_variance(values, ses, self.min_wander_s**2)
+            tau2 = self.settings.first_tau_s**2
+        else:
+            values = np.array([f.value for f in fits])
+            ses = np.array([_own(f) for f in fits])
+            tau2 = excess_variance(values, ses, self.min_wander_s**2)
+        self._tau2_cache = (key, tau2)
+        return tau2
 
     def consensus(self) -> tuple[float, float, list[_Fit]] | None:
         """The recent fits' robust consensus: the weighted median, then the weighted mean of
@@ -703,8 +733,7 @@ class OnlineDelayTracker:
         fits = pool[-self.settings.consensus_fits :]
         if len(fits) < 2:
             return None
-        tau2 = self._tau2()
-        sig = np.array([math.sqrt(f.se**2 + tau2) for f in fits])
+        sig = np.array([self._honest(f) for f in fits])
         val = np.array([f.value for f in fits])
         order = np.argsort(val)
         cw = np.cumsum(1.0 / sig[order] ** 2)
@@ -738,7 +767,7 @@ class OnlineDelayTracker:
             # a receipt-stamped encoder's fits are rough, and waiting for a precise one
             # left the delay at 0 for many seconds); but a young clock mapping's rough fit
             # is not taken alone (its stamps still move; docs/timing-delay.md)
-            self._take(newest.value, self.honest_se(newest.se), t, step=True)
+            self._take(newest.value, self._honest(newest), t, step=True)
             return DelayDecision("unsettled", "the first fit, in use until fits agree")
         if cons is None:
             self.counters["fits_without_consensus"] += 1
@@ -765,12 +794,11 @@ class OnlineDelayTracker:
             self.counters["changes_less_precise"] += 1
             return decided("kept", f"{agreed}, known less precisely than the delay in use")
         side = math.copysign(1.0, c - applied)
-        tau2 = self._tau2()
         confirming = [
             f
             for f in members
             if side * (f.value - applied)
-            > self.settings.confirm_sigmas * math.sqrt(f.se**2 + tau2 + applied_se**2)
+            > self.settings.confirm_sigmas * math.hypot(self._honest(f), applied_se)
         ]
         if len(confirming) < 2 or confirming[-1] is not newest:
             self.counters["changes_unconfirmed"] += 1
@@ -821,7 +849,7 @@ class OnlineDelayTracker:
         speed = float(np.median([f.speed for f in members]))
         taken = "in use"
         if newest.young and newest in members:  # its stamps are the most settled
-            c, se_c = newest.value, self.honest_se(newest.se)
+            c, se_c = newest.value, self._honest(newest)
             taken = "the newest fit in use (young clock mappings: its stamps are the newest)"
         self._take(c, se_c, t, step=True)
         grown = len(members) >= 3 and not any(f.young for f in members)
@@ -833,7 +861,7 @@ class OnlineDelayTracker:
         # and one precise fit among rough ones is that fit alone, whose own se may miss (a
         # stretch 2.9 se off settled a MotoROS stop-and-go run 243 us off): two stretches
         # must each know the delay that well, a later one confirming an earlier one
-        se_settle = max(se_c, sorted(self.honest_se(f.se) for f in members)[1])
+        se_settle = max(se_c, sorted(self._honest(f) for f in members)[1])
         if grown and separates and se_settle * speed <= self.settings.settle_m:
             self.settled = True
             self._trend.start(c, se_c * se_c, newest.t)
@@ -1024,6 +1052,11 @@ class OnlineDelayTracker:
 # (docs/timing-delay.md: at 1.5 the disagreement of receipt-stamped fits was dropped too
 # often and their coverage fell; at 3 the test subset is as without the rule)
 MODEL_REJECT_RATIO = 3.0
+
+
+def _own(fit: _Fit) -> float:
+    """A recent fit's own (clustered) standard error, without its error model's share."""
+    return fit.own_se if math.isfinite(fit.own_se) else fit.se
 
 
 def _point_moves(t: np.ndarray, p: np.ndarray) -> bool:

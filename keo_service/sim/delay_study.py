@@ -4,6 +4,7 @@ does to the estimate's error against the truth (README table)."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -369,7 +370,11 @@ def run_tracker(
                         (
                             found.delay_s - streams.case.delay_s,
                             found.se_s,
-                            tracker.honest_se(found.se_s),
+                            tracker.honest_se(
+                                found.own_se_s if math.isfinite(found.own_se_s) else found.se_s,
+                                found.model_s,
+                                found.sep_se_s,
+                            ),
                         )
                     )
                 else:
@@ -480,23 +485,31 @@ def coverage(
     return Coverage(case.label, z, not_identifiable, other, total)
 
 
+Z_BINS = (1.0, 2.0, 2.5, 3.0, 4.0)  # the z distribution's bins in the table
+
+
 def coverage_markdown(rows: list[dict[str, Any]]) -> str:
-    """The per-scenario table of docs/timing-delay.md."""
+    """The per-scenario table of docs/timing-delay.md: counts of fits per bin of z."""
+    edges = (0.0, *Z_BINS)
+    bins = [f"{a:g}-{b:g}" for a, b in itertools.pairwise(edges)] + [f">= {Z_BINS[-1]:g}"]
     lines = [
-        "| scenario | fits | within 2.5 se | median z | p95 z | max z | not identifiable | "
-        "other refused | stream time (s) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        f"| scenario | fits | z {' | '.join(bins)} | within 2.5 se | median / p95 / max z | "
+        "not identifiable | other refused | stream time (s) |",
+        "|---|---|" + "---|" * len(bins) + "---|---|---|---|---|",
     ]
     for r in rows:
-        within = "" if r["fits"] == 0 else f"{100 * r['within_2_5']:.1f} %"
-        nums = (
-            ["", "", ""]
+        z = np.asarray(r["z"], dtype=float)
+        counts = np.histogram(z, bins=[*edges, math.inf])[0] if z.size else np.zeros(len(bins))
+        within = (
+            ""
             if r["fits"] == 0
-            else [f"{r['median']:.2f}", f"{r['p95']:.2f}", f"{r['max']:.1f}"]
+            else f"{100 * r['within_2_5']:.1f} % ({round(r['within_2_5'] * r['fits'])}/{r['fits']})"
         )
+        nums = "" if r["fits"] == 0 else f"{r['median']:.2f} / {r['p95']:.2f} / {r['max']:.1f}"
         lines.append(
-            f"| {r['scenario']} | {r['fits']} | {within} | {' | '.join(nums)} | "
-            f"{r['not_identifiable']} | {r['other_refused']} | {r['seconds']:.0f} |"
+            f"| {r['scenario']} | {r['fits']} | {' | '.join(str(int(c)) for c in counts)} | "
+            f"{within} | {nums} | {r['not_identifiable']} | {r['other_refused']} | "
+            f"{r['seconds']:.0f} |"
         )
     return "\n".join(lines) + "\n"
 
