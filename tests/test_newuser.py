@@ -245,15 +245,19 @@ def test_mocks_started_by_hand_from_an_init_config_give_estimates(tmp_path, robo
     # (a loaded machine may hold one stream back a moment: a few stale ones are no disagreement)
     stale = sum("stale" in est.flags for est in estimates)  # type: ignore[attr-defined]
     assert stale < len(estimates) // 4, [est.flags for est in estimates]  # type: ignore[attr-defined]
-    # the simulated arm's error is a few millimetres, plus up to 30 mm while the MH180 moves
-    # at 1.1 m/s with the scenario's 28 ms delay not yet calibrated; a time base off by the
-    # 1.5 s between the mocks' starts would measure the path's travel in 1.5 s instead: a
-    # median of 0.21 m (UR10) and 0.69 m (MH180) in this scenario
+    # what this catches: a time base off by the 1.5 s between the mocks' starts measures the
+    # path's travel in 1.5 s instead, a median of 0.21 m (UR10) and 0.69 m (MH180) in this
+    # scenario. A right time base measures the simulated arm's error (a few millimetres)
+    # plus the tool's travel in the delay not yet found: the MH180 at 1.1 m/s with the
+    # scenario's 28 ms is 31 mm, and a receipt-stamped cell (MotoROS) is still settling on
+    # its delay in this test's seconds (medians of 30-32 mm seen). 0.1 m lies between the
+    # two with a factor of two to either side, so neither load nor the delay's settling
+    # decides it
     norms = sorted(
         sum(v * v for v in est.measured[:3]) ** 0.5  # type: ignore[attr-defined]
         for est in estimates
     )
-    assert norms[len(norms) // 2] < 0.03, norms
+    assert norms[len(norms) // 2] < 0.1, norms
 
 
 # ---- mocks that keep going ----------------------------------------------------------------------
