@@ -653,6 +653,10 @@ class OnlineDelayTracker:
                 model=found.model_s,
             )
         )
+        if not self.settled and not provisional:
+            # the fits' scatter off their neighbours' line (`_wander2`) is measured from
+            # the fits before the delay settles too: a refinement needs it known
+            self._history.append((value, _own_of(found), self._segment, found.described_t))
         if not self._carried and self._confirms(self._recent[-1]):
             self._set_source("confirmed", found.t)
         before = self.applied
@@ -864,11 +868,25 @@ class OnlineDelayTracker:
         se_settle = max(se_c, sorted(self._honest(f) for f in members)[1])
         if grown and separates and se_settle * speed <= self.settings.settle_m:
             self.settled = True
-            self._trend.start(c, se_c * se_c, newest.t)
-            self._trend_fits = 0
+            self._start_trend(members)
             return "settled", agreed
         to = self.settings.settle_m * 1e6
         return "unsettled", f"{agreed}, {taken} until they agree to {to:g} um at speed"
+
+    def _start_trend(self, members: list[_Fit]) -> None:
+        """Start the running estimate from the fits that settled the delay, in their order,
+        each with its own standard error and the fits' scatter off their neighbours' line
+        (as `_refine` feeds it): the walk they showed is followed from the next fit on.
+        Started from their consensus alone (one value, their mean), it knew nothing of that
+        walk, lagged it by the consensus's span, and refined the delay in use only after
+        three more fits; meanwhile the delay the stamps need walked on (docs/timing-delay.md,
+        the device-clock run)."""
+        tau2 = self._wander2()
+        first, *rest = members
+        self._trend.start(first.value, _own(first) ** 2 + tau2, first.t)
+        for fit in rest:
+            self._trend.update(fit.value, _own(fit) ** 2 + tau2, fit.t)
+        self._trend_fits = len(members)
 
     def _confirms(self, fit: _Fit) -> bool:
         """Does this fit confirm the configured delay in use: precise to `max_apply_m` at its
@@ -1052,6 +1070,11 @@ class OnlineDelayTracker:
 # (docs/timing-delay.md: at 1.5 the disagreement of receipt-stamped fits was dropped too
 # often and their coverage fell; at 3 the test subset is as without the rule)
 MODEL_REJECT_RATIO = 3.0
+
+
+def _own_of(found: DelayMeasurement) -> float:
+    """A measurement's own (clustered) standard error, without its error model's share."""
+    return found.own_se_s if math.isfinite(found.own_se_s) else found.se_s
 
 
 def _own(fit: _Fit) -> float:
