@@ -120,8 +120,14 @@ def _stamp_errors(samples, t0: float, clock: tuple[float, float]):
 @pytest.mark.slow
 def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
     base = load_config(CONFIGS / "ur10_demo.toml")
+    # joints are not interpolated across a gap of more than 10 of the controller's 500 Hz
+    # periods: a loaded machine starves the mock controller, which then skips the instants
+    # it slept through (a real controller's stream does not), and joints interpolated
+    # linearly across its 40-170 ms stalls put 50-630 urad into the estimates and one fit
+    # 770 us off, with the delay right (issue 45's notes); the default 0.2 s is for slow
+    # encoders (MotoROS at 40 Hz)
     timing = msgspec.structs.replace(
-        base.timing, delay_s=0.0, clock_state_dir=str(tmp_path / "clocks")
+        base.timing, delay_s=0.0, clock_state_dir=str(tmp_path / "clocks"), max_gap_s=0.02
     )
     config = loopback_config(msgspec.structs.replace(base, timing=timing))
     assert config.timing.track_delay  # on by default
