@@ -120,6 +120,31 @@ def test_wandering_fits_do_not_move_a_settled_delay(demo_cell):
     assert tracker.counters["changes"] == 0
 
 
+def test_after_settling_the_delay_in_use_follows_a_walk_from_the_next_fits(demo_cell):
+    """From an unknown delay, precise fits (8 us at 0.4 m/s, 2.5 s stretches) of a delay
+    walking at -4 us/s, as a device clock's transport floor walks under load. Once settled
+    the delay in use follows by refinements from the second fit on: the running estimate
+    starts from the fits that settled it, and their scatter off a line is measured from the
+    fits before settling too. (Started from their consensus alone it waited for five more
+    fits, and the delay in use stood still while the walk took it 52 us off.)"""
+    rng = np.random.default_rng(1)
+    tracker = OnlineDelayTracker(demo_cell)
+    settled_at, offs = None, []
+    for i in range(16):
+        t = 2.5 * (i + 1)
+        truth = 500e-6 - 4e-6 * t
+        value = truth + rng.normal(0.0, 5e-6)
+        tracker.combine(DelayMeasurement(value, 8e-6, 0.4, t, t_mid=t - 1.25, own_se_s=8e-6))
+        if tracker.settled and settled_at is None:
+            settled_at = i
+        if settled_at is not None and i >= settled_at + 2:
+            offs.append(tracker.delay_now() - truth)
+    assert settled_at is not None
+    assert settled_at <= 3
+    assert tracker.counters["refinements"] >= len(offs)
+    assert np.max(np.abs(offs)) < 25e-6, np.round(np.array(offs) * 1e6, 1)
+
+
 def _samples(tracker: OnlineDelayTracker, t: np.ndarray, epoch: int = 0, seq0: int = 1):
     """Encoder samples (its adapter runs on) and tracker samples (`epoch`, seq from `seq0`)."""
     for i, ti in enumerate(t):
