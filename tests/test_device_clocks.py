@@ -124,8 +124,8 @@ def test_delay_found_across_restarts_with_two_device_clocks(tmp_path, capsys):
     # periods: a loaded machine starves the mock controller, which then skips the instants
     # it slept through (a real controller's stream does not), and joints interpolated
     # linearly across its 40-170 ms stalls put 50-630 urad into the estimates and one fit
-    # 770 us off, with the delay right (issue 45's notes); the default 0.2 s is for slow
-    # encoders (MotoROS at 40 Hz)
+    # 770 us off, with the delay right (docs/timing-delay.md, "Under load"); the default
+    # 0.2 s is for slow encoders (MotoROS at 40 Hz)
     timing = msgspec.structs.replace(
         base.timing, delay_s=0.0, clock_state_dir=str(tmp_path / "clocks"), max_gap_s=0.02
     )
