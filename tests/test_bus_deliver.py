@@ -83,9 +83,9 @@ def test_deliver_hands_every_sample_in_order_in_bounded_calls_and_ends_at_close(
 
 
 def test_a_backlog_is_handed_over_in_pieces_with_the_loops_other_work_between():
-    """The handler holds the loop for 0.5 s at its first call while 2000 samples arrive: the
-    backlog comes in pieces of at most DRAIN_MOST, and another task of the loop runs between
-    them (a drain of everything in one go would starve it)."""
+    """The handler holds the loop at its first call until the other 1999 of 2000 samples
+    wait in the queue: the backlog comes in pieces of at most DRAIN_MOST, and another task of
+    the loop runs between them (a drain of everything in one go would starve it)."""
     sent = _sent(2000)
 
     async def body(sub: AsyncSubscription, put_all: Any) -> tuple[list[Any], list[Any]]:
@@ -100,8 +100,10 @@ def test_a_backlog_is_handed_over_in_pieces_with_the_loops_other_work_between():
                 await asyncio.sleep(0)
 
         def handler(batch: list[tuple[str, bytes]]) -> None:
-            if not got:
-                time.sleep(0.5)  # a stall: the rest piles up in the queue meanwhile
+            if not got:  # a stall: the loop held until the rest waits in the queue
+                deadline = time.monotonic() + 30  # (a loaded machine delivers slowly)
+                while sub.pending < len(sent) - len(batch) and time.monotonic() < deadline:
+                    time.sleep(0.01)
             calls.append((len(batch), ticks))
             got.extend(batch)
 
