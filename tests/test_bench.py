@@ -55,6 +55,10 @@ def test_end_to_end_chain_answers_every_tracker_sample(
     assert 0.0 < to_subscriber["p50"] < total["p50"]
     assert total["p50"] <= total["p99"] <= total["max"]
     assert res["processes"]["service"]["cpu_pct"] > 0.0
+    # its CPU by kind of thread: the loop's works, and Zenoh's runtime threads carry the data
+    threads = res["processes"]["service"]["threads_cpu_pct"]
+    assert threads["event_loop"] > 0.0
+    assert threads["native_threads"] > 0.0
     # the whole machine works at least as hard as the service alone (a share of both cores)
     assert res["machine"]["busy_pct"] * os.cpu_count() >= res["processes"]["service"]["cpu_pct"]
 
@@ -304,6 +308,45 @@ def test_machine_share_by_hand():
     before = {"busy": 100, "steal": 10, "all": 1000}
     after = {"busy": 400, "steal": 30, "all": 2000}
     assert machine_share(before, after) == {"busy_pct": 30.0, "steal_pct": 2.0}
+
+
+def test_a_processs_cpu_is_split_by_its_kind_of_thread():
+    """A Python thread (no name of its own) that spends 0.3 s of CPU shows under
+    "python_threads", the main thread's own 0.3 s under "event_loop"; a thread named by the
+    kernel interface (as Zenoh's are) under "native_threads"."""
+    import threading
+
+    from keo_service.bench.machine import thread_cpu_s
+
+    def spin(seconds: float) -> None:
+        end = time.thread_time() + seconds
+        while time.thread_time() < end:
+            pass
+
+    spent, release = threading.Event(), threading.Event()
+
+    def worker(name: str | None) -> None:
+        if name is not None:  # the kernel's name of this thread, as a native thread sets it
+            with open(f"/proc/self/task/{threading.get_native_id()}/comm", "w") as comm:
+                comm.write(name)
+        spin(0.3)
+        spent.set()
+        release.wait(30)  # alive while read: an ended thread leaves /proc
+
+    for name, kind in ((None, "python_threads"), ("rx-test", "native_threads")):
+        spent.clear()
+        release.clear()
+        before = thread_cpu_s(os.getpid())
+        thread = threading.Thread(target=worker, args=(name,))
+        thread.start()
+        assert spent.wait(60)
+        after = thread_cpu_s(os.getpid())
+        release.set()
+        thread.join()
+        assert after[kind] - before[kind] >= 0.28  # (whole ticks of 10 ms)
+    before = thread_cpu_s(os.getpid())
+    spin(0.3)
+    assert thread_cpu_s(os.getpid())["event_loop"] - before["event_loop"] >= 0.28
 
 
 def test_the_machines_busy_time_holds_this_process_own():

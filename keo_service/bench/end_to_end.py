@@ -27,6 +27,7 @@ from keo_service.bench.machine import (
     open_fds,
     proc_cpu_s,
     proc_mem_kb,
+    thread_cpu_s,
 )
 from keo_service.bench.procs import process_group
 from keo_service.core.errors import KeoError
@@ -277,6 +278,7 @@ def _measure_run(
     and memory at both ends and a third of the way, the machine's ticks, and every
     `sample_every` s (a soak) each process's RSS and open files."""
     warm_cpu = {n: proc_cpu_s(p) for n, p in pids.items()}
+    warm_threads = thread_cpu_s(pids["service"])
     warm_machine = machine_ticks()
     time.sleep(max(0.0, seconds / 3))
     warm_mem = {n: proc_mem_kb(p) for n, p in pids.items()}
@@ -292,16 +294,20 @@ def _measure_run(
         )
     time.sleep(max(0.0, t0 + seconds - time.time()))
     end_cpu = {n: proc_cpu_s(p) for n, p in pids.items()}
+    end_threads = thread_cpu_s(pids["service"])
     end_machine = machine_ticks()
     end_mem = {n: proc_mem_kb(p) for n, p in pids.items()}
     run_s = seconds - 0.5
-    procs_out = {
+    procs_out: dict[str, dict[str, Any]] = {
         n: {
             "cpu_pct": 100.0 * (end_cpu[n] - warm_cpu[n]) / run_s,
             "peak_rss_mb": end_mem[n].get("VmHWM", 0) / 1024,
             "rss_growth_mb": (end_mem[n].get("VmRSS", 0) - warm_mem[n].get("VmRSS", 0)) / 1024,
         }
         for n in pids
+    }
+    procs_out["service"]["threads_cpu_pct"] = {
+        kind: 100.0 * (end_threads[kind] - warm_threads[kind]) / run_s for kind in end_threads
     }
     return {
         "processes": procs_out,

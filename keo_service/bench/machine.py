@@ -56,6 +56,33 @@ def proc_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / TICK
 
 
+def thread_cpu_s(pid: int) -> dict[str, float]:
+    """The process's CPU time so far (s) by kind of thread: its main thread ("event_loop": the
+    asyncio loop in keo's processes), its other threads without a name of their own
+    ("python_threads": zenoh-python's subscriber callback threads, executor threads) and the
+    named ones ("native_threads": Zenoh's runtime, tx-0, rx-0, acc-0, ...). Split so that a
+    process's CPU says where it goes: the service and the relay differ in the first only
+    (docs/performance.md). A thread that ended since is not counted."""
+    out = {"event_loop": 0.0, "python_threads": 0.0, "native_threads": 0.0}
+    main = ""  # a thread without a name of its own has the process's (the main thread's)
+    for task in sorted(Path(f"/proc/{pid}/task").iterdir(), key=lambda t: t.name != str(pid)):
+        try:
+            text = (task / "stat").read_text()
+        except OSError:
+            continue  # ended meanwhile
+        name = text[text.index("(") + 1 : text.rindex(")")]
+        fields = text.rsplit(")", 1)[1].split()
+        cpu = (int(fields[11]) + int(fields[12])) / TICK
+        if task.name == str(pid):
+            main = name
+            out["event_loop"] += cpu
+        elif name == main:
+            out["python_threads"] += cpu
+        else:
+            out["native_threads"] += cpu
+    return out
+
+
 def proc_mem_kb(pid: int) -> dict[str, int]:
     out = {}
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():

@@ -31,23 +31,28 @@ async def relay(config: Config) -> None:
     channels = list(POSE_CHANNELS)
     zeros = [0.0] * len(channels)
     seq = 0
-    async for _key, payload in sub:
-        msg = decode(payload)
-        if not isinstance(msg, TrackerSample) or msg.position is None:
-            continue
-        seq += 1
-        out = EstimateMessage(
-            stamp=msg.stamp,
-            host_ns=time.time_ns(),
-            channels=channels,
-            measured=zeros,
-            estimate=zeros,
-            flags=[],
-            delay_s=0.0,
-            seq=seq,
-            device_stamp=msg.device_stamp,
-        )
-        pub.put(encode(out))
+
+    def handle(batch: list[tuple[str, bytes]]) -> None:
+        nonlocal seq
+        for _key, payload in batch:
+            msg = decode(payload)
+            if not isinstance(msg, TrackerSample) or msg.position is None:
+                continue
+            seq += 1
+            out = EstimateMessage(
+                stamp=msg.stamp,
+                host_ns=time.time_ns(),
+                channels=channels,
+                measured=zeros,
+                estimate=zeros,
+                flags=[],
+                delay_s=0.0,
+                seq=seq,
+                device_stamp=msg.device_stamp,
+            )
+            pub.put(encode(out))
+
+    await sub.deliver(handle)  # the service's own hand-off from Zenoh's thread to the loop
     session.close()
 
 

@@ -278,6 +278,13 @@ def _run_rows(e: dict[str, Any], label: str) -> list[str]:
         )
     for name, p in e["processes"].items():
         own = f" (its own process {p['own_cpu_pct']:.1f} %)" if "own_cpu_pct" in p else ""
+        if "threads_cpu_pct" in p:  # the service's (or the relay's) threads, by kind
+            t = p["threads_cpu_pct"]
+            own += (
+                f"; its event loop's thread {t['event_loop']:.1f} %, other Python threads "
+                f"(Zenoh's callbacks) {t['python_threads']:.1f} %, Zenoh's native threads "
+                f"{t['native_threads']:.1f} %"
+            )
         lines.append(
             f"| {label}: {name} | CPU {p['cpu_pct']:.1f} %{own}, peak RSS "
             f"{p['peak_rss_mb']:.0f} MB, RSS growth after warm-up "

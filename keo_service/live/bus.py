@@ -14,7 +14,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from typing import Any
 
 import zenoh
@@ -26,6 +26,10 @@ from keo_service.live.backoff import Backoff
 log = logging.getLogger("keo.bus")
 
 DEFAULT_QUEUE = 10_000
+# at most this many samples per call of a `deliver` handler: a backlog (a replay, a stall)
+# is handed over in pieces with the loop's other work (status, timers, the delay fits'
+# results) between them, instead of up to DEFAULT_QUEUE samples in one go
+DRAIN_MOST = 256
 
 
 # A DROP publisher waits this long on a full transmit queue before dropping (Zenoh's default
@@ -193,13 +197,19 @@ def session_for_service(config: Any) -> zenoh.Session:
 
 
 class AsyncSubscription:
-    """Samples of several key expressions, in arrival order, as an async iterator of
-    (key, payload bytes).
+    """Samples of several key expressions, in arrival order: handed to a function on the
+    event loop (`deliver`), or as an async iterator of (key, payload bytes).
 
     Zenoh runs each subscriber's callback on its own thread, so two subscribers can deliver
     out of order relative to each other. To keep the publisher's order across keys (replay
     relies on it), several keys under one prefix share one wildcard subscriber and are
     filtered here.
+
+    The hand-off: Zenoh's thread appends to a bounded deque (the oldest dropped and counted
+    when full) and, when no wake-up is pending already, schedules one on the loop
+    (`call_soon_threadsafe`); that wake-up takes what waits. `deliver` runs its function in
+    that very callback: no task switch, no future and no second pass of the loop per
+    wake-up, which an awaited event costs (docs/performance.md).
     """
 
     def __init__(
@@ -208,8 +218,15 @@ class AsyncSubscription:
         self._loop = asyncio.get_running_loop()
         self._buf: collections.deque[tuple[str, bytes]] = collections.deque(maxlen=maxlen)
         self._wake = asyncio.Event()
-        self._scheduled = threading.Event()
+        # a wake-up is scheduled and has not run yet: set on Zenoh's thread, cleared on the
+        # loop before it takes the deque (a plain flag: each read or write is atomic under
+        # the GIL, and a sample appended after the clear is either taken by that wake-up or
+        # finds the flag clear and schedules another)
+        self._scheduled = False
         self._closed = False
+        self._handler: Callable[[list[tuple[str, bytes]]], None] | None = None
+        self._most = DRAIN_MOST
+        self._done: asyncio.Future[None] | None = None
         self.dropped = 0
         self._wanted: frozenset[str] | None = None
         keys = list(keys)
@@ -223,22 +240,66 @@ class AsyncSubscription:
         key = str(sample.key_expr)
         if self._wanted is not None and key not in self._wanted:
             return
-        if len(self._buf) == self._buf.maxlen:
+        buf = self._buf
+        if len(buf) == buf.maxlen:
             self.dropped += 1
-        self._buf.append((key, sample.payload.to_bytes()))
-        if not self._scheduled.is_set():
-            self._scheduled.set()
+        buf.append((key, sample.payload.to_bytes()))
+        if not self._scheduled:
+            self._scheduled = True
             with contextlib.suppress(RuntimeError):  # the loop closed during shutdown
-                self._loop.call_soon_threadsafe(self._set_wake)
+                self._loop.call_soon_threadsafe(self._ready)
 
     @property
     def pending(self) -> int:
-        """Samples received and not yet taken by the iterating task."""
+        """Samples received and not yet taken."""
         return len(self._buf)
 
-    def _set_wake(self) -> None:
-        self._scheduled.clear()
-        self._wake.set()
+    def _ready(self) -> None:
+        """The wake-up, on the loop: the deliver function gets what waits (at most `most`
+        samples; the rest in the loop's next pass, after whatever else is ready, so a backlog
+        never holds the loop), or the iterating task is woken."""
+        self._scheduled = False
+        handler, done = self._handler, self._done
+        if handler is None or done is None or done.done():
+            self._wake.set()
+            return
+        buf = self._buf
+        n = len(buf)
+        if n:
+            popleft = buf.popleft
+            batch = [popleft()] if n == 1 else [popleft() for _ in range(min(n, self._most))]
+            try:
+                handler(batch)
+            except Exception as exc:  # the deliverer's caller gets it (its task fails)
+                self._handler = None
+                done.set_exception(exc)
+                return
+            if buf:  # the rest in the loop's next pass, unless Zenoh's thread asked already
+                if not self._scheduled:
+                    self._scheduled = True
+                    self._loop.call_soon(self._ready)
+                return
+        if self._closed:
+            done.set_result(None)
+
+    async def deliver(
+        self, handler: Callable[[list[tuple[str, bytes]]], None], most: int = DRAIN_MOST
+    ) -> None:
+        """Call `handler` on the event loop with the samples as they arrive, in arrival
+        order, as lists of (key, payload): at each wake-up what arrived since, at most `most`
+        a call. Returns once `close()` was called and what was received is handed over;
+        raises what `handler` raised (nothing is handed over after that). The handler runs
+        between the loop's other work, so it must not block. One deliverer at a time."""
+        if self._handler is not None:
+            raise RuntimeError("this subscription delivers to a handler already")
+        self._done = self._loop.create_future()
+        self._handler, self._most = handler, max(1, most)
+        self._scheduled = True  # what waits already, and a close before this call
+        self._loop.call_soon(self._ready)
+        try:
+            await self._done
+        finally:
+            self._handler = None
 
     async def __aiter__(self) -> AsyncIterator[tuple[str, bytes]]:
         while True:
@@ -269,14 +330,14 @@ class AsyncSubscription:
             await self._wake.wait()
 
     def close(self) -> None:
-        """Undeclare and end the iteration; a second call does nothing (Zenoh refuses to
-        undeclare a subscriber twice)."""
+        """Undeclare and end the iteration (or `deliver`, once what waits is handed over); a
+        second call does nothing (Zenoh refuses to undeclare a subscriber twice)."""
         if self._closed:
             return
         self._closed = True
         for sub in self._subs:
             sub.undeclare()
-        self._loop.call_soon_threadsafe(self._wake.set)
+        self._loop.call_soon_threadsafe(self._ready)
 
 
 class BlockingSubscription:

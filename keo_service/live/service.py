@@ -294,9 +294,10 @@ class KeoService:
 
     async def _consume(self) -> None:
         """The data path: every sample that waited since the last wake-up, in arrival order,
-        each through the estimator and its estimates out before the next sample."""
-        async for batch in self._sub.batches():
-            self._handle(batch)
+        each through the estimator and its estimates out before the next sample; `_handle`
+        runs in the wake-up's own callback on the loop (`AsyncSubscription.deliver`), and a
+        failure there fails this task."""
+        await self._sub.deliver(self._handle)
 
     # complexity (C901, PLR0912, PLR0915): the per-sample path keeps its checks and the delay
     # tracker's intake inline (a stream's clock notes only when a sample has flags or a new
