@@ -287,8 +287,9 @@ def analyze(
         candidates = ()
     current_val = stats(model, x, rows.val, rows.tau_va).judged_mm
     weights: dict[str, float] = {}  # the prior's weight of each kept effect (fit.prior)
+    scale = noise  # the residual's scale with the effects kept so far (residual_scale)
     for name in candidates:
-        tried = _try_effect(rows, model, x, noise, name, weights, report, say)
+        tried = _try_effect(rows, model, x, (scale, noise), name, weights, report, say)
         if tried is None:
             continue
         entry = tried.entry
@@ -296,6 +297,7 @@ def analyze(
         entry["held_out_improvement_pct"] = 100 * gain
         if gain >= KEEP_MARGIN and tried.band_ok:
             model, x, weights, current_val = tried.model, tried.x, tried.weights, tried.judged_mm
+            scale = residual_scale(model, x, rows.train, rows.tau_tr)
             report["effects"].append(entry)
             say(f"kept {name}: held-out position RMS {entry['validation']['pos_rms_mm']:.4f} mm")
         else:
@@ -387,11 +389,22 @@ def _carried(
     return model, x
 
 
+def residual_scale(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> float:
+    """The robust scale (normal-consistent MAD, m) of `model`'s residual rows on `data`: the
+    noise level an effect fitted on top of it meets, whose 3 sigmas are that fit's Huber
+    threshold (and the prior weight choice's). Taken from the nominal model alone, the
+    threshold stays at the robot's whole error, far above what the kept effects leave, and a
+    few gross outliers then pull every later effect at full weight (docs/analyze.md gives
+    the UR10 figures)."""
+    r = model.residuals(x, data, tau)
+    return max(1e-6, float(median_abs_deviation(r, scale="normal")))
+
+
 def _try_effect(
     rows: _Rows,
     model: Model,
     x: np.ndarray,
-    noise: float,
+    noise: tuple[float, float],
     name: str,
     weights: dict[str, float],
     report: dict[str, Any],
@@ -399,7 +412,14 @@ def _try_effect(
 ) -> _Trial | None:
     """Candidate `name` on top of `model`: its structure from the data where it has one,
     reduced to what the poses identify, its prior's weight from blocks and bands, fitted on
-    the training rows (None: nothing to try)."""
+    the training rows (None: nothing to try). `noise`: the residual's scale on top of `model`
+    (residual_scale: the Huber threshold of the weight choice and of the fit) and the
+    registered nominal model's noise, the prior's unit (fit.prior: the weights were always
+    stated against it, so a weight means the same prior whatever scale a fit meets) and the
+    periodogram's threshold (ripple.find_terms: at the smaller scale it down-weights the
+    residual's own structure, and on UR10 Series B found terms that extrapolated worse,
+    docs/analyze.md)."""
+    scale_now, unit = noise
     chain = rows.chain
     effect = EFFECTS[name]
     if not effect.usable(rows.data):
@@ -408,7 +428,7 @@ def _try_effect(
     found: dict[str, Any] | None = None
     prepare = getattr(effect, "prepare", None)
     if prepare is not None:  # an effect whose structure comes from the data (its terms)
-        effect, found = prepare(model, x, rows.train, rows.tau_tr, noise)
+        effect, found = prepare(model, x, rows.train, rows.tau_tr, unit)
         if not effect.size(chain.nq):
             say(f"{name}: nothing significant in the residual's spectra")
             report.setdefault("spectra", {})[name] = found
@@ -440,11 +460,19 @@ def _try_effect(
     choice = None
     if scales_of(effect, chain.nq) is not None:  # its weight from blocks and bands
         choice = choose_weight(
-            trial, x0, rows.data, rows.tau_all, rows.train_idx, rows.val_idx, noise, name
+            trial,
+            x0,
+            rows.data,
+            rows.tau_all,
+            rows.train_idx,
+            rows.val_idx,
+            unit,
+            name,
+            huber_noise=scale_now,
         )
         trial_weights[name] = choice.weight
-    prior = prior_rows(trial, trial_weights, noise)
-    res = fit(trial, rows.train, rows.tau_tr, x0, noise, prior=prior)
+    prior = prior_rows(trial, trial_weights, unit)
+    res = fit(trial, rows.train, rows.tau_tr, x0, scale_now, prior=prior)
     val_stats = stats(trial, res.x, rows.val, rows.tau_va)
     entry: dict[str, Any] = {
         "name": name,
@@ -452,6 +480,7 @@ def _try_effect(
         "train": stats(trial, res.x, rows.train, rows.tau_tr).as_dict(),
         "validation": val_stats.as_dict(),
         "description": effect.description,
+        "residual_scale_mm": scale_now * 1e3,
     }
     if found is not None:
         entry["spectra"] = found

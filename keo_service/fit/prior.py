@@ -108,16 +108,19 @@ def choose_weight(
     val_idx: np.ndarray,
     noise: float,
     name: str,
+    huber_noise: float | None = None,
 ) -> PriorChoice:
     """The prior weight of effect `name` (the last of `trial`) that minimises the mean square
     of the held-out blocks' RMS and the extrapolation bands' RMS, on the model linearized at
-    x0 (registration and every earlier effect free, their own priors ignored)."""
+    x0 (registration and every earlier effect free, their own priors ignored). `noise`: the
+    prior's unit; `huber_noise`: the residual's scale on top of the model before the effect,
+    whose 3 sigmas down-weight gross outliers (default `noise`)."""
     r0 = trial.residuals(x0, data, tau)
     width = r0.size // data.n
     J = numeric_jacobian(lambda z: trial.residuals(z, data, tau), x0, r0)
     row_w = data.row_weights(width)
     # Huber-like weights from the starting residual: a few gross outliers must not choose
-    k = 3.0 * noise
+    k = 3.0 * (noise if huber_noise is None else huber_noise)
     w = np.sqrt(np.minimum(1.0, k / np.maximum(np.abs(r0), 1e-300)))
     if row_w is not None:
         w = w * row_w
