@@ -5,7 +5,6 @@ output is configured."""
 from __future__ import annotations
 
 import asyncio
-import time
 
 import msgspec
 import numpy as np
@@ -41,14 +40,21 @@ def test_batches_deliver_every_sample_in_the_publishers_order_across_keys():
             putter = asyncio.get_running_loop().run_in_executor(None, put_all)
             got: list[tuple[str, bytes]] = []
             batches = 0
-            deadline = time.monotonic() + 20
-            async for batch in sub.batches():
+
+            def handle(batch: list[tuple[str, bytes]]) -> None:
+                nonlocal batches
                 batches += 1
                 got.extend(batch)
-                if len(got) >= len(sent) or time.monotonic() > deadline:
-                    break
+                if len(got) >= len(sent):
+                    sub.close()
+
+            delivering = asyncio.ensure_future(sub.deliver(handle))
             await putter
-            sub.close()
+            try:
+                await asyncio.wait_for(asyncio.shield(delivering), 20)
+            except TimeoutError:
+                sub.close()
+                await delivering
             return got, batches
         finally:
             talker.close()

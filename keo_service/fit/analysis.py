@@ -289,7 +289,7 @@ def analyze(
     weights: dict[str, float] = {}  # the prior's weight of each kept effect (fit.prior)
     scale = noise  # the residual's scale with the effects kept so far (residual_scale)
     for name in candidates:
-        tried = _try_effect(rows, model, x, (scale, noise), name, weights, report, say)
+        tried = _try_effect(rows, model, x, scale, noise, name, weights, report, say)
         if tried is None:
             continue
         entry = tried.entry
@@ -404,7 +404,8 @@ def _try_effect(
     rows: _Rows,
     model: Model,
     x: np.ndarray,
-    noise: tuple[float, float],
+    scale_now: float,
+    unit: float,
     name: str,
     weights: dict[str, float],
     report: dict[str, Any],
@@ -412,14 +413,13 @@ def _try_effect(
 ) -> _Trial | None:
     """Candidate `name` on top of `model`: its structure from the data where it has one,
     reduced to what the poses identify, its prior's weight from blocks and bands, fitted on
-    the training rows (None: nothing to try). `noise`: the residual's scale on top of `model`
-    (residual_scale: the Huber threshold of the weight choice and of the fit) and the
-    registered nominal model's noise, the prior's unit (fit.prior: the weights were always
-    stated against it, so a weight means the same prior whatever scale a fit meets) and the
-    periodogram's threshold (ripple.find_terms: at the smaller scale it down-weights the
-    residual's own structure, and on UR10 Series B found terms that extrapolated worse,
-    docs/analyze.md)."""
-    scale_now, unit = noise
+    the training rows (None: nothing to try). `scale_now`: the residual's scale on top of
+    `model` (residual_scale: the Huber threshold of the weight choice and of the fit);
+    `unit`: the registered nominal model's noise, the prior's unit (fit.prior: the weights
+    were always stated against it, so a weight means the same prior whatever scale a fit
+    meets) and the periodogram's threshold (ripple.find_terms: at the smaller scale it
+    down-weights the residual's own structure, and on UR10 Series B found terms that
+    extrapolated worse, docs/analyze.md)."""
     chain = rows.chain
     effect = EFFECTS[name]
     if not effect.usable(rows.data):

@@ -631,8 +631,8 @@ class OnlineDelayTracker:
         value, se, speed = found.delay_s, found.se_s, found.speed_rms
         # young mappings' stamps still move; receipt and shared-clock stamps have no mapping
         provisional = found.t <= self._young_until and bool(lines)
+        own = _own_of(found)
         if not provisional:  # young stretches have their own length
-            own = found.own_se_s if math.isfinite(found.own_se_s) else se
             self._fit_stretch(own * speed)  # the length for the fits' own precision
         if not (math.isfinite(value) and math.isfinite(se) and se > 0) or se > self.max_se_s:
             self.counters["fits_refused_imprecise"] += 1
@@ -656,7 +656,7 @@ class OnlineDelayTracker:
         if not self.settled and not provisional:
             # the fits' scatter off their neighbours' line (`_wander2`) is measured from
             # the fits before the delay settles too: a refinement needs it known
-            self._history.append((value, _own_of(found), self._segment, found.described_t))
+            self._history.append((value, own, self._segment, found.described_t))
         if not self._carried and self._confirms(self._recent[-1]):
             self._set_source("confirmed", found.t)
         before = self.applied

@@ -312,23 +312,6 @@ class AsyncSubscription:
                 continue
             await self._wake.wait()
 
-    async def batches(self) -> AsyncIterator[list[tuple[str, bytes]]]:
-        """The same samples as the iteration, as lists: at each wake-up everything that
-        arrived since, in arrival order (at most the queue's bound). One step of the async
-        generator per wake-up instead of one per sample."""
-        buf = self._buf
-        while True:
-            if buf:
-                batch = [buf.popleft() for _ in range(len(buf))]
-                yield batch
-                continue
-            if self._closed:
-                return
-            self._wake.clear()
-            if buf:
-                continue
-            await self._wake.wait()
-
     def close(self) -> None:
         """Undeclare and end the iteration (or `deliver`, once what waits is handed over); a
         second call does nothing (Zenoh refuses to undeclare a subscriber twice)."""
