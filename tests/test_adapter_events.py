@@ -119,7 +119,7 @@ def test_a_silent_tracker_reaches_the_service_log_status_and_rerun_text_log(demo
             finally:
                 session.close()
             time.sleep(1.2)  # Rerun writes its file once a second
-            codes = procs.close()
+            codes = procs.close(timeout=15.0)  # the Rerun child may take up to 8 s
             service_log = (tmp_path / "service.log").read_text()
             adapter_log = (tmp_path / "adapter-tracker.log").read_text()
             echo_log = (tmp_path / "echo.log").read_text()

@@ -259,7 +259,7 @@ def test_position_only_tracker_live(live_config, demo_cell, tmp_path):
         )
         echo.wait(timeout=30)
         time.sleep(0.5)
-        assert procs.stop("service") == 0
+        assert procs.stop("service", timeout=15.0) == 0  # the Rerun child may take up to 8 s
     docs = [json.loads(ln) for ln in procs.log("echo").splitlines() if ln.startswith("{")]
     assert len(docs) == 50
     for doc in docs:

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -166,3 +168,47 @@ def test_frames_survive_any_split_of_the_stream(piece):
     for lo in range(0, len(stream), piece):
         got.extend(frames.feed(stream[lo : lo + piece]))
     assert got == payloads
+
+
+def _child(worker: RerunWorker, code: str) -> subprocess.Popen[bytes]:
+    """A stand-in for the Rerun process on the worker's pipe: `code` reads stdin."""
+    proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE)
+    assert proc.stdin is not None
+    worker._proc, worker._fd = proc, proc.stdin.fileno()
+    os.set_blocking(worker._fd, False)
+    return proc
+
+
+def test_a_slow_but_reading_child_gets_its_whole_backlog_at_shutdown(demo_cell, tmp_path):
+    """A niced child on a loaded machine reads slowly: the shutdown waits while it makes
+    progress (a fixed 0.75 s for the buffer lost the end of the recording under load)."""
+    counted = tmp_path / "read"
+    worker = RerunWorker(demo_cell)
+    for i in range(3000):  # about 0.6 MB: two seconds for the child below
+        worker.submit(_estimate(i * 0.001))
+    backlog = len(worker._buffer)
+    assert worker.dropped == 0
+    assert backlog > 500_000
+    _child(
+        worker,
+        "import sys, time\n"
+        "n = 0\n"
+        "while chunk := sys.stdin.buffer.read1(16384):\n"
+        "    n += len(chunk)\n"
+        "    time.sleep(0.05)\n"
+        f"open({str(counted)!r}, 'w').write(str(n))\n",
+    )
+    worker.close(timeout=1.5)
+    assert not worker._buffer
+    assert int(counted.read_text()) == backlog  # every byte reached the child
+
+
+def test_a_child_that_reads_nothing_is_stopped_within_the_bound(demo_cell):
+    worker = RerunWorker(demo_cell)
+    for i in range(500):
+        worker.submit(_estimate(i * 0.001))
+    proc = _child(worker, "import time\ntime.sleep(60)\n")
+    started = time.monotonic()
+    worker.close(timeout=1.0, most=2.0)
+    assert time.monotonic() - started < 2.0 + 1.0  # the bound, plus the kill's reaping
+    assert proc.returncode is not None  # killed, not left behind

@@ -56,6 +56,9 @@ FLUSH_PERIOD_S = 0.1  # the child's flushes to Rerun with a viewer: display rate
 # headers), so a smaller file (docs/viewer.md has the sizes)
 FILE_FLUSH_PERIOD_S = 1.0
 NICENESS = 10  # added to the child's nice value
+# the longest a shutdown waits for the child: below the 10 s a container runtime and most
+# supervisors give a stopping process before they kill it
+SHUTDOWN_MOST_S = 8.0
 VIEWER_KINDS = ("auto", "native", "web")  # what `--viewer` takes besides a URL
 VIEWER_START_S = 30.0  # a viewer's gRPC port must accept within this
 WEB_SERVER_MEMORY = "512MiB"  # what the web viewer's server keeps for late browsers
@@ -196,31 +199,46 @@ class RerunWorker:
                 self._failure = failure
         return self._failure
 
-    def close(self, timeout: float = 1.5) -> None:
-        """Within `timeout` in all: write what is buffered (for at most half of it: a child
-        still starting reads nothing yet), close the pipe and wait for the child to finish
-        the recording; a child that takes longer is killed, with a warning."""
+    def close(self, timeout: float = 1.5, most: float = SHUTDOWN_MOST_S) -> None:
+        """Write what is buffered, close the pipe and wait for the child to finish the
+        recording; a child that takes longer is killed, with a warning.
+
+        Args:
+            timeout: twice the time the buffer's writing waits for a child that reads
+                nothing (a child still starting); each write the child takes starts that wait
+                anew, so a child that is slow (niced, on a loaded machine) but reading gets
+                its whole backlog.
+            most: the whole close never takes longer than this (a supervisor's stop
+                timeout is the next limit).
+        """
         self._closing = True
         proc = self._proc
         if proc is None or proc.stdin is None:
             return
         start = time.monotonic()
-        drain_until = start + timeout / 2
+        end = start + most
+        drain_until = min(end, start + timeout / 2)
         while self._buffer and self._failure is None and time.monotonic() < drain_until:
             select.select([], [self._fd], [], max(0.0, drain_until - time.monotonic()))
+            left = len(self._buffer)
             self._write()
+            if len(self._buffer) < left:  # progress: the child reads, give it time again
+                drain_until = min(end, time.monotonic() + timeout / 2)
         if self._buffer:
             log.warning(
                 "Rerun logging: %d bytes of estimates not written at shutdown", len(self._buffer)
             )
         with contextlib.suppress(OSError):  # the child may be gone already
             proc.stdin.close()
+        # the child's exit: up to `most` (its progress is not visible from here; a slow child
+        # still writing the file's end is the usual case, a hung one the rare)
         try:
-            proc.wait(max(0.1, start + timeout - time.monotonic()))
+            proc.wait(max(0.1, end - time.monotonic()))
         except subprocess.TimeoutExpired:
             log.warning(
-                "Rerun logging did not finish within %.1f s; stopped, its file may lack the end",
-                timeout,
+                "Rerun logging did not finish within %.1f s of the shutdown; stopped, its file "
+                "may lack the end",
+                time.monotonic() - start,
             )
             proc.kill()
             proc.wait()
