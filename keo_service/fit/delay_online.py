@@ -841,7 +841,8 @@ class OnlineDelayTracker:
             verdict="unsettled",
             reason=f"{self.decision.reason}; {words}" if refused else words,
         )
-        self.state = "unsettled"
+        if not refused:  # a refusal keeps its kind: the service says its advice once
+            self.state = "unsettled"
         return self.delay_now() if self.applied != before else None
 
     def honest_se(
