@@ -755,15 +755,12 @@ class OnlineDelayTracker:
         the delay in use by steps too small to matter at the tool's speed (a device clock's
         stamps walk by microseconds), and only when it is itself known that well."""
         lines, self._fitting_frame = self._fitting_frame, None
-        if not self.settled and math.isfinite(found.pooled_s) and found.pooled_se_s > 0:
-            # its error model's share beyond what its two models' disagreement shows: the
-            # stretches' scatter beyond their own se (tau), as if shared by its stretches
-            # (a pool of two 2.5-5 s stretches, both models biased alike by geometric
-            # errors, was 4-7 of its own se off: docs/timing-delay.md)
-            share = self._tau2() / max(self._pool_stretches, 1)
-            self.pooled = (found.pooled_s, math.sqrt(found.pooled_se_s**2 + share))
+        self._note_pooled(found, lines)
         if isinstance(found, DelayRefused):
             self._refused(found)
+            if self.settled or self.pooled is None:
+                return None
+            self._move_to(lines)  # the pooled fit is under the lines of its snapshot
             return self._use_pooled(found.t, self.applied)
         self._move_to(lines)  # the fit is under the lines of its snapshot
         value, se, speed = found.delay_s, found.se_s, found.speed_rms
@@ -818,6 +815,21 @@ class OnlineDelayTracker:
         self.decision = dataclasses.replace(decision, verdict="refined", reason=refined)
         self.state = "refined"
         return self.delay_now()
+
+    def _note_pooled(
+        self, found: DelayMeasurement | DelayRefused, lines: dict[str, Anchor] | None
+    ) -> None:
+        """Keep a measurement's pooled fit (while not settled), its standard error with its
+        error model's share beyond what its two models' disagreement shows: the stretches'
+        scatter beyond their own se (tau), as if shared by its stretches (a pool of two
+        2.5-5 s stretches, both models biased alike by geometric errors, was 4-7 of its own
+        se off: docs/timing-delay.md). A young clock mapping's stamps still move: its pooled
+        fit is not kept (as its rough stretch fits are not taken alone)."""
+        young = found.t <= self._young_until and bool(lines)
+        if self.settled or young or not (math.isfinite(found.pooled_s) and found.pooled_se_s > 0):
+            return
+        share = self._tau2() / max(self._pool_stretches, 1)
+        self.pooled = (found.pooled_s, math.sqrt(found.pooled_se_s**2 + share))
 
     def _use_pooled(self, t: float, before: float | None) -> float | None:
         """While the delay is not settled: the pooled fit in use when it is known better
