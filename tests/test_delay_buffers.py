@@ -179,3 +179,49 @@ def test_the_delay_carried_per_sample_is_the_anchors(demo_cell):
         )
         assert tracker.delay_now() == want
     assert tracker.delay_now() != tracker.applied  # the lines did move
+
+
+def test_the_pool_is_bounded_and_emptied_once_settled(demo_cell):
+    """While the delay is not settled, each stretch carries the pool of the rows since it was
+    last unknown, for the pooled fit: its tracker rows thinned to at most `pool_rows`, its
+    span at most `pool_s` plus a stretch, the encoder's rows without repeats (stretches
+    overlap there); once settled, no pool. Fed 50 s of one joint at constant speed (never
+    settled: the motion cannot separate a delay) from a MotoROS encoder and a 100 Hz tracker."""
+    from keo_service.fit.delay_online import OnlineDelayTracker
+    from keo_service.sim.delay_study import StreamCase, case_streams
+
+    streams = case_streams(demo_cell, StreamCase("motoros", "line100", "one_joint", seconds=50.0))
+    unknown = OnlineDelayTracker(demo_cell, pool_s=20.0, pool_rows=500)
+    pools = _pools(unknown, streams, fit=True)
+    assert not unknown.settled
+    assert pools[0] is None
+    assert all(p is not None for p in pools[1:]), pools
+    assert len(pools) >= 6
+    for pool in pools[1:]:
+        assert pool.trk.shape[0] <= 500
+        assert pool.trk[-1, 0] - pool.trk[0, 0] <= 20.0 + unknown.max_span_s
+        assert np.all(np.diff(pool.enc[:, 0]) > 0)  # no encoder row twice
+    assert pools[-1].trk[0, 0] > streams.trk_t[0] + 20.0  # the oldest rows left the pool
+    # settled (a configured delay): no pool
+    known = OnlineDelayTracker(demo_cell, prior_s=0.030, prior_se_s=0.0005)
+    assert all(p is None for p in _pools(known, streams, fit=False))
+
+
+def _pools(tracker, streams, fit: bool) -> list:
+    """The pool of every stretch the tracker takes from the streams (each fitted and folded
+    in when `fit`)."""
+    from keo_service.fit.delay_online import pool_arrays, stretch_arrays
+
+    k, pools = 0, []
+    for i, t in enumerate(streams.trk_t):
+        while k < streams.enc_t.size and streams.enc_t[k] <= t:
+            tracker.add_encoder(float(streams.enc_t[k]), streams.enc_q[k])
+            k += 1
+        tracker.add_tracker(float(t), streams.trk_p[i], streams.trk_quat[i])
+        if tracker.due():
+            stretch = tracker.take()
+            pools.append(stretch.pool)
+            if fit:
+                found = tracker.measure(stretch_arrays(stretch), 0.0, pool=pool_arrays(stretch))
+                tracker.combine(found)
+    return pools

@@ -5,6 +5,7 @@ in the service's figure by the bench."""
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import signal
 import time
@@ -15,20 +16,19 @@ import pytest
 from keo_service.bench.demo import loopback_config
 
 
-def _stretches(demo_config, demo_cell, count: int):
+def _stretches(demo_config, demo_cell, count: int, unknown: bool = False):
     """The service's tracker fed a simulated 1 kHz / 250 Hz path as its wire fields, and the
-    first `count` stretches it takes (as arrays), each with the guess it would fit from."""
-    from keo_service.fit.delay_online import OnlineDelayTracker, stretch_arrays
+    first `count` stretches it takes (as arrays), each with the guess it would fit from and
+    its pool's arrays (`unknown`: no delay configured, so the stretches after the first carry
+    a pool for the pooled fit; each stretch is then folded in, as the service does)."""
+    from keo_service.fit.delay_online import OnlineDelayTracker, pool_arrays, stretch_arrays
     from keo_service.io.cell import delay_prior
     from keo_service.sim.simulate import make_scenario, simulate
 
     config = loopback_config(demo_config)
-    tracker = OnlineDelayTracker(
-        demo_cell, None, *delay_prior(config.timing), max_gap_s=config.timing.max_gap_s
-    )
-    fresh = OnlineDelayTracker(
-        demo_cell, None, *delay_prior(config.timing), max_gap_s=config.timing.max_gap_s
-    )
+    prior = (0.0, None) if unknown else delay_prior(config.timing)
+    tracker = OnlineDelayTracker(demo_cell, None, *prior, max_gap_s=config.timing.max_gap_s)
+    fresh = OnlineDelayTracker(demo_cell, None, *prior, max_gap_s=config.timing.max_gap_s)
     sets = {"tracker_rate_hz": "1000", "encoder_rate_hz": "250", "duration_s": "12"}
     run = simulate(demo_cell, make_scenario("path", sets), seed=2)
     rows = sorted(
@@ -43,34 +43,43 @@ def _stretches(demo_config, demo_cell, count: int):
             p = [float(x) for x in run.tracker.p[i]]
             tracker.add_tracker(t, p, [float(x) for x in run.tracker.quat[i]], 1, i + 1)
         if tracker.due():
-            current = config.timing.delay_s
-            window = stretch_arrays(tracker.take())
-            out.append((window, current, tracker.guess(current)))
+            current = 0.0 if unknown else config.timing.delay_s
+            stretch = tracker.take()
+            window, pool = stretch_arrays(stretch), pool_arrays(stretch)
+            guess = tracker.guess(current)
+            out.append((window, current, guess, pool))
+            if unknown:
+                tracker.combine(tracker.measure(window, current, guess, pool))
             if len(out) == count:
                 break
     return fresh, out
 
 
-def test_the_worker_fits_as_the_service_would(demo_config, demo_cell):
+@pytest.mark.parametrize("unknown", [False, True])
+def test_the_worker_fits_as_the_service_would(demo_config, demo_cell, unknown):
     """Every stretch's measurement from the worker process equals, field for field, the one
     the tracker makes in this process from the same arrays (its fits' standard errors to
-    1e-12 relative: BLAS on one thread may sum in another order); and the worker's CPU time
-    is counted (> 0) for each fit."""
+    1e-12 relative: BLAS on one thread may sum in another order), the pooled fit's too when
+    the delay is not known; and the worker's CPU time is counted (> 0) for each fit."""
     from keo_service.live.fit_worker import FitWorker
 
-    fresh, stretches = _stretches(demo_config, demo_cell, 3)
-    assert len(stretches) == 3
+    count = 2 if unknown else 3  # unknown: rough fits lengthen the stretches of the 12 s
+    fresh, stretches = _stretches(demo_config, demo_cell, count, unknown)
+    assert len(stretches) == count
+    assert all(s[3] is None for s in stretches) != unknown  # a pool only while unknown
     worker = FitWorker(fresh)
 
     async def fit_all():
-        return [await worker.measure(w, c, g) for w, c, g in stretches]
+        return [await worker.measure(w, c, g, p) for w, c, g, p in stretches]
 
     try:
         found = asyncio.run(fit_all())
     finally:
         worker.close()
-    for (window, current, guess), (got, cpu_s) in zip(stretches, found, strict=True):
-        want = fresh.measure(window, current, guess)
+    if unknown:  # the pooled fit was made and sent back
+        assert any(math.isfinite(got.pooled_s) for got, _cpu in found), found
+    for (window, current, guess, pool), (got, cpu_s) in zip(stretches, found, strict=True):
+        want = fresh.measure(window, current, guess, pool)
         assert type(got) is type(want)
         assert cpu_s > 0
         for name, value in vars(want).items():

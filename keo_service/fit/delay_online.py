@@ -48,6 +48,10 @@ class DelayMeasurement:
     # how far the tool-frame and base-frame error models' fits of the stretch disagree (s;
     # nan: only one of them gave a fit)
     model_s: float = math.nan
+    # the pooled fit: all the samples since the delay was last unknown (the motion's
+    # start, up to `pool_s`) in one fit, and its standard error (nan: none, see `_pooled`)
+    pooled_s: float = math.nan
+    pooled_se_s: float = math.nan
 
     @property
     def described_t(self) -> float:
@@ -61,6 +65,11 @@ class DelayRefused:
     counter: str
     reason: str
     t: float = math.nan  # the stream time the stretch ends at (nan: not known)
+    # `separable_se` of the stretch when its motion was measured and found unable to
+    # separate a delay (nan: refused for another reason)
+    sep_se_s: float = math.nan
+    pooled_s: float = math.nan  # the pooled fit, as in `DelayMeasurement`
+    pooled_se_s: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -135,6 +144,11 @@ class DelayTrackerSettings:
     confirm_sigmas: float = 2.5  # each confirming fit off the delay in use by this many
     first_tau_s: float = 300e-6  # a fit's scatter beyond its se, until 3 fits measure it
     settle_m: float = 20e-6  # settled when the consensus is known to this at the tool's speed
+    # while the delay is not settled, all samples since it was last unknown are fitted at
+    # once too (the pooled fit), over at most this long, the tracker's samples thinned to at
+    # most pool_rows (its cost bounded: the encoder's are all kept for the interpolation)
+    pool_s: float = 30.0
+    pool_rows: int = 3000
 
 
 @dataclass(frozen=True)
@@ -288,6 +302,18 @@ class OnlineDelayTracker:
         # the kind of the last decision (its verdict, or the counter of a stretch that gave no
         # fit): the service says a decision when its kind changes
         self.state = "waiting"
+        self._start_anew()
+
+    def _start_anew(self) -> None:
+        """What a new time base or a delay set by hand makes unknown again."""
+        # does the newest stretch's motion separate a delay from a tool error and its slow
+        # drift to `settle_m` at its speed (`separable_se`)? None: no stretch measured yet
+        self.separable: bool | None = None
+        # while not settled: the stretches' rows since the delay was last unknown, encoder and
+        # tracker (`take`), for the pooled fit; and the newest pooled fit (value, se)
+        self._pool: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
+        self._pool_stretches = 0  # how many stretches the newest pool taken holds
+        self.pooled: tuple[float, float] | None = None
 
     # ---- samples (on the event loop: cheap) ---------------------------------------------
 
@@ -492,6 +518,7 @@ class OnlineDelayTracker:
             "restarted", f"{why}; fitting again after {self.settle_s:g} s", t=t
         )
         self.state = "restarted"
+        self._start_anew()
 
     # ---- fits ---------------------------------------------------------------------------
 
@@ -526,7 +553,47 @@ class OnlineDelayTracker:
         self._enc.drop_before(end - 1.0)
         # the whole stretch under each stream's newest line (see fit/stamp_lines.py)
         self._fitting_frame = dict(self._newest)
-        return Stretch(enc, trk, self._newest.get("encoder"), self._newest.get("tracker"))
+        enc_line, trk_line = self._newest.get("encoder"), self._newest.get("tracker")
+        pool = self._pooled_rows(enc, trk)
+        return Stretch(
+            enc,
+            trk,
+            enc_line,
+            trk_line,
+            None if pool is None else Stretch(pool[0], pool[1], enc_line, trk_line),
+        )
+
+    def _pooled_rows(
+        self, enc: np.ndarray, trk: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """While the delay is not settled: this stretch's rows added to the pool (the
+        encoder's without the rows the pool has already, stretches overlap there by 1 s),
+        the pool's older rows beyond `pool_s` dropped, and the pool's rows (encoder,
+        tracker, the tracker's thinned to `pool_rows`) when it holds more than this
+        stretch. None once settled (the pool is emptied)."""
+        enc_pool, trk_pool = self._pool
+        if self.settled:
+            enc_pool.clear()
+            trk_pool.clear()
+            return None
+        if enc_pool and enc.shape[0]:
+            enc = enc[enc[:, 0] > enc_pool[-1][-1, 0]]
+        if enc.shape[0]:
+            enc_pool.append(enc)
+        if trk.shape[0]:
+            trk_pool.append(trk)
+        if len(trk_pool) < 2:
+            return None
+        newest = float(trk_pool[-1][-1, 0])
+        while len(trk_pool) > 2 and float(trk_pool[1][0, 0]) < newest - self.settings.pool_s:
+            trk_pool.pop(0)
+        oldest = float(trk_pool[0][0, 0]) - 1.0
+        while len(enc_pool) > 1 and float(enc_pool[1][0, 0]) < oldest:
+            enc_pool.pop(0)
+        self._pool_stretches = len(trk_pool)
+        trk_all = np.concatenate(trk_pool)
+        step = -(-trk_all.shape[0] // self.settings.pool_rows)  # ceil
+        return np.concatenate(enc_pool), trk_all[::step]
 
     def fit(
         self,
@@ -550,31 +617,68 @@ class OnlineDelayTracker:
         window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
         current: float,
         guess: float | None = None,
+        pool: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]
+        | None = None,
     ) -> DelayMeasurement | DelayRefused:
-        """The delay over one stretch, or why there is none. Runs anywhere (a worker
-        thread, or a process given the `guess` its tracker made): with `guess` it reads the
-        tracker's settings only and changes nothing."""
+        """The delay over one stretch, or why there is none, and with `pool` (the arrays of
+        `Stretch.pool`, while the delay is not settled) the pooled fit too. Runs anywhere (a
+        worker thread, or a process given the `guess` its tracker made): with `guess` it
+        reads the tracker's settings only and changes nothing."""
         if guess is None:
             guess = self.guess(current)
-        enc_t, enc_q, trk_t, trk_p, trk_q = _covered(window, guess, self.max_gap_s)
+        found = self._measure_stretch(window, current, guess)
+        if pool is None:
+            return found
+        pooled = self._pooled(pool, guess)
+        if pooled is None:
+            return found
+        return dataclasses.replace(found, pooled_s=pooled[0], pooled_se_s=pooled[1])
+
+    def _pooled(
+        self,
+        pool: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
+        guess: float,
+    ) -> tuple[float, float] | None:
+        """The pooled fit: every sample since the delay was last unknown in one fit (the
+        same two error models as a stretch, the one leaving less residual, their
+        disagreement added to its se; refused like a stretch when the motion cannot separate
+        a delay). Short stretches' models, linear in the tool position over 2.5-10 s, take
+        up most of a slow motion's delay signature (over a short stretch the velocity is
+        nearly a line in time too) and with geometric errors are biased alike; over tens of
+        seconds the velocity turns and the same model leaves the signature standing: on the
+        scenario matrix's all-slow runs with geometric errors, 20 s pooled were 36-54 us off
+        (se 58-137 us) where the stretches' consensus was 300-480 us off
+        (docs/timing-delay.md). None: no usable pooled fit."""
+        enc_t, enc_q, trk_t, trk_p, trk_q = _covered(pool, guess, self.max_gap_s)
         if enc_t.size < 20 or trk_t.size < 50:
-            return DelayRefused("fits_without_data", "not enough data in the stretch")
+            return None
         sep = separable_se(trk_t, trk_p, trk_q)
-        if sep > self.max_se_s and _point_moves(trk_t, trk_p):  # at rest: the fit says so
-            # the motion alone cannot tell a delay from a constant tool error and a slow
-            # drift of it: whatever the fit says it knows comes from the error model alone
-            return DelayRefused(
-                "fits_not_identifiable",
-                f"the motion cannot separate a delay from a tool error and its slow drift "
-                f"(to {sep * 1e3:.1f} ms > {self.max_se_s * 1e3:.0f} ms: the tool's velocity "
-                "in the tool frame hardly changes, as for one joint at constant speed); "
-                "changes of speed or direction separate it",
-                float(trk_t[-1]),
-            )
-        # the error model of a short stretch: linear in the tool position, with the errors in
-        # the tool frame (where the tool's own calibration error is constant) or in the base
-        # frame (closer for a robot's geometric errors); the one that leaves less residual
+        if sep > self.max_se_s:
+            return None
+        fits = self._two_models(enc_t, enc_q, trk_t, trk_p, trk_q, guess)
+        if isinstance(fits, DelayNotIdentifiableError):
+            return None
+        fit = min(fits, key=lambda f: f.residual_rms_moving)
+        se = _reported_se(fit.delay_se_s, _model_disagreement(fit, fits), sep)
+        if not (math.isfinite(fit.delay_s) and math.isfinite(se)) or se > self.max_se_s:
+            return None
+        return fit.delay_s, se
+
+    def _two_models(
+        self,
+        enc_t: np.ndarray,
+        enc_q: np.ndarray,
+        trk_t: np.ndarray,
+        trk_p: np.ndarray,
+        trk_q: np.ndarray | None,
+        guess: float,
+    ) -> list[DelayFit] | DelayNotIdentifiableError:
+        """The fits of the two error models (those that gave one), or why neither did. Linear
+        in the tool position, with the errors in the tool frame (where the tool's own
+        calibration error is constant) or in the base frame (closer for a robot's geometric
+        errors)."""
         fits: list[DelayFit] = []
+        reason = DelayNotIdentifiableError("no fit")
         for features in ("tool", "position"):
             try:
                 fits.append(
@@ -595,8 +699,35 @@ class OnlineDelayTracker:
                 )
             except DelayNotIdentifiableError as exc:
                 reason = exc
-        if not fits:
-            return DelayRefused("fits_not_identifiable", str(reason), float(trk_t[-1]))
+        return fits if fits else reason
+
+    def _measure_stretch(
+        self,
+        window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
+        current: float,
+        guess: float,
+    ) -> DelayMeasurement | DelayRefused:
+        """The delay over one stretch, or why there is none."""
+        enc_t, enc_q, trk_t, trk_p, trk_q = _covered(window, guess, self.max_gap_s)
+        if enc_t.size < 20 or trk_t.size < 50:
+            return DelayRefused("fits_without_data", "not enough data in the stretch")
+        sep = separable_se(trk_t, trk_p, trk_q)
+        if sep > self.max_se_s and _point_moves(trk_t, trk_p):  # at rest: the fit says so
+            # the motion alone cannot tell a delay from a constant tool error and a slow
+            # drift of it: whatever the fit says it knows comes from the error model alone
+            return DelayRefused(
+                "fits_not_identifiable",
+                f"the motion cannot separate a delay from a tool error and its slow drift "
+                f"(to {sep * 1e3:.1f} ms > {self.max_se_s * 1e3:.0f} ms: the tool's velocity "
+                "in the tool frame hardly changes, as for one joint at constant speed); "
+                "changes of speed or direction separate it",
+                float(trk_t[-1]),
+                sep,
+            )
+        # the error model of a short stretch: the one of the two that leaves less residual
+        fits = self._two_models(enc_t, enc_q, trk_t, trk_p, trk_q, guess)
+        if isinstance(fits, DelayNotIdentifiableError):
+            return DelayRefused("fits_not_identifiable", str(fits), float(trk_t[-1]))
         fit = min(fits, key=lambda f: f.residual_rms_moving)
         middle = 0.5 * float(trk_t[0] + trk_t[-1])
         model = _model_disagreement(fit, fits)
@@ -624,14 +755,19 @@ class OnlineDelayTracker:
         the delay in use by steps too small to matter at the tool's speed (a device clock's
         stamps walk by microseconds), and only when it is itself known that well."""
         lines, self._fitting_frame = self._fitting_frame, None
+        self._note_pooled(found, lines)
         if isinstance(found, DelayRefused):
             self._refused(found)
-            return None
+            if self.settled or self.pooled is None:
+                return None
+            self._move_to(lines)  # the pooled fit is under the lines of its snapshot
+            return self._use_pooled(found.t, self.applied)
         self._move_to(lines)  # the fit is under the lines of its snapshot
         value, se, speed = found.delay_s, found.se_s, found.speed_rms
         # young mappings' stamps still move; receipt and shared-clock stamps have no mapping
         provisional = found.t <= self._young_until and bool(lines)
         own = _own_of(found)
+        self.separable = not found.sep_se_s * speed > self.settings.settle_m
         if not provisional:  # young stretches have their own length
             self._fit_stretch(own * speed)  # the length for the fits' own precision
         if not (math.isfinite(value) and math.isfinite(se) and se > 0) or se > self.max_se_s:
@@ -669,6 +805,8 @@ class OnlineDelayTracker:
             t=found.t,
         )
         self.decision, self.state = decision, decision.verdict
+        if not self.settled and self._use_pooled(found.t, before) is not None:
+            return self.delay_now()
         if self.applied != before:
             return self.delay_now()
         refined = self._refine(found, provisional) if self.settled else None
@@ -677,6 +815,47 @@ class OnlineDelayTracker:
         self.decision = dataclasses.replace(decision, verdict="refined", reason=refined)
         self.state = "refined"
         return self.delay_now()
+
+    def _note_pooled(
+        self, found: DelayMeasurement | DelayRefused, lines: dict[str, Anchor] | None
+    ) -> None:
+        """Keep a measurement's pooled fit (while not settled), its standard error with its
+        error model's share beyond what its two models' disagreement shows: the stretches'
+        scatter beyond their own se (tau), as if shared by its stretches (a pool of two
+        2.5-5 s stretches, both models biased alike by geometric errors, was 4-7 of its own
+        se off: docs/timing-delay.md). A young clock mapping's stamps still move: its pooled
+        fit is not kept (as its rough stretch fits are not taken alone)."""
+        young = found.t <= self._young_until and bool(lines)
+        if self.settled or young or not (math.isfinite(found.pooled_s) and found.pooled_se_s > 0):
+            return
+        share = self._tau2() / max(self._pool_stretches, 1)
+        self.pooled = (found.pooled_s, math.sqrt(found.pooled_se_s**2 + share))
+
+    def _use_pooled(self, t: float, before: float | None) -> float | None:
+        """While the delay is not settled: the pooled fit in use when it is known better
+        than what the stretches gave (their consensus, or the first fit). The delay to use
+        now if the delay in use is no longer `before`, else None. The flag stays: settling
+        is still the stretches' agreement (`_decide_unsettled`)."""
+        if self.settled or self.pooled is None:
+            return None
+        value, se = self.pooled
+        if self.applied_se is not None and not se < self.applied_se:
+            return None
+        self._take(value, se, t, step=True)
+        self.counters["pooled_in_use"] += 1
+        words = (
+            "the fit of all samples since the motion started in use (known better than the "
+            "stretches' consensus), until the stretches agree"
+        )
+        refused = self.decision.verdict == "kept" and self.state.startswith("fits_")
+        self.decision = dataclasses.replace(
+            self.decision,
+            verdict="unsettled",
+            reason=f"{self.decision.reason}; {words}" if refused else words,
+        )
+        if not refused:  # a refusal keeps its kind: the service says its advice once
+            self.state = "unsettled"
+        return self.delay_now() if self.applied != before else None
 
     def honest_se(
         self, own_se: float, model_s: float = math.nan, sep_se_s: float = math.nan
@@ -871,6 +1050,14 @@ class OnlineDelayTracker:
             self._start_trend(members)
             return "settled", agreed
         to = self.settings.settle_m * 1e6
+        if not separates:
+            # the fits may agree, but on a value the motion cannot tell from a tool error:
+            # the flag stays, and the reason says why (issue 45: "the fit says so")
+            return "unsettled", (
+                f"{agreed}, {taken}, but the motion cannot separate a delay from a tool error "
+                f"to better than {newest.sep_se * 1e6:.0f} us; changes of speed or direction "
+                "separate it"
+            )
         return "unsettled", f"{agreed}, {taken} until they agree to {to:g} um at speed"
 
     def _start_trend(self, members: list[_Fit]) -> None:
@@ -970,6 +1157,8 @@ class OnlineDelayTracker:
         settled one) lengthens the stretch, as a rough fit does."""
         if found.counter == "fits_not_identifiable" and not found.t <= self._young_until:
             self._fit_stretch(math.inf)
+        if math.isfinite(found.sep_se_s):
+            self.separable = False
         self.counters[found.counter] += 1
         self.decision = DelayDecision("kept", found.reason, t=found.t)
         self.state = found.counter
@@ -1064,6 +1253,7 @@ class OnlineDelayTracker:
         self._set_source("configured" if known else "unknown")
         self.decision = DelayDecision("restarted", "the delay was set anew (a reload)")
         self.state = "restarted"
+        self._start_anew()
 
 
 # the other error model's residual this many times the chosen one's: rejected by the data
@@ -1227,6 +1417,9 @@ class Stretch:
     trk: np.ndarray
     enc_line: Anchor | None
     trk_line: Anchor | None
+    # while the delay is not settled: the rows since it was last unknown, for the pooled
+    # fit (`OnlineDelayTracker.measure`'s `pool`: `pool_arrays`); None: none
+    pool: Stretch | None = None
 
 
 def stretch_arrays(
@@ -1244,6 +1437,13 @@ def stretch_arrays(
     quats = trk[:, 4:8]
     trk_q = None if np.isnan(quats[:, 0]).any() else np.ascontiguousarray(quats)
     return enc_t, enc_q, trk_t, trk_p, trk_q
+
+
+def pool_arrays(
+    stretch: Stretch,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None] | None:
+    """The arrays of a stretch's pool (`stretch_arrays` of `Stretch.pool`), None: no pool."""
+    return None if stretch.pool is None else stretch_arrays(stretch.pool)
 
 
 def _on_line(anchor: Anchor | None, stamps: np.ndarray, device: np.ndarray) -> np.ndarray:

@@ -63,12 +63,13 @@ def _ready() -> int:
 
 
 def _measure(
-    window: Window, current: float, guess: float
+    window: Window, current: float, guess: float, pool: Window | None = None
 ) -> tuple[DelayMeasurement | DelayRefused, float]:
-    """In the worker: one stretch's fit, and the worker's CPU time for it (s), all of its
-    threads, counted in the service's status (`delay_fit_cpu_ms`)."""
+    """In the worker: one stretch's fit (and the pooled fit, given the pool), and the
+    worker's CPU time for it (s), all of its threads, counted in the service's status
+    (`delay_fit_cpu_ms`)."""
     start = time.process_time()
-    found = _worker["tracker"].measure(window, current, guess)
+    found = _worker["tracker"].measure(window, current, guess, pool)
     return found, time.process_time() - start
 
 
@@ -100,11 +101,13 @@ class FitWorker:
             self._started = self._pool.submit(_ready)
 
     async def measure(
-        self, window: Window, current: float, guess: float
+        self, window: Window, current: float, guess: float, pool: Window | None = None
     ) -> tuple[DelayMeasurement | DelayRefused, float]:
-        """One stretch's fit in the worker (`OnlineDelayTracker.measure`), and its CPU (s)."""
+        """One stretch's fit in the worker (`OnlineDelayTracker.measure`; with `pool`, the
+        arrays of the stretch's pool while the delay is not settled, the pooled fit too),
+        and its CPU (s)."""
         loop = asyncio.get_running_loop()
-        return await loop.run_in_executor(self._pool, _measure, window, current, guess)
+        return await loop.run_in_executor(self._pool, _measure, window, current, guess, pool)
 
     def pid(self, timeout: float = 30.0) -> int:
         """The worker's process id, once it runs (blocking: for tests and tools)."""

@@ -554,7 +554,7 @@ class KeoService:
         loop, between samples, and set the estimator's delay (a step for a confirmed change, a
         slew for a refinement). A fit of data from before a time base started anew is
         dropped."""
-        from keo_service.fit.delay_online import stretch_arrays
+        from keo_service.fit.delay_online import pool_arrays, stretch_arrays
 
         tracker, fits = self._delay_tracker, self._fits
         assert tracker is not None
@@ -564,9 +564,10 @@ class KeoService:
                 await asyncio.sleep(DELAY_POLL_S)
                 continue
             restarts = tracker.counters["restarts"]  # before the samples the fit lets in
-            window = stretch_arrays(tracker.take())
+            stretch = tracker.take()
+            window, pool = stretch_arrays(stretch), pool_arrays(stretch)
             current = self.estimator.delay.offset_s
-            found, cpu_s = await fits.measure(window, current, tracker.guess(current))
+            found, cpu_s = await fits.measure(window, current, tracker.guess(current), pool)
             self._fit_cpu_s += cpu_s
             if tracker.counters["restarts"] == restarts:
                 tracker.combine(found)
