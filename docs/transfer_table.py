@@ -3,11 +3,19 @@ other with only the tracker registration and the probe mount re-identified
 (`keo analyze --registration-only`), judged on that session's held-out poses.
 
     python docs/transfer_table.py [--data data/ur10_lasertracker] [--work DIR] [--json]
+        [--decompose]
 
 Imports both series (as `keo import ur10-lasertracker` does), analyzes each, then carries each
 model to the other series. Prints one row per direction: held-out position RMS (and max) of
 the carried model, the nominal robot's held-out RMS there, and the other session's own model.
 Rerun it after every change to the fit: this table is what the change is judged on.
+
+`--decompose` also says what each carried figure is made of (docs/analyze.md, "What A on B
+is made of"): the held-out poses by where they lie against the model's calibrated joint
+ranges (inside, in the maps' fade, beyond it), the figure with each effect left out, each
+joint's map or periodic terms left out, and each joint's joint-angle function (its periodic
+terms and its map) replaced by the other series' own; the registration and the probe mount
+refitted every time, as `--registration-only` does.
 """
 
 from __future__ import annotations
@@ -22,6 +30,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "ur10_lasertracker.toml"
 SERIES = {
@@ -35,6 +45,124 @@ def _quiet(fn: Any, *args: Any, **kw: Any) -> Any:
     err = io.StringIO()
     with contextlib.redirect_stderr(err):
         return fn(*args, **kw)
+
+
+def _location(q: np.ndarray, model: Any, error_mm: np.ndarray) -> list[dict[str, Any]]:
+    """The held-out poses by where they lie against the model's calibrated joint ranges: every
+    joint inside, the farthest joint within the maps' fade, beyond it."""
+    lo, hi = np.asarray(model.calibrated_q_min), np.asarray(model.calibrated_q_max)
+    taper = 0.1 if model.map_taper_rad is None else model.map_taper_rad
+    far = np.max(np.maximum(lo - q, 0.0) + np.maximum(q - hi, 0.0), axis=1)
+    where = np.where(far == 0, 0, np.where(far < taper, 1, 2))
+    out = []
+    labels = ("every joint inside", "farthest joint in the maps' fade", "beyond the fade")
+    for k, label in enumerate(labels):
+        sel = where == k
+        if sel.any():
+            rms = float(np.sqrt(np.mean(error_mm[sel] ** 2)))
+            out.append({"where": label, "poses": int(sel.sum()), "pos_rms_mm": rms})
+    return out
+
+
+def _swapped(parts: list[Any], other: dict[str, Any], joint: int, drop: str) -> Any:
+    """The carried model's effects with `drop` ("effect NAME", "map", "ripple", "function")
+    applied to `joint` (-1 for a whole effect): left out, or ("function") joint's periodic terms
+    and map taken from `other` (name -> (effect, values))."""
+    from keo_service.fit.effects import JointMaps, JointRipple, split_maps
+
+    effects: list[Any] = []
+    values: list[np.ndarray] = []
+    for effect, part in parts:
+        if drop == f"effect {effect.name}":
+            continue
+        if isinstance(effect, JointMaps) and drop in ("map", "function"):
+            pieces = list(split_maps(effect.knots, part))
+            empty = (np.empty(0), np.empty(0))
+            if drop == "map" or "joint_maps" not in other:
+                pieces[joint] = empty
+            else:
+                theirs = split_maps(other["joint_maps"][0].knots, other["joint_maps"][1])
+                pieces[joint] = theirs[joint]
+            effects.append(JointMaps(tuple(k for k, _v in pieces), effect.taper))
+            values.append(np.concatenate([v for _k, v in pieces]))
+            continue
+        if isinstance(effect, JointRipple) and drop in ("ripple", "function"):
+            keep = [i for i, (j, _p) in enumerate(effect.terms) if j != joint]
+            terms = [effect.terms[i] for i in keep]
+            vals = [part[2 * i : 2 * i + 2] for i in keep]
+            if drop == "function" and "joint_ripple" in other:
+                theirs, their_values = other["joint_ripple"]
+                for i, (j, period) in enumerate(theirs.terms):
+                    if j == joint:
+                        terms.append((j, period))
+                        vals.append(their_values[2 * i : 2 * i + 2])
+            if terms:
+                effects.append(JointRipple(tuple(terms)))
+                values.append(np.concatenate(vals))
+            continue
+        effects.append(effect)
+        values.append(part)
+    return effects, values
+
+
+def decompose(work: Path, src: str, dst: str) -> dict[str, Any]:
+    """What the model of `src` carried to `dst` is made of, on `dst`'s held-out poses (see the
+    module's doc): each variant's registration and mount refitted on `dst`'s training rows."""
+    from keo_service.core.chain import Chain
+    from keo_service.fit.analysis import analyze, split_data
+    from keo_service.fit.model import Model, fit
+    from keo_service.io.analysis_report import saved_model
+    from keo_service.io.cell import robot_from_config
+    from keo_service.io.config import load_config
+    from keo_service.offline.analyze import load_data
+
+    config = load_config(work / src / "an" / "model.toml")
+    robot = robot_from_config(config)
+    chain = Chain(robot)
+    data, position_only = load_data(config, work / dst / "encoder.csv", work / dst / "tracker.csv")
+    carried = _quiet(analyze, robot, data, position_only, saved_model(config, chain, position_only))
+    model, x = carried.model, carried.x
+    train_idx, val_idx = split_data(data)
+    train, val = data.subset(train_idx), data.subset(val_idx)
+    tau_tr, tau_va = chain.gravity_torques(train.q), chain.gravity_torques(val.q)
+    noise = carried.report["registration"]["noise_estimate_mm"] * 1e-3
+    width = 3 if position_only else 6
+
+    def error_mm(m: Model, z: np.ndarray) -> np.ndarray:
+        r = m.residuals(z, val, tau_va).reshape(-1, width)[:, :3]
+        return np.asarray(np.linalg.norm(r, axis=1) * 1e3)
+
+    def held_out(effects: list[Any], values: list[np.ndarray]) -> float:
+        z0 = np.concatenate([x[: model.n_reg], *values])
+        m = Model(chain, position_only, effects, z0, {}, model.temperature_ref, model.time_ref)
+        fixed = np.zeros(z0.size, dtype=bool)
+        fixed[m.n_reg :] = True
+        z = fit(m, train, tau_tr, z0, noise, fixed=fixed).x
+        return float(np.sqrt(np.mean(error_mm(m, z) ** 2)))
+
+    parts = list(model.parts(x))
+    own = load_config(work / dst / "an" / "model.toml")
+    theirs_model = saved_model(own, chain, position_only)
+    theirs = {e.name: (e, v) for e, v in theirs_model.parts(theirs_model.x)}
+    names = robot.joint_names
+    full = error_mm(model, x)
+    out: dict[str, Any] = {
+        "model_from": src,
+        "applied_to": dst,
+        "held_out_pos_rms_mm": float(np.sqrt(np.mean(full**2))),
+        "where": _location(val.q, config.model, full),
+        "without_effect": {
+            e.name: held_out(*_swapped(parts, theirs, -1, f"effect {e.name}")) for e, _v in parts
+        },
+    }
+    for kind in ("map", "ripple", "function"):
+        key = {"map": "without_map", "ripple": "without_periodic", "function": "function_from_"}[
+            kind
+        ]
+        if kind == "function":
+            key += dst
+        out[key] = {names[j]: held_out(*_swapped(parts, theirs, j, kind)) for j in range(chain.nq)}
+    return out
 
 
 def run(data_dir: Path, work: Path) -> dict[str, Any]:
@@ -88,10 +216,13 @@ def main() -> int:
     ap.add_argument("--data", type=Path, default=ROOT / "data" / "ur10_lasertracker")
     ap.add_argument("--work", type=Path, default=None, help="keep the files here")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--decompose", action="store_true", help="what each carried figure is made of")
     args = ap.parse_args()
     with contextlib.ExitStack() as stack:
         work = args.work or Path(stack.enter_context(tempfile.TemporaryDirectory()))
         result = run(args.data, work)
+        if args.decompose:
+            result["decomposition"] = [decompose(work, "A", "B"), decompose(work, "B", "A")]
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
@@ -121,8 +252,27 @@ def main() -> int:
         )
     within = {k: round(v, 4) for k, v in result["within_session"].items()}
     print("within session, held out:", within)
+    for dec in result.get("decomposition", []):
+        _print_decomposition(dec)
     print("seconds:", {k: round(v, 1) for k, v in result["seconds"].items()}, file=sys.stderr)
     return 0
+
+
+def _print_decomposition(dec: dict[str, Any]) -> None:
+    print()
+    print(
+        f"{dec['model_from']}'s model on {dec['applied_to']}: held out "
+        f"{dec['held_out_pos_rms_mm']:.4f} mm RMS"
+    )
+    for w in dec["where"]:
+        print(f"  {w['where']}: {w['poses']} poses, {w['pos_rms_mm']:.4f} mm")
+    print("  without:", {k: round(v, 4) for k, v in dec["without_effect"].items()})
+    for key, label in (
+        ("without_map", "without the map of"),
+        ("without_periodic", "without the periodic terms of"),
+        (f"function_from_{dec['applied_to']}", f"the joint's function from {dec['applied_to']}"),
+    ):
+        print(f"  {label}:", {k: round(v, 4) for k, v in dec[key].items()})
 
 
 if __name__ == "__main__":

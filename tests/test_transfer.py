@@ -108,6 +108,48 @@ def test_the_spectrum_finds_an_injected_ripple():
     assert spectra[robot.joint_names[2]]["terms"][0]["period_rad"] == pytest.approx(period)
 
 
+def test_carried_periodic_terms_are_kept_only_on_the_joints_where_they_help():
+    """A model carried to a session (registration only) with a periodic term the session's
+    robot has (elbow, 0.37 rad, 0.4 mrad: injected) and one it does not have (shoulder_pan,
+    0.5 mrad): the shoulder_pan term is dropped, judged on the session's registration rows,
+    the elbow's kept, and the held-out error is the simulated noise's; a model with the true
+    term alone loses nothing."""
+    from keo_service.fit.analysis import analyze
+
+    robot = robot_from_config(load_config(CONFIG))
+    chain = Chain(robot)
+    rng = np.random.default_rng(7)
+    n = 600
+    q = rng.uniform(-1.5, 1.5, size=(n, 6))
+    q[:, 1] = rng.uniform(-2.0, -0.6, n)
+    q[:, 2] = rng.uniform(-2.0, 2.0, n)
+    truth = ModelCorrections(nq=6, ripple=((2, 0.37, 4e-4, 0.0),))
+    R, p = chain.flange_frames(q, corr=truth, tau=chain.gravity_torques(q))
+    noise = 10e-6
+    data = Data(q, p.T + rng.normal(0, noise, size=(n, 3)), R.transpose(2, 0, 1), np.arange(n))
+    both = JointRipple(((2, 0.37), (0, 0.31)))
+    carried = analyze(
+        robot,
+        data,
+        False,
+        fixed_model=Model(chain, False, [both], np.r_[np.zeros(12), 4e-4, 0, 5e-4, 0]),
+    )
+    dropped = [d["joint"] for d in carried.report["carried_ripple"]["joints_dropped"]]
+    assert dropped == [robot.joint_names[0]]
+    kept = carried.model.find(JointRipple)
+    assert kept is not None
+    assert kept.terms == ((2, 0.37),)
+    # 10 um per coordinate: about 17 um of position error; the shoulder_pan term kept would
+    # move the probe by up to 0.5 mrad x its reach (about 0.5 mm)
+    assert carried.report["final"]["validation"]["pos_rms_mm"] < 0.03
+    alone = JointRipple(((2, 0.37),))
+    carried = analyze(
+        robot, data, False, fixed_model=Model(chain, False, [alone], np.r_[np.zeros(12), 4e-4, 0])
+    )
+    assert carried.report["carried_ripple"]["joints_dropped"] == []
+    assert carried.report["final"]["validation"]["pos_rms_mm"] < 0.03
+
+
 def test_no_spectrum_terms_without_a_ripple():
     robot = robot_from_config(load_config(CONFIG))
     chain = Chain(robot)

@@ -23,6 +23,7 @@ from keo_service.fit.effects import (
     EFFECTS,
     MAPS,
     JointMaps,
+    JointRipple,
     Temperature,
     TimeDrift,
     split_maps,
@@ -386,7 +387,70 @@ def _carried(
         model, x = _judge_carried_maps(model, x, rows.data, rows.train, rows.val, noise, report)
         kept = model.find(JointMaps) is not None
         say(f"carried joint maps {'kept' if kept else 'dropped'}")
+    if model.find(JointRipple) is not None:
+        model, x = _judge_carried_ripple(model, x, rows.train, noise, report)
+        dropped = report["carried_ripple"]["joints_dropped"]
+        if dropped:
+            say(f"carried periodic terms dropped on {', '.join(d['joint'] for d in dropped)}")
     return model, x
+
+
+def _judge_carried_ripple(
+    model: Model, x: np.ndarray, train: Data, noise: float, report: dict[str, Any]
+) -> tuple[Model, np.ndarray]:
+    """Carried periodic joint terms judged per joint, as the carried maps are
+    (_judge_carried_maps) and on the same rows (the new session's registration rows; the
+    held-out blocks stay untouched for the figures): joint by joint, the terms whose removal
+    lowers the error there are dropped. A term found in one session's spectrum can belong to
+    that session (docs/analyze.md: Series A's shoulder_pan terms raise its model's error on
+    Series B)."""
+    ripple = model.find(JointRipple)
+    assert ripple is not None
+    tau_tr = model.chain.gravity_torques(train.q)
+    names = model.chain.robot.joint_names
+    current = stats(model, x, train, tau_tr).judged_mm
+    dropped: list[dict[str, Any]] = []
+    for j in sorted({j for j, _p in ripple.terms}):
+        trial, x_trial = _without_ripple_of(model, x, j, train, tau_tr, noise)
+        rms = stats(trial, x_trial, train, tau_tr).judged_mm
+        if rms < current:
+            model, x, current = trial, x_trial, rms
+            dropped.append({"joint": names[j], "fitted_rows_pos_rms_mm_without": rms})
+    report["carried_ripple"] = {"joints_dropped": dropped, "fitted_rows_pos_rms_mm": current}
+    return model, x
+
+
+def _without_ripple_of(
+    model: Model, x: np.ndarray, joint: int, train: Data, tau_tr: np.ndarray, noise: float
+) -> tuple[Model, np.ndarray]:
+    """The carried model without joint `joint`'s periodic terms, its registration refitted
+    on the training rows with the robot model held."""
+    effects: list[Effect] = []
+    values: list[np.ndarray] = []
+    for effect, part in model.parts(x):
+        if isinstance(effect, JointRipple):
+            keep = [i for i, (j, _p) in enumerate(effect.terms) if j != joint]
+            if keep:
+                effects.append(JointRipple(tuple(effect.terms[i] for i in keep)))
+                values.append(np.concatenate([part[2 * i : 2 * i + 2] for i in keep]))
+            continue
+        effects.append(effect)
+        values.append(part)
+    x_new = np.concatenate([x[: model.n_reg], *values])
+    trial = Model(
+        model.chain,
+        model.position_only,
+        effects,
+        x_new,
+        {},
+        model.temperature_ref,
+        model.time_ref,
+        model.sessions,
+        model.tools,
+    )
+    fixed = np.zeros(x_new.size, dtype=bool)
+    fixed[trial.n_reg :] = True
+    return trial, fit(trial, train, tau_tr, x_new, noise, fixed=fixed).x
 
 
 def residual_scale(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> float:

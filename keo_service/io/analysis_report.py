@@ -21,7 +21,7 @@ from keo_service.core.errors import KeoError
 from keo_service.core.model_corrections import MAP_TAPER_RAD
 from keo_service.fit.accuracy import Accuracy, default_session_mm
 from keo_service.fit.analysis import Analysis, split_data
-from keo_service.fit.effects import JointMaps, config_fields, effect_from_config
+from keo_service.fit.effects import JointMaps, JointRipple, config_fields, effect_from_config
 from keo_service.fit.model import Data, Model
 from keo_service.fit.uncertainty import TrackerUncertainty
 from keo_service.io.config import Config, ModelConfig
@@ -442,6 +442,13 @@ def _carried_markdown(report: dict[str, Any]) -> list[str]:
                 if carried.get("joints_dropped")
                 else ""
             )
+        )
+    ripple = report.get("carried_ripple")
+    if ripple and ripple["joints_dropped"]:
+        lines.append(
+            f"- carried {JointRipple.name} terms of "
+            + ", ".join(d["joint"] for d in ripple["joints_dropped"])
+            + " dropped (they raised the error on this session's registration poses)"
         )
     predicted = report.get("predicted_vs_measured")
     if predicted:
