@@ -67,7 +67,12 @@ def ur10_table(folder: Path) -> str:  # noqa: C901
             )
         lines.append(
             f"| Series {reg_on} | model of Series {fit_on}"
-            + (" with its maps" if carried and carried["kept"] else "")
+            + (
+                " with its maps and periodic terms (per joint, as its registration poses "
+                "confirm them)"
+                if carried and carried["kept"]
+                else ""
+            )
             + f", registration only | {r['final']['validation']['n']} | "
             f"{stats(r['final']['validation'])} |"
         )
