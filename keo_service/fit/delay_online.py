@@ -568,7 +568,8 @@ class OnlineDelayTracker:
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """While the delay is not settled: this stretch's rows added to the pool (the
         encoder's without the rows the pool has already, stretches overlap there by 1 s),
-        the pool's older rows beyond `pool_s` dropped, and the pool's rows (encoder,
+        the pool's older stretches dropped once the next one starts more than `pool_s`
+        before its newest row (so it spans `pool_s` and one stretch), and the pool's rows (encoder,
         tracker, the tracker's thinned to `pool_rows`) when it holds more than this
         stretch and rows of both streams (an encoder silent while the tracker goes on
         leaves no pool: nothing to join). None once settled (the pool is emptied)."""
@@ -646,10 +647,8 @@ class OnlineDelayTracker:
         a delay). Short stretches' models, linear in the tool position over 2.5-10 s, take
         up most of a slow motion's delay signature (over a short stretch the velocity is
         nearly a line in time too) and with geometric errors are biased alike; over tens of
-        seconds the velocity turns and the same model leaves the signature standing: on the
-        scenario matrix's all-slow runs with geometric errors, 20 s pooled were 36-54 us off
-        (se 58-137 us) where the stretches' consensus was 300-480 us off
-        (docs/timing-delay.md). None: no usable pooled fit."""
+        seconds the velocity turns and the same model leaves the signature standing (the
+        scenario matrix's figures: docs/timing-delay.md). None: no usable pooled fit."""
         try:
             enc_t, enc_q, trk_t, trk_p, trk_q = _covered(pool, guess, self.max_gap_s)
             if enc_t.size < 20 or trk_t.size < 50:
@@ -824,9 +823,9 @@ class OnlineDelayTracker:
     ) -> None:
         """Keep a measurement's pooled fit (while not settled), its standard error with its
         error model's share beyond what its two models' disagreement shows: the stretches'
-        scatter beyond their own se (tau), as if shared by its stretches (a pool of two
-        2.5-5 s stretches, both models biased alike by geometric errors, was 4-7 of its own
-        se off: docs/timing-delay.md). A young clock mapping's stamps still move: its pooled
+        scatter beyond their own se (tau), as if shared by its stretches (a short pool's two
+        models can be biased alike by geometric errors, beyond their disagreement:
+        docs/timing-delay.md). A young clock mapping's stamps still move: its pooled
         fit is not kept (as its rough stretch fits are not taken alone), nor is one whose
         stretch's time is not known. A measurement without a pooled fit drops the one kept:
         a pooled fit is of the pool it was measured on, not to be taken again later under
@@ -861,8 +860,9 @@ class OnlineDelayTracker:
         self._take(value, se, t, step=True)
         self.counters["pooled_in_use"] += 1
         words = (
-            "the fit of all samples since the motion started in use (known better than the "
-            "stretches' consensus), until the stretches agree"
+            "the pooled fit (the samples since the delay was last unknown, up to the newest "
+            f"{self.settings.pool_s:g} s) in use (known better than the stretches gave), "
+            "until the stretches agree"
         )
         refused = self.decision.verdict == "kept" and self.state.startswith("fits_")
         self.decision = dataclasses.replace(
