@@ -225,3 +225,67 @@ def _pools(tracker, streams, fit: bool) -> list:
                 found = tracker.measure(stretch_arrays(stretch), 0.0, pool=pool_arrays(stretch))
                 tracker.combine(found)
     return pools
+
+
+def _feed(tracker, streams, t_from: float, t_to: float, encoder: bool, epoch: int = 0) -> list:
+    """Feed the streams' samples in [t_from, t_to) (the encoder's only when `encoder`, with
+    this `epoch`), each stretch fitted with its pool and folded in, as the service does:
+    the measurements."""
+    from keo_service.fit.delay_online import pool_arrays, stretch_arrays
+
+    found_all = []
+    enc = streams.enc_t
+    k = int(np.searchsorted(enc, t_from))
+    for i in np.flatnonzero((streams.trk_t >= t_from) & (streams.trk_t < t_to)).tolist():
+        t = float(streams.trk_t[i])
+        while encoder and k < enc.size and enc[k] <= t:
+            tracker.add_encoder(float(enc[k]), streams.enc_q[k], epoch=epoch, seq=k)
+            k += 1
+        tracker.add_tracker(t, streams.trk_p[i], streams.trk_quat[i])
+        if tracker.due():
+            stretch = tracker.take()
+            found = tracker.measure(stretch_arrays(stretch), 0.0, pool=pool_arrays(stretch))
+            tracker.combine(found)
+            found_all.append(found)
+    return found_all
+
+
+def test_a_stream_without_encoder_rows_gives_no_pool_and_no_error(demo_cell):
+    """The encoder silent (its adapter late or down) while the tracker's poses come, the
+    delay unknown: every stretch is refused for lack of data, none raises (a pool of
+    tracker rows alone has no encoder rows to join), nothing is taken, and the refusal
+    carries the stretch's end time."""
+    from keo_service.fit.delay_online import DelayRefused, OnlineDelayTracker
+    from keo_service.sim.delay_study import StreamCase, case_streams
+
+    streams = case_streams(demo_cell, StreamCase("motoros", "line100", "all_slow", seconds=12.0))
+    tracker = OnlineDelayTracker(demo_cell)
+    found = _feed(tracker, streams, 0.0, 12.0, encoder=False)
+    assert len(found) >= 3
+    assert all(isinstance(f, DelayRefused) and f.counter == "fits_without_data" for f in found)
+    assert all(math.isfinite(f.t) and f.t <= streams.trk_t[-1] for f in found)
+    assert tracker.counters["fits_without_data"] == len(found)
+    assert tracker.applied is None
+    assert not tracker.settled
+
+
+def test_an_encoder_restart_then_a_stall_gives_no_error(demo_cell):
+    """Both streams for 10 s (the delay unknown, a pool growing), then the encoder's time
+    base starts anew (a new epoch) and it falls silent while the tracker goes on 30 s: no stretch
+    after that raises, each is refused for lack of data, and no pooled fit from before the
+    restart is taken after it."""
+    from keo_service.fit.delay_online import DelayRefused, OnlineDelayTracker
+    from keo_service.sim.delay_study import StreamCase, case_streams
+
+    streams = case_streams(demo_cell, StreamCase("motoros", "line100", "all_slow", seconds=40.0))
+    tracker = OnlineDelayTracker(demo_cell)
+    _feed(tracker, streams, 0.0, 10.0, encoder=True)
+    k = int(np.searchsorted(streams.enc_t, 10.0))
+    tracker.add_encoder(float(streams.enc_t[k]), streams.enc_q[k], epoch=1, seq=0)  # restart
+    assert tracker.counters["restarts"] == 1
+    applied = tracker.applied
+    found = _feed(tracker, streams, 10.0, 40.0, encoder=False)
+    assert len(found) >= 2
+    assert all(isinstance(f, DelayRefused) and f.counter == "fits_without_data" for f in found)
+    assert tracker.applied == applied  # nothing new taken without encoder rows
+    assert tracker.pooled is None

@@ -93,11 +93,11 @@ def test_one_joint_from_an_unknown_delay_stays_flagged(demo_cell):
 def test_all_joints_slow_with_geometry_found_from_zero_within_50_um(demo_cell, encoder, seed):
     """All joints slow with configuration-dependent geometric errors, from delay_s = 0: 20 s
     after the motion starts the delay in use is within 50 um / 50 urad at the tool's speed,
-    every estimate until then flagged, and its stated se covers its error. The stretches'
-    consensus alone left rtde seed 1 483 us off (70 um) and motoros seed 0 396 us off
-    (64 um): short stretches' linear error models take up most of a slow motion's delay
-    signature and, with geometric errors, are biased alike; the pooled fit of all samples
-    since the motion started is not (docs/timing-delay.md)."""
+    every estimate until then flagged, and its stated se covers its error. These two runs
+    were the worst of the stretches' consensus alone: short stretches' linear error models
+    take up most of a slow motion's delay signature and, with geometric errors, are biased
+    alike; the pooled fit of the samples since the delay was unknown is not (figures in
+    docs/timing-delay.md)."""
     streams = case_streams(demo_cell, StreamCase(encoder, "line100", "all_slow", True), seed)
     run = run_tracker(demo_cell, streams, 0.0, None)
     at20 = streams.motion_start + 20.0

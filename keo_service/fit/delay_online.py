@@ -568,9 +568,11 @@ class OnlineDelayTracker:
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """While the delay is not settled: this stretch's rows added to the pool (the
         encoder's without the rows the pool has already, stretches overlap there by 1 s),
-        the pool's older rows beyond `pool_s` dropped, and the pool's rows (encoder,
+        the pool's older stretches dropped once the next one starts more than `pool_s`
+        before its newest row (so it spans `pool_s` and one stretch), and the pool's rows (encoder,
         tracker, the tracker's thinned to `pool_rows`) when it holds more than this
-        stretch. None once settled (the pool is emptied)."""
+        stretch and rows of both streams (an encoder silent while the tracker goes on
+        leaves no pool: nothing to join). None once settled (the pool is emptied)."""
         enc_pool, trk_pool = self._pool
         if self.settled:
             enc_pool.clear()
@@ -582,7 +584,7 @@ class OnlineDelayTracker:
             enc_pool.append(enc)
         if trk.shape[0]:
             trk_pool.append(trk)
-        if len(trk_pool) < 2:
+        if len(trk_pool) < 2 or sum(c.shape[0] for c in enc_pool) < 2:
             return None
         newest = float(trk_pool[-1][-1, 0])
         while len(trk_pool) > 2 and float(trk_pool[1][0, 0]) < newest - self.settings.pool_s:
@@ -645,17 +647,18 @@ class OnlineDelayTracker:
         a delay). Short stretches' models, linear in the tool position over 2.5-10 s, take
         up most of a slow motion's delay signature (over a short stretch the velocity is
         nearly a line in time too) and with geometric errors are biased alike; over tens of
-        seconds the velocity turns and the same model leaves the signature standing: on the
-        scenario matrix's all-slow runs with geometric errors, 20 s pooled were 36-54 us off
-        (se 58-137 us) where the stretches' consensus was 300-480 us off
-        (docs/timing-delay.md). None: no usable pooled fit."""
-        enc_t, enc_q, trk_t, trk_p, trk_q = _covered(pool, guess, self.max_gap_s)
-        if enc_t.size < 20 or trk_t.size < 50:
-            return None
-        sep = separable_se(trk_t, trk_p, trk_q)
-        if sep > self.max_se_s:
-            return None
-        fits = self._two_models(enc_t, enc_q, trk_t, trk_p, trk_q, guess)
+        seconds the velocity turns and the same model leaves the signature standing (the
+        scenario matrix's figures: docs/timing-delay.md). None: no usable pooled fit."""
+        try:
+            enc_t, enc_q, trk_t, trk_p, trk_q = _covered(pool, guess, self.max_gap_s)
+            if enc_t.size < 20 or trk_t.size < 50:
+                return None
+            sep = separable_se(trk_t, trk_p, trk_q)
+            if not sep <= self.max_se_s:
+                return None
+            fits = self._two_models(enc_t, enc_q, trk_t, trk_p, trk_q, guess)
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+            return None  # a pool the fit cannot use is no pooled fit: the stretch's stands
         if isinstance(fits, DelayNotIdentifiableError):
             return None
         fit = min(fits, key=lambda f: f.residual_rms_moving)
@@ -710,7 +713,8 @@ class OnlineDelayTracker:
         """The delay over one stretch, or why there is none."""
         enc_t, enc_q, trk_t, trk_p, trk_q = _covered(window, guess, self.max_gap_s)
         if enc_t.size < 20 or trk_t.size < 50:
-            return DelayRefused("fits_without_data", "not enough data in the stretch")
+            end = float(window[2][-1]) if window[2].size else math.nan
+            return DelayRefused("fits_without_data", "not enough data in the stretch", end)
         sep = separable_se(trk_t, trk_p, trk_q)
         if sep > self.max_se_s and _point_moves(trk_t, trk_p):  # at rest: the fit says so
             # the motion alone cannot tell a delay from a constant tool error and a slow
@@ -758,11 +762,11 @@ class OnlineDelayTracker:
         self._note_pooled(found, lines)
         if isinstance(found, DelayRefused):
             self._refused(found)
-            if self.settled or self.pooled is None:
-                return None
-            self._move_to(lines)  # the pooled fit is under the lines of its snapshot
-            return self._use_pooled(found.t, self.applied)
+            if not self.settled and self.pooled is not None:
+                self._move_to(lines)  # the pooled fit is under the lines of its snapshot
+            return self._with_pooled(found.t, self.applied)
         self._move_to(lines)  # the fit is under the lines of its snapshot
+        before = self.applied  # as moved under those lines
         value, se, speed = found.delay_s, found.se_s, found.speed_rms
         # young mappings' stamps still move; receipt and shared-clock stamps have no mapping
         provisional = found.t <= self._young_until and bool(lines)
@@ -774,7 +778,7 @@ class OnlineDelayTracker:
             self.counters["fits_refused_imprecise"] += 1
             self.decision = DelayDecision("kept", "the fit gave no usable value", t=found.t)
             self.state = "fits_refused_imprecise"
-            return None
+            return self._with_pooled(found.t, before)
         self.counters["fits_accepted"] += 1  # usable: they join the recent fits
         self._recent.append(
             _Fit(
@@ -795,7 +799,6 @@ class OnlineDelayTracker:
             self._history.append((value, own, self._segment, found.described_t))
         if not self._carried and self._confirms(self._recent[-1]):
             self._set_source("confirmed", found.t)
-        before = self.applied
         newest = self._recent[-1]
         decision = dataclasses.replace(
             self._decide(found.t),
@@ -805,10 +808,9 @@ class OnlineDelayTracker:
             t=found.t,
         )
         self.decision, self.state = decision, decision.verdict
-        if not self.settled and self._use_pooled(found.t, before) is not None:
-            return self.delay_now()
-        if self.applied != before:
-            return self.delay_now()
+        changed = self._with_pooled(found.t, before)
+        if changed is not None or not self.settled:
+            return changed
         refined = self._refine(found, provisional) if self.settled else None
         if refined is None:
             return None
@@ -821,31 +823,46 @@ class OnlineDelayTracker:
     ) -> None:
         """Keep a measurement's pooled fit (while not settled), its standard error with its
         error model's share beyond what its two models' disagreement shows: the stretches'
-        scatter beyond their own se (tau), as if shared by its stretches (a pool of two
-        2.5-5 s stretches, both models biased alike by geometric errors, was 4-7 of its own
-        se off: docs/timing-delay.md). A young clock mapping's stamps still move: its pooled
-        fit is not kept (as its rough stretch fits are not taken alone)."""
-        young = found.t <= self._young_until and bool(lines)
+        scatter beyond their own se (tau), as if shared by its stretches (a short pool's two
+        models can be biased alike by geometric errors, beyond their disagreement:
+        docs/timing-delay.md). A young clock mapping's stamps still move: its pooled
+        fit is not kept (as its rough stretch fits are not taken alone), nor is one whose
+        stretch's time is not known. A measurement without a pooled fit drops the one kept:
+        a pooled fit is of the pool it was measured on, not to be taken again later under
+        a newer time as if new."""
+        young = not found.t > self._young_until and bool(lines)
         if self.settled or young or not (math.isfinite(found.pooled_s) and found.pooled_se_s > 0):
+            self.pooled = None
             return
         share = self._tau2() / max(self._pool_stretches, 1)
         self.pooled = (found.pooled_s, math.sqrt(found.pooled_se_s**2 + share))
 
-    def _use_pooled(self, t: float, before: float | None) -> float | None:
-        """While the delay is not settled: the pooled fit in use when it is known better
-        than what the stretches gave (their consensus, or the first fit). The delay to use
-        now if the delay in use is no longer `before`, else None. The flag stays: settling
-        is still the stretches' agreement (`_decide_unsettled`)."""
-        if self.settled or self.pooled is None:
-            return None
+    def _with_pooled(self, t: float, before: float | None) -> float | None:
+        """Where every measurement's folding in ends: while the delay is not settled, the
+        newest pooled fit in use when it is known better than what the stretches gave
+        (their consensus, or the first fit), whatever the stretch's own fit was (taken,
+        refused or imprecise); once settled, the pooled fit dropped. The delay to use now
+        if the delay in use is no longer `before`, else None. The flag stays: settling is
+        still the stretches' agreement (`_decide_unsettled`)."""
+        if self.settled:
+            self.pooled = None
+        else:
+            self._use_pooled(t)
+        return self.delay_now() if self.applied != before else None
+
+    def _use_pooled(self, t: float) -> None:
+        """The newest pooled fit in use if it is known better than the delay in use."""
+        if self.pooled is None or not math.isfinite(t):
+            return
         value, se = self.pooled
         if self.applied_se is not None and not se < self.applied_se:
-            return None
+            return
         self._take(value, se, t, step=True)
         self.counters["pooled_in_use"] += 1
         words = (
-            "the fit of all samples since the motion started in use (known better than the "
-            "stretches' consensus), until the stretches agree"
+            "the pooled fit (the samples since the delay was last unknown, up to the newest "
+            f"{self.settings.pool_s:g} s) in use (known better than the stretches gave), "
+            "until the stretches agree"
         )
         refused = self.decision.verdict == "kept" and self.state.startswith("fits_")
         self.decision = dataclasses.replace(
@@ -855,7 +872,6 @@ class OnlineDelayTracker:
         )
         if not refused:  # a refusal keeps its kind: the service says its advice once
             self.state = "unsettled"
-        return self.delay_now() if self.applied != before else None
 
     def honest_se(
         self, own_se: float, model_s: float = math.nan, sep_se_s: float = math.nan
@@ -1253,6 +1269,9 @@ class OnlineDelayTracker:
         self._set_source("configured" if known else "unknown")
         self.decision = DelayDecision("restarted", "the delay was set anew (a reload)")
         self.state = "restarted"
+        # counted as a start anew, as a new time base is: a fit in flight across the reload
+        # (the service compares this count) is of samples from before it, and is dropped
+        self.counters["restarts"] += 1
         self._start_anew()
 
 
