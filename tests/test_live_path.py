@@ -242,3 +242,29 @@ def test_estimates_carry_the_configured_delays_se_with_tracking_off_also_after_a
     service.reload(with_timing(delay_s=0.0, delay_se_s=0.0003))
     assert service.to_message(estimate).delay_se_s is None
     assert service.delay_se() is None
+
+
+def test_the_only_sink_called_directly_still_fails_loudly(demo_config, demo_cell):
+    """With one sink the service calls it without the fan-out's loop; a sink that raises is
+    still counted (`sink_failed_<name>`) and the data path fails with `SinkFailedError`,
+    the cause chained, as through the fan-out."""
+    from keo_service.live.service import KeoService
+    from keo_service.live.sinks import SinkFailedError
+    from keo_service.sim.simulate import make_scenario, simulate
+
+    class Broken(_Kept):
+        name = "broken"
+
+        def on_estimate(self, estimate: object, message: object) -> None:
+            raise ValueError("inside the sink")
+
+    config = loopback_config(demo_config)
+    sets = {"tracker_rate_hz": "1000", "encoder_rate_hz": "250", "duration_s": "1"}
+    wire = _wire(simulate(demo_cell, make_scenario("path", sets), seed=3), 1.7e9)
+    service = KeoService(config)
+    service.sinks.add(Broken())  # type: ignore[arg-type]
+    assert service.sinks.only_estimate is not None
+    with pytest.raises(SinkFailedError) as failed:
+        service._handle(wire)
+    assert isinstance(failed.value.__cause__, ValueError)
+    assert service.sinks.counters()["sink_failed_broken"] == 1

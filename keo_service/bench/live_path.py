@@ -253,11 +253,12 @@ def stages(  # noqa: C901
     # the estimates and their messages as one whole run made them
     service = make_service(config)
     drive(service, wire)
+    from keo_service.live.sinks import Sinks
+
     kept: list[Any] = []
     bus = service.sinks.sinks[-1]
-    service.sinks.sinks[-1] = _Keep(kept)
     service2 = make_service(config)
-    service2.sinks.sinks[-1] = _Keep(kept)
+    service2.sinks = Sinks([_Keep(kept)])
     drive(service2, wire)
     estimates = [e for e, _m in kept]
     messages = [m for _e, m in kept]

@@ -423,27 +423,49 @@ class KeoService:
             self._messages.append(text)
 
     def _publish(self, estimate: Estimate, now: float) -> None:
-        """One estimate out to every configured sink (`keo_service.live.sinks`)."""
+        """One estimate out to every configured sink (`keo_service.live.sinks`). With one sink
+        (the bus alone, the default) it is called directly, one frame fewer per estimate;
+        a failure there takes the fan-out's careful path (counted, logged, raised)."""
         self._seq += 1
         self._tick_estimate(now)
         if not estimate.held:
             self._last_estimate_wall = now
-        self.sinks.on_estimate(estimate, self.to_message(estimate))
+        message = self.to_message(estimate)
+        only = self.sinks.only_estimate
+        if only is None:
+            self.sinks.on_estimate(estimate, message)
+            return
+        try:
+            only(estimate, message)
+        except Exception as exc:
+            self.sinks.estimate_failed(0, exc, estimate, message)
 
     def to_message(self, estimate: Estimate) -> EstimateMessage:
-        """The estimate's wire form, with the delay's state as now."""
+        """The estimate's wire form, with the delay's state as now (`delay_state` and
+        `delay_se` written out: this runs per estimate)."""
         tracker = self._delay_tracker
         stamp, delay = estimate.stamp, self.estimator.delay
+        flags: tuple[str, ...] = ()
+        if tracker is None:
+            se, state = self._configured_se, None
+        else:
+            se = tracker.applied_se
+            if tracker.decision is not self._delay_state_for:
+                self._delay_state_for = tracker.decision
+                self._delay_state = _delay_state_of(tracker)
+            state = self._delay_state
+            # the delay in use is not known yet (found from the motion): every estimate says so
+            if not tracker.settled:
+                flags = UNSETTLED
         return estimate_message(
             estimate,
             host_ns=time.time_ns(),
             seq=self._seq,
             delay_s=delay.offset_s + delay.drift * (stamp - delay.t_ref),  # `delay.at(stamp)`
-            delay_se_s=self.delay_se(),
+            delay_se_s=se,
             tool_speed_m_s=self._tool_speed.at(stamp),
-            delay_state=self.delay_state(),
-            # the delay in use is not known yet (found from the motion): every estimate says so
-            more_flags=UNSETTLED if tracker is not None and not tracker.settled else (),
+            delay_state=state,
+            more_flags=flags,
         )
 
     def delay_state(self) -> DelayState | None:
