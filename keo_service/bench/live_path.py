@@ -375,6 +375,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--passes", type=int, default=5)
     parser.add_argument("--paced", action="store_true")
+    parser.add_argument("--whole-only", action="store_true", help="no stage table")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     config = loopback_config(load_config(args.config))
@@ -384,8 +385,9 @@ def main(argv: list[str] | None = None) -> int:
         "paced": args.paced,
         "wire_samples": len(wire),
         "whole": whole(config, wire, args.passes, args.paced),
-        "stages": stages(config, wire, args.passes),
     }
+    if not args.whole_only:
+        out["stages"] = stages(config, wire, args.passes)
     if args.json:
         print(json.dumps(out))
     else:

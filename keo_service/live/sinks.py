@@ -97,6 +97,9 @@ class Sinks:
         self._inputs: list[Sink] = []  # the sinks with an `on_input` of their own
         self.failures: collections.Counter[str] = collections.Counter()
         self.only_estimate: Callable[[Estimate, EstimateMessage], None] | None = None
+        # whether any sink takes the input samples (else `on_input` need not be called): an
+        # attribute, read at every wake-up
+        self.takes_input = False
         for sink in sinks:
             self.add(sink)
 
@@ -107,11 +110,7 @@ class Sinks:
         # with one sink, the service calls its `on_estimate` itself (one frame fewer per
         # estimate) and `estimate_failed` when it raises
         self.only_estimate = self.sinks[0].on_estimate if len(self.sinks) == 1 else None
-
-    @property
-    def takes_input(self) -> bool:
-        """Whether any sink takes the input samples (else `on_input` need not be called)."""
-        return bool(self._inputs)
+        self.takes_input = bool(self._inputs)
 
     def _failed(self, what: str, sink: Sink, exc: Exception) -> None:
         self.failures[sink.name] += 1
