@@ -154,17 +154,23 @@ def delay_poll(service: Any) -> tuple[float, float]:
 
 
 def drive(
-    service: Any, wire: list[tuple[float, str, bytes]], paced: bool = False
+    service: Any,
+    wire: list[tuple[float, str, bytes]],
+    paced: bool = False,
+    handle: Callable[[list[tuple[str, bytes]]], None] | None = None,
 ) -> dict[str, float]:
     """The wire through `_handle` in wake-ups of `WAKE_SIZES`, the delay poll every 0.25 s of
     stream time. Returns the thread's CPU (s) without the fits, the fits' CPU, the delay
-    poll's time on the loop without its fits (performance counter, s), samples."""
-    handle = service._handle
+    poll's time on the loop without its fits (performance counter, s), samples. `handle`:
+    another handler in the service's place (the relay's; `service` None: no delay poll)."""
+    handle = handle or service._handle
     thread_time = time.thread_time
     fits = poll_s = 0.0
     i, k, n = 0, 0, len(wire)
     next_poll = wire[0][0] + DELAY_POLL_S
     feed = getattr(service, "_feed_delay", None)  # the status loop's, every 0.1 s
+    if service is None:
+        next_poll = math.inf
     next_feed = wire[0][0] + STATUS_PERIOD_S
     wall0 = time.monotonic() - wire[0][0]
     start = thread_time()
@@ -353,19 +359,72 @@ def _intake(config: Config, msgs: list[Any]) -> int:
     return len(msgs)
 
 
+def calls(config: Config, wire: list[tuple[float, str, bytes]]) -> dict[str, float]:
+    """Calls per wire sample inside `_handle` (`sys.setprofile`: Python functions entered and
+    C functions called), deterministic; the delay poll and the block intake outside it run
+    unprofiled (their calls are once per block: given apart, per wire sample)."""
+    service = make_service(config)
+    handle = service._handle
+    counts = {"call": 0, "c_call": 0}
+
+    def count(frame: Any, event: str, arg: Any) -> None:
+        if event in counts:
+            counts[event] += 1
+
+    block = {"call": 0, "c_call": 0}
+
+    def count_block(frame: Any, event: str, arg: Any) -> None:
+        if event in block:
+            block[event] += 1
+
+    feed = getattr(service, "_feed_delay", None)
+    k = i = 0
+    next_feed = wire[0][0] + STATUS_PERIOD_S
+    while i < len(wire):
+        size = WAKE_SIZES[k % len(WAKE_SIZES)]
+        k += 1
+        batch = [(key, payload) for _s, key, payload in wire[i : i + size]]
+        stamp = wire[min(i + size, len(wire)) - 1][0]
+        i += size
+        sys.setprofile(count)
+        handle(batch)
+        sys.setprofile(None)
+        if feed is not None and stamp >= next_feed:
+            next_feed += STATUS_PERIOD_S
+            sys.setprofile(count_block)
+            feed()
+            sys.setprofile(None)
+    n = len(wire)
+    return {
+        "python_calls": round(counts["call"] / n, 2),
+        "c_calls": round(counts["c_call"] / n, 2),
+        "block_intake_python_calls": round(block["call"] / n, 3),
+        "block_intake_c_calls": round(block["c_call"] / n, 2),
+    }
+
+
 def whole(
     config: Config, wire: list[tuple[float, str, bytes]], passes: int, paced: bool = False
 ) -> dict[str, Any]:
-    """`passes` runs of a fresh service each: the thread's CPU per wire sample (us)."""
-    each = []
+    """`passes` runs of a fresh service each, alternating with the bench's relay handler
+    (`bench.relay.relay_handler`, the transport floor's own work): the thread's CPU per wire
+    sample (us), and the service's over the relay's, pair by pair."""
+    from keo_service.bench.relay import relay_handler
+
+    each, floor = [], []
     for _ in range(passes):
-        service = make_service(config)
-        ran = drive(service, wire, paced)
+        ran = drive(make_service(config), wire, paced)
         each.append(ran["cpu_s"] / ran["samples"] * 1e6)
+        ran = drive(None, wire, paced, relay_handler(_Put()))
+        floor.append(ran["cpu_s"] / ran["samples"] * 1e6)
+    ratios = [a / b for a, b in zip(each, floor, strict=True)]
     return {
         "us_per_sample_min": round(min(each), 2),
         "us_per_sample_median": round(statistics.median(each), 2),
         "each": [round(v, 2) for v in each],
+        "relay_us_per_sample_median": round(statistics.median(floor), 2),
+        "relay_each": [round(v, 2) for v in floor],
+        "over_relay_median": round(statistics.median(ratios), 3),
     }
 
 
@@ -387,6 +446,7 @@ def main(argv: list[str] | None = None) -> int:
         "whole": whole(config, wire, args.passes, args.paced),
     }
     if not args.whole_only:
+        out["calls_per_sample"] = calls(config, wire)
         out["stages"] = stages(config, wire, args.passes)
     if args.json:
         print(json.dumps(out))
