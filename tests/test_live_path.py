@@ -268,3 +268,36 @@ def test_the_only_sink_called_directly_still_fails_loudly(demo_config, demo_cell
         service._handle(wire)
     assert isinstance(failed.value.__cause__, ValueError)
     assert service.sinks.counters()["sink_failed_broken"] == 1
+
+
+def test_the_delay_trackers_block_reaches_it_before_a_reload_sets_the_delay(
+    demo_config, demo_cell, monkeypatch
+):
+    """Tracking on: the samples not yet handed to the delay tracker (its list, a block every
+    0.1 s) reach it at a reload that sets the delay by hand, before that delay is set, and
+    the estimator uses the delay the reload gave, the tracker starting from it as a prior.
+    The list is bounded: a wake-up that leaves `DELAY_INBOX` samples on it hands them over."""
+    from keo_service.live.service import DELAY_INBOX, KeoService
+    from keo_service.sim.simulate import make_scenario, simulate
+
+    config = loopback_config(demo_config)
+    sets = {"tracker_rate_hz": "1000", "encoder_rate_hz": "250", "duration_s": "1"}
+    wire = _wire(simulate(demo_cell, make_scenario("path", sets), seed=3), 1.7e9)
+    service = KeoService(config)
+    service.sinks.add(_Kept())  # type: ignore[arg-type]
+    monkeypatch.setattr(service, "_refresh_status", lambda: None)  # no session here
+    tracker = service._delay_tracker
+    assert tracker is not None
+    service._handle(wire[:300])
+    assert len(service._delay_inbox) == 300
+    assert len(tracker._trk) == 0
+    timing = msgspec.structs.replace(config.timing, delay_s=0.031, delay_se_s=0.0004)
+    applied, _ = service.reload(msgspec.structs.replace(config, timing=timing))
+    assert "timing.delay_s" in applied
+    assert service._delay_inbox == []
+    assert len(tracker._trk) > 200  # the tracker samples among the 300 (poses, not gaps)
+    assert service.estimator.delay.offset_s == 0.031
+    assert (tracker.delay_now(), tracker.applied_se) == (0.031, 0.0004)
+    many = (wire * (DELAY_INBOX // len(wire) + 2))[:DELAY_INBOX]
+    service._handle(many)  # the stamps repeat: the estimator refuses them, the list fills
+    assert service._delay_inbox == []

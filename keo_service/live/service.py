@@ -630,9 +630,11 @@ class KeoService:
             self.estimator.set_gains(new.observer.gain)
         if {"timing.delay_s", "timing.drift_ppm", "timing.drift_ref_s"} & set(applied):
             timing = new.timing
+            # the samples before the reload into the tracker first, as they came (so that
+            # nothing it followed from them lands after the delay set by hand)
+            self._feed_delay()
             self.estimator.set_delay(delay_model(timing))
             if self._delay_tracker is not None:
-                self._feed_delay()  # the samples before the reload, as they came
                 # tracking goes on from the delay set by hand, a prior as at start
                 self._delay_tracker.forget(*delay_prior(timing))
                 self._delay_log.forget(self._delay_tracker.delay_now())
