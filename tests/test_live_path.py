@@ -242,3 +242,62 @@ def test_estimates_carry_the_configured_delays_se_with_tracking_off_also_after_a
     service.reload(with_timing(delay_s=0.0, delay_se_s=0.0003))
     assert service.to_message(estimate).delay_se_s is None
     assert service.delay_se() is None
+
+
+def test_the_only_sink_called_directly_still_fails_loudly(demo_config, demo_cell):
+    """With one sink the service calls it without the fan-out's loop; a sink that raises is
+    still counted (`sink_failed_<name>`) and the data path fails with `SinkFailedError`,
+    the cause chained, as through the fan-out."""
+    from keo_service.live.service import KeoService
+    from keo_service.live.sinks import SinkFailedError
+    from keo_service.sim.simulate import make_scenario, simulate
+
+    class Broken(_Kept):
+        name = "broken"
+
+        def on_estimate(self, estimate: object, message: object) -> None:
+            raise ValueError("inside the sink")
+
+    config = loopback_config(demo_config)
+    sets = {"tracker_rate_hz": "1000", "encoder_rate_hz": "250", "duration_s": "1"}
+    wire = _wire(simulate(demo_cell, make_scenario("path", sets), seed=3), 1.7e9)
+    service = KeoService(config)
+    service.sinks.add(Broken())  # type: ignore[arg-type]
+    assert service.sinks.only_estimate is not None
+    with pytest.raises(SinkFailedError) as failed:
+        service._handle(wire)
+    assert isinstance(failed.value.__cause__, ValueError)
+    assert service.sinks.counters()["sink_failed_broken"] == 1
+
+
+def test_the_delay_trackers_block_reaches_it_before_a_reload_sets_the_delay(
+    demo_config, demo_cell, monkeypatch
+):
+    """Tracking on: the samples not yet handed to the delay tracker (its list, a block every
+    0.1 s) reach it at a reload that sets the delay by hand, before that delay is set, and
+    the estimator uses the delay the reload gave, the tracker starting from it as a prior.
+    The list is bounded: a wake-up that leaves `DELAY_INBOX` samples on it hands them over."""
+    from keo_service.live.service import DELAY_INBOX, KeoService
+    from keo_service.sim.simulate import make_scenario, simulate
+
+    config = loopback_config(demo_config)
+    sets = {"tracker_rate_hz": "1000", "encoder_rate_hz": "250", "duration_s": "1"}
+    wire = _wire(simulate(demo_cell, make_scenario("path", sets), seed=3), 1.7e9)
+    service = KeoService(config)
+    service.sinks.add(_Kept())  # type: ignore[arg-type]
+    monkeypatch.setattr(service, "_refresh_status", lambda: None)  # no session here
+    tracker = service._delay_tracker
+    assert tracker is not None
+    service._handle(wire[:300])
+    assert len(service._delay_inbox) == 300
+    assert len(tracker._trk) == 0
+    timing = msgspec.structs.replace(config.timing, delay_s=0.031, delay_se_s=0.0004)
+    applied, _ = service.reload(msgspec.structs.replace(config, timing=timing))
+    assert "timing.delay_s" in applied
+    assert service._delay_inbox == []
+    assert len(tracker._trk) > 200  # the tracker samples among the 300 (poses, not gaps)
+    assert service.estimator.delay.offset_s == 0.031
+    assert (tracker.delay_now(), tracker.applied_se) == (0.031, 0.0004)
+    many = (wire * (DELAY_INBOX // len(wire) + 2))[:DELAY_INBOX]
+    service._handle(many)  # the stamps repeat: the estimator refuses them, the list fills
+    assert service._delay_inbox == []

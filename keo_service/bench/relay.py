@@ -14,6 +14,8 @@ import argparse
 import asyncio
 import signal
 import time
+from collections.abc import Callable
+from typing import Any
 
 from keo_service.core.kinematics import POSE_CHANNELS
 from keo_service.io.config import Config, load_config
@@ -21,13 +23,10 @@ from keo_service.live.bus import AsyncSubscription, session_for_service
 from keo_service.live.messages import EstimateMessage, TrackerSample, decode, encode, topic
 
 
-async def relay(config: Config) -> None:
-    session = session_for_service(config)
-    pub = session.declare_publisher(topic(config.cell, "estimate"), express=True)
-    sub = AsyncSubscription(session, [topic(config.cell, "encoder"), topic(config.cell, "tracker")])
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, sub.close)
+def relay_handler(pub: Any) -> Callable[[list[tuple[str, bytes]]], None]:
+    """The relay's work per wake-up: decode each sample, and for each tracker pose put a
+    zero estimate message on `pub` (anything with `put(bytes)`). Also what
+    `bench.live_path` runs in process as the floor beside the service's `_handle`."""
     channels = list(POSE_CHANNELS)
     zeros = [0.0] * len(channels)
     seq = 0
@@ -52,7 +51,18 @@ async def relay(config: Config) -> None:
             )
             pub.put(encode(out))
 
-    await sub.deliver(handle)  # the service's own hand-off from Zenoh's thread to the loop
+    return handle
+
+
+async def relay(config: Config) -> None:
+    session = session_for_service(config)
+    pub = session.declare_publisher(topic(config.cell, "estimate"), express=True)
+    sub = AsyncSubscription(session, [topic(config.cell, "encoder"), topic(config.cell, "tracker")])
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, sub.close)
+    # the service's own hand-off from Zenoh's thread to the loop
+    await sub.deliver(relay_handler(pub))
     session.close()
 
 

@@ -41,6 +41,8 @@ STAGES: dict[str, list[tuple[str, str]]] = {
         ("keo_service.core.estimator", "Estimator.on_encoder"),
     ],
     "delay tracker (per sample, on the loop)": [
+        # since issue 48's ninth round a block every 0.1 s (`_feed_delay`, `add_samples`)
+        ("keo_service.live.service", "KeoService._feed_delay"),
         ("keo_service.fit.delay_online", "OnlineDelayTracker.add_tracker"),
         ("keo_service.fit.delay_online", "OnlineDelayTracker.add_encoder"),
         ("keo_service.fit.delay_online", "OnlineDelayTracker.delay_now"),

@@ -206,7 +206,10 @@ class Estimator:
         self.messages = self._rejects.messages
         self.observer: KinematicErrorObserver | None = None
         self.channels: tuple[str, ...] | None = None
-        self._delay = settings.delay
+        # the delay in use: offset (s) and drift (s/s) of the tracker behind the encoder; an
+        # attribute, not a property, as the service reads it for every estimate it publishes
+        # (set it with `set_delay` / `set_delay_target`)
+        self.delay: DelayModel = settings.delay
         self._delay_target: float | None = None
         self._prev_q: np.ndarray | None = None
         self._direction = np.zeros(self._nq)  # each joint's direction of its last move
@@ -229,11 +232,6 @@ class Estimator:
 
     # ---- public -------------------------------------------------------------------------
 
-    @property
-    def delay(self) -> DelayModel:
-        """The delay in use: offset (s) and drift (s/s) of the tracker behind the encoder."""
-        return self._delay
-
     def set_delay(self, delay: DelayModel) -> None:
         """Use `delay` from the next sample on, as a step (a pending target is dropped).
 
@@ -241,7 +239,7 @@ class Estimator:
             delay: offset (s) and drift (s/s): the tracker sample stamped t is compared with
                 the joints at t - delay.at(t).
         """
-        self._delay = delay
+        self.delay = delay
         self._delay_target = None
 
     def set_delay_target(self, offset_s: float) -> None:
@@ -257,12 +255,12 @@ class Estimator:
         if self._delay_target is None or not math.isfinite(self._last_tracker_t):
             return
         dt = min(max(t - self._last_tracker_t, 0.0), 1.0)
-        gap = self._delay_target - self._delay.offset_s
+        gap = self._delay_target - self.delay.offset_s
         step = max(-DELAY_SLEW * dt, min(DELAY_SLEW * dt, gap))
         # built directly: `dataclasses.replace` introspects the fields at every call, and this
         # runs per tracker sample for the seconds a slew lasts (docs/performance.md)
-        delay = self._delay
-        self._delay = DelayModel(delay.offset_s + step, delay.drift, delay.t_ref)
+        delay = self.delay
+        self.delay = DelayModel(delay.offset_s + step, delay.drift, delay.t_ref)
         if step == gap:
             self._delay_target = None
 
@@ -379,7 +377,7 @@ class Estimator:
         self._last_tracker_t = t
         self.counters["tracker_samples"] += 1
         if self._interpolating and not self._pending:
-            delay = self._delay  # `DelayModel.encoder_time`, its arithmetic inline
+            delay = self.delay  # `DelayModel.encoder_time`, its arithmetic inline
             target = t - (delay.offset_s + delay.drift * (t - delay.t_ref))
             encoder = self.encoder
             if encoder.newest_t >= target:  # the steady state: nothing waits
@@ -391,7 +389,27 @@ class Estimator:
                         measured = measured_error_folded(folded, self._folded_data, q, sensor)
                     else:
                         measured = self._measure(q, sensor)
-                    return [self._update(t, measured, target, q, device_stamp)]
+                    last_update, cap = self._last_update_t, self._step_cap
+                    if (
+                        last_update is None
+                        or cap is None
+                        or self._dt_seen % CAP_REFRESH == 0
+                        or self._check_ranges
+                    ):
+                        return [self._update(t, measured, target, q, device_stamp)]
+                    # `_update`'s steady state spelled out: one Python frame fewer per sample
+                    observer, dt = self.observer, t - last_update
+                    assert observer is not None
+                    if not observer.update(measured, cap if dt > cap else dt):
+                        self.counters[OBSERVER_REJECTED] += 1
+                        return [self._held(t, OBSERVER_REJECTED, target, device_stamp)]
+                    self._last_update_t = t
+                    self.counters["estimates"] += 1
+                    est = Estimate(
+                        t, measured, observer.values, (), target, channels, q, device_stamp
+                    )
+                    self.last = est
+                    return [est]
                 reason = held_reason(q, target, encoder.newest_t, self._buffer_s)
                 assert reason is not None
                 return [self._held(t, reason, target, device_stamp)]
@@ -449,7 +467,7 @@ class Estimator:
                 self._next_tick = sample.stamp
             return self._run_ticks(final=False)
         if not self._pending and (
-            sample.sensor is None or self.encoder.newest_t >= self._delay.encoder_time(sample.stamp)
+            sample.sensor is None or self.encoder.newest_t >= self.delay.encoder_time(sample.stamp)
         ):
             return [self._resolve(sample)]  # the steady state: nothing waits, no queueing
         if len(self._pending) >= MAX_PENDING:
@@ -468,7 +486,7 @@ class Estimator:
         while self._pending:
             head = self._pending[0]
             if head.sensor is not None:
-                target = self._delay.encoder_time(head.stamp)
+                target = self.delay.encoder_time(head.stamp)
                 waited = self._last_tracker_t - head.stamp
                 if waits_for_encoder(
                     self.encoder.newest_t, target, waited, self.settings.stale_after_s
@@ -481,7 +499,7 @@ class Estimator:
     def _resolve(self, sample: _TrackerSample) -> Estimate:
         if sample.sensor is None:
             return self._held(sample.stamp, TRACKER_GAP, None, sample.device_stamp)
-        target = self._delay.encoder_time(sample.stamp)
+        target = self.delay.encoder_time(sample.stamp)
         return self._resolve_at(sample.stamp, target, sample.sensor, sample.device_stamp)
 
     def _resolve_at(
@@ -582,7 +600,7 @@ class Estimator:
             tau = self._next_tick
             if tau > newest_tracker:
                 break
-            target = self._delay.encoder_time(tau)
+            target = self.delay.encoder_time(tau)
             if not final and waits_for_encoder(
                 self.encoder.newest_t, target, newest_tracker - tau, self.settings.stale_after_s
             ):

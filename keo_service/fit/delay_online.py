@@ -371,6 +371,82 @@ class OnlineDelayTracker:
             dev = math.nan if device is None else device
             rows.append((t, *p, *(_NO_QUAT if quat is None else quat), dev))
 
+    # complexity (C901, PLR0912, PLR0915): `_source`, `_line` and both streams' checks inline,
+    # one loop over the block (a Python call per sample is what this method saves)
+    def add_samples(  # noqa: C901, PLR0912, PLR0915
+        self, samples: Sequence[Any], tracker_type: type
+    ) -> None:
+        """Many samples at once, in arrival order: each exactly as `add_tracker` (those of
+        `tracker_type`, a pose; a gap, with no position, is skipped) or `add_encoder` (the
+        others) takes it, the same checks, restarts and lines, in one call. The samples are
+        the wire's messages as decoded (their fields by name: stamp, position, quaternion or
+        joints, clock_epoch, seq, flags, device_stamp, clock_drift). Why: the service hands
+        its samples over a block at a time, so that no Python call per sample is left on the
+        data path for this (docs/performance.md)."""
+        isfinite, nan = math.isfinite, math.nan
+        sources, newest, counters = self._sources, self._newest_rows, self.counters
+        enc_rows: list[tuple[float, ...]] = []
+        trk_rows: list[tuple[float, ...]] = []
+        enc_last, trk_last = self._enc.last, self._trk.last
+        enc_width = self._enc.width
+        start = self._start
+        for m in samples:
+            is_trk = type(m) is tracker_type
+            if is_trk:
+                p = m.position
+                if p is None:
+                    continue
+                stream = "tracker"
+            else:
+                stream = "encoder"
+            t, epoch, seq = m.stamp, m.clock_epoch, m.seq
+            # `_source`
+            known = sources.get(stream)
+            if isfinite(t) and math.isnan(self._young_until):
+                self._young_until = t + self.young_s
+            sources[stream] = (epoch, seq)
+            if known is not None and (epoch != known[0] or (seq < known[1] and epoch == 0)):
+                self.restart(t, f"the {stream} time base started anew")  # clears the buffers
+                enc_rows.clear()
+                trk_rows.clear()
+                enc_last = trk_last = -math.inf
+                start = self._start
+            # `_line`
+            dev = m.device_stamp
+            device = nan
+            if dev is not None and isfinite(dev):
+                drift = m.clock_drift
+                if drift is not None and isfinite(drift) and isfinite(t):
+                    newest[stream] = (t, dev, drift)
+                    self._newest_made = None
+                if stream in newest:
+                    device = dev
+            if m.flags or t < start:
+                counters[f"{stream}_left_out"] += 1
+                continue
+            if is_trk:
+                quat = m.quaternion
+                finite = all(map(isfinite, p)) and (quat is None or all(map(isfinite, quat)))
+                if isfinite(t) and finite and t > trk_last:
+                    if len(p) != 3 or (quat is not None and len(quat) != 4):
+                        counters["tracker_wrong_length"] += 1
+                        continue
+                    trk_rows.append((t, *p, *(_NO_QUAT if quat is None else quat), device))
+                    trk_last = t
+            else:
+                q = m.joints
+                if isfinite(t) and all(map(isfinite, q)) and t > enc_last:
+                    if enc_width and len(q) + 2 != enc_width:
+                        counters["encoder_wrong_length"] += 1
+                        continue
+                    enc_rows.append((t, *q, device))
+                    enc_width = enc_width or len(q) + 2
+                    enc_last = t
+        if enc_rows:
+            self._enc.extend(enc_rows)
+        if trk_rows:
+            self._trk.extend(trk_rows)
+
     def _line(
         self, stream: str, t: float, device_stamp: float | None, drift: float | None
     ) -> float | None:
@@ -1524,6 +1600,21 @@ class _Rows:
                 self._pending.pop(0)
         self._pending.append(row)
         self.last = row[0]
+        if len(self._pending) >= self.block:
+            self._flush()
+
+    def extend(self, rows: list[tuple[float, ...]]) -> None:
+        """`append` of each row in turn, in one call: the same rows held afterwards."""
+        if not self.width:
+            self.width = len(rows[0])
+        self._pending.extend(rows)
+        self.last = rows[-1][0]
+        over = len(self) - self.maxlen
+        if over > 0:  # full: the oldest dropped, as `append` drops them
+            held = self._end - self._head
+            self._head += min(over, held)
+            if over > held:
+                del self._pending[: over - held]
         if len(self._pending) >= self.block:
             self._flush()
 

@@ -87,6 +87,9 @@ STATUS_PERIOD_S = 0.1
 # how often the delay tracker is asked whether a stretch is ready (a cheap check): a fit then
 # waits at most this long (its stretches are 2-2.5 s)
 DELAY_POLL_S = 0.25
+# the samples kept for the delay tracker between two blocks (`_feed_delay`, every 0.1 s from
+# the status loop: about 125 at 1 kHz and 250 Hz); a fuller list is handed over at once
+DELAY_INBOX = 2048
 STALE_AFTER_S = 1.0  # wall time without a fresh estimate before health says "stale"
 UNSETTLED = ("delay_unsettled",)  # the flag of an estimate made with a delay not settled yet
 
@@ -138,6 +141,8 @@ class KeoService:
         self._delay_state_for: object = None  # the tracker's decision it was made from
         self._fit_cpu_s = 0.0  # the delay fits' CPU time in the worker, all of them (s)
         self._fits: FitWorker | None = None  # the fits' worker process, while running
+        # the samples not yet handed to the delay tracker, in arrival order (`_feed_delay`)
+        self._delay_inbox: list[JointSample | TrackerSample] = []
         if config.timing.track_delay:
             from keo_service.fit.delay_online import OnlineDelayTracker
 
@@ -299,28 +304,24 @@ class KeoService:
         failure there fails this task."""
         await self._sub.deliver(self._handle)
 
-    # complexity (C901, PLR0912, PLR0915): the per-sample path keeps its checks and the delay
-    # tracker's intake inline (a stream's clock notes only when a sample has flags or a new
-    # domain): a Python call per sample is a real share of its cost (docs/performance.md)
+    # complexity (C901, PLR0912): the per-sample path keeps its checks inline (a stream's clock
+    # notes only when a sample has flags or a new domain): a Python call per sample is a real
+    # share of its cost (docs/performance.md)
     def _handle(self, batch: list[tuple[str, bytes]]) -> None:  # noqa: C901, PLR0912
         """One wake-up's samples (key, payload), in arrival order, each through the
-        estimator and its estimates out before the next sample (synchronous: no await)."""
+        estimator and its estimates out before the next sample (synchronous: no await). The
+        delay tracker gets the samples a block at a time (`_feed_delay`): here each is only
+        put on its bounded list."""
         sinks = self.sinks
         inputs = sinks.takes_input
         estimator = self.estimator
-        tracker = self._delay_tracker
         domains = self._clock_domains
         tick_tracker, tick_encoder = self._rates["tracker"].tick, self._rates["encoder"].tick
         # bound once per wake-up, not looked up per sample: the decoder's own method (raises
         # what `messages.decode` raises), the clock, the publish step
         decode_payload, monotonic, publish = DECODER.decode, time.monotonic, self._publish
         on_tracker, on_encoder = estimator.on_tracker, estimator.on_encoder
-        # the delay tracker's intake, bound too: each sample straight into its buffers, and
-        # the tracked delay looked at (each sample may bring a moved clock line), the
-        # estimator told only when it moved (`_follow_tracked_delay`)
-        if tracker is not None:
-            add_tracker, add_encoder = tracker.add_tracker, tracker.add_encoder
-            delay_now = tracker.delay_now
+        keep = None if self._delay_tracker is None else self._delay_inbox.append
         received, now = 0, 0.0
         for key, payload in batch:
             now = monotonic()
@@ -331,7 +332,7 @@ class KeoService:
                 self._messages.append(f"undecodable payload on {key}: {exc}")
                 continue
             received += 1
-            if isinstance(msg, TrackerSample):
+            if type(msg) is TrackerSample:
                 if msg.flags or (msg.clock and domains.get("tracker") != msg.clock):
                     self._note_sample("tracker", msg)
                 tick_tracker(now)
@@ -344,47 +345,42 @@ class KeoService:
                     ok=msg.status == "ok",
                     device_stamp=msg.device_stamp,
                 )
-                if tracker is not None and msg.position is not None:
-                    add_tracker(
-                        msg.stamp,
-                        msg.position,
-                        msg.quaternion,
-                        msg.clock_epoch,
-                        msg.seq,
-                        bool(msg.flags),
-                        msg.device_stamp,
-                        msg.clock_drift,
-                    )
-            elif isinstance(msg, JointSample):
+            elif type(msg) is JointSample:
                 if msg.flags or (msg.clock and domains.get("encoder") != msg.clock):
                     self._note_sample("encoder", msg)
                 tick_encoder(now)
                 out = on_encoder(msg.stamp, msg.joints)
                 if inputs:
                     sinks.on_input(msg)
-                if tracker is not None:
-                    add_encoder(
-                        msg.stamp,
-                        msg.joints,
-                        msg.clock_epoch,
-                        msg.seq,
-                        bool(msg.flags),
-                        msg.device_stamp,
-                        msg.clock_drift,
-                    )
             else:
                 estimator.counters["unexpected_message"] += 1
                 continue
-            if tracker is not None:  # the delay the next sample is resolved with
-                target = delay_now()
-                if target is not None and target != self._delay_followed:
-                    self._follow_tracked_delay(tracker, target)
+            if keep is not None:
+                keep(msg)
             for estimate in out:
                 publish(estimate, now)
         # the wake-up's count and newest arrival, once (nothing reads them mid-batch)
         if received:
             self.received += received
             self._last_arrival = self._progress_at = now
+            if keep is not None and len(self._delay_inbox) >= DELAY_INBOX:
+                self._feed_delay()  # bounded: a fit that takes long does not let it grow
+
+    def _feed_delay(self) -> None:
+        """The samples since the last block into the delay tracker, in arrival order, in one
+        call (`OnlineDelayTracker.add_samples`: the same checks, restarts and clock lines as
+        sample by sample), then the estimator set to the tracked delay if it moved (a
+        stream's clock line moved, or a restart). Called by the delay loop before it asks
+        for a stretch and after each fit, by the status loop (every 0.1 s), and when the
+        list reaches `DELAY_INBOX`; on the loop, between samples."""
+        tracker, inbox = self._delay_tracker, self._delay_inbox
+        if tracker is None or not inbox:
+            return
+        tracker.add_samples(inbox, TrackerSample)
+        inbox.clear()
+        target = tracker.delay_now()
+        if target is not None and target != self._delay_followed:
+            self._follow_tracked_delay(tracker, target)
 
     async def _adapter_events(self) -> None:
         """The adapters' state changes (silent, back, reconnected, wrong protocol): into the
@@ -427,27 +423,49 @@ class KeoService:
             self._messages.append(text)
 
     def _publish(self, estimate: Estimate, now: float) -> None:
-        """One estimate out to every configured sink (`keo_service.live.sinks`)."""
+        """One estimate out to every configured sink (`keo_service.live.sinks`). With one sink
+        (the bus alone, the default) it is called directly, one frame fewer per estimate;
+        a failure there takes the fan-out's careful path (counted, logged, raised)."""
         self._seq += 1
         self._tick_estimate(now)
         if not estimate.held:
             self._last_estimate_wall = now
-        self.sinks.on_estimate(estimate, self.to_message(estimate))
+        message = self.to_message(estimate)
+        only = self.sinks.only_estimate
+        if only is None:
+            self.sinks.on_estimate(estimate, message)
+            return
+        try:
+            only(estimate, message)
+        except Exception as exc:
+            self.sinks.estimate_failed(0, exc, estimate, message)
 
     def to_message(self, estimate: Estimate) -> EstimateMessage:
-        """The estimate's wire form, with the delay's state as now."""
+        """The estimate's wire form, with the delay's state as now (`delay_state` and
+        `delay_se` written out: this runs per estimate)."""
         tracker = self._delay_tracker
         stamp, delay = estimate.stamp, self.estimator.delay
+        flags: tuple[str, ...] = ()
+        if tracker is None:
+            se, state = self._configured_se, None
+        else:
+            se = tracker.applied_se
+            if tracker.decision is not self._delay_state_for:
+                self._delay_state_for = tracker.decision
+                self._delay_state = _delay_state_of(tracker)
+            state = self._delay_state
+            # the delay in use is not known yet (found from the motion): every estimate says so
+            if not tracker.settled:
+                flags = UNSETTLED
         return estimate_message(
             estimate,
             host_ns=time.time_ns(),
             seq=self._seq,
             delay_s=delay.offset_s + delay.drift * (stamp - delay.t_ref),  # `delay.at(stamp)`
-            delay_se_s=self.delay_se(),
+            delay_se_s=se,
             tool_speed_m_s=self._tool_speed.at(stamp),
-            delay_state=self.delay_state(),
-            # the delay in use is not known yet (found from the motion): every estimate says so
-            more_flags=UNSETTLED if tracker is not None and not tracker.settled else (),
+            delay_state=state,
+            more_flags=flags,
         )
 
     def delay_state(self) -> DelayState | None:
@@ -530,6 +548,7 @@ class KeoService:
 
     async def _status_loop(self) -> None:
         while not self._stop.is_set():
+            self._feed_delay()
             self._resolve_if_quiet()
             self._tool_speed.sample(self.estimator.last)
             self._refresh_status()
@@ -560,6 +579,7 @@ class KeoService:
         assert tracker is not None
         assert fits is not None
         while not self._stop.is_set():
+            self._feed_delay()
             if not tracker.due():  # else a stretch is waiting already (a slow fit, a replay)
                 await asyncio.sleep(DELAY_POLL_S)
                 continue
@@ -569,6 +589,7 @@ class KeoService:
             current = self.estimator.delay.offset_s
             found, cpu_s = await fits.measure(window, current, tracker.guess(current), pool)
             self._fit_cpu_s += cpu_s
+            self._feed_delay()  # what came during the fit (a restart in it drops the fit)
             if tracker.counters["restarts"] == restarts:
                 tracker.combine(found)
                 self._follow_tracked_delay(tracker, tracker.delay_now())
@@ -610,6 +631,9 @@ class KeoService:
             self.estimator.set_gains(new.observer.gain)
         if {"timing.delay_s", "timing.drift_ppm", "timing.drift_ref_s"} & set(applied):
             timing = new.timing
+            # the samples before the reload into the tracker first, as they came (so that
+            # nothing it followed from them lands after the delay set by hand)
+            self._feed_delay()
             self.estimator.set_delay(delay_model(timing))
             if self._delay_tracker is not None:
                 # tracking goes on from the delay set by hand, a prior as at start

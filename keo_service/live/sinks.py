@@ -96,6 +96,10 @@ class Sinks:
         self.sinks: list[Sink] = []
         self._inputs: list[Sink] = []  # the sinks with an `on_input` of their own
         self.failures: collections.Counter[str] = collections.Counter()
+        self.only_estimate: Callable[[Estimate, EstimateMessage], None] | None = None
+        # whether any sink takes the input samples (else `on_input` need not be called): an
+        # attribute, read at every wake-up
+        self.takes_input = False
         for sink in sinks:
             self.add(sink)
 
@@ -103,11 +107,10 @@ class Sinks:
         self.sinks.append(sink)
         if getattr(type(sink), "on_input", None) is not _Base.on_input:
             self._inputs.append(sink)
-
-    @property
-    def takes_input(self) -> bool:
-        """Whether any sink takes the input samples (else `on_input` need not be called)."""
-        return bool(self._inputs)
+        # with one sink, the service calls its `on_estimate` itself (one frame fewer per
+        # estimate) and `estimate_failed` when it raises
+        self.only_estimate = self.sinks[0].on_estimate if len(self.sinks) == 1 else None
+        self.takes_input = bool(self._inputs)
 
     def _failed(self, what: str, sink: Sink, exc: Exception) -> None:
         self.failures[sink.name] += 1
@@ -167,6 +170,14 @@ class Sinks:
                 i += 1
         except Exception as exc:
             self._rest("an estimate", sinks, i, exc, lambda s: s.on_estimate(estimate, message))
+
+    def estimate_failed(
+        self, i: int, exc: Exception, estimate: Estimate, message: EstimateMessage
+    ) -> None:
+        """sinks[i] raised `exc` on an estimate the caller gave it directly
+        (`only_estimate`): as `on_estimate` does, count and log it, serve the ones after
+        it, raise `SinkFailedError`."""
+        self._rest("an estimate", self.sinks, i, exc, lambda s: s.on_estimate(estimate, message))
 
     def on_tick(self, sink: Sink) -> None:
         self._call("its cycle", [sink], lambda s: s.on_tick())
