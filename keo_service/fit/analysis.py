@@ -436,21 +436,7 @@ def _without_ripple_of(
             continue
         effects.append(effect)
         values.append(part)
-    x_new = np.concatenate([x[: model.n_reg], *values])
-    trial = Model(
-        model.chain,
-        model.position_only,
-        effects,
-        x_new,
-        {},
-        model.temperature_ref,
-        model.time_ref,
-        model.sessions,
-        model.tools,
-    )
-    fixed = np.zeros(x_new.size, dtype=bool)
-    fixed[trial.n_reg :] = True
-    return trial, fit(trial, train, tau_tr, x_new, noise, fixed=fixed).x
+    return _registration_refitted(model, x, effects, values, train, tau_tr, noise)
 
 
 def residual_scale(model: Model, x: np.ndarray, data: Data, tau: np.ndarray) -> float:
@@ -771,6 +757,21 @@ def _with_maps_of(
         else:
             effects.append(effect)
             values.append(part)
+    return _registration_refitted(model, x, effects, values, train, tau_tr, noise)
+
+
+def _registration_refitted(
+    model: Model,
+    x: np.ndarray,
+    effects: list[Effect],
+    values: list[np.ndarray],
+    train: Data,
+    tau_tr: np.ndarray,
+    noise: float,
+) -> tuple[Model, np.ndarray]:
+    """`model` with `effects` (their parameters `values`) in place of its own, and its
+    registration refitted on the training rows with the robot model held: how a carried
+    model is judged without one of its parts."""
     x_new = np.concatenate([x[: model.n_reg], *values])
     trial = Model(
         model.chain,
