@@ -396,6 +396,10 @@ def _serve(fd: int) -> None:
         urdf=options.get("urdf"),
         window_s=WINDOW_S if window_s is None else window_s,
     )
+    # set up (Rerun imported, the recording opened) on a share of the CPU, then idle time
+    # only: under SCHED_IDLE on a loaded machine the setup itself could take longer than a
+    # short run, and the stop found a process that had read nothing
+    _yield_to_the_data_path()
     decode = msgspec.msgpack.Decoder(_PipedEstimate | _PipedStatus).decode
     period = FLUSH_PERIOD_S if viewer is not None else FILE_FLUSH_PERIOD_S
     next_flush = time.monotonic() + period
@@ -416,28 +420,33 @@ def _serve(fd: int) -> None:
     sink.close()
 
 
+def _share_less() -> None:
+    """While the process sets up: a real-time policy inherited from the service (systemd's
+    CPUSchedulingPolicy) dropped, and a nice value, so that it shares a core less than the
+    data path but still gets on."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(OSError):
+        os.nice(NICENESS)
+
+
 def _yield_to_the_data_path() -> None:
-    """The display is worth less than the estimates: this process runs only on time no
-    other process wants (SCHED_IDLE: a waking service, adapter or subscriber takes the core
-    at once, where a nice value only shares it less). Set on every thread there is (the
-    imports started some: numpy's BLAS pool); Rerun's threads, started later, inherit it.
-    Where the policy is refused, a nice value; a real-time policy inherited from the service
-    (systemd's CPUSchedulingPolicy) is dropped either way."""
-    try:
+    """The display is worth less than the estimates: once set up, this process runs only on
+    time no other process wants (SCHED_IDLE: a waking service, adapter or subscriber takes
+    the core at once, where a nice value only shares it less). Set on every thread there is
+    (the imports started some: numpy's BLAS pool; the recording its own); threads started
+    later inherit it. Where the policy is refused, the nice value stays."""
+    with contextlib.suppress(OSError, AttributeError):
         for task in os.listdir("/proc/self/task"):
             with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
                 os.sched_setscheduler(int(task), os.SCHED_IDLE, os.sched_param(0))
-    except (OSError, AttributeError):
-        with contextlib.suppress(OSError, AttributeError):
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        os.nice(NICENESS)
 
 
 def main() -> int:
     # the parent decides when this ends, by closing the pipe (see the module's docstring)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    _yield_to_the_data_path()
+    _share_less()
     setup_logging(fmt=sys.argv[1] if len(sys.argv) > 1 else "text")
     try:
         _serve(sys.stdin.fileno())
