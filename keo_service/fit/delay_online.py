@@ -9,7 +9,7 @@ import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -149,6 +149,31 @@ class DelayTrackerSettings:
     # most pool_rows (its cost bounded: the encoder's are all kept for the interpolation)
     pool_s: float = 30.0
     pool_rows: int = 3000
+
+
+class _Pose(NamedTuple):
+    """One pose as `add_samples` reads a tracker sample (`add_tracker`)."""
+
+    stamp: float
+    position: Sequence[float]
+    quaternion: Sequence[float] | None
+    clock_epoch: int
+    seq: int
+    flags: bool
+    device_stamp: float | None
+    clock_drift: float | None
+
+
+class _Joints(NamedTuple):
+    """One joint sample as `add_samples` reads it (`add_encoder`)."""
+
+    stamp: float
+    joints: Sequence[float]
+    clock_epoch: int
+    seq: int
+    flags: bool
+    device_stamp: float | None
+    clock_drift: float | None
 
 
 @dataclass(frozen=True)
@@ -328,21 +353,8 @@ class OnlineDelayTracker:
         clock_drift: float | None = None,
     ) -> None:
         """One joint sample; a mapped one ("device" clock) with its device stamp and its
-        line's drift (`JointSample.clock_drift`)."""
-        self._source("encoder", t, epoch, seq)
-        device = self._line("encoder", t, device_stamp, clock_drift)
-        if flagged or t < self._start:
-            self.counters["encoder_left_out"] += 1
-            return
-        # finite checks on the floats as they came: numpy's isfinite().all() on a row cost
-        # several times the rest of this call (docs/performance.md)
-        isfinite = math.isfinite
-        rows = self._enc
-        if isfinite(t) and all(map(isfinite, q)) and t > rows.last:
-            if rows.width and len(q) + 2 != rows.width:
-                self.counters["encoder_wrong_length"] += 1
-                return
-            rows.append((t, *q, math.nan if device is None else device))
+        line's drift (`JointSample.clock_drift`): `add_samples` of this one sample."""
+        self.add_samples((_Joints(t, q, epoch, seq, flagged, device_stamp, clock_drift),), _Pose)
 
     def add_tracker(
         self,
@@ -355,34 +367,25 @@ class OnlineDelayTracker:
         device_stamp: float | None = None,
         clock_drift: float | None = None,
     ) -> None:
-        """One pose; a mapped one as in `add_encoder`."""
-        self._source("tracker", t, epoch, seq)
-        device = self._line("tracker", t, device_stamp, clock_drift)
-        if flagged or t < self._start:
-            self.counters["tracker_left_out"] += 1
-            return
-        isfinite = math.isfinite  # as in add_encoder: no numpy for the checks
-        finite = all(map(isfinite, p)) and (quat is None or all(map(isfinite, quat)))
-        rows = self._trk
-        if isfinite(t) and finite and t > rows.last:
-            if len(p) != 3 or (quat is not None and len(quat) != 4):
-                self.counters["tracker_wrong_length"] += 1
-                return
-            dev = math.nan if device is None else device
-            rows.append((t, *p, *(_NO_QUAT if quat is None else quat), dev))
+        """One pose; a mapped one as in `add_encoder`: `add_samples` of this one sample."""
+        pose = _Pose(t, p, quat, epoch, seq, flagged, device_stamp, clock_drift)
+        self.add_samples((pose,), _Pose)
 
-    # complexity (C901, PLR0912, PLR0915): `_source`, `_line` and both streams' checks inline,
-    # one loop over the block (a Python call per sample is what this method saves)
+    # complexity (C901, PLR0912, PLR0915): one loop over the block with both streams' checks,
+    # the restarts and the clock lines inline (a Python call per sample is what it saves)
     def add_samples(  # noqa: C901, PLR0912, PLR0915
         self, samples: Sequence[Any], tracker_type: type
     ) -> None:
-        """Many samples at once, in arrival order: each exactly as `add_tracker` (those of
-        `tracker_type`, a pose; a gap, with no position, is skipped) or `add_encoder` (the
-        others) takes it, the same checks, restarts and lines, in one call. The samples are
-        the wire's messages as decoded (their fields by name: stamp, position, quaternion or
-        joints, clock_epoch, seq, flags, device_stamp, clock_drift). Why: the service hands
-        its samples over a block at a time, so that no Python call per sample is left on the
-        data path for this (docs/performance.md)."""
+        """The tracker's intake: samples in arrival order, poses (those of `tracker_type`; a
+        gap, with no position, is skipped) and joint samples (the others), each checked
+        (flagged, non-finite, a wrong length, a stamp not after the stream's newest: left
+        out, counted where it is wrong), a stream's time base starting anew (`restart`) and
+        its clock line (a mapped sample's device stamp and drift) followed as it comes. The
+        samples are the wire's messages as decoded (their fields by name: stamp, position,
+        quaternion or joints, clock_epoch, seq, flags, device_stamp, clock_drift);
+        `add_tracker` and `add_encoder` are this for one sample. Why a block: the service
+        hands its samples over a block at a time, so that no Python call per sample is left
+        on the data path for this (docs/performance.md)."""
         isfinite, nan = math.isfinite, math.nan
         sources, newest, counters = self._sources, self._newest_rows, self.counters
         enc_rows: list[tuple[float, ...]] = []
@@ -400,18 +403,23 @@ class OnlineDelayTracker:
             else:
                 stream = "encoder"
             t, epoch, seq = m.stamp, m.clock_epoch, m.seq
-            # `_source`
+            # the first samples start the young clock mappings (`young_s`)
             known = sources.get(stream)
             if isfinite(t) and math.isnan(self._young_until):
                 self._young_until = t + self.young_s
             sources[stream] = (epoch, seq)
+            # a seq going back is a restarted publisher: a new time base unless the publisher
+            # says otherwise by its epoch (an adapter that went on on its saved clock mapping
+            # keeps it); one that gives no epoch (0) says nothing
             if known is not None and (epoch != known[0] or (seq < known[1] and epoch == 0)):
                 self.restart(t, f"the {stream} time base started anew")  # clears the buffers
                 enc_rows.clear()
                 trk_rows.clear()
                 enc_last = trk_last = -math.inf
                 start = self._start
-            # `_line`
+            # a mapped stream's newest sample on its line (a stamp off the line comes without a
+            # drift); the device stamp kept with the sample only while the stream is mapped
+            # by a line (not for a shared clock or receipt times)
             dev = m.device_stamp
             device = nan
             if dev is not None and isfinite(dev):
@@ -446,19 +454,6 @@ class OnlineDelayTracker:
             self._enc.extend(enc_rows)
         if trk_rows:
             self._trk.extend(trk_rows)
-
-    def _line(
-        self, stream: str, t: float, device_stamp: float | None, drift: float | None
-    ) -> float | None:
-        """Keep a mapped stream's newest sample on its line (a stamp off the line comes
-        without a drift); the device stamp to keep with the sample, None when the stream's
-        stamps are not mapped by a line (a shared clock, receipt times)."""
-        if device_stamp is None or not math.isfinite(device_stamp):
-            return None
-        if drift is not None and math.isfinite(drift) and math.isfinite(t):
-            self._newest_rows[stream] = (t, device_stamp, drift)
-            self._newest_made = None
-        return device_stamp if stream in self._newest_rows else None
 
     @property
     def _newest(self) -> dict[str, Anchor]:
@@ -554,17 +549,6 @@ class OnlineDelayTracker:
         if self.applied is not None and self._carried:
             self.applied += self._moved(lines, self._applied_t)
         self._frame = dict(lines)
-
-    def _source(self, stream: str, t: float, epoch: int, seq: int) -> None:
-        known = self._sources.get(stream)
-        if math.isnan(self._young_until) and math.isfinite(t):
-            self._young_until = t + self.young_s  # the first samples: young clock mappings
-        self._sources[stream] = (epoch, seq)
-        # a seq going back is a restarted publisher: a new time base unless the publisher
-        # says otherwise by its epoch (an adapter that went on on its saved clock mapping
-        # keeps it); one that gives no epoch (0) says nothing
-        if known is not None and (epoch != known[0] or (seq < known[1] and epoch == 0)):
-            self.restart(t, f"the {stream} time base started anew")
 
     def restart(self, t: float, why: str) -> None:
         """A stream's time base started anew at stream time t: drop what came before."""
