@@ -181,6 +181,34 @@ def test_a_new_clock_epoch_or_a_seq_going_back_without_one_starts_the_fits_anew(
     assert tracker.combine(DelayMeasurement(300e-6, 5e-6, SPEED, 25.0)) == pytest.approx(300e-6)
 
 
+def test_a_configured_delay_refined_by_the_fits_stays_a_prior_across_a_restart(demo_cell):
+    """Review of issue 45 (7b): a configured 30.000 +/- 0.5 ms, refined by precise fits to
+    29.96 ms (the running estimate's steps, each too small to matter at the tool's speed),
+    then a time base starts anew. The delay in use descends from the user's calibration,
+    not from fits of nothing: it stays settled (no flag) and changes only through the gate.
+    Two rough fits 0.8 ms above it, well inside what the gate calls compatible (their
+    consensus about 2.7 sigma off), leave it where it was; a delay found from nothing would
+    have been unsettled by the restart and have taken their consensus at once."""
+    tracker = OnlineDelayTracker(demo_cell, prior_s=0.030, prior_se_s=0.0005)
+    feed(tracker, [(29.96e-3, 20e-6)] * 8)
+    assert tracker.counters["refinements"] >= 1, tracker.counters
+    refined = tracker.delay_now()
+    assert refined is not None
+    assert abs(refined - 29.96e-3) < 10e-6  # refined to the fits
+    tracker.restart(41.0, "the encoder time base started anew")
+    assert tracker.settled  # the calibration still stands: no flag
+    assert tracker.delay_now() == refined
+    after = feed(tracker, [(refined + 0.8e-3, 300e-6)] * 2, t0=50.0)
+    assert after == [refined, refined]
+    assert tracker.settled
+    # nothing configured: the same fits' delay is found anew after a restart (flagged)
+    found = OnlineDelayTracker(demo_cell)
+    feed(found, [(29.96e-3, 20e-6)] * 8)
+    assert found.settled
+    found.restart(41.0, "the encoder time base started anew")
+    assert not found.settled
+
+
 def test_flagged_samples_are_left_out(demo_cell):
     tracker = OnlineDelayTracker(demo_cell)
     tracker.add_encoder(1.0, [0.0] * 6, flagged=True)

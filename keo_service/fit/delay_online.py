@@ -315,6 +315,9 @@ class OnlineDelayTracker:
         self.applied: float | None = prior_s if known else None
         self.applied_se: float | None = prior_se_s if known else None
         self.settled = known  # False: every estimate is flagged until the fits agree
+        # the delay in use descends from a configured prior (refined or changed since only
+        # through the gate): a restart leaves it settled (`restart`)
+        self._from_prior = known
         # where the delay in use comes from: configured, confirmed (configured, a precise fit
         # agreed), fit or unknown; and the stream time of the fit behind it (nan: none)
         self.source_kind = "configured" if known else "unknown"
@@ -564,7 +567,10 @@ class OnlineDelayTracker:
         self._suspect = None
         self._segment += 1
         self._recent.clear()
-        if self.source_kind not in ("configured", "confirmed"):  # found under the old mapping
+        # a delay found from nothing is found again under the new mapping (flagged until
+        # then); one that descends from the user's calibration stays a prior, changed only
+        # through the gate (refined or changed by fits, it is still no fit of nothing)
+        if not self._from_prior:
             self.settled = False
         if self.se is not None:  # the delay in use is less sure under the new mapping
             self.se = math.hypot(self.se, self.restart_sigma_s)
@@ -1325,7 +1331,7 @@ class OnlineDelayTracker:
         known = prior_se_s is not None and math.isfinite(prior_se_s) and prior_se_s > 0
         self.applied = prior_s if known else None
         self.applied_se = prior_se_s if known else None
-        self.settled = known
+        self.settled = self._from_prior = known
         self._set_source("configured" if known else "unknown")
         self.decision = DelayDecision("restarted", "the delay was set anew (a reload)")
         self.state = "restarted"
