@@ -71,3 +71,47 @@ def test_a_reload_drops_a_fit_in_flight(demo_cell):
     assert tracker.counters["restarts"] == before + 1
     tracker.restart(5.0, "the encoder time base started anew")
     assert tracker.counters["restarts"] == before + 2
+
+
+def test_a_pool_the_fit_cannot_use_is_counted_and_the_stretch_stands(demo_cell):
+    """A pool whose joints the fit cannot take (a non-finite joint row: its least squares
+    fail) gives no pooled fit; the stretch's own fit comes back as without a pool, and the
+    tracker counts the pool (`pools_unusable`, beside its other counters: the service's
+    status shows them as `delay_pools_unusable`), where before it was dropped unsaid."""
+    import numpy as np
+
+    from keo_service.fit.delay_online import pool_arrays, stretch_arrays
+    from keo_service.sim.delay_study import StreamCase, case_streams
+
+    streams = case_streams(demo_cell, StreamCase("motoros", "line100", "all_slow", seconds=12.0))
+    tracker = OnlineDelayTracker(demo_cell)
+    k, stretch = 0, None
+    for i, t in enumerate(streams.trk_t):
+        while k < streams.enc_t.size and streams.enc_t[k] <= t:
+            tracker.add_encoder(float(streams.enc_t[k]), streams.enc_q[k])
+            k += 1
+        tracker.add_tracker(float(t), streams.trk_p[i], streams.trk_quat[i])
+        if tracker.due():
+            stretch = tracker.take()
+            if stretch.pool is not None:  # the second stretch: a pool of two
+                break
+            tracker.combine(tracker.measure(stretch_arrays(stretch), 0.0, 0.0))
+    assert stretch is not None
+    pool = pool_arrays(stretch)
+    assert pool is not None
+    window = stretch_arrays(stretch)
+    alone = tracker.measure(window, 0.0, 0.0)
+    assert isinstance(alone, DelayMeasurement)
+    joints = pool[1].copy()
+    joints[len(joints) // 2, 2] = math.nan
+    found = tracker.measure(window, 0.0, 0.0, pool=(pool[0], joints, *pool[2:]))
+    assert found.pool_unusable
+    assert math.isnan(found.pooled_s)
+    assert found.delay_s == alone.delay_s  # the stretch's own fit stands
+    assert found.se_s == alone.se_s
+    tracker.combine(found)
+    assert tracker.counters["pools_unusable"] == 1
+    assert tracker.pooled is None
+    # a usable pool is not counted
+    assert not tracker.measure(window, 0.0, 0.0, pool=pool).pool_unusable
+    assert np.isfinite(tracker.measure(window, 0.0, 0.0, pool=pool).pooled_s)

@@ -52,6 +52,8 @@ class DelayMeasurement:
     # start, up to `pool_s`) in one fit, and its standard error (nan: none, see `_pooled`)
     pooled_s: float = math.nan
     pooled_se_s: float = math.nan
+    # the pool came but the fit could not use it (counted by `combine`: `pools_unusable`)
+    pool_unusable: bool = False
 
     @property
     def described_t(self) -> float:
@@ -70,6 +72,7 @@ class DelayRefused:
     sep_se_s: float = math.nan
     pooled_s: float = math.nan  # the pooled fit, as in `DelayMeasurement`
     pooled_se_s: float = math.nan
+    pool_unusable: bool = False
 
 
 @dataclass(frozen=True)
@@ -187,6 +190,19 @@ class _Fit:
     sep_se: float = math.nan  # `separable_se` of its stretch (nan: not measured)
     own_se: float = math.nan  # its own (clustered) standard error (nan: `se`)
     model: float = math.nan  # its two error models' disagreement (nan: not measured)
+
+
+@dataclass(frozen=True)
+class _ModelFit:
+    """A stretch's (or the pool's) fit of the error model that left less residual, with
+    what its se is made of: the two models' disagreement (s; nan: one model only) and the
+    motion's separability (`separable_se`), and the tracker stamps it spans."""
+
+    fit: DelayFit
+    model_s: float
+    sep_se_s: float
+    t_first: float
+    t_last: float
 
 
 class OnlineDelayTracker:
@@ -602,16 +618,18 @@ class OnlineDelayTracker:
         return self.young_span_s if young else self._stretch_s
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-        """The stretch to fit as arrays (`take`, then `stretch_arrays`, in one call)."""
-        return stretch_arrays(self.take())
+        """The stretch to fit as arrays (`take`, then `stretch_arrays`, in one call), without
+        its pool (the pooled fit: `take` and `pool_arrays`)."""
+        return stretch_arrays(self.take(with_pool=False))
 
-    def take(self) -> Stretch:
+    def take(self, with_pool: bool = True) -> Stretch:
         """The stretch to fit, consumed from the buffers (on the loop: slices of their arrays;
         the stamps are mapped by `stretch_arrays`), with each stream's newest line, which the
         next `combine` takes the fit to be under: the next fit sees only newer samples. The
         tracker's samples from the first to `_span()` after it; the encoder's from 1 s before
         the first to 1 s after the last of those; the encoder's kept from 1 s before the last
-        on, for the next stretch."""
+        on, for the next stretch. `with_pool`: the pool's rows made too (while the delay is
+        not settled; the stretch joins the pool either way)."""
         first = self._trk.first()
         trk = self._trk.take_through(first + self._span())
         end = float(trk[-1, 0])
@@ -620,7 +638,7 @@ class OnlineDelayTracker:
         # the whole stretch under each stream's newest line (see fit/stamp_lines.py)
         self._fitting_frame = dict(self._newest)
         enc_line, trk_line = self._newest.get("encoder"), self._newest.get("tracker")
-        pool = self._pooled_rows(enc, trk)
+        pool = self._pooled_rows(enc, trk, with_pool)
         return Stretch(
             enc,
             trk,
@@ -630,7 +648,7 @@ class OnlineDelayTracker:
         )
 
     def _pooled_rows(
-        self, enc: np.ndarray, trk: np.ndarray
+        self, enc: np.ndarray, trk: np.ndarray, made: bool = True
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """While the delay is not settled: this stretch's rows added to the pool (the
         encoder's without the rows the pool has already, stretches overlap there by 1 s),
@@ -638,7 +656,8 @@ class OnlineDelayTracker:
         before its newest row (so it spans `pool_s` and one stretch), and the pool's rows (encoder,
         tracker, the tracker's thinned to `pool_rows`) when it holds more than this
         stretch and rows of both streams (an encoder silent while the tracker goes on
-        leaves no pool: nothing to join). None once settled (the pool is emptied)."""
+        leaves no pool: nothing to join). None once settled (the pool is emptied), or when
+        not `made` (its rows not joined: the concatenation is the cost)."""
         enc_pool, trk_pool = self._pool
         if self.settled:
             enc_pool.clear()
@@ -659,6 +678,8 @@ class OnlineDelayTracker:
         while len(enc_pool) > 1 and float(enc_pool[1][0, 0]) < oldest:
             enc_pool.pop(0)
         self._pool_stretches = len(trk_pool)
+        if not made:
+            return None
         trk_all = np.concatenate(trk_pool)
         step = -(-trk_all.shape[0] // self.settings.pool_rows)  # ceil
         return np.concatenate(enc_pool), trk_all[::step]
@@ -697,7 +718,12 @@ class OnlineDelayTracker:
         found = self._measure_stretch(window, current, guess)
         if pool is None:
             return found
-        pooled = self._pooled(pool, guess)
+        try:
+            pooled = self._pooled(pool, guess)
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+            # a pool the fit cannot use is no pooled fit: the stretch's result stands, and
+            # `combine` counts it (`pools_unusable`: this runs in the worker)
+            return dataclasses.replace(found, pool_unusable=True)
         if pooled is None:
             return found
         return dataclasses.replace(found, pooled_s=pooled[0], pooled_se_s=pooled[1])
@@ -708,30 +734,59 @@ class OnlineDelayTracker:
         guess: float,
     ) -> tuple[float, float] | None:
         """The pooled fit: every sample since the delay was last unknown in one fit (the
-        same two error models as a stretch, the one leaving less residual, their
-        disagreement added to its se; refused like a stretch when the motion cannot separate
-        a delay). Short stretches' models, linear in the tool position over 2.5-10 s, take
-        up most of a slow motion's delay signature (over a short stretch the velocity is
-        nearly a line in time too) and with geometric errors are biased alike; over tens of
-        seconds the velocity turns and the same model leaves the signature standing (the
-        scenario matrix's figures: docs/timing-delay.md). None: no usable pooled fit."""
-        try:
-            enc_t, enc_q, trk_t, trk_p, trk_q = _covered(pool, guess, self.max_gap_s)
-            if enc_t.size < 20 or trk_t.size < 50:
-                return None
-            sep = separable_se(trk_t, trk_p, trk_q)
-            if not sep <= self.max_se_s:
-                return None
-            fits = self._two_models(enc_t, enc_q, trk_t, trk_p, trk_q, guess)
-        except (ValueError, FloatingPointError, np.linalg.LinAlgError):
-            return None  # a pool the fit cannot use is no pooled fit: the stretch's stands
+        same checks and two error models as a stretch, `_fit_models`; refused too when its
+        motion is not measured to separate a delay). Short stretches' models, linear in the
+        tool position over 2.5-10 s, take up most of a slow motion's delay signature (over a
+        short stretch the velocity is nearly a line in time too) and with geometric errors
+        are biased alike; over tens of seconds the velocity turns and the same model leaves
+        the signature standing (the scenario matrix's figures: docs/timing-delay.md). None:
+        no usable pooled fit."""
+        fitted = self._fit_models(pool, guess, pooled=True)
+        if isinstance(fitted, DelayRefused):
+            return None
+        se = _reported_se(fitted.fit.delay_se_s, fitted.model_s, fitted.sep_se_s)
+        if not (math.isfinite(fitted.fit.delay_s) and math.isfinite(se)) or se > self.max_se_s:
+            return None
+        return fitted.fit.delay_s, se
+
+    def _fit_models(
+        self,
+        window: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None],
+        guess: float,
+        pooled: bool = False,
+    ) -> _ModelFit | DelayRefused:
+        """What a stretch and the pool share: the rows the encoder covers (`_covered`),
+        enough of them, a motion that separates a delay from a tool error and its slow drift
+        (`separable_se`; a tool at rest goes on, its fit says so), and the fit of the error
+        model of the two that leaves less residual (`_two_models`); or why there is none.
+        `pooled`: a motion whose separation is not measured (no orientation) does not
+        separate either (a pool is used only when shown better than the stretches)."""
+        enc_t, enc_q, trk_t, trk_p, trk_q = _covered(window, guess, self.max_gap_s)
+        if enc_t.size < 20 or trk_t.size < 50:
+            end = float(window[2][-1]) if window[2].size else math.nan
+            return DelayRefused("fits_without_data", "not enough data in the stretch", end)
+        sep = separable_se(trk_t, trk_p, trk_q)
+        if (sep > self.max_se_s and _point_moves(trk_t, trk_p)) or (
+            pooled and not sep <= self.max_se_s
+        ):
+            # the motion alone cannot tell a delay from a constant tool error and a slow
+            # drift of it: whatever the fit says it knows comes from the error model alone
+            return DelayRefused(
+                "fits_not_identifiable",
+                f"the motion cannot separate a delay from a tool error and its slow drift "
+                f"(to {sep * 1e3:.1f} ms > {self.max_se_s * 1e3:.0f} ms: the tool's velocity "
+                "in the tool frame hardly changes, as for one joint at constant speed); "
+                "changes of speed or direction separate it",
+                float(trk_t[-1]),
+                sep,
+            )
+        fits = self._two_models(enc_t, enc_q, trk_t, trk_p, trk_q, guess)
         if isinstance(fits, DelayNotIdentifiableError):
-            return None
+            return DelayRefused("fits_not_identifiable", str(fits), float(trk_t[-1]))
         fit = min(fits, key=lambda f: f.residual_rms_moving)
-        se = _reported_se(fit.delay_se_s, _model_disagreement(fit, fits), sep)
-        if not (math.isfinite(fit.delay_s) and math.isfinite(se)) or se > self.max_se_s:
-            return None
-        return fit.delay_s, se
+        return _ModelFit(
+            fit, _model_disagreement(fit, fits), sep, float(trk_t[0]), float(trk_t[-1])
+        )
 
     def _two_models(
         self,
@@ -776,42 +831,22 @@ class OnlineDelayTracker:
         current: float,
         guess: float,
     ) -> DelayMeasurement | DelayRefused:
-        """The delay over one stretch, or why there is none."""
-        enc_t, enc_q, trk_t, trk_p, trk_q = _covered(window, guess, self.max_gap_s)
-        if enc_t.size < 20 or trk_t.size < 50:
-            end = float(window[2][-1]) if window[2].size else math.nan
-            return DelayRefused("fits_without_data", "not enough data in the stretch", end)
-        sep = separable_se(trk_t, trk_p, trk_q)
-        if sep > self.max_se_s and _point_moves(trk_t, trk_p):  # at rest: the fit says so
-            # the motion alone cannot tell a delay from a constant tool error and a slow
-            # drift of it: whatever the fit says it knows comes from the error model alone
-            return DelayRefused(
-                "fits_not_identifiable",
-                f"the motion cannot separate a delay from a tool error and its slow drift "
-                f"(to {sep * 1e3:.1f} ms > {self.max_se_s * 1e3:.0f} ms: the tool's velocity "
-                "in the tool frame hardly changes, as for one joint at constant speed); "
-                "changes of speed or direction separate it",
-                float(trk_t[-1]),
-                sep,
-            )
-        # the error model of a short stretch: the one of the two that leaves less residual
-        fits = self._two_models(enc_t, enc_q, trk_t, trk_p, trk_q, guess)
-        if isinstance(fits, DelayNotIdentifiableError):
-            return DelayRefused("fits_not_identifiable", str(fits), float(trk_t[-1]))
-        fit = min(fits, key=lambda f: f.residual_rms_moving)
-        middle = 0.5 * float(trk_t[0] + trk_t[-1])
-        model = _model_disagreement(fit, fits)
+        """The delay over one stretch (`_fit_models`), or why there is none."""
+        fitted = self._fit_models(window, guess)
+        if isinstance(fitted, DelayRefused):
+            return fitted
+        fit = fitted.fit
         return DelayMeasurement(
             fit.delay_s,
-            _reported_se(fit.delay_se_s, model, sep),
+            _reported_se(fit.delay_se_s, fitted.model_s, fitted.sep_se_s),
             fit.speed_rms,
-            float(trk_t[-1]),
+            fitted.t_last,
             current,
-            middle,
+            0.5 * (fitted.t_first + fitted.t_last),
             fit.residual_rms_moving if math.isfinite(fit.residual_rms_moving) else 0.0,
-            sep,
+            fitted.sep_se_s,
             fit.delay_se_s,
-            model,
+            fitted.model_s,
         )
 
     def combine(self, found: DelayMeasurement | DelayRefused) -> float | None:
@@ -895,7 +930,9 @@ class OnlineDelayTracker:
         fit is not kept (as its rough stretch fits are not taken alone), nor is one whose
         stretch's time is not known. A measurement without a pooled fit drops the one kept:
         a pooled fit is of the pool it was measured on, not to be taken again later under
-        a newer time as if new."""
+        a newer time as if new. A pool the fit could not use is counted (`pools_unusable`)."""
+        if found.pool_unusable:
+            self.counters["pools_unusable"] += 1
         young = not found.t > self._young_until and bool(lines)
         if self.settled or young or not (math.isfinite(found.pooled_s) and found.pooled_se_s > 0):
             self.pooled = None
