@@ -289,3 +289,27 @@ def test_an_encoder_restart_then_a_stall_gives_no_error(demo_cell):
     assert all(isinstance(f, DelayRefused) and f.counter == "fits_without_data" for f in found)
     assert tracker.applied == applied  # nothing new taken without encoder rows
     assert tracker.pooled is None
+
+
+def test_the_pool_is_thinned_as_if_joined_first():
+    """The pool's tracker rows are thinned part by part (no join of every row on the event
+    loop): the same rows as joining them all and keeping every k-th, k the least that keeps
+    at most the limit, whatever the parts' sizes."""
+    from keo_service.fit.delay_online import thinned
+
+    rng = np.random.default_rng(48)
+    for _ in range(200):
+        sizes = rng.integers(0, 400, size=int(rng.integers(1, 12)))
+        sizes[0] = max(sizes[0], 1)
+        start = np.cumsum(np.concatenate([[0], sizes[:-1]]))
+        parts = [
+            np.column_stack([np.arange(a, a + n), -np.arange(a, a + n)])
+            for a, n in zip(start, sizes, strict=True)
+        ]
+        most = int(rng.integers(1, 600))
+        joined = np.concatenate(parts)
+        k = math.ceil(joined.shape[0] / most)
+        want = joined[::k]
+        got = thinned(parts, most)
+        assert want.shape[0] <= most
+        assert np.array_equal(got, want)

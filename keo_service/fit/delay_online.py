@@ -680,9 +680,7 @@ class OnlineDelayTracker:
         self._pool_stretches = len(trk_pool)
         if not made:
             return None
-        trk_all = np.concatenate(trk_pool)
-        step = -(-trk_all.shape[0] // self.settings.pool_rows)  # ceil
-        return np.concatenate(enc_pool), trk_all[::step]
+        return np.concatenate(enc_pool), thinned(trk_pool, self.settings.pool_rows)
 
     def fit(
         self,
@@ -1566,6 +1564,18 @@ def pool_arrays(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None] | None:
     """The arrays of a stretch's pool (`stretch_arrays` of `Stretch.pool`), None: no pool."""
     return None if stretch.pool is None else stretch_arrays(stretch.pool)
+
+
+def thinned(parts: Sequence[np.ndarray], most: int) -> np.ndarray:
+    """The rows of `parts` joined, every k-th kept (k the least that keeps at most `most`):
+    `np.concatenate(parts)[::k]`, without joining every row first (a 30 s pool of a 1 kHz
+    tracker is 30,000 rows, of which 3,000 are kept; the join is on the event loop)."""
+    step = -(-sum(part.shape[0] for part in parts) // most)  # ceil
+    kept, offset = [], 0
+    for part in parts:
+        kept.append(part[(-offset) % step :: step])
+        offset += part.shape[0]
+    return np.concatenate(kept)
 
 
 def _on_line(anchor: Anchor | None, stamps: np.ndarray, device: np.ndarray) -> np.ndarray:
