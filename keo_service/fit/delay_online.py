@@ -451,6 +451,8 @@ class OnlineDelayTracker:
             if m.flags or t < start:
                 counters[f"{stream}_left_out"] += 1
                 continue
+            # finite checks on the floats as they came: numpy's isfinite().all() per row cost
+            # several times the rest of a sample's intake (docs/performance.md)
             if is_trk:
                 quat = m.quaternion
                 finite = all(map(isfinite, p)) and (quat is None or all(map(isfinite, quat)))
@@ -1609,10 +1611,10 @@ class _Rows:
     """One stream's samples, oldest first, at most `maxlen` of them (the oldest dropped, as
     from a bounded deque), each a row of floats of one width, stamps rising in column 0.
 
-    Per sample a tuple is appended to a list; every `block` rows the list becomes rows of an
-    array allocated ahead (grown by doubling, compacted when its end is reached), so that a
-    stretch is a slice of it: no array per sample, no walk over a deque. `last` is the newest
-    stamp (-inf when empty: any finite stamp is newer)."""
+    Per sample a tuple joins a list (`extend`, a block at a time); every `block` rows the list
+    becomes rows of an array allocated ahead (grown by doubling, compacted when its end is
+    reached), so that a stretch is a slice of it: no array per sample, no walk over a deque.
+    `last` is the newest stamp (-inf when empty: any finite stamp is newer)."""
 
     def __init__(self, maxlen: int, block: int = 256) -> None:
         self.maxlen = max(int(maxlen), 1)
@@ -1627,27 +1629,14 @@ class _Rows:
     def __len__(self) -> int:
         return self._end - self._head + len(self._pending)
 
-    def append(self, row: tuple[float, ...]) -> None:
-        if not self.width:
-            self.width = len(row)
-        if self._end - self._head + len(self._pending) >= self.maxlen:  # full: drop the oldest
-            if self._end > self._head:
-                self._head += 1
-            else:
-                self._pending.pop(0)
-        self._pending.append(row)
-        self.last = row[0]
-        if len(self._pending) >= self.block:
-            self._flush()
-
     def extend(self, rows: list[tuple[float, ...]]) -> None:
-        """`append` of each row in turn, in one call: the same rows held afterwards."""
+        """The rows appended in turn, the oldest dropped once `maxlen` are held."""
         if not self.width:
             self.width = len(rows[0])
         self._pending.extend(rows)
         self.last = rows[-1][0]
         over = len(self) - self.maxlen
-        if over > 0:  # full: the oldest dropped, as `append` drops them
+        if over > 0:  # full: the oldest dropped
             held = self._end - self._head
             self._head += min(over, held)
             if over > held:
