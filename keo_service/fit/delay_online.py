@@ -1195,13 +1195,21 @@ class OnlineDelayTracker:
         self._trend_fits = len(members)
 
     def _confirms(self, fit: _Fit) -> bool:
-        """Does this fit confirm the configured delay in use: precise to `max_apply_m` at its
-        speed (its own standard error, as a first fit is taken) and within `change_sigmas`
-        of it?"""
-        if self.applied is None or self.applied_se is None:
+        """Does this fit confirm the configured delay in use, so that from now on the delay
+        follows the clock mappings' lines (`_carried`)? Only a fit that knows more than the
+        prior (its own standard error below the configured one), precise to `max_apply_m` at
+        the fastest the tool moved in the recent fits (a fit of the slow start is precise at
+        its own speed and not at the motion's), of a mapping no longer young (a young line
+        still learns its drift: carried along it, a right delay walks off with the line's
+        learning; docs/timing-delay.md), and within `change_sigmas` of the delay in use. The
+        fit is the newest of the recent fits."""
+        if self.applied is None or self.applied_se is None or fit.young:
             return False
         se = fit.se
-        if not se * fit.speed <= self.max_apply_m:
+        if not se < self.applied_se:
+            return False
+        fastest = max(f.speed for f in self._recent)
+        if not se * fastest <= self.max_apply_m:
             return False
         return abs(fit.value - self.applied) <= self.settings.change_sigmas * math.hypot(
             se, self.applied_se
