@@ -80,6 +80,27 @@ def test_issue_45_from_an_unknown_delay_a_wrong_first_fit_does_not_veto_the_righ
     assert later[1] == pytest.approx(30.0e-3, abs=0.3e-3)
 
 
+def test_a_delay_settles_only_when_known_at_the_speed_the_tool_turns(demo_cell):
+    """From outside (issue 45's cell as processes, a wrist turning at 0.4-0.58 rad/s about a
+    tool point moving at 0.065 m/s): the delay settled at 146 us se, 9.5 um at the point's
+    speed but 58-85 urad at the turn's, above the 20 um the flag promises. Fits that agree,
+    each known to 146 us: at 0.065 m/s alone they settle (9.5 um); turning at 0.5 rad/s they
+    do not (73 urad), until fits know the delay to 40 us (20 urad)."""
+    rough = [30.00e-3, 30.05e-3, 29.95e-3, 30.02e-3]
+    point_only = OnlineDelayTracker(demo_cell)
+    for i, value in enumerate(rough):
+        point_only.combine(DelayMeasurement(value, 146e-6, 0.065, 5.0 * (i + 1)))
+    assert point_only.settled
+    turning = OnlineDelayTracker(demo_cell)
+    for i, value in enumerate(rough):
+        turning.combine(DelayMeasurement(value, 146e-6, 0.065, 5.0 * (i + 1), turn_rms=0.5))
+    assert not turning.settled
+    assert "at the tool's speed" in turning.last_result, turning.last_result
+    for i, value in enumerate([30.01e-3, 29.99e-3, 30.0e-3]):
+        turning.combine(DelayMeasurement(value, 30e-6, 0.065, 30.0 + 5.0 * i, turn_rms=0.5))
+    assert turning.settled
+
+
 def test_a_wrong_delay_taken_is_revised_by_the_fits_that_follow(demo_cell):
     """No fit vetoes the ones after it: from an unknown delay two agreeing but wrong fits are
     taken; the right ones that follow outnumber them in the consensus and replace them."""

@@ -58,6 +58,7 @@ class DelayFit:
     window_delays_s: list[float] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     speed_rms: float = math.nan  # the tool's RMS speed over the fitted samples (m/s)
+    turn_rms: float = math.nan  # its RMS angular speed (rad/s; nan: no orientation measured)
 
 
 def _mad_sigma(x: np.ndarray) -> float:
@@ -208,6 +209,7 @@ class _Round:
     nch: int
     inflate: float  # variance inflation for the residual's autocorrelation
     speed_rms: float  # m/s
+    turn_rms: float  # the tool's RMS angular speed (rad/s; nan: a position-only tracker)
     spread_deg: float = 0.0  # the tool velocity's directions, 95 % within this of one, deg
     speed_change: float = 0.0  # the moving tool's speed: its 5-95 % range over its median
     rest: float = 0.0  # the share of the time the tool is at rest
@@ -242,6 +244,7 @@ def _linearised_round(
             "moves; record motion with changes of speed or direction"
         )
     spread_deg, speed_change = _motion_variety(motion[moving])
+    turn_rms = math.nan if R_bs is None else float(np.sqrt(np.mean(np.sum(w**2, axis=1))))
     vel = np.hstack([v, w]) if R_bs is not None else v
     if features == "tool":  # errors and velocities in the tool frame: R_bt^T x
         for part in (slice(0, 3), slice(3, 6))[: err.shape[1] // 3]:
@@ -292,6 +295,7 @@ def _linearised_round(
         nch,
         inflate,
         speed_rms,
+        turn_rms,
         spread_deg,
         speed_change,
         1.0 - float(moving.mean()),
@@ -407,6 +411,7 @@ def fit_delay(
         iterations=iterations,
         notes=notes,
         speed_rms=last.speed_rms,
+        turn_rms=last.turn_rms,
     )
 
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from keo_service.core.kinematics import Cell
 from keo_service.fit.delay import (
+    LEVER_M,
     MIN_SPEED,
     DelayFit,
     DelayNotIdentifiableError,
@@ -54,6 +55,8 @@ class DelayMeasurement:
     pooled_se_s: float = math.nan
     # the pool came but the fit could not use it (counted by `combine`: `pools_unusable`)
     pool_unusable: bool = False
+    # the tool's RMS angular speed over the stretch (rad/s; nan: no orientation measured)
+    turn_rms: float = math.nan
 
     @property
     def described_t(self) -> float:
@@ -146,7 +149,9 @@ class DelayTrackerSettings:
     change_sigmas: float = 4.0  # consensus vs delay in use: incompatible at this many sigma
     confirm_sigmas: float = 2.5  # each confirming fit off the delay in use by this many
     first_tau_s: float = 300e-6  # a fit's scatter beyond its se, until 3 fits measure it
-    settle_m: float = 20e-6  # settled when the consensus is known to this at the tool's speed
+    # settled when the consensus is known to this at the tool's speed (or in urad at its
+    # turning speed, where that is faster)
+    settle_m: float = 20e-6
     # while the delay is not settled, all samples since it was last unknown are fitted at
     # once too (the pooled fit), over at most this long, the tracker's samples thinned to at
     # most pool_rows (its cost bounded: the encoder's are all kept for the interpolation)
@@ -190,6 +195,14 @@ class _Fit:
     sep_se: float = math.nan  # `separable_se` of its stretch (nan: not measured)
     own_se: float = math.nan  # its own (clustered) standard error (nan: `se`)
     model: float = math.nan  # its two error models' disagreement (nan: not measured)
+    turn: float = math.nan  # the tool's RMS angular speed over it (rad/s; nan: not measured)
+
+    @property
+    def weigh(self) -> float:
+        """The speed a delay error of this stretch is weighed at: the tool point's, or the
+        turn's at `LEVER_M` when that is faster (a micrometre and a microradian alike, as the
+        targets weigh them: a wrist turning fast about a slow tool point)."""
+        return self.speed if not self.turn * LEVER_M > self.speed else self.turn * LEVER_M
 
 
 @dataclass(frozen=True)
@@ -847,6 +860,7 @@ class OnlineDelayTracker:
             fitted.sep_se_s,
             fit.delay_se_s,
             fitted.model_s,
+            turn_rms=fit.turn_rms,
         )
 
     def combine(self, found: DelayMeasurement | DelayRefused) -> float | None:
@@ -892,6 +906,7 @@ class OnlineDelayTracker:
                 sep_se=found.sep_se_s,
                 own_se=found.own_se_s,
                 model=found.model_s,
+                turn=found.turn_rms,
             )
         )
         if not self.settled and not provisional:
@@ -1148,7 +1163,7 @@ class OnlineDelayTracker:
         separates a delay."""
         c, se_c, members = cons
         newest = self._recent[-1]
-        speed = float(np.median([f.speed for f in members]))
+        speed = float(np.median([f.weigh for f in members]))
         taken = "in use"
         if newest.young and newest in members:  # its stamps are the most settled
             c, se_c = newest.value, self._honest(newest)
@@ -1177,7 +1192,9 @@ class OnlineDelayTracker:
                 f"to better than {newest.sep_se * 1e6:.0f} us; changes of speed or direction "
                 "separate it"
             )
-        return "unsettled", f"{agreed}, {taken} until they agree to {to:g} um at speed"
+        return "unsettled", (
+            f"{agreed}, {taken} until they agree to {to:g} um (or urad) at the tool's speed"
+        )
 
     def _start_trend(self, members: list[_Fit]) -> None:
         """Start the running estimate from the fits that settled the delay, in their order,
@@ -1208,7 +1225,7 @@ class OnlineDelayTracker:
         se = fit.se
         if not se < self.applied_se:
             return False
-        fastest = max(f.speed for f in self._recent)
+        fastest = max(f.weigh for f in self._recent)
         if not se * fastest <= self.max_apply_m:
             return False
         return abs(fit.value - self.applied) <= self.settings.change_sigmas * math.hypot(
