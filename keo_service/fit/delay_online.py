@@ -1213,8 +1213,7 @@ class OnlineDelayTracker:
 
     def _confirms(self, fit: _Fit) -> bool:
         """Does this fit confirm the configured delay in use, so that from now on the delay
-        follows the clock mappings' lines (`_carried`)? Only a fit that knows more than the
-        prior (its own standard error below the configured one), precise to `max_apply_m` at
+        follows the clock mappings' lines (`_carried`)? Only a fit precise to `max_apply_m` at
         the fastest the tool moved in the recent fits (a fit of the slow start is precise at
         its own speed and not at the motion's), of a mapping no longer young (a young line
         still learns its drift: carried along it, a right delay walks off with the line's
@@ -1223,8 +1222,6 @@ class OnlineDelayTracker:
         if self.applied is None or self.applied_se is None or fit.young:
             return False
         se = fit.se
-        if not se < self.applied_se:
-            return False
         fastest = max(f.weigh for f in self._recent)
         if not se * fastest <= self.max_apply_m:
             return False
