@@ -59,7 +59,7 @@ def test_a_configured_delay_is_not_confirmed_by_a_young_mappings_fits(demo_cell)
     and from then on it followed the young line's learning (110-176 us in 40 s, up to 41 um
     worse than tracking off). Here a device-clock encoder's precise fits in the first seconds
     confirmed it on the code before: 345 us off at the end, 73 um at the tool. A fit
-    confirms only once its mapping is no longer young and it knows more than the prior."""
+    confirms only once its mapping is no longer young."""
     for seed in (0, 1):
         streams = case_streams(demo_cell, StreamCase("rtde", "line100", "all_slow"), seed)
         in_use = _feed(demo_cell, streams, TRUTH, 0.0005)
