@@ -389,27 +389,7 @@ class Estimator:
                         measured = measured_error_folded(folded, self._folded_data, q, sensor)
                     else:
                         measured = self._measure(q, sensor)
-                    last_update, cap = self._last_update_t, self._step_cap
-                    if (
-                        last_update is None
-                        or cap is None
-                        or self._dt_seen % CAP_REFRESH == 0
-                        or self._check_ranges
-                    ):
-                        return [self._update(t, measured, target, q, device_stamp)]
-                    # `_update`'s steady state spelled out: one Python frame fewer per sample
-                    observer, dt = self.observer, t - last_update
-                    assert observer is not None
-                    if not observer.update(measured, cap if dt > cap else dt):
-                        self.counters[OBSERVER_REJECTED] += 1
-                        return [self._held(t, OBSERVER_REJECTED, target, device_stamp)]
-                    self._last_update_t = t
-                    self.counters["estimates"] += 1
-                    est = Estimate(
-                        t, measured, observer.values, (), target, channels, q, device_stamp
-                    )
-                    self.last = est
-                    return [est]
+                    return [self._update(t, measured, target, q, device_stamp)]
                 reason = held_reason(q, target, encoder.newest_t, self._buffer_s)
                 assert reason is not None
                 return [self._held(t, reason, target, device_stamp)]
