@@ -170,6 +170,7 @@ class MockUdpController(TaskMock):
         if self.loop_play:
             start = _first_pass(self.t0, self.period_s, time.time())
         k = max(0, math.ceil((time.time() - start) / cycle_s))
+        await self._warm_up(start + k * cycle_s)
         while True:
             t_scn = k * cycle_s
             if t_scn > t_end:
@@ -190,6 +191,20 @@ class MockUdpController(TaskMock):
             # the controller's milliseconds since t0: they run on through the passes
             self._send(t_scn, round((start - self.t0) * 1e3 + k * self.cycle_ms))
             k += 1
+
+    async def _warm_up(self, first_send: float) -> None:
+        """Wait for the first cycle awake: a process woken from a long sleep runs several
+        times slower for some milliseconds (cold caches, an idle CPU), longer than a 4 ms
+        cycle, and a controller's cycle never stalls so; the first answers would be judged
+        before this process could read them. The last 50 ms are waited a cycle at a time,
+        with the work of a cycle done (nothing sent)."""
+        cycle_s = self.cycle_ms * 1e-3
+        lead = first_send - time.time() - 0.05
+        if lead > 0:
+            await asyncio.sleep(lead)
+        while (left := first_send - time.time()) > cycle_s:
+            self.datagram(self.clock_offset_ms, 0, self.joints_at(0.0))
+            await asyncio.sleep(min(cycle_s, left - cycle_s))
 
     def _send(self, t_scn: float, since_t0_ms: int) -> None:
         """One cycle: the joints at scenario time `t_scn` (corrected when a correction is
