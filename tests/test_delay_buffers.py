@@ -207,23 +207,30 @@ def test_the_pool_is_bounded_and_emptied_once_settled(demo_cell):
     assert all(p is None for p in _pools(known, streams, fit=False))
 
 
-def _pools(tracker, streams, fit: bool) -> list:
-    """The pool of every stretch the tracker takes from the streams (each fitted and folded
-    in when `fit`)."""
-    from keo_service.fit.delay_online import pool_arrays, stretch_arrays
-
-    k, pools = 0, []
+def stretches_taken(tracker, streams):
+    """Feed the streams' samples in time order (each encoder sample before the tracker
+    samples it precedes) and yield each stretch the tracker takes, as it becomes due."""
+    k = 0
     for i, t in enumerate(streams.trk_t):
         while k < streams.enc_t.size and streams.enc_t[k] <= t:
             tracker.add_encoder(float(streams.enc_t[k]), streams.enc_q[k])
             k += 1
         tracker.add_tracker(float(t), streams.trk_p[i], streams.trk_quat[i])
         if tracker.due():
-            stretch = tracker.take()
-            pools.append(stretch.pool)
-            if fit:
-                found = tracker.measure(stretch_arrays(stretch), 0.0, pool=pool_arrays(stretch))
-                tracker.combine(found)
+            yield tracker.take()
+
+
+def _pools(tracker, streams, fit: bool) -> list:
+    """The pool of every stretch the tracker takes from the streams (each fitted and folded
+    in when `fit`)."""
+    from keo_service.fit.delay_online import pool_arrays, stretch_arrays
+
+    pools = []
+    for stretch in stretches_taken(tracker, streams):
+        pools.append(stretch.pool)
+        if fit:
+            found = tracker.measure(stretch_arrays(stretch), 0.0, pool=pool_arrays(stretch))
+            tracker.combine(found)
     return pools
 
 

@@ -82,20 +82,15 @@ def test_a_pool_the_fit_cannot_use_is_counted_and_the_stretch_stands(demo_cell):
 
     from keo_service.fit.delay_online import pool_arrays, stretch_arrays
     from keo_service.sim.delay_study import StreamCase, case_streams
+    from tests.test_delay_buffers import stretches_taken
 
     streams = case_streams(demo_cell, StreamCase("motoros", "line100", "all_slow", seconds=12.0))
     tracker = OnlineDelayTracker(demo_cell)
-    k, stretch = 0, None
-    for i, t in enumerate(streams.trk_t):
-        while k < streams.enc_t.size and streams.enc_t[k] <= t:
-            tracker.add_encoder(float(streams.enc_t[k]), streams.enc_q[k])
-            k += 1
-        tracker.add_tracker(float(t), streams.trk_p[i], streams.trk_quat[i])
-        if tracker.due():
-            stretch = tracker.take()
-            if stretch.pool is not None:  # the second stretch: a pool of two
-                break
-            tracker.combine(tracker.measure(stretch_arrays(stretch), 0.0, 0.0))
+    stretch = None
+    for stretch in stretches_taken(tracker, streams):
+        if stretch.pool is not None:  # the second stretch: a pool of two
+            break
+        tracker.combine(tracker.measure(stretch_arrays(stretch), 0.0, 0.0))
     assert stretch is not None
     pool = pool_arrays(stretch)
     assert pool is not None
