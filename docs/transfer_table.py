@@ -15,13 +15,17 @@ is made of"): the held-out poses by where they lie against the model's calibrate
 ranges (inside, in the maps' fade, beyond it), the figure with each effect left out, each
 joint's map or periodic terms left out, and each joint's joint-angle function (its periodic
 terms and its map) replaced by the other series' own; the registration and the probe mount
-refitted every time, as `--registration-only` does.
+refitted every time, as `--registration-only` does. And what the model's own series says
+(docs/analyze.md, "What A's data determine"): its own held-out poses with each joint's
+function from the other series, how much the other joints' maps inflate each map's variance
+on its poses, and its maps fitted on each half of the series in time and carried to the other.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import io
 import json
 import sys
@@ -141,6 +145,7 @@ def decompose(work: Path, src: str, dst: str) -> dict[str, Any]:
         return float(np.sqrt(np.mean(error_mm(m, z) ** 2)))
 
     parts = list(model.parts(x))
+    source = _source_side(work, src, config, robot)
     own = load_config(work / dst / "an" / "model.toml")
     theirs_model = saved_model(own, chain, position_only)
     theirs = {e.name: (e, v) for e, v in theirs_model.parts(theirs_model.x)}
@@ -162,6 +167,151 @@ def decompose(work: Path, src: str, dst: str) -> dict[str, Any]:
         if kind == "function":
             key += dst
         out[key] = {names[j]: held_out(*_swapped(parts, theirs, j, kind)) for j in range(chain.nq)}
+    out[f"{src}_held_out_pos_rms_mm"] = source.held_out(*_swapped(source.parts, {}, -1, ""))
+    out[f"function_from_{dst}_on_{src}"] = {
+        names[j]: source.held_out(*_swapped(source.parts, theirs, j, "function"))
+        for j in range(chain.nq)
+    }
+    out[f"variance_inflation_{src}"] = dict(zip(names, source.inflation, strict=True))
+    out[f"time_halves_{src}"] = source.halves
+    return out
+
+
+@dataclasses.dataclass
+class _Source:
+    """The model on its own session (registration refitted on its training poses, the rest as
+    saved): its parts, a judge of variants on its held-out poses, its maps' variance
+    inflation (fit.angle_maps.variance_inflation) on its training poses and its maps carried
+    between the session's own halves in time (_time_halves)."""
+
+    parts: list[Any]
+    held_out: Any
+    inflation: list[float | None]
+    halves: dict[str, Any] | None
+
+
+def _source_side(work: Path, src: str, config: Any, robot: Any) -> _Source:
+    """What the source session's own data say: the model refitted there as
+    `--registration-only` does, each variant judged on its held-out poses, and how much its
+    poses let each joint's map be told from the others'."""
+    from keo_service.core.chain import Chain
+    from keo_service.fit.analysis import analyze, split_data
+    from keo_service.fit.angle_maps import linearize, variance_inflation
+    from keo_service.fit.effects import JointMaps
+    from keo_service.fit.model import Model, fit
+    from keo_service.io.analysis_report import saved_model
+    from keo_service.offline.analyze import load_data
+
+    chain = Chain(robot)
+    data, position_only = load_data(config, work / src / "encoder.csv", work / src / "tracker.csv")
+    on_own = _quiet(analyze, robot, data, position_only, saved_model(config, chain, position_only))
+    model, x = on_own.model, on_own.x
+    train_idx, val_idx = split_data(data)
+    train, val = data.subset(train_idx), data.subset(val_idx)
+    tau_tr, tau_va = chain.gravity_torques(train.q), chain.gravity_torques(val.q)
+    noise = on_own.report["registration"]["noise_estimate_mm"] * 1e-3
+    width = 3 if position_only else 6
+
+    def held_out(effects: list[Any], values: list[np.ndarray]) -> float:
+        z0 = np.concatenate([x[: model.n_reg], *values])
+        m = Model(chain, position_only, effects, z0, {}, model.temperature_ref, model.time_ref)
+        fixed = np.zeros(z0.size, dtype=bool)
+        fixed[m.n_reg :] = True
+        z = fit(m, train, tau_tr, z0, noise, fixed=fixed).x
+        r = m.residuals(z, val, tau_va).reshape(-1, width)[:, :3]
+        return float(np.sqrt(np.mean(np.sum(r**2, axis=1))) * 1e3)
+
+    own_parts = list(model.parts(x))
+    maps = model.find(JointMaps)
+    inflation: list[float | None] = [None] * chain.nq
+    halves = None
+    if maps is not None:
+        physical = [(e, v) for e, v in own_parts if not isinstance(e, JointMaps)]
+        xp = np.concatenate([x[: model.n_reg], *[v for _e, v in physical]])
+        before = Model(
+            chain,
+            position_only,
+            [e for e, _v in physical],
+            xp,
+            {},
+            model.temperature_ref,
+            model.time_ref,
+        )
+        report = json.loads((work / src / "an" / "report.json").read_text())
+        smoothing = next(e for e in report["effects"] if e["name"] == "joint_maps")["smoothing"]
+        lin = linearize(before, xp, train, tau_tr)
+        inflation = variance_inflation(lin, train.q, maps.knots, smoothing, xp.size)
+        whole = linearize(before, xp, data, chain.gravity_torques(data.q))
+        halves = _time_halves(
+            whole,
+            data,
+            train_idx,
+            val_idx,
+            maps.knots,
+            smoothing,
+            model.n_reg,
+            list(robot.joint_names),
+        )
+    return _Source(own_parts, held_out, inflation, halves)
+
+
+def _time_halves(
+    lin: Any,
+    data: Any,
+    train_idx: np.ndarray,
+    val_idx: np.ndarray,
+    knots: tuple[np.ndarray, ...],
+    smoothing: float,
+    n_reg: int,
+    names: list[str],
+) -> dict[str, Any]:
+    """The session's maps fitted on the training poses of its first and of its second half in
+    time (on the model before the maps, linearized in `lin`, the registration beside them, the
+    analysis' knots and smoothing), each half's held-out poses judged with its own maps, with
+    the other half's, and with its own but one joint's map from the other half (the
+    registration refitted on that half's training poses each time): which joint's function
+    does not carry from one stretch of the session to the next. The halves differ in their
+    poses as well as in time (UR10 Series A: the same joint ranges, other configurations);
+    where the timestamps are damaged (Series B) they are halves of the row order."""
+    from keo_service.fit.angle_maps import _design, _penalty, _pos_rms_mm, _solve
+
+    width = lin.r0.shape[1]
+    n_other = lin.J.shape[1]
+    design = _design(lin, data.q, knots)
+    penalty = _penalty(n_other, knots)
+    middle = float(np.median(data.t[train_idx]))
+    fits = [train_idx[data.t[train_idx] <= middle], train_idx[data.t[train_idx] > middle]]
+    judged = [val_idx[data.t[val_idx] <= middle], val_idx[data.t[val_idx] > middle]]
+    steps = []
+    for rows in fits:
+        AtA, g = design.rows(rows, width).normal()
+        steps.append(_solve(AtA, g, penalty.T @ penalty, smoothing))
+
+    def held_out(half: int, maps: np.ndarray) -> float:
+        fitted, test = design.rows(fits[half], width), design.rows(judged[half], width)
+        registration = np.linalg.lstsq(
+            fitted.J[:, :n_reg], -(fitted.r + fitted.B @ maps), rcond=None
+        )[0]
+        r = test.r + test.B @ maps + test.J[:, :n_reg] @ registration
+        return _pos_rms_mm(r.reshape(-1, width))
+
+    out: dict[str, Any] = {"hours": float(np.ptp(data.t) / 3600.0)}
+    for half, label in ((0, "first"), (1, "second")):
+        own, other = steps[half][n_other:], steps[1 - half][n_other:]
+        swapped = {}
+        start = 0
+        for j, kn in enumerate(knots):
+            trial = own.copy()
+            trial[start : start + kn.size] = other[start : start + kn.size]
+            start += kn.size
+            if kn.size:
+                swapped[names[j]] = held_out(half, trial)
+        out[label] = {
+            "held_out_poses": int(judged[half].size),
+            "own_maps": held_out(half, own),
+            "other_half_maps": held_out(half, other),
+            "own_but_one_joint_from_the_other_half": swapped,
+        }
     return out
 
 
@@ -273,6 +423,30 @@ def _print_decomposition(dec: dict[str, Any]) -> None:
         (f"function_from_{dec['applied_to']}", f"the joint's function from {dec['applied_to']}"),
     ):
         print(f"  {label}:", {k: round(v, 4) for k, v in dec[key].items()})
+    src, dst = dec["model_from"], dec["applied_to"]
+    print(
+        f"  on {src}'s own held-out poses ({dec[f'{src}_held_out_pos_rms_mm']:.4f} mm as "
+        f"saved), the joint's function from {dst}:",
+        {k: round(v, 4) for k, v in dec[f"function_from_{dst}_on_{src}"].items()},
+    )
+    halves = dec.get(f"time_halves_{src}")
+    if halves:
+        print(f"  {src}'s maps fitted on each half of its {halves['hours']:.0f} h, held out:")
+        for label in ("first", "second"):
+            h = halves[label]
+            print(
+                f"    {label} half ({h['held_out_poses']} poses): own maps {h['own_maps']:.4f}, "
+                f"the other half's {h['other_half_maps']:.4f}; own but one joint's from the "
+                "other half:",
+                {k: round(v, 4) for k, v in h["own_but_one_joint_from_the_other_half"].items()},
+            )
+    print(
+        f"  {src}'s maps, variance inflation by the other joints' maps:",
+        {
+            k: None if v is None else round(v, 3)
+            for k, v in dec[f"variance_inflation_{src}"].items()
+        },
+    )
 
 
 if __name__ == "__main__":

@@ -438,6 +438,43 @@ def map_records(fit: MapFit, joint_names: Sequence[str]) -> list[dict[str, Any]]
     return maps.records(fit.x[k:], fit.se[k:], joint_names)
 
 
+def variance_inflation(
+    lin: _Linearized,
+    q: np.ndarray,
+    knots: Sequence[np.ndarray],
+    smoothing: float,
+    n_other: int,
+) -> list[float | None]:
+    """Per joint, how much solving every joint's map together inflates the variance of that
+    joint's map values over solving its map alone beside the registration: the mean over its
+    knots of the ratio of the two variances (rows of `lin`, the penalised normal equations the
+    maps are fitted with). 1: the poses separate the joint's angle error from the other
+    joints'; large: the poses move joints together so that the data cannot tell whose error it
+    is, and the split between them is set by the smoothing. None for a joint without a map."""
+    design = _design(lin, q, knots)
+    AtA, _g = design.normal()
+    P = _penalty(n_other, knots)
+    normal = _normal(AtA, P.T @ P, smoothing)
+
+    def variances(idx: np.ndarray) -> np.ndarray:
+        sub = normal[np.ix_(idx, idx)]
+        inverse: np.ndarray = cho_solve(cho_factor(sub), np.eye(idx.size))
+        return np.diag(inverse)
+
+    every = variances(np.arange(normal.shape[0]))
+    out: list[float | None] = []
+    start = n_other
+    for kn in knots:
+        if not kn.size:
+            out.append(None)
+            continue
+        own = np.arange(start, start + kn.size)
+        alone = variances(np.concatenate([np.arange(n_other), own]))[n_other:]
+        out.append(float(np.mean(every[own] / alone)))
+        start += kn.size
+    return out
+
+
 def _linear_rms(
     lin: _Linearized,
     q: np.ndarray,
