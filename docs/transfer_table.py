@@ -431,7 +431,7 @@ def _print_decomposition(dec: dict[str, Any]) -> None:
     )
     halves = dec.get(f"time_halves_{src}")
     if halves:
-        print(f"  {src}'s maps fitted on each half of its {halves['hours']:.0f} h, held out:")
+        print(f"  {src}'s maps fitted on each half of its {halves['hours']:.1f} h, held out:")
         for label in ("first", "second"):
             h = halves[label]
             print(
