@@ -11,9 +11,10 @@ worker process and awaits the result, which it folds in between samples as befor
 Bounded: one process, one fit at a time (the delay loop awaits each before it takes the next
 stretch), a stretch's arrays as its only input. The worker holds a copy of the tracker made
 when the service started (its settings: `OnlineDelayTracker.measure` reads nothing else once
-given the `guess` the service's tracker made), starts with numpy's BLAS on one thread, and
-ignores SIGINT and SIGTERM (a supervisor that signals the whole group stops the service,
-which then shuts the worker down). A worker that dies is a failure of the service's delay
+given the `guess` the service's tracker made), starts with numpy's BLAS on one thread and
+its allocator keeping freed memory for the next fit, and ignores SIGINT and SIGTERM (a
+supervisor that signals the whole group stops the service, which then shuts the worker
+down). A worker that dies is a failure of the service's delay
 task, as any task's (`concurrent.futures.process.BrokenProcessPool`).
 """
 
@@ -45,6 +46,14 @@ __all__ = ["FitWorker"]
 
 # the thread counts numpy's BLAS builds read at their import: one, in the worker
 BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+# glibc's allocator in the worker (read at its start; other C libraries ignore them): a fit's
+# arrays (up to a few MB each) from the heap, and up to 128 MB of freed heap kept for the next
+# fit, instead of each fit mapping fresh pages from the kernel and giving them back (a page
+# fault per 4 kB: docs/performance.md, Round 11). Bounded by the largest fit's peak.
+WORKER_MALLOC = {
+    "MALLOC_MMAP_THRESHOLD_": str(64 * 2**20),
+    "MALLOC_TRIM_THRESHOLD_": str(128 * 2**20),
+}
 
 # in the worker: the service's tracker as it was at start (set once, by `_start`)
 _worker: dict[str, OnlineDelayTracker] = {}
@@ -74,10 +83,12 @@ def _measure(
 
 
 @contextlib.contextmanager
-def _one_blas_thread() -> Iterator[None]:
-    """The environment a process started meanwhile inherits: BLAS on one thread."""
-    saved = {name: os.environ.get(name) for name in BLAS_THREADS}
-    os.environ.update(dict.fromkeys(BLAS_THREADS, "1"))
+def _worker_environment() -> Iterator[None]:
+    """The environment a process started meanwhile inherits: BLAS on one thread, the
+    allocator's settings (`WORKER_MALLOC`)."""
+    settings = {**dict.fromkeys(BLAS_THREADS, "1"), **WORKER_MALLOC}
+    saved = {name: os.environ.get(name) for name in settings}
+    os.environ.update(settings)
     try:
         yield
     finally:
@@ -94,7 +105,7 @@ class FitWorker:
 
     def __init__(self, tracker: OnlineDelayTracker) -> None:
         context = multiprocessing.get_context("spawn")  # not fork: Zenoh runs threads here
-        with _one_blas_thread():  # the process starts at the first submit
+        with _worker_environment():  # the process starts at the first submit
             self._pool = ProcessPoolExecutor(
                 1, mp_context=context, initializer=_start, initargs=(pickle.dumps(tracker),)
             )

@@ -547,10 +547,16 @@ class KeoService:
         self._status_bytes = encode(self.status())
 
     async def _status_loop(self) -> None:
+        """Every `STATUS_PERIOD_S`: the delay tracker's block, the quiet-time check, the tool
+        speed's point, the status snapshot. In three steps with the loop free between them:
+        a sample that arrives meanwhile waits for one step, not for all of them (each takes
+        0.07-0.24 ms on the cold cache the service meets: docs/performance.md, Round 11)."""
         while not self._stop.is_set():
             self._feed_delay()
             self._resolve_if_quiet()
+            await asyncio.sleep(0)
             self._tool_speed.sample(self.estimator.last)
+            await asyncio.sleep(0)
             self._refresh_status()
             await asyncio.sleep(STATUS_PERIOD_S)
 
