@@ -27,7 +27,6 @@ No I/O.
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -63,7 +62,10 @@ from keo_service.core.settings import EstimatorSettings
 __all__ = ["BatchResult", "BatchUnsupportedError", "estimate_batch", "measured_errors"]
 
 CHUNK = 8192  # rows per pass of the kinematics
-KINEMATICS_THREADS = min(2, os.cpu_count() or 1)
+# one worker beside the calling thread: that thread's bookkeeping (verdicts, observer) is as
+# long as the kinematics, and a second worker only contended with it for the GIL and the
+# cores (docs/performance.md)
+KINEMATICS_THREADS = 1
 OBSERVER_ROWS = 8 * CHUNK  # rows per step of the observer's recursion
 
 
