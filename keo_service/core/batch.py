@@ -27,8 +27,9 @@ No I/O.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,10 +63,6 @@ from keo_service.core.settings import EstimatorSettings
 __all__ = ["BatchResult", "BatchUnsupportedError", "estimate_batch", "measured_errors"]
 
 CHUNK = 8192  # rows per pass of the kinematics
-# one worker beside the calling thread: that thread's bookkeeping (verdicts, observer) is as
-# long as the kinematics, and a second worker only contended with it for the GIL and the
-# cores (docs/performance.md)
-KINEMATICS_THREADS = 1
 OBSERVER_ROWS = 8 * CHUNK  # rows per step of the observer's recursion
 
 
@@ -691,6 +688,64 @@ def _empty_result(streams: _Accepted, nq: int) -> BatchResult:
     )
 
 
+class _SharedChunks:
+    """The kinematics chunks in row order, each computed once: by a worker thread from the
+    first on while the calling thread decides the verdicts, and by the calling thread too
+    whenever it waits for one (`result`). The calling thread's own work is about as long as
+    the kinematics, so two threads share them at the end, and never three share two cores
+    (docs/performance.md)."""
+
+    def __init__(
+        self,
+        kinematics: Callable[[int], np.ndarray | None],
+        starts: range,
+        caller_helps: bool,
+    ) -> None:
+        self._kinematics = kinematics
+        self._starts = starts
+        self._caller_helps = caller_helps
+        self._futures: list[Future[np.ndarray | None]] = [Future() for _ in starts]
+        self._claimed = 0  # chunks before this one have a thread
+        self._lock = threading.Lock()
+        self._worker = threading.Thread(target=self._work, name="keo-batch", daemon=True)
+        self._worker.start()
+
+    def _claim(self) -> int | None:
+        with self._lock:
+            if self._claimed >= len(self._futures):
+                return None
+            self._claimed += 1
+            return self._claimed - 1
+
+    def _compute(self, index: int) -> None:
+        future = self._futures[index]
+        try:
+            future.set_result(self._kinematics(self._starts[index]))
+        except Exception as exc:  # raised where the chunk is taken
+            future.set_exception(exc)
+
+    def _work(self) -> None:
+        while (index := self._claim()) is not None:
+            self._compute(index)
+
+    def result(self, index: int) -> np.ndarray | None:
+        """Chunk `index`'s joints for the range flags (or None), once computed; the calling
+        thread computes the next unclaimed chunks meanwhile."""
+        future = self._futures[index]
+        while self._caller_helps and not future.done():
+            ahead = self._claim()
+            if ahead is None:
+                break
+            self._compute(ahead)
+        return future.result()
+
+    def stop(self) -> None:
+        """No chunk started after this; returns once the worker's chunk is done."""
+        with self._lock:
+            self._claimed = len(self._futures)
+        self._worker.join()
+
+
 def _run_chunks(
     cell: Cell,
     settings: EstimatorSettings,
@@ -699,40 +754,40 @@ def _run_chunks(
     out: _Rows,
     n_channels: int,
 ) -> _Verdicts:
-    """Phases 3-5: the kinematics on worker threads while the verdicts are decided, then
-    chunk by chunk as the workers finish: held rows and range flags, and the observer in
-    order. Fills `out`; returns the verdicts (the flags)."""
+    """Phases 3-5: the kinematics on a worker thread while the verdicts are decided, then
+    chunk by chunk in order as they are done: held rows and range flags, and the observer.
+    Fills `out`; returns the verdicts (the flags)."""
     n = streams.T.size
     corr = cell.corrections
     ranges = CalibratedRanges(corr)
     kinematics = _Kinematics(cell, streams, where, out, bool(ranges))
     starts = range(0, n, CHUNK)
     backlash = corr is not None and bool(np.any(corr.backlash))
-    # compliance: Pinocchio's gravity per row on the cell's one data object, in Python; one
-    # worker keeps that data to one thread
+    # compliance: Pinocchio's gravity per row on the cell's one data object, in Python; the
+    # worker alone keeps that data to one thread
     compliance = corr is not None and bool(np.any(corr.compliance))
-    workers = 1 if compliance else KINEMATICS_THREADS
-    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="keo-batch")
+    chunks: _SharedChunks | None = None
     try:
-        chunks_done: Iterator[np.ndarray | None] = iter([None] * len(starts))
         if streams.E.size and not backlash:
-            chunks_done = pool.map(kinematics, starts)
+            chunks = _SharedChunks(kinematics, starts, caller_helps=not compliance)
         verdicts = _verdicts(settings, streams, where)
         if streams.E.size and backlash:  # the directions need the verdicts' timing
             kinematics.direction = directions(streams.E, streams.Q)[
                 np.maximum(verdicts.have - 1, 0)
             ]
-            chunks_done = pool.map(kinematics, starts)
+            chunks = _SharedChunks(kinematics, starts, caller_helps=not compliance)
         observer = _Observer(settings, streams, verdicts, n_channels)
         if not observer.upd.size:
             out.estimate.fill(0.0)
-        for start, chunk_joints in zip(starts, chunks_done, strict=True):
+        for index, start in enumerate(starts):
+            chunk_joints = None if chunks is None else chunks.result(index)
             hi = min(start + CHUNK, n)
             _finish_chunk(slice(start, hi), verdicts, out, chunk_joints, ranges, streams.counters)
             if hi - observer.observed >= OBSERVER_ROWS or hi == n:
                 observer.run_to(hi, out.measured, out.estimate)
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        if chunks is not None:
+            chunks.stop()
     return verdicts
 
 
