@@ -4,6 +4,7 @@ analyze, compensate."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -104,8 +105,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return common.EXIT_OK
 
 
+def _blas_on_one_thread() -> None:
+    """BLAS on one thread for the rest of this process, unless the user chose: numpy's
+    OpenBLAS starts a thread per core when it loads, which spins between calls, and in `keo
+    estimate` it only took a core from the CSV parser's and the batch's own threads
+    (docs/performance.md). Only before numpy loads: OpenBLAS reads the variable then."""
+    if "numpy" not in sys.modules:
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
 @common.collector_paused
 def cmd_estimate(args: argparse.Namespace) -> int:
+    _blas_on_one_thread()
     from keo_service.offline.library import estimate
 
     result = estimate(args.config, args.encoder, args.tracker, args.out, streaming=args.streaming)

@@ -110,12 +110,14 @@ def cmd_init(args: argparse.Namespace) -> int:
 
 
 def _register_init(add: common.AddCommand) -> None:
-    from keo_service.io.init_config import ROBOT_PROTOCOLS, TRACKER_PROTOCOLS
+    # the protocol table, not init_config: that imports numpy, which every command's parser
+    # would then load before the command can choose how (`cmd_estimate`)
+    from keo_service.io.protocols import names as protocol_names
 
     p = add("init", cmd_init, "write a complete, commented config for a cell", config=False)
     p.add_argument("--robot", required=True, help="ur10, mh180 or a URDF file")
-    p.add_argument("--robot-protocol", required=True, choices=ROBOT_PROTOCOLS)
-    p.add_argument("--tracker-protocol", required=True, choices=TRACKER_PROTOCOLS)
+    p.add_argument("--robot-protocol", required=True, choices=protocol_names("robot"))
+    p.add_argument("--tracker-protocol", required=True, choices=protocol_names("tracker"))
     p.add_argument("--out", type=Path, required=True, help="the config file to write")
     p.add_argument("--cell", default="cell1", help="the cell's name (default cell1)")
     p.add_argument("--robot-host", default="127.0.0.1", help="the controller's address")

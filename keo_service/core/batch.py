@@ -27,9 +27,9 @@ No I/O.
 from __future__ import annotations
 
 import math
-import os
-from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,7 +63,6 @@ from keo_service.core.settings import EstimatorSettings
 __all__ = ["BatchResult", "BatchUnsupportedError", "estimate_batch", "measured_errors"]
 
 CHUNK = 8192  # rows per pass of the kinematics
-KINEMATICS_THREADS = min(2, os.cpu_count() or 1)
 OBSERVER_ROWS = 8 * CHUNK  # rows per step of the observer's recursion
 
 
@@ -216,38 +215,86 @@ def tool_frames(cell: Cell, chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np
 # ---- the linear recurrence -------------------------------------------------------------------
 
 
-def first_order_recursion(x0: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """x_k = b_k x_{k-1} + c_k for k = 0..n-1 (rows), from x0; returns (n, C).
+def first_order_recursion(
+    x0: np.ndarray, b: np.ndarray, c: np.ndarray, out: np.ndarray | None = None
+) -> np.ndarray:
+    """x_k = b_k x_{k-1} + c_k for k = 0..n-1 (rows), from x0: c (n, C); b (n, C), or (n, 1)
+    for one factor shared by every channel. Written into `out` (n, C) when given (a view
+    too, e.g. rows of a column-major table), which is returned.
 
     Blocks of about sqrt(n): within each block from zero for all blocks at once, then the
     block ends carried through in order, then every row gets its carry times the block's
     running product. No product is divided by, so nothing overflows (an underflowed product
     is a carry that really has decayed to nothing)."""
-    n, channels = c.shape
-    if n == 0:
-        return np.empty((0, channels))
+    n = c.shape[0]
+    size, blocks = recursion_blocks(n)
+    return blocked_recursion(
+        x0, blocked(b, size, blocks, 1.0), blocked(c, size, blocks, 0.0), n, out
+    )
+
+
+def recursion_blocks(n: int) -> tuple[int, int]:
+    """(rows per block, blocks) for `first_order_recursion` over n rows."""
     size = max(16, math.isqrt(n))
-    blocks = -(-n // size)
-    pad = blocks * size - n
-    # (position in block, block, channel): each step below reads and writes contiguous rows
-    bb = np.concatenate([b, np.ones((pad, channels))]).reshape(blocks, size, channels)
-    cc = np.concatenate([c, np.zeros((pad, channels))]).reshape(blocks, size, channels)
-    bb = np.ascontiguousarray(bb.transpose(1, 0, 2))
-    local = np.ascontiguousarray(cc.transpose(1, 0, 2))  # becomes the from-zero solution
-    product = bb  # becomes the running product of b inside each block
-    scratch = np.empty((blocks, channels))
-    for k in range(1, size):
-        np.multiply(bb[k], local[k - 1], out=scratch)
-        local[k] += scratch
-        product[k] *= product[k - 1]
-    carry = np.empty((blocks, channels))  # the state entering each block
-    state = np.asarray(x0, dtype=float)
-    for i in range(blocks):
-        carry[i] = state
-        state = product[-1, i] * state + local[-1, i]
-    local += product * carry[None, :, :]
-    out: np.ndarray = local.transpose(1, 0, 2).reshape(blocks * size, channels)[:n]
+    return size, -(-n // size)
+
+
+def blocked(rows: np.ndarray, size: int, blocks: int, pad: float) -> np.ndarray:
+    """rows (n, F) as (position in block, F, block), contiguous, the last block padded with
+    `pad`: each step of the recursion then reads and writes every block's row at that
+    position in contiguous runs, a factor shared by the channels too."""
+    n, width = rows.shape
+    out = np.empty((size, width, blocks))
+    by_block = out.transpose(2, 0, 1)  # (block, position, F): a view of `out`
+    full = n // size
+    by_block[:full] = rows[: full * size].reshape(full, size, width)
+    if n > full * size:
+        by_block[full, : n - full * size] = rows[full * size :]
+        by_block[full, n - full * size :] = pad
     return out
+
+
+def blocked_recursion(
+    x0: np.ndarray, factors: np.ndarray, local: np.ndarray, n: int, out: np.ndarray | None
+) -> np.ndarray:
+    """`first_order_recursion` over `blocked` inputs: `factors` (b; 1 or C of them) and
+    `local` (c), which becomes the solution from zero inside each block."""
+    size, channels, blocks = local.shape
+    scratch = np.empty((channels, blocks))
+    for k in range(1, size):
+        np.multiply(factors[k], local[k - 1], out=scratch)
+        local[k] += scratch
+    product = np.multiply.accumulate(factors, axis=0)  # the running product inside each block
+    carry = _block_carries(x0, product[-1], local[-1])  # the state entering each block
+    local += product * carry[None, :, :]
+    if out is None:
+        out = np.empty((n, channels))
+    full = n // size
+    # copy=False: a view of `out` or an error, never a copy that would be written in vain
+    by_block = out[: full * size].reshape(full, size, channels, copy=False)
+    by_block[...] = local[:, :, :full].transpose(2, 0, 1)
+    if n > full * size:
+        out[full * size :] = local[: n - full * size, :, full]
+    return out
+
+
+def _block_carries(x0: np.ndarray, ends: np.ndarray, solved: np.ndarray) -> np.ndarray:
+    """The state entering each block: x0, then state = (block's product) * state + (its
+    solution from zero at its end), block after block. On Python floats, channel by channel
+    (the same roundings as numpy's, a tenth of the cost on a few hundred short rows)."""
+    channels, blocks = solved.shape
+    carry = np.empty((channels, blocks))
+    shared = ends.shape[0] == 1
+    for ch in range(channels):
+        state = float(x0[ch])
+        column = []
+        for factor, end in zip(
+            ends[0 if shared else ch].tolist(), solved[ch].tolist(), strict=True
+        ):
+            column.append(state)
+            state = factor * state + end
+        carry[ch] = column
+    return carry
 
 
 # ---- the estimator's bookkeeping -------------------------------------------------------
@@ -513,6 +560,9 @@ class _Observer:
         self.ok = ok = verdicts.ok
         seen = verdicts.seen
         self.gains = np.asarray(settings.gains[:channels], dtype=float)
+        # the recursion's factors per channel, or once for all when the gains are equal
+        equal = bool(np.all(self.gains == self.gains[0]))
+        self.factor_gains = self.gains[:1] if equal else self.gains
         self.upd = np.flatnonzero(ok)
         self.every_row = self.upd.size == ok.size
         self.dt = np.empty(0)
@@ -526,12 +576,13 @@ class _Observer:
 
     def run_to(self, hi: int, measured: np.ndarray, estimate: np.ndarray) -> None:
         """The rows from those observed so far up to `hi`."""
-        upd, dt, gains, settings = self.upd, self.dt, self.gains, self.settings
+        upd, settings = self.upd, self.settings
         lo, self.observed = self.observed, hi
         first = self.done_updates
         last = hi if self.every_row else int(np.searchsorted(upd, hi))
         if first == 0 and last > 0:
             m0 = measured[upd[0]]
+            gains = self.gains
             if settings.start == "first":
                 self.state = m0.copy()
             else:
@@ -540,13 +591,7 @@ class _Observer:
             estimate[upd[0]] = self.state
             first = 1
         if last > first:
-            update_rows: slice | np.ndarray = (
-                slice(first, last) if self.every_row else upd[first:last]
-            )
-            alpha = -np.expm1(-gains[None, :] * dt[first - 1 : last - 1, None])
-            block = first_order_recursion(self.state, 1.0 - alpha, alpha * measured[update_rows])
-            estimate[update_rows] = block
-            self.state = block[-1]
+            self._updates(first, last, measured, estimate)
         if not self.every_row and upd.size:
             # a held row carries the state of the newest update before it (these rows' or
             # an earlier one's), zeros before the first update
@@ -555,6 +600,28 @@ class _Observer:
             estimate[held_rows] = estimate[upd[np.maximum(newest_update, 0)]]
             estimate[held_rows[newest_update < 0]] = 0.0
         self.done_updates = last
+
+    def _updates(self, first: int, last: int, measured: np.ndarray, estimate: np.ndarray) -> None:
+        """Updates first..last-1 (indices into `upd`) of the recursion, in place."""
+        rows: slice | np.ndarray = slice(first, last)
+        if not self.every_row:
+            rows = self.upd[first:last]
+            if rows[-1] - rows[0] == last - first - 1:  # no held row among them
+                rows = slice(int(rows[0]), int(rows[-1]) + 1)
+        n = last - first
+        size, blocks = recursion_blocks(n)
+        # a_k = 1 - exp(-L dt_k) once per distinct gain (usually one for every channel)
+        dt = blocked(self.dt[first - 1 : last - 1, None], size, blocks, 0.0)
+        alpha = -np.expm1(-self.factor_gains[:, None] * dt)
+        local = blocked(measured[rows], size, blocks, 0.0)
+        np.multiply(alpha, local, out=local)
+        if isinstance(rows, slice):
+            self.state = blocked_recursion(self.state, 1.0 - alpha, local, n, estimate[rows])[-1]
+        else:
+            block = blocked_recursion(self.state, 1.0 - alpha, local, n, None)
+            estimate[rows] = block
+            self.state = block[-1]
+        self.state = np.array(self.state)  # not a view of `estimate`
 
 
 def _finish_chunk(
@@ -621,6 +688,64 @@ def _empty_result(streams: _Accepted, nq: int) -> BatchResult:
     )
 
 
+class _SharedChunks:
+    """The kinematics chunks in row order, each computed once: by a worker thread from the
+    first on while the calling thread decides the verdicts, and by the calling thread too
+    whenever it waits for one (`result`). The calling thread's own work is about as long as
+    the kinematics, so two threads share them at the end, and never three share two cores
+    (docs/performance.md)."""
+
+    def __init__(
+        self,
+        kinematics: Callable[[int], np.ndarray | None],
+        starts: range,
+        caller_helps: bool,
+    ) -> None:
+        self._kinematics = kinematics
+        self._starts = starts
+        self._caller_helps = caller_helps
+        self._futures: list[Future[np.ndarray | None]] = [Future() for _ in starts]
+        self._claimed = 0  # chunks before this one have a thread
+        self._lock = threading.Lock()
+        self._worker = threading.Thread(target=self._work, name="keo-batch", daemon=True)
+        self._worker.start()
+
+    def _claim(self) -> int | None:
+        with self._lock:
+            if self._claimed >= len(self._futures):
+                return None
+            self._claimed += 1
+            return self._claimed - 1
+
+    def _compute(self, index: int) -> None:
+        future = self._futures[index]
+        try:
+            future.set_result(self._kinematics(self._starts[index]))
+        except Exception as exc:  # raised where the chunk is taken
+            future.set_exception(exc)
+
+    def _work(self) -> None:
+        while (index := self._claim()) is not None:
+            self._compute(index)
+
+    def result(self, index: int) -> np.ndarray | None:
+        """Chunk `index`'s joints for the range flags (or None), once computed; the calling
+        thread computes the next unclaimed chunks meanwhile."""
+        future = self._futures[index]
+        while self._caller_helps and not future.done():
+            ahead = self._claim()
+            if ahead is None:
+                break
+            self._compute(ahead)
+        return future.result()
+
+    def stop(self) -> None:
+        """No chunk started after this; returns once the worker's chunk is done."""
+        with self._lock:
+            self._claimed = len(self._futures)
+        self._worker.join()
+
+
 def _run_chunks(
     cell: Cell,
     settings: EstimatorSettings,
@@ -629,40 +754,40 @@ def _run_chunks(
     out: _Rows,
     n_channels: int,
 ) -> _Verdicts:
-    """Phases 3-5: the kinematics on worker threads while the verdicts are decided, then
-    chunk by chunk as the workers finish: held rows and range flags, and the observer in
-    order. Fills `out`; returns the verdicts (the flags)."""
+    """Phases 3-5: the kinematics on a worker thread while the verdicts are decided, then
+    chunk by chunk in order as they are done: held rows and range flags, and the observer.
+    Fills `out`; returns the verdicts (the flags)."""
     n = streams.T.size
     corr = cell.corrections
     ranges = CalibratedRanges(corr)
     kinematics = _Kinematics(cell, streams, where, out, bool(ranges))
     starts = range(0, n, CHUNK)
     backlash = corr is not None and bool(np.any(corr.backlash))
-    # compliance: Pinocchio's gravity per row on the cell's one data object, in Python; one
-    # worker keeps that data to one thread
+    # compliance: Pinocchio's gravity per row on the cell's one data object, in Python; the
+    # worker alone keeps that data to one thread
     compliance = corr is not None and bool(np.any(corr.compliance))
-    workers = 1 if compliance else KINEMATICS_THREADS
-    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="keo-batch")
+    chunks: _SharedChunks | None = None
     try:
-        chunks_done: Iterator[np.ndarray | None] = iter([None] * len(starts))
         if streams.E.size and not backlash:
-            chunks_done = pool.map(kinematics, starts)
+            chunks = _SharedChunks(kinematics, starts, caller_helps=not compliance)
         verdicts = _verdicts(settings, streams, where)
         if streams.E.size and backlash:  # the directions need the verdicts' timing
             kinematics.direction = directions(streams.E, streams.Q)[
                 np.maximum(verdicts.have - 1, 0)
             ]
-            chunks_done = pool.map(kinematics, starts)
+            chunks = _SharedChunks(kinematics, starts, caller_helps=not compliance)
         observer = _Observer(settings, streams, verdicts, n_channels)
         if not observer.upd.size:
             out.estimate.fill(0.0)
-        for start, chunk_joints in zip(starts, chunks_done, strict=True):
+        for index, start in enumerate(starts):
+            chunk_joints = None if chunks is None else chunks.result(index)
             hi = min(start + CHUNK, n)
             _finish_chunk(slice(start, hi), verdicts, out, chunk_joints, ranges, streams.counters)
             if hi - observer.observed >= OBSERVER_ROWS or hi == n:
                 observer.run_to(hi, out.measured, out.estimate)
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        if chunks is not None:
+            chunks.stop()
     return verdicts
 
 

@@ -303,11 +303,12 @@ def estimate(
         DataFormatError: a file is not in the interchange format (file, line, column).
         KeoError: arrays of the wrong shape.
     """
-    from keo_service.io.cell import estimator_settings
     from keo_service.offline.estimate import estimate_recording
 
     cfg, name = _config(config)
-    recording = _recording(cfg, encoder, tracker)
+    recording = _recording(cfg, encoder, tracker)  # Pinocchio loads while the tracker parses
+    from keo_service.io.cell import estimator_settings
+
     warning = delay_warning(cfg, recording, name, _name(encoder), _name(tracker))
     _say(warning, quiet)
     done = estimate_recording(recording, estimator_settings(cfg), streaming)

@@ -1,0 +1,89 @@
+"""`keo estimate` as a process: what it loads, and in which order, before it computes
+(docs/performance.md: on two cores the command's wall time rests on its start)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from keo_service.io.interchange import write_encoder, write_tracker
+from keo_service.sim.simulate import make_scenario, simulate
+from tests.conftest import CONFIGS, REPO
+
+DEMO = CONFIGS / "demo.toml"
+
+
+@pytest.fixture(scope="module")
+def recording(demo_cell, tmp_path_factory) -> tuple[Path, Path]:
+    folder = tmp_path_factory.mktemp("recording")
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "2"}), seed=3)
+    write_encoder(folder / "encoder.csv", run.encoder)
+    write_tracker(folder / "tracker.csv", run.tracker)
+    return folder / "encoder.csv", folder / "tracker.csv"
+
+
+def _python(code: str, env: dict[str, str] | None = None) -> list[str]:
+    """The lines `code` prints, run in a fresh interpreter from the repository."""
+    environment = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    environment.update(env or {})
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=REPO,
+        env=environment,
+    )
+    return done.stdout.split()
+
+
+def test_the_command_line_is_parsed_without_numpy():
+    # a command chooses how numpy loads (BLAS threads) only if parsing did not load it
+    code = (
+        "import sys\n"
+        "from keo_service.cli import build_parser\n"
+        "build_parser().parse_args(['estimate', '--config', 'c', '--encoder', 'e', "
+        "'--tracker', 't', '--out', 'o'])\n"
+        "print('numpy' in sys.modules)\n"
+    )
+    assert _python(code) == ["False"]
+
+
+@pytest.mark.parametrize(("chosen", "expected"), [(None, "1"), ("3", "3")])
+def test_keo_estimate_runs_blas_on_one_thread_unless_the_user_chose(
+    recording, tmp_path, chosen, expected
+):
+    encoder, tracker = recording
+    out = tmp_path / "estimates.csv"
+    args = ["estimate", "--config", str(DEMO), "--encoder", str(encoder)]
+    args += ["--tracker", str(tracker), "--out", str(out)]
+    code = (
+        "import os, sys\n"
+        "from keo_service.cli import main\n"
+        f"code = main({args!r})\n"
+        "print(code, 'numpy' in sys.modules, os.environ.get('OPENBLAS_NUM_THREADS'))\n"
+    )
+    env = {} if chosen is None else {"OPENBLAS_NUM_THREADS": chosen}
+    assert _python(code, env)[-3:] == ["0", "True", expected]  # after the command's line
+    assert out.stat().st_size > 0
+
+
+def test_estimate_starts_reading_before_the_kinematics_library_loads(recording):
+    # Pinocchio's import then runs while the tracker file parses on a worker thread
+    encoder, tracker = recording
+    code = (
+        "import sys\n"
+        "from keo_service.offline import library\n"
+        "read = library.read_recording\n"
+        "def reading(*args, **kwargs):\n"
+        "    print('pinocchio' in sys.modules)\n"
+        "    return read(*args, **kwargs)\n"
+        "library.read_recording = reading\n"
+        f"result = library.estimate({str(DEMO)!r}, {str(encoder)!r}, {str(tracker)!r})\n"
+        "print(result.path, 'pinocchio' in sys.modules)\n"
+    )
+    assert _python(code) == ["False", "batch", "True"]
