@@ -402,3 +402,16 @@ def test_keo_estimate_reports_the_encoder_files_error_first(demo_config, demo_ce
     result = estimate_files(demo_config, good_encoder, good_tracker)
     assert result.path == "batch"
     assert result.table.stamp.size == run.tracker.t.size
+
+
+@pytest.mark.parametrize("start", ["zero", "first"])
+def test_unequal_gains_and_held_rows_equal_the_streaming_estimator(demo_cell, demo_config, start):
+    # the recursion's factors per channel (not the one shared by equal gains), on rows with
+    # held ones among them (faults and a dropout in both streams)
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "10"}), seed=7)
+    settings = dataclasses.replace(
+        estimator_settings(demo_config), gains=(0.5, 1.0, 2.0, 4.0, 8.0, 3.0), start=start
+    )
+    batch, _ = compare(demo_cell, settings, *_faulty(run))
+    assert batch.counters["estimates"] > 100
+    assert batch.counters.get("held_encoder_gap", 0) > 0

@@ -81,3 +81,54 @@ def test_an_error_comes_where_its_chunk_is_taken():
             chunks.result(2)
     finally:
         chunks.stop()
+
+
+def test_an_exit_in_the_worker_reaches_the_calling_thread_instead_of_hanging_it():
+    # not an Exception (KeyboardInterrupt, SystemExit): the chunk's future must still end,
+    # or a caller that does not help (compliance) waits for it forever
+    def kinematics(start: int) -> np.ndarray:
+        raise KeyboardInterrupt(f"chunk {start}")
+
+    chunks = _SharedChunks(kinematics, range(0, 20, 10), caller_helps=False)
+    raised: list[BaseException] = []
+
+    def take() -> None:
+        try:
+            chunks.result(0)
+        except BaseException as exc:  # what the calling thread would see
+            raised.append(exc)
+
+    caller = threading.Thread(target=take, daemon=True)  # on a thread: a hang fails, not blocks
+    caller.start()
+    caller.join(timeout=10.0)
+    assert not caller.is_alive(), "the calling thread still waits for the chunk"
+    chunks.stop()
+    assert len(raised) == 1
+    assert isinstance(raised[0], KeyboardInterrupt)
+    assert str(raised[0]) == "chunk 0"
+
+
+def test_no_worker_thread_outlives_a_batch_whose_own_work_failed(
+    demo_cell, demo_config, monkeypatch
+):
+    from keo_service.core import batch
+    from keo_service.io.cell import estimator_settings
+    from keo_service.sim.simulate import make_scenario, simulate
+
+    def failing(*args: object) -> None:
+        raise RuntimeError("the verdicts failed")
+
+    monkeypatch.setattr(batch, "_verdicts", failing)
+    run = simulate(demo_cell, make_scenario("path", {"duration_s": "3"}), seed=3)
+    settings = estimator_settings(demo_config)
+    with pytest.raises(RuntimeError, match="the verdicts failed"):
+        batch.estimate_batch(
+            demo_cell,
+            settings,
+            run.encoder.t,
+            run.encoder.q,
+            run.tracker.t,
+            run.tracker.p,
+            run.tracker.quat,
+        )
+    assert not [t for t in threading.enumerate() if t.name == "keo-batch" and t.is_alive()]

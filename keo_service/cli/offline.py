@@ -105,13 +105,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return common.EXIT_OK
 
 
+# what OpenBLAS reads for its thread count, in its order: any of them set is the user's choice
+USER_BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "GOTO_NUM_THREADS", "OMP_NUM_THREADS")
+
+
 def _blas_on_one_thread() -> None:
     """BLAS on one thread for the rest of this process, unless the user chose: numpy's
     OpenBLAS starts a thread per core when it loads, which spins between calls, and in `keo
     estimate` it only took a core from the CSV parser's and the batch's own threads
     (docs/performance.md). Only before numpy loads: OpenBLAS reads the variable then."""
-    if "numpy" not in sys.modules:
-        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    chosen = any(name in os.environ for name in USER_BLAS_THREADS)
+    if "numpy" not in sys.modules and not chosen:
+        os.environ["OPENBLAS_NUM_THREADS"] = "1"
 
 
 @common.collector_paused

@@ -721,7 +721,7 @@ class _SharedChunks:
         future = self._futures[index]
         try:
             future.set_result(self._kinematics(self._starts[index]))
-        except Exception as exc:  # raised where the chunk is taken
+        except BaseException as exc:  # raised where the chunk is taken; never left pending
             future.set_exception(exc)
 
     def _work(self) -> None:

@@ -49,9 +49,12 @@ BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 # glibc's allocator in the worker (read at its start; other C libraries ignore them): a fit's
 # arrays (up to a few MB each) from the heap, and up to 128 MB of freed heap kept for the next
 # fit, instead of each fit mapping fresh pages from the kernel and giving them back (a page
-# fault per 4 kB: docs/performance.md, Round 11). Bounded by the largest fit's peak.
+# fault per 4 kB: docs/performance.md, Round 11). Bounded by the largest fit's peak. 32 MB is
+# the highest mmap threshold glibc before 2.35 accepts (half its 64-bit heap size); beyond it
+# those versions ignore the setting and keep the threshold at 128 kB for good. A value the
+# user set in the service's environment is left as it is.
 WORKER_MALLOC = {
-    "MALLOC_MMAP_THRESHOLD_": str(64 * 2**20),
+    "MALLOC_MMAP_THRESHOLD_": str(32 * 2**20),
     "MALLOC_TRIM_THRESHOLD_": str(128 * 2**20),
 }
 
@@ -86,7 +89,8 @@ def _measure(
 def _worker_environment() -> Iterator[None]:
     """The environment a process started meanwhile inherits: BLAS on one thread, the
     allocator's settings (`WORKER_MALLOC`)."""
-    settings = {**dict.fromkeys(BLAS_THREADS, "1"), **WORKER_MALLOC}
+    malloc = {name: value for name, value in WORKER_MALLOC.items() if name not in os.environ}
+    settings = {**dict.fromkeys(BLAS_THREADS, "1"), **malloc}
     saved = {name: os.environ.get(name) for name in settings}
     os.environ.update(settings)
     try:
