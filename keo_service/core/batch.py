@@ -319,6 +319,32 @@ def _merge_counts(enc_t: np.ndarray, trk_t: np.ndarray) -> np.ndarray:
     return out
 
 
+def _merged_order(enc_t: np.ndarray, trk_t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each encoder and each tracker sample's position in the time-stamp merge."""
+    m, n = enc_t.size, trk_t.size
+    if m and n and _finite_and_sorted(trk_t) and _finite_and_sorted(enc_t):
+        # both sorted: the few encoder stamps searched among the many tracker stamps, and
+        # the other way round counted from that (fewer binary searches: docs/performance.md)
+        ahead = np.searchsorted(trk_t, enc_t, side="left")  # trackers before each encoder
+        before = _sorted_counts(ahead, n)  # encoders before each tracker (e <= t)
+        return np.arange(m) + ahead, before + np.arange(n)
+    before = _merge_counts(enc_t, trk_t)
+    trk_pos = before + np.arange(n)
+    enc_pos = np.arange(m) + np.searchsorted(before, np.arange(m), "right")
+    return enc_pos, trk_pos
+
+
+def _finite_and_sorted(t: np.ndarray) -> bool:
+    return bool(np.all(t[1:] >= t[:-1])) and bool(np.isfinite(t[0]) and np.isfinite(t[-1]))
+
+
+def _sorted_counts(positions: np.ndarray, n: int) -> np.ndarray:
+    """For j in [0, n): how many of `positions` (integers in [0, n]) are <= j. With
+    positions[i] = searchsorted(a, b[i], side) for sorted a (n,) and b, this is
+    searchsorted(b, a, the other side) without its binary searches."""
+    return _counts_up_to(positions, n)[1:]
+
+
 @dataclass(frozen=True)
 class _Accepted:
     """The samples the estimator accepts, in stamp order, and what it said about the rest."""
@@ -351,9 +377,7 @@ def _accept(
     arrival order)."""
     counters: dict[str, int] = {}
     # ---- merged order
-    before = _merge_counts(enc_t, trk_t)  # encoders ahead of each tracker sample
-    trk_pos = before + np.arange(trk_t.size)
-    enc_pos = np.arange(enc_t.size) + np.searchsorted(before, np.arange(enc_t.size), "right")
+    enc_pos, trk_pos = _merged_order(enc_t, trk_t)
     enc = encoder_verdicts(enc_t, enc_q)
     trk = tracker_verdicts(trk_t, trk_p, trk_quat)
 
@@ -432,7 +456,11 @@ class _Bracket:
 def _bracket(settings: EstimatorSettings, streams: _Accepted) -> _Bracket:
     E, n = streams.E, streams.T.size
     target = settings.delay.encoder_times(streams.T)
-    first_cover = np.searchsorted(E, target, side="left")
+    if E.size and n and _finite_and_sorted(target):
+        # E_i < target_j exactly when j >= the count of targets <= E_i (both sorted)
+        first_cover = _sorted_counts(np.searchsorted(target, E, side="right"), n)
+    else:
+        first_cover = np.searchsorted(E, target, side="left")
     g = np.minimum(first_cover, max(E.size - 1, 0))
     g0 = np.maximum(g - 1, 0)
     t0, t1 = (E[g0], E[g]) if E.size else (np.zeros(n), np.zeros(n))
