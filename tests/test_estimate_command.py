@@ -13,7 +13,7 @@ import pytest
 from keo_service.cli.offline import USER_BLAS_THREADS
 from keo_service.io.interchange import write_encoder, write_tracker
 from keo_service.sim.simulate import make_scenario, simulate
-from tests.conftest import CONFIGS, REPO
+from tests.conftest import CONFIGS, REPO, keo
 
 DEMO = CONFIGS / "demo.toml"
 
@@ -97,3 +97,23 @@ def test_estimate_starts_reading_before_the_kinematics_library_loads(recording):
         "print(result.path, 'pinocchio' in sys.modules)\n"
     )
     assert _python(code) == ["False", "batch", "True"]
+
+
+@pytest.mark.parametrize("where", ["a directory", "under a file"])
+def test_an_estimate_file_that_cannot_be_written_is_named_not_a_traceback(
+    recording, tmp_path, where
+):
+    encoder, tracker = recording
+    if where == "a directory":
+        out = tmp_path / "estimates"
+        out.mkdir()
+    else:
+        (tmp_path / "plain").write_text("a file, not a folder\n")
+        out = tmp_path / "plain" / "estimates.csv"
+    done = keo(
+        "estimate", "--config", str(DEMO), "--encoder", str(encoder),
+        "--tracker", str(tracker), "--out", str(out),
+    )  # fmt: skip
+    assert done.returncode == 1
+    assert "Traceback" not in done.stderr
+    assert f"keo estimate: error: cannot write the estimate file '{out}'" in done.stderr

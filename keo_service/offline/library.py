@@ -245,12 +245,21 @@ class EstimateResult:
 
         Returns:
             The path written.
+
+        Raises:
+            KeoError: the file cannot be written there (a directory, a path under a file, no
+                permission, a full disk); the message names the path and the reason.
         """
+        from keo_service.core.errors import KeoError
         from keo_service.io.interchange import write_estimate_table
 
-        write_estimate_table(
-            path, self.stamp, self.measured, self.estimate, self.flags, self.channels
-        )
+        try:
+            write_estimate_table(
+                path, self.stamp, self.measured, self.estimate, self.flags, self.channels
+            )
+        except OSError as exc:  # the user's path, not an internal failure: say which and why
+            reason = exc.strerror or str(exc)
+            raise KeoError(f"cannot write the estimate file {str(path)!r}: {reason}") from exc
         self.out = Path(path)
         return self.out
 
