@@ -200,3 +200,50 @@ def test_a_stretchs_arrays_map_its_stamps_row_by_row(quats):
     got = stretch_arrays(bare)
     assert got[1].shape == (0, 0)
     assert np.array_equal(got[2], [r[0] for r in trk])
+
+
+def _gone(pid: int) -> bool:
+    """No process `pid`, or only its zombie (exited, not yet reaped)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+def test_the_worker_ends_when_the_service_is_killed_outright(demo_cell, tmp_path):
+    """A service killed with SIGKILL (or by the OOM killer) cannot shut its worker down; the
+    worker, which ignores SIGINT and SIGTERM and holds both ends of its pool's pipes, must
+    notice and exit by itself instead of waiting for work for good."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "service.py"
+    script.write_text(
+        "import sys, time\n"
+        "from keo_service.fit.delay_online import OnlineDelayTracker\n"
+        "from keo_service.live.fit_worker import FitWorker\n"
+        "from tests.conftest import DEMO\n"
+        "from keo_service.io.cell import cell_from_config\n"
+        "from keo_service.io.config import load_config\n"
+        "cell = cell_from_config(load_config(DEMO))\n"
+        "if __name__ == '__main__':\n"
+        "    worker = FitWorker(OnlineDelayTracker(cell, None, 0.01, 0.001))\n"
+        "    print(worker.pid(), flush=True)\n"
+        "    time.sleep(60)\n"
+    )
+    repo = Path(__file__).resolve().parent.parent
+    service = subprocess.Popen(
+        [sys.executable, str(script)], stdout=subprocess.PIPE, text=True, cwd=repo
+    )
+    try:
+        assert service.stdout is not None
+        pid = int(service.stdout.readline())
+        assert not _gone(pid)
+        service.kill()  # SIGKILL: no shutdown of the pool
+        service.wait(timeout=10)
+        deadline = time.monotonic() + 10
+        while not _gone(pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _gone(pid), f"the worker {pid} outlived its service"
+    finally:
+        service.kill()

@@ -14,8 +14,9 @@ when the service started (its settings: `OnlineDelayTracker.measure` reads nothi
 given the `guess` the service's tracker made), starts with numpy's BLAS on one thread and
 its allocator keeping freed memory for the next fit, and ignores SIGINT and SIGTERM (a
 supervisor that signals the whole group stops the service, which then shuts the worker
-down). A worker that dies is a failure of the service's delay
-task, as any task's (`concurrent.futures.process.BrokenProcessPool`).
+down); when nothing shut it down, it exits by itself within a second of the service's death.
+A worker that dies is a failure of the service's delay task, as any task's
+(`concurrent.futures.process.BrokenProcessPool`).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import multiprocessing
 import os
 import pickle
 import signal
+import threading
 import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -58,15 +60,35 @@ WORKER_MALLOC = {
     "MALLOC_TRIM_THRESHOLD_": str(128 * 2**20),
 }
 
+# how often the worker checks that the service is still there (s): a worker orphaned by a
+# service killed outright ends within this
+SERVICE_CHECK_S = 1.0
+
 # in the worker: the service's tracker as it was at start (set once, by `_start`)
 _worker: dict[str, OnlineDelayTracker] = {}
 
 
-def _start(state: bytes) -> None:
-    """The worker's initializer: its tracker, and the stop signals left to the service."""
+def _start(state: bytes, service_pid: int) -> None:
+    """The worker's initializer: its tracker, the stop signals left to the service, and a
+    watch that ends the worker once the service is gone."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _worker["tracker"] = pickle.loads(state)
+    watch = threading.Thread(
+        target=_exit_with_service, args=(service_pid,), name="keo-service-watch", daemon=True
+    )
+    watch.start()
+
+
+def _exit_with_service(service_pid: int) -> None:
+    """In the worker: exit once the service that started it is no longer its parent. A
+    service killed outright (SIGKILL, the OOM killer, a supervisor that signals only its main
+    process) cannot shut the worker down, and the worker would never notice: it holds both
+    ends of its pool's call queue, so no end-of-file comes, and it ignores SIGINT and
+    SIGTERM. Without this it would wait for work for good, one more per restart."""
+    while os.getppid() == service_pid:
+        time.sleep(SERVICE_CHECK_S)
+    os._exit(0)  # nothing to hand back: the fit it may be running has no one to read it
 
 
 def _ready() -> int:
@@ -111,7 +133,10 @@ class FitWorker:
         context = multiprocessing.get_context("spawn")  # not fork: Zenoh runs threads here
         with _worker_environment():  # the process starts at the first submit
             self._pool = ProcessPoolExecutor(
-                1, mp_context=context, initializer=_start, initargs=(pickle.dumps(tracker),)
+                1,
+                mp_context=context,
+                initializer=_start,
+                initargs=(pickle.dumps(tracker), os.getpid()),
             )
             self._started = self._pool.submit(_ready)
 
