@@ -217,15 +217,16 @@ def test_the_worker_ends_when_the_service_is_killed_outright(demo_cell, tmp_path
     import subprocess
     import sys
 
+    from tests.conftest import DEMO
+
     script = tmp_path / "service.py"
     script.write_text(
         "import sys, time\n"
         "from keo_service.fit.delay_online import OnlineDelayTracker\n"
         "from keo_service.live.fit_worker import FitWorker\n"
-        "from tests.conftest import DEMO\n"
         "from keo_service.io.cell import cell_from_config\n"
         "from keo_service.io.config import load_config\n"
-        "cell = cell_from_config(load_config(DEMO))\n"
+        f"cell = cell_from_config(load_config({str(DEMO)!r}))\n"
         "if __name__ == '__main__':\n"
         "    worker = FitWorker(OnlineDelayTracker(cell, None, 0.01, 0.001))\n"
         "    print(worker.pid(), flush=True)\n"
