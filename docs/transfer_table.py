@@ -113,36 +113,16 @@ def decompose(work: Path, src: str, dst: str) -> dict[str, Any]:
     """What the model of `src` carried to `dst` is made of, on `dst`'s held-out poses (see the
     module's doc): each variant's registration and mount refitted on `dst`'s training rows."""
     from keo_service.core.chain import Chain
-    from keo_service.fit.analysis import analyze, split_data
-    from keo_service.fit.model import Model, fit
     from keo_service.io.analysis_report import saved_model
     from keo_service.io.cell import robot_from_config
     from keo_service.io.config import load_config
-    from keo_service.offline.analyze import load_data
 
     config = load_config(work / src / "an" / "model.toml")
     robot = robot_from_config(config)
     chain = Chain(robot)
-    data, position_only = load_data(config, work / dst / "encoder.csv", work / dst / "tracker.csv")
-    carried = _quiet(analyze, robot, data, position_only, saved_model(config, chain, position_only))
-    model, x = carried.model, carried.x
-    train_idx, val_idx = split_data(data)
-    train, val = data.subset(train_idx), data.subset(val_idx)
-    tau_tr, tau_va = chain.gravity_torques(train.q), chain.gravity_torques(val.q)
-    noise = carried.report["registration"]["noise_estimate_mm"] * 1e-3
-    width = 3 if position_only else 6
-
-    def error_mm(m: Model, z: np.ndarray) -> np.ndarray:
-        r = m.residuals(z, val, tau_va).reshape(-1, width)[:, :3]
-        return np.asarray(np.linalg.norm(r, axis=1) * 1e3)
-
-    def held_out(effects: list[Any], values: list[np.ndarray]) -> float:
-        z0 = np.concatenate([x[: model.n_reg], *values])
-        m = Model(chain, position_only, effects, z0, {}, model.temperature_ref, model.time_ref)
-        fixed = np.zeros(z0.size, dtype=bool)
-        fixed[m.n_reg :] = True
-        z = fit(m, train, tau_tr, z0, noise, fixed=fixed).x
-        return float(np.sqrt(np.mean(error_mm(m, z) ** 2)))
+    carried = _Session.of(work, dst, config, chain)
+    model, x, position_only, val = carried.model, carried.x, carried.position_only, carried.val
+    held_out = carried.held_out
 
     parts = list(model.parts(x))
     source = _source_side(work, src, config, robot)
@@ -150,7 +130,7 @@ def decompose(work: Path, src: str, dst: str) -> dict[str, Any]:
     theirs_model = saved_model(own, chain, position_only)
     theirs = {e.name: (e, v) for e, v in theirs_model.parts(theirs_model.x)}
     names = robot.joint_names
-    full = error_mm(model, x)
+    full = carried.errors_mm(model, x)
     out: dict[str, Any] = {
         "model_from": src,
         "applied_to": dst,
@@ -178,6 +158,68 @@ def decompose(work: Path, src: str, dst: str) -> dict[str, Any]:
 
 
 @dataclasses.dataclass
+class _Session:
+    """A saved model on one session as `--registration-only` carries it (the registration
+    refitted on the session's training poses, the rest as saved), and a judge of variants of
+    it on the session's held-out poses."""
+
+    chain: Any
+    data: Any
+    position_only: bool
+    carried: Any
+    train_idx: np.ndarray
+    val_idx: np.ndarray
+
+    @classmethod
+    def of(cls, work: Path, session: str, config: Any, chain: Any) -> _Session:
+        """The model of `config` on `session`'s files in `work`."""
+        from keo_service.fit.analysis import analyze, split_data
+        from keo_service.io.analysis_report import saved_model
+        from keo_service.offline.analyze import load_data
+
+        files = work / session
+        data, position_only = load_data(config, files / "encoder.csv", files / "tracker.csv")
+        saved = saved_model(config, chain, position_only)
+        carried = _quiet(analyze, chain.robot, data, position_only, saved)
+        train_idx, val_idx = split_data(data)
+        return cls(chain, data, position_only, carried, train_idx, val_idx)
+
+    def __post_init__(self) -> None:
+        self.model, self.x = self.carried.model, self.carried.x
+        self.train, self.val = self.data.subset(self.train_idx), self.data.subset(self.val_idx)
+        self.tau_tr = self.chain.gravity_torques(self.train.q)
+        self.tau_va = self.chain.gravity_torques(self.val.q)
+        self.noise = self.carried.report["registration"]["noise_estimate_mm"] * 1e-3
+        self.width = 3 if self.position_only else 6
+
+    def errors_mm(self, m: Any, z: np.ndarray) -> np.ndarray:
+        """Each held-out pose's position error (mm) under model `m` with parameters `z`."""
+        r = m.residuals(z, self.val, self.tau_va).reshape(-1, self.width)[:, :3]
+        return np.asarray(np.linalg.norm(r, axis=1) * 1e3)
+
+    def held_out(self, effects: list[Any], values: list[np.ndarray]) -> float:
+        """The held-out RMS (mm) of the model made of `effects` with `values`, the
+        registration refitted on the training poses with those terms held."""
+        from keo_service.fit.model import Model, fit
+
+        model = self.model
+        z0 = np.concatenate([self.x[: model.n_reg], *values])
+        m = Model(
+            self.chain,
+            self.position_only,
+            effects,
+            z0,
+            {},
+            model.temperature_ref,
+            model.time_ref,
+        )
+        fixed = np.zeros(z0.size, dtype=bool)
+        fixed[m.n_reg :] = True
+        z = fit(m, self.train, self.tau_tr, z0, self.noise, fixed=fixed).x
+        return float(np.sqrt(np.mean(self.errors_mm(m, z) ** 2)))
+
+
+@dataclasses.dataclass
 class _Source:
     """The model on its own session (registration refitted on its training poses, the rest as
     saved): its parts, a judge of variants on its held-out poses, its maps' variance
@@ -195,31 +237,15 @@ def _source_side(work: Path, src: str, config: Any, robot: Any) -> _Source:
     `--registration-only` does, each variant judged on its held-out poses, and how much its
     poses let each joint's map be told from the others'."""
     from keo_service.core.chain import Chain
-    from keo_service.fit.analysis import analyze, split_data
     from keo_service.fit.angle_maps import linearize, variance_inflation
     from keo_service.fit.effects import JointMaps
-    from keo_service.fit.model import Model, fit
-    from keo_service.io.analysis_report import saved_model
-    from keo_service.offline.analyze import load_data
+    from keo_service.fit.model import Model
 
     chain = Chain(robot)
-    data, position_only = load_data(config, work / src / "encoder.csv", work / src / "tracker.csv")
-    on_own = _quiet(analyze, robot, data, position_only, saved_model(config, chain, position_only))
-    model, x = on_own.model, on_own.x
-    train_idx, val_idx = split_data(data)
-    train, val = data.subset(train_idx), data.subset(val_idx)
-    tau_tr, tau_va = chain.gravity_torques(train.q), chain.gravity_torques(val.q)
-    noise = on_own.report["registration"]["noise_estimate_mm"] * 1e-3
-    width = 3 if position_only else 6
-
-    def held_out(effects: list[Any], values: list[np.ndarray]) -> float:
-        z0 = np.concatenate([x[: model.n_reg], *values])
-        m = Model(chain, position_only, effects, z0, {}, model.temperature_ref, model.time_ref)
-        fixed = np.zeros(z0.size, dtype=bool)
-        fixed[m.n_reg :] = True
-        z = fit(m, train, tau_tr, z0, noise, fixed=fixed).x
-        r = m.residuals(z, val, tau_va).reshape(-1, width)[:, :3]
-        return float(np.sqrt(np.mean(np.sum(r**2, axis=1))) * 1e3)
+    on_own = _Session.of(work, src, config, chain)
+    model, x, position_only = on_own.model, on_own.x, on_own.position_only
+    data, train, tau_tr = on_own.data, on_own.train, on_own.tau_tr
+    train_idx, val_idx = on_own.train_idx, on_own.val_idx
 
     own_parts = list(model.parts(x))
     maps = model.find(JointMaps)
@@ -252,7 +278,7 @@ def _source_side(work: Path, src: str, config: Any, robot: Any) -> _Source:
             model.n_reg,
             list(robot.joint_names),
         )
-    return _Source(own_parts, held_out, inflation, halves)
+    return _Source(own_parts, on_own.held_out, inflation, halves)
 
 
 def _time_halves(
