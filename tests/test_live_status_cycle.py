@@ -10,10 +10,10 @@ from keo_service.bench.demo import loopback_config
 
 
 def test_a_sample_arriving_in_the_status_cycle_waits_for_one_step_only(demo_config):
-    """The cycle's steps recorded in order; the data path's wake-up (what Zenoh's thread
-    schedules with `call_soon_threadsafe`) is scheduled from inside the first step. It must
-    run before the tool speed's point and the snapshot, which come after it in the cycle
-    (before this change the cycle ran all its steps in one go and the sample waited)."""
+    """The cycle's steps recorded in order; a data path's wake-up (what Zenoh's thread
+    schedules with `call_soon_threadsafe`) is scheduled from inside the first step and
+    another from inside the second. Each must run before the step after the one it arrived
+    in (before this change the cycle ran all its steps in one go and the samples waited)."""
     from keo_service.live.service import KeoService
 
     service = KeoService(loopback_config(demo_config))
@@ -31,9 +31,20 @@ def test_a_sample_arriving_in_the_status_cycle_waits_for_one_step_only(demo_conf
             service.stop()
 
         service._feed_delay = feed  # type: ignore[method-assign]
-        service._tool_speed.sample = lambda _last: order.append("tool speed")  # type: ignore[method-assign]
+
+        def tool_speed(_last: object) -> None:
+            order.append("tool speed")
+            loop.call_soon_threadsafe(order.append, "second sample")
+
+        service._tool_speed.sample = tool_speed  # type: ignore[method-assign]
         service._refresh_status = snapshot  # type: ignore[method-assign]
         await asyncio.wait_for(service._status_loop(), 5.0)
 
     asyncio.run(cycle())
-    assert order == ["delay block", "sample", "tool speed", "snapshot"]
+    assert order == [
+        "delay block",
+        "sample",
+        "tool speed",
+        "second sample",
+        "snapshot",
+    ]
