@@ -15,6 +15,15 @@ given the `guess` the service's tracker made), starts with numpy's BLAS on one t
 its allocator keeping freed memory for the next fit, and ignores SIGINT and SIGTERM (a
 supervisor that signals the whole group stops the service, which then shuts the worker
 down); when nothing shut it down, it exits by itself within a second of the service's death.
+
+The worker computes at the idle scheduling priority (Linux's `SCHED_IDLE`): a fit takes a
+core for 50-150 ms, and on a small machine the samples that meanwhile waited for a core behind
+it made most of the service's slowest estimates (docs/performance.md, Round 12b). At idle
+priority any other runnable thread of its scheduling group (the service's session or
+cgroup) takes the core first. A fit that has not come back after `FIT_PATIENCE_S` (a machine
+kept busy by the service's own group would starve it) is run again in a worker at normal
+priority, which then takes every later fit: the result is the same, only later.
+
 A worker that dies is a failure of the service's delay task, as any task's
 (`concurrent.futures.process.BrokenProcessPool`).
 """
@@ -23,6 +32,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import multiprocessing
 import os
 import pickle
@@ -31,7 +41,7 @@ import threading
 import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     import numpy as np
@@ -63,21 +73,38 @@ WORKER_MALLOC = {
 # how often the worker checks that the service is still there (s): a worker orphaned by a
 # service killed outright ends within this
 SERVICE_CHECK_S = 1.0
+# how long a fit at idle priority may take before it runs again at normal priority (s): a fit
+# takes 50-150 ms of a core, a starved one has not come back after many times that
+FIT_PATIENCE_S = 2.0
+
+log = logging.getLogger("keo.service")
 
 # in the worker: the service's tracker as it was at start (set once, by `_start`)
 _worker: dict[str, OnlineDelayTracker] = {}
 
 
-def _start(state: bytes, service_pid: int) -> None:
-    """The worker's initializer: its tracker, the stop signals left to the service, and a
-    watch that ends the worker once the service is gone."""
+def _start(state: bytes, service_pid: int, idle: bool = False) -> None:
+    """The worker's initializer: its tracker, the stop signals left to the service, a watch
+    that ends the worker once the service is gone, and (`idle`) the fits' thread at idle
+    priority."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _worker["tracker"] = pickle.loads(state)
     watch = threading.Thread(
         target=_exit_with_service, args=(service_pid,), name="keo-service-watch", daemon=True
     )
-    watch.start()
+    watch.start()  # before the policy: the watch keeps the normal one (Linux's is per thread)
+    if idle:
+        _compute_at_idle_priority()
+
+
+def _compute_at_idle_priority() -> None:
+    """The calling thread (the one that runs the fits) at `SCHED_IDLE`, where the system has
+    it (Linux); elsewhere, or where it is refused, the fits keep the normal priority."""
+    policy = getattr(os, "SCHED_IDLE", None)
+    if policy is not None:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, policy, os.sched_param(0))
 
 
 def _exit_with_service(service_pid: int) -> None:
@@ -107,6 +134,12 @@ def _measure(
     return found, time.process_time() - start
 
 
+def _forget(fit: asyncio.Future[Any]) -> None:
+    """Reads a superseded fit's outcome, so that nothing reports it as never retrieved."""
+    if not fit.cancelled():
+        fit.exception()
+
+
 @contextlib.contextmanager
 def _worker_environment() -> Iterator[None]:
     """The environment a process started meanwhile inherits: BLAS on one thread, the
@@ -127,16 +160,22 @@ def _worker_environment() -> Iterator[None]:
 
 class FitWorker:
     """One worker process for the delay fits (see the module). `tracker`: the service's
-    tracker, copied as it is now (at start: its settings, empty buffers)."""
+    tracker, copied as it is now (at start: its settings, empty buffers). `idle`: the fits at
+    idle priority, until one of them is starved (`FIT_PATIENCE_S`)."""
 
-    def __init__(self, tracker: OnlineDelayTracker) -> None:
+    def __init__(self, tracker: OnlineDelayTracker, idle: bool = True) -> None:
+        self._state = pickle.dumps(tracker)
+        self._start_pool(idle)
+
+    def _start_pool(self, idle: bool) -> None:
+        self.idle = idle
         context = multiprocessing.get_context("spawn")  # not fork: Zenoh runs threads here
         with _worker_environment():  # the process starts at the first submit
             self._pool = ProcessPoolExecutor(
                 1,
                 mp_context=context,
                 initializer=_start,
-                initargs=(pickle.dumps(tracker), os.getpid()),
+                initargs=(self._state, os.getpid(), idle),
             )
             self._started = self._pool.submit(_ready)
 
@@ -145,8 +184,26 @@ class FitWorker:
     ) -> tuple[DelayMeasurement | DelayRefused, float]:
         """One stretch's fit in the worker (`OnlineDelayTracker.measure`; with `pool`, the
         arrays of the stretch's pool while the delay is not settled, the pooled fit too),
-        and its CPU (s)."""
+        and its CPU (s). A fit at idle priority not back within `FIT_PATIENCE_S` is made again
+        by a new worker at normal priority, which makes every later one too (the starved
+        worker is shut down once its fit ends)."""
         loop = asyncio.get_running_loop()
+        fit = loop.run_in_executor(self._pool, _measure, window, current, guess, pool)
+        if not self.idle:
+            return await fit
+        try:
+            return await asyncio.wait_for(asyncio.shield(fit), FIT_PATIENCE_S)
+        except TimeoutError:
+            pass
+        fit.add_done_callback(_forget)  # the starved fit's outcome, whatever it is, unread
+        log.warning(
+            "delay fit not back after %.1f s at idle priority (the machine is busy): the "
+            "delay fits run at normal priority from now on",
+            FIT_PATIENCE_S,
+        )
+        starved = self._pool
+        self._start_pool(idle=False)
+        starved.shutdown(wait=False, cancel_futures=True)
         return await loop.run_in_executor(self._pool, _measure, window, current, guess, pool)
 
     def pid(self, timeout: float = 30.0) -> int:
