@@ -66,12 +66,6 @@ CHUNK = 8192  # rows per pass of the kinematics
 OBSERVER_ROWS = 8 * CHUNK  # rows per step of the observer's recursion
 
 
-RowsDone = Callable[[tuple[str, ...], np.ndarray, np.ndarray, np.ndarray, np.ndarray], None]
-"""Told each run of output rows once they are final, in order: (channels, stamps (k,),
-measured (k, C), estimates (k, C), flags (k,) as str objects), views that the batch does not
-write again."""
-
-
 class BatchUnsupportedError(KeoError):
     """This input needs the streaming estimator (the message says why)."""
 
@@ -786,13 +780,11 @@ def _run_chunks(
     streams: _Accepted,
     where: _Bracket,
     out: _Rows,
-    channels: tuple[str, ...],
-    rows_done: RowsDone | None,
+    n_channels: int,
 ) -> _Verdicts:
     """Phases 3-5: the kinematics on a worker thread while the verdicts are decided, then
-    chunk by chunk in order as they are done: held rows and range flags, and the observer,
-    whose rows `rows_done` is told of as it finishes them. Fills `out`; returns the verdicts
-    (the flags)."""
+    chunk by chunk in order as they are done: held rows and range flags, and the observer.
+    Fills `out`; returns the verdicts (the flags)."""
     n = streams.T.size
     corr = cell.corrections
     ranges = CalibratedRanges(corr)
@@ -812,7 +804,7 @@ def _run_chunks(
                 np.maximum(verdicts.have - 1, 0)
             ]
             chunks = _SharedChunks(kinematics, starts, caller_helps=not compliance)
-        observer = _Observer(settings, streams, verdicts, len(channels))
+        observer = _Observer(settings, streams, verdicts, n_channels)
         if not observer.upd.size:
             out.estimate.fill(0.0)
         for index, start in enumerate(starts):
@@ -820,17 +812,7 @@ def _run_chunks(
             hi = min(start + CHUNK, n)
             _finish_chunk(slice(start, hi), verdicts, out, chunk_joints, ranges, streams.counters)
             if hi - observer.observed >= OBSERVER_ROWS or hi == n:
-                lo = observer.observed
                 observer.run_to(hi, out.measured, out.estimate)
-                if rows_done is not None:
-                    final = slice(lo, hi)
-                    rows_done(
-                        channels,
-                        streams.T[final],
-                        out.measured[final],
-                        out.estimate[final],
-                        verdicts.flags[final],
-                    )
     finally:
         if chunks is not None:
             chunks.stop()
@@ -846,11 +828,9 @@ def estimate_batch(
     tracker_p: np.ndarray,
     tracker_quat: np.ndarray | None,
     keep_joints: bool = True,
-    rows_done: RowsDone | None = None,
 ) -> BatchResult:
     """What `run_offline(Estimator(cell, settings), ...)` returns, as arrays (without the
-    joints of each row unless `keep_joints`: an estimate file does not hold them); each run
-    of rows told to `rows_done` as soon as it is final (e.g. to write it meanwhile).
+    joints of each row unless `keep_joints`: an estimate file does not hold them).
 
     Phases: accept (rejects), bracket (where each encoder time falls), kinematics (worker
     threads), verdicts (when each sample is resolved and whether it is held), then chunk by
@@ -865,7 +845,7 @@ def estimate_batch(
     streams.counters["channels"] = len(channels)
     where = _bracket(settings, streams)
     out = _Rows(n, nq, len(channels), keep_joints)
-    verdicts = _run_chunks(cell, settings, streams, where, out, channels, rows_done)
+    verdicts = _run_chunks(cell, settings, streams, where, out, len(channels))
     return BatchResult(
         stamp=streams.T,
         measured=out.measured,

@@ -7,20 +7,12 @@ parse but are not finite are kept as NaN: the estimator skips and counts them.
 
 from __future__ import annotations
 
-import contextlib
 import csv
-import errno
-import functools
 import math
-import os
-import queue
-import secrets
-import stat
-import threading
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TextIO
 
 import numpy as np
 import polars as pl
@@ -259,25 +251,10 @@ def write_estimate_table(
     channels: Sequence[str],
 ) -> None:
     """The whole estimate file at once, the same columns as `EstimateWriter` (held rows: NaN
-    measured values are written empty), through `EstimateFile`: `path` is replaced only by a
-    complete file."""
-    file = EstimateFile(path)
-    try:
-        file.add(channels, t, measured, estimate, flags)
-        file.commit()
-    finally:
-        file.discard()
-
-
-def _estimate_frame(
-    channels: Sequence[str],
-    t: np.ndarray,
-    measured: np.ndarray,
-    estimate: np.ndarray,
-    flags: Sequence[str] | np.ndarray,
-) -> pl.DataFrame:
-    """Rows of an estimate file as a polars frame: polars formats the numbers in native code
-    with the shortest text that reads back to the same float, as repr() does."""
+    measured values are written empty). Polars formats the numbers in native code with the
+    shortest text that reads back to the same float, as repr() does."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     columns = [pl.Series("t", np.asarray(t, dtype=float))]
     for prefix, values in (("meas", measured), ("est", estimate)):
         for name, column in zip(error_columns(prefix, channels), np.asarray(values).T, strict=True):
@@ -285,176 +262,8 @@ def _estimate_frame(
             columns.append(pl.Series(name, np.asarray(column, dtype=float), nan_to_null=True))
     flag_texts = flags.tolist() if isinstance(flags, np.ndarray) else flags
     columns.append(pl.Series("flags", flag_texts, dtype=pl.String))
-    return pl.DataFrame(columns).with_columns(pl.col("flags").replace("", None))
-
-
-PENDING_PIECES = 64  # pieces handed to the writer thread, not yet written: views, no copies
-
-
-class EstimateFile:
-    """An estimate file written in pieces of rows, in order, by a writer thread while the
-    caller computes the next rows: polars formats a piece and writes it with the GIL let go,
-    so on two cores the rows already final are written beside the computation of the rest.
-
-    The rows go to a new file in the same folder, renamed onto `path` by `commit`: until
-    then `path` holds what it held, and a run stopped midway leaves at most that hidden
-    partial file (`discard` removes it), never a file mixing two runs. The pieces are views
-    of the caller's arrays, which must not change once added; at most PENDING_PIECES wait.
-    OSError from creating, writing or renaming the file is raised as it is (the caller names
-    the path); one from the writer thread at the next `add` or at `commit`."""
-
-    def __init__(self, path: str | Path) -> None:
-        # a symbolic link stays one: its target is replaced, in the target's folder
-        self.path = Path(os.path.realpath(path))
-        if self.path.is_dir():
-            raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(path))
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        partial, handle = _new_partial_file(self.path)
-        self._partial: str | None = partial
-        self._file = os.fdopen(handle, "wb")
-        with contextlib.suppress(FileNotFoundError):  # a file replaced keeps its permissions
-            os.fchmod(handle, stat.S_IMODE(os.stat(self.path).st_mode))
-        # the file replaced: its cached pages freed now, beside the work, not at the rename
-        self._dropping: threading.Thread | None = None
-        if self.path.is_file():
-            self._dropping = threading.Thread(
-                target=_drop_cached, args=(self.path,), name="keo-estimate-old", daemon=True
-            )
-            self._dropping.start()
-        self._pieces: queue.Queue[tuple[Any, ...] | None] = queue.Queue(PENDING_PIECES)
-        self._error: BaseException | None = None
-        self._header_due = True
-        self._written = 0  # bytes whose writeback was started
-        self.rows = 0  # rows added since the file (re)started
-        self.pieces = 0  # and in how many pieces
-        self._writer: threading.Thread | None = None
-        self._closed = False
-
-    def add(
-        self,
-        channels: Sequence[str],
-        t: np.ndarray,
-        measured: np.ndarray,
-        estimate: np.ndarray,
-        flags: Sequence[str] | np.ndarray,
-    ) -> None:
-        """The next rows (the header comes with the first piece, from its channels)."""
-        self._raise_writer_error()
-        if self._writer is None:
-            self._writer = threading.Thread(
-                target=self._write_pieces, name="keo-estimate-file", daemon=True
-            )
-            self._writer.start()
-        self._pieces.put((tuple(channels), t, measured, estimate, flags))
-        self.rows += len(t)
-        self.pieces += 1
-
-    def restart(self) -> None:
-        """Forget every row added: the file starts again empty (the header too)."""
-        self._drain()
-        self._raise_writer_error()
-        self._file.seek(0)
-        self._file.truncate()
-        self._written = 0
-        self._header_due = True
-        self.rows = self.pieces = 0
-
-    def commit(self) -> None:
-        """Wait for the pieces, then put the complete file in place of `path`."""
-        self._drain()
-        self._raise_writer_error()
-        self._closed = True
-        self._file.close()
-        assert self._partial is not None, "committed twice"
-        if self._dropping is not None:
-            self._dropping.join()  # done with the old file before the new one takes its name
-        os.replace(self._partial, self.path)
-        self._partial = None
-
-    def discard(self) -> None:
-        """Stop and remove the partial file (nothing once committed)."""
-        if self._partial is None:
-            return
-        self._drain()
-        if not self._closed:
-            self._closed = True
-            self._file.close()
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(self._partial)
-        self._partial = None
-
-    def _drain(self) -> None:
-        """Returns once the writer thread has written (or dropped) every piece added."""
-        if self._writer is not None:
-            self._pieces.put(None)
-            self._writer.join()
-            self._writer = None
-
-    def _raise_writer_error(self) -> None:
-        if self._error is not None:
-            error, self._error = self._error, None
-            raise error
-
-    def _write_pieces(self) -> None:
-        while (piece := self._pieces.get()) is not None:
-            if self._error is not None:
-                continue  # failed: the rest is dropped, the caller hears of it
-            try:
-                frame = _estimate_frame(*piece)
-                frame.write_csv(self._file, include_header=self._header_due)
-                self._header_due = False
-                # its writeback started now: ext4 would do all of it at the rename otherwise
-                self._file.flush()
-                end = self._file.tell()
-                _start_writeback(self._file.fileno(), self._written, end - self._written)
-                self._written = end
-            except BaseException as exc:  # raised in the caller's thread
-                self._error = exc
-
-
-def _drop_cached(path: Path) -> None:
-    """Free the page cache `path` holds (its content stays on disk): the replaced estimate
-    file's pages would be freed at the rename anyway, and freed early the new rows reuse
-    them (docs/performance.md, Round 12c). Best effort: a file that went away or a system
-    without the call only keeps its pages."""
-    advise = getattr(os, "posix_fadvise", None)
-    with contextlib.suppress(OSError):
-        handle = os.open(path, os.O_RDONLY)
-        try:
-            if advise is not None:
-                advise(handle, 0, 0, os.POSIX_FADV_DONTNEED)
-        finally:
-            os.close(handle)
-
-
-@functools.cache
-def _sync_file_range() -> Callable[[int, int, int, int], int] | None:
-    """Linux's sync_file_range from the C library, or None where there is none."""
-    import ctypes
-
-    function = getattr(ctypes.CDLL(None, use_errno=True), "sync_file_range", None)
-    if function is not None:
-        function.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_uint]
-    return function
-
-
-def _start_writeback(handle: int, offset: int, length: int) -> None:
-    """Start the kernel writing these bytes to disk, without waiting for it (best effort)."""
-    sync_file_range = _sync_file_range()
-    if sync_file_range is not None:
-        sync_file_range(handle, offset, length, 2)  # SYNC_FILE_RANGE_WRITE
-
-
-def _new_partial_file(path: Path) -> tuple[str, int]:
-    """A new hidden file beside `path` (its mode as a plain new file gets: the umask
-    applies), open for writing."""
-    for _attempt in range(100):
-        partial = path.with_name(f".{path.name}.{secrets.token_hex(4)}.partial")
-        try:
-            return str(partial), os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-        except FileExistsError:
-            continue
-    raise FileExistsError(errno.EEXIST, "no free name for a partial file", str(path))
+    frame = pl.DataFrame(columns).with_columns(pl.col("flags").replace("", None))
+    frame.write_csv(path)
 
 
 @dataclass

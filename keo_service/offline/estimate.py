@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from keo_service.io.interchange import EstimateFile, write_estimate_table
+from keo_service.io.interchange import write_estimate_table
 from keo_service.offline.recording import Recording, read_recording
 
 if TYPE_CHECKING:
@@ -44,15 +44,10 @@ def estimate_files(
 
 
 def estimate_recording(
-    recording: Recording,
-    settings: EstimatorSettings,
-    streaming: bool = False,
-    file: EstimateFile | None = None,
+    recording: Recording, settings: EstimatorSettings, streaming: bool = False
 ) -> OfflineResult:
     """The batch path, or the streaming estimator when asked for or when the batch path
-    cannot reproduce it sample-exactly. With `file`, the rows are written to it too (the
-    batch path's as soon as they are final, while it computes the rest); the caller commits
-    it."""
+    cannot reproduce it sample-exactly."""
     from keo_service.core.batch import BatchResult, BatchUnsupportedError, estimate_batch
     from keo_service.core.estimator import Estimator, run_offline
 
@@ -61,13 +56,10 @@ def estimate_recording(
     why = "asked for"
     if not streaming:
         try:
-            rows_done = None if file is None else file.add
-            table = estimate_batch(cell, settings, *streams, keep_joints=False, rows_done=rows_done)
-            return _written(OfflineResult(table, "batch"), file)
+            table = estimate_batch(cell, settings, *streams, keep_joints=False)
+            return OfflineResult(table, "batch")
         except BatchUnsupportedError as exc:
             why = str(exc)
-            if file is not None:
-                file.restart()  # the batch may have written rows before it gave up
     estimator = Estimator(cell, settings)
     estimates = run_offline(estimator, *streams)
     table = BatchResult.from_estimates(
@@ -77,16 +69,7 @@ def estimate_recording(
         dict(estimator.counters),
         list(estimator.messages),
     )
-    return _written(OfflineResult(table, f"streaming ({why})"), file)
-
-
-def _written(result: OfflineResult, file: EstimateFile | None) -> OfflineResult:
-    """`result` with its rows all in `file` (those not written while it was computed)."""
-    t = result.table
-    if file is not None and (file.pieces == 0 or file.rows != t.stamp.size):
-        file.restart()
-        file.add(t.channels, t.stamp, t.measured, t.estimate, t.flags)
-    return result
+    return OfflineResult(table, f"streaming ({why})")
 
 
 def _load_estimators() -> None:

@@ -14,10 +14,9 @@ the tool's speed times the unknown delay.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import sys
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeAlias
@@ -29,9 +28,7 @@ from keo_service.offline.recording import Recording, read_recording
 
 if TYPE_CHECKING:
     from keo_service.io.config import Config
-    from keo_service.io.interchange import EstimateFile
     from keo_service.offline.delay import DelayCalibration
-    from keo_service.offline.estimate import OfflineResult
 
 __all__ = [
     "AnalysisResult",
@@ -253,12 +250,16 @@ class EstimateResult:
             KeoError: the file cannot be written there (a directory, a path under a file, no
                 permission, a full disk); the message names the path and the reason.
         """
+        from keo_service.core.errors import KeoError
         from keo_service.io.interchange import write_estimate_table
 
-        with _writing(path):
+        try:
             write_estimate_table(
                 path, self.stamp, self.measured, self.estimate, self.flags, self.channels
             )
+        except OSError as exc:  # the user's path, not an internal failure: say which and why
+            reason = exc.strerror or str(exc)
+            raise KeoError(f"cannot write the estimate file {str(path)!r}: {reason}") from exc
         self.out = Path(path)
         return self.out
 
@@ -275,35 +276,6 @@ class EstimateResult:
             "messages": self.messages[-10:],
             "warnings": list(self.warnings),
         }
-
-
-@contextlib.contextmanager
-def _writing(path: str | Path) -> Iterator[None]:
-    """An OSError on the way to the estimate file as a KeoError that names the path."""
-    from keo_service.core.errors import KeoError
-
-    try:
-        yield
-    except OSError as exc:  # the user's path, not an internal failure: say which and why
-        reason = exc.strerror or str(exc)
-        raise KeoError(f"cannot write the estimate file {str(path)!r}: {reason}") from exc
-
-
-def _estimate_into(
-    path: str | Path, compute: Callable[[EstimateFile], OfflineResult]
-) -> OfflineResult:
-    """`compute` writing its rows into the estimate file at `path` as it goes (it does no
-    other I/O: an OSError is the file's)."""
-    from keo_service.io.interchange import EstimateFile
-
-    with _writing(path):
-        file = EstimateFile(path)  # an unwritable path fails here, before the work
-        try:
-            done = compute(file)
-            file.commit()
-        finally:
-            file.discard()
-    return done
 
 
 def estimate(
@@ -348,13 +320,7 @@ def estimate(
 
     warning = delay_warning(cfg, recording, name, _name(encoder), _name(tracker))
     _say(warning, quiet)
-    settings = estimator_settings(cfg)
-    if out is None:
-        done = estimate_recording(recording, settings, streaming)
-    else:  # written while the rows are computed, in place once complete
-        done = _estimate_into(
-            out, lambda file: estimate_recording(recording, settings, streaming, file)
-        )
+    done = estimate_recording(recording, estimator_settings(cfg), streaming)
     t = done.table
     result = EstimateResult(
         stamp=t.stamp,
@@ -366,8 +332,9 @@ def estimate(
         counters=dict(t.counters),
         messages=list(t.messages),
         warnings=[warning] if warning else [],
-        out=None if out is None else Path(out),
     )
+    if out is not None:
+        result.write(out)
     return result
 
 
