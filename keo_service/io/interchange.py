@@ -263,7 +263,10 @@ def write_estimate_table(
     flag_texts = flags.tolist() if isinstance(flags, np.ndarray) else flags
     columns.append(pl.Series("flags", flag_texts, dtype=pl.String))
     frame = pl.DataFrame(columns).with_columns(pl.col("flags").replace("", None))
-    frame.write_csv(path)
+    # opened once here: polars given the path opens it twice, truncating each time, and a
+    # truncation to empty makes ext4 start writing the whole file back in close()
+    with path.open("wb") as file:
+        frame.write_csv(file)
 
 
 @dataclass
