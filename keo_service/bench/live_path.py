@@ -21,13 +21,17 @@ Two measures:
 
 `paced` (off by default) sleeps between wake-ups as the samples' stamps say, so that each
 wake-up meets the CPU as the live service does (caches cold from the sleep); its figures are
-larger than a tight loop's. Run as `python -m keo_service.bench.live_path [--seconds S]
-[--passes N] [--paced] [--json]`.
+larger than a tight loop's. On a quiet machine a sleep leaves the caches warm, where the real
+chain's other processes do not: `--cold MB` runs a `Cooler` (a pass over MB megabytes)
+before each wake-up, its own CPU left out, which brought this path's cost near the chain's
+(docs/performance.md, Round 12). Run as `python -m keo_service.bench.live_path [--seconds S]
+[--passes N] [--paced] [--cold MB] [--json]`.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import gc
 import json
 import math
@@ -154,19 +158,41 @@ def delay_poll(service: Any) -> tuple[float, float]:
     return fit_s, fit_wall
 
 
+class Cooler:
+    """What the live service's other neighbours do to its caches between two wake-ups, done
+    on purpose: a pass over a buffer larger than a core's own caches (a copy onto itself and
+    a write to every cache line), so that the next wake-up finds its code's data and the
+    libraries' tables evicted, as in the real chain, where other processes run on the same
+    core between two samples. `drive` runs it before each wake-up and leaves its CPU out."""
+
+    def __init__(self, megabytes: float) -> None:
+        self._buffer = bytearray(int(megabytes * (1 << 20)))
+        self._lines = b"\x01" * len(self._buffer[0::64])
+        self.passes = 0
+
+    def __call__(self) -> None:
+        buffer = self._buffer
+        buffer[:] = buffer
+        buffer[0::64] = self._lines
+        self.passes += 1
+
+
 def drive(
     service: Any,
     wire: list[tuple[float, str, bytes]],
     paced: bool = False,
     handle: Callable[[list[tuple[str, bytes]]], None] | None = None,
+    cool: Callable[[], None] | None = None,
 ) -> dict[str, float]:
     """The wire through `_handle` in wake-ups of `WAKE_SIZES`, the delay poll every 0.25 s of
     stream time. Returns the thread's CPU (s) without the fits, the fits' CPU, the delay
     poll's time on the loop without its fits (performance counter, s), samples. `handle`:
-    another handler in the service's place (the relay's; `service` None: no delay poll)."""
+    another handler in the service's place (the relay's; `service` None: no delay poll).
+    `cool` (a `Cooler`): run before each wake-up, each block intake and each delay poll, its
+    own CPU left out of the figure (each leaves two readings of the thread's clock in it)."""
     handle = handle or service._handle
     thread_time = time.thread_time
-    fits = poll_s = 0.0
+    fits = poll_s = cooling = 0.0
     i, k, n = 0, 0, len(wire)
     next_poll = wire[0][0] + DELAY_POLL_S
     feed = getattr(service, "_feed_delay", None)  # the status loop's, every 0.1 s
@@ -185,17 +211,29 @@ def drive(
             wait = stamp + wall0 - time.monotonic()
             if wait > 0:
                 time.sleep(wait)
+        if cool is not None:
+            t = thread_time()
+            cool()
+            cooling += thread_time() - t
         handle([(key, payload) for _s, key, payload in batch])
         if feed is not None and stamp >= next_feed:
             next_feed += STATUS_PERIOD_S
+            if cool is not None:
+                t = thread_time()
+                cool()
+                cooling += thread_time() - t
             feed()
         if stamp >= next_poll:
             next_poll += DELAY_POLL_S
+            if cool is not None:
+                t = thread_time()
+                cool()
+                cooling += thread_time() - t
             t = time.perf_counter()
             fit_cpu, fit_wall = delay_poll(service)
             poll_s += time.perf_counter() - t - fit_wall
             fits += fit_cpu
-    cpu = thread_time() - start - fits
+    cpu = thread_time() - start - fits - cooling
     return {"cpu_s": cpu, "fit_cpu_s": fits, "poll_s": poll_s, "samples": n}
 
 
@@ -404,25 +442,72 @@ def calls(config: Config, wire: list[tuple[float, str, bytes]]) -> dict[str, flo
     }
 
 
+def call_names(config: Config, wire: list[tuple[float, str, bytes]]) -> dict[str, Any]:
+    """What `calls` counts, by name: each Python function entered and each C function called
+    inside `_handle`, per estimate, most first (deterministic). A call into Pinocchio
+    (Boost.Python) or a type's constructor (a msgspec Struct) is no C-function event and is
+    not listed: the kinematics' calls are read from the code."""
+    service = make_service(config)
+    handle = service._handle
+    counts: collections.Counter[str] = collections.Counter()
+
+    def count(frame: Any, event: str, arg: Any) -> None:
+        if event == "call":
+            code = frame.f_code
+            counts[f"{code.co_filename.rsplit('/', 1)[-1]}:{code.co_name}"] += 1
+        elif event == "c_call":
+            owner = getattr(arg, "__self__", None)
+            where = getattr(arg, "__module__", None) or type(owner).__name__
+            counts[f"{where}.{arg.__name__} (C)"] += 1
+
+    feed = getattr(service, "_feed_delay", None)
+    k = i = 0
+    next_feed = wire[0][0] + STATUS_PERIOD_S
+    while i < len(wire):
+        size = WAKE_SIZES[k % len(WAKE_SIZES)]
+        k += 1
+        batch = [(key, payload) for _s, key, payload in wire[i : i + size]]
+        stamp = wire[min(i + size, len(wire)) - 1][0]
+        i += size
+        sys.setprofile(count)
+        handle(batch)
+        sys.setprofile(None)
+        if feed is not None and stamp >= next_feed:
+            next_feed += STATUS_PERIOD_S
+            feed()
+    counts.pop("sys.setprofile (C)", None)  # the counting's own
+    estimates = max(1, service.estimator.counters["estimates"])
+    return {
+        "estimates": estimates,
+        "per_estimate": {name: round(n / estimates, 3) for name, n in counts.most_common()},
+    }
+
+
 def whole(
-    config: Config, wire: list[tuple[float, str, bytes]], passes: int, paced: bool = False
+    config: Config,
+    wire: list[tuple[float, str, bytes]],
+    passes: int,
+    paced: bool = False,
+    cold_mb: float = 0.0,
 ) -> dict[str, Any]:
     """`passes` runs of a fresh service each, alternating with the bench's relay handler
     (`bench.relay.relay_handler`, the transport floor's own work): the thread's CPU per wire
-    sample (us), and the service's over the relay's, pair by pair."""
+    sample (us), and the service's over the relay's, pair by pair. `cold_mb`: a `Cooler` of
+    that size before each wake-up (0: none)."""
     from keo_service.bench.relay import relay_handler
 
+    cool = Cooler(cold_mb) if cold_mb > 0 else None
     each, floor = [], []
     for _ in range(passes):
         # each pass from a collected heap (the passes before left services behind), as the
         # service runs after its start-up's collection (`run_service`)
         service = make_service(config)
         gc.collect()
-        ran = drive(service, wire, paced)
+        ran = drive(service, wire, paced, cool=cool)
         each.append(ran["cpu_s"] / ran["samples"] * 1e6)
         del service, ran
         gc.collect()
-        ran = drive(None, wire, paced, relay_handler(_Put()))
+        ran = drive(None, wire, paced, relay_handler(_Put()), cool=cool)
         floor.append(ran["cpu_s"] / ran["samples"] * 1e6)
     ratios = [a / b for a, b in zip(each, floor, strict=True)]
     return {
@@ -441,16 +526,31 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--passes", type=int, default=5)
     parser.add_argument("--paced", action="store_true")
+    parser.add_argument(
+        "--cold",
+        type=float,
+        default=0.0,
+        metavar="MB",
+        help="a pass over MB megabytes before each wake-up, its CPU left out (the chain's "
+        "cold caches; Round 12 used 4, twice the measuring machine's L2 per core)",
+    )
     parser.add_argument("--whole-only", action="store_true", help="no stage table")
+    parser.add_argument(
+        "--list-calls", action="store_true", help="the calls inside `_handle` by name, only"
+    )
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     config = loopback_config(load_config(args.config))
     wire = wire_samples(config, args.seconds)
+    if args.list_calls:
+        print(msgspec.json.format(msgspec.json.encode(call_names(config, wire))).decode())
+        return 0
     out = {
         "seconds": args.seconds,
         "paced": args.paced,
+        "cold_mb": args.cold,
         "wire_samples": len(wire),
-        "whole": whole(config, wire, args.passes, args.paced),
+        "whole": whole(config, wire, args.passes, args.paced, args.cold),
     }
     if not args.whole_only:
         out["calls_per_sample"] = calls(config, wire)
