@@ -117,3 +117,25 @@ def test_an_estimate_file_that_cannot_be_written_is_named_not_a_traceback(
     assert done.returncode == 1
     assert "Traceback" not in done.stderr
     assert f"keo estimate: error: cannot write the estimate file '{out}'" in done.stderr
+
+
+def test_the_estimators_load_while_the_tracker_file_parses(recording):
+    # the library's estimate hands the estimators' imports to the reading, which runs them
+    # while its worker thread parses the tracker file (before: they loaded after the reading)
+    encoder, tracker = recording
+    code = (
+        "import sys\n"
+        "from keo_service.offline import library\n"
+        "read = library.read_recording\n"
+        "def reading(*args, while_parsing=None, **kwargs):\n"
+        "    def parsing():\n"
+        "        print('keo_service.core.batch' in sys.modules)\n"
+        "        while_parsing()\n"
+        "        print('keo_service.core.batch' in sys.modules)\n"
+        "    given = None if while_parsing is None else parsing\n"
+        "    return read(*args, while_parsing=given, **kwargs)\n"
+        "library.read_recording = reading\n"
+        f"result = library.estimate({str(DEMO)!r}, {str(encoder)!r}, {str(tracker)!r})\n"
+        "print(result.path)\n"
+    )
+    assert _python(code) == ["False", "True", "batch"]

@@ -35,7 +35,7 @@ def estimate_files(
 ) -> OfflineResult:
     """Read the recording once and estimate over it (the config's estimator settings unless
     given)."""
-    recording = read_recording(config, encoder_path, tracker_path, while_parsing=_load_estimators)
+    recording = read_recording(config, encoder_path, tracker_path, while_parsing=load_estimators)
     if settings is None:
         from keo_service.io.cell import estimator_settings
 
@@ -72,7 +72,7 @@ def estimate_recording(
     return OfflineResult(table, f"streaming ({why})")
 
 
-def _load_estimators() -> None:
+def load_estimators() -> None:
     """Import both estimators while the tracker file parses: their imports then add no wall
     time to a short command."""
     for module in ("keo_service.core.batch", "keo_service.core.estimator"):

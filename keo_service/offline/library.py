@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeAlias
@@ -76,10 +76,16 @@ def _is_path(value: object) -> bool:
     return isinstance(value, str | os.PathLike)
 
 
-def _recording(config: Config, encoder: EncoderInput, tracker: TrackerInput) -> Recording:
-    """Both streams: read from files (each once) or taken from arrays."""
+def _recording(
+    config: Config,
+    encoder: EncoderInput,
+    tracker: TrackerInput,
+    while_parsing: Callable[[], object] | None = None,
+) -> Recording:
+    """Both streams: read from files (each once; `while_parsing` runs while the tracker file
+    parses) or taken from arrays."""
     if _is_path(encoder) and _is_path(tracker):
-        return read_recording(config, encoder, tracker)  # type: ignore[arg-type]
+        return read_recording(config, encoder, tracker, while_parsing=while_parsing)  # type: ignore[arg-type]
     from keo_service.io.cell import cell_from_config
     from keo_service.io.interchange import read_encoder, read_tracker
 
@@ -312,10 +318,11 @@ def estimate(
         DataFormatError: a file is not in the interchange format (file, line, column).
         KeoError: arrays of the wrong shape.
     """
-    from keo_service.offline.estimate import estimate_recording
+    from keo_service.offline.estimate import estimate_recording, load_estimators
 
     cfg, name = _config(config)
-    recording = _recording(cfg, encoder, tracker)  # Pinocchio loads while the tracker parses
+    # the estimators' and Pinocchio's imports run while the tracker file parses
+    recording = _recording(cfg, encoder, tracker, while_parsing=load_estimators)
     from keo_service.io.cell import estimator_settings
 
     warning = delay_warning(cfg, recording, name, _name(encoder), _name(tracker))
