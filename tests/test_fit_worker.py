@@ -78,6 +78,13 @@ def test_the_worker_fits_as_the_service_would(demo_config, demo_cell, unknown):
         worker.close()
     if unknown:  # the pooled fit was made and sent back
         assert any(math.isfinite(got.pooled_s) for got, _cpu in found), found
+    assert_fits_as_in_process(fresh, stretches, found)
+    assert any(type(g).__name__ == "DelayMeasurement" for g, _cpu in found)
+
+
+def assert_fits_as_in_process(fresh, stretches, found) -> None:
+    """Each fit sent back by a worker equals the same fit made here by `fresh` (floats to
+    1e-12 relative: BLAS on one thread may sum in another order), and its CPU was counted."""
     for (window, current, guess, pool), (got, cpu_s) in zip(stretches, found, strict=True):
         want = fresh.measure(window, current, guess, pool)
         assert type(got) is type(want)
@@ -88,7 +95,6 @@ def test_the_worker_fits_as_the_service_would(demo_config, demo_cell, unknown):
                 assert other == pytest.approx(value, rel=1e-12, abs=1e-15, nan_ok=True), name
             else:
                 assert other == value, name
-    assert any(type(g).__name__ == "DelayMeasurement" for g, _cpu in found)
 
 
 def test_the_worker_ignores_stop_signals_and_runs_blas_on_one_thread(demo_cell):

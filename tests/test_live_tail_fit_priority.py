@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_fit_worker import _stretches
+from tests.test_fit_worker import _stretches, assert_fits_as_in_process
 
 pytestmark = pytest.mark.skipif(
     not hasattr(os, "SCHED_IDLE"), reason="the idle scheduling policy is Linux's"
@@ -70,13 +70,4 @@ def test_a_starved_fit_is_made_again_at_normal_priority(
         worker.close()
     assert second_pid != first_pid
     assert sum("normal priority" in r.getMessage() for r in caplog.records) == 1
-    for (window, current, guess, pool), (got, cpu_s) in zip(stretches, found, strict=True):
-        want = fresh.measure(window, current, guess, pool)
-        assert type(got) is type(want)
-        assert cpu_s > 0
-        for name, value in vars(want).items():
-            other = vars(got)[name]
-            if isinstance(value, float):
-                assert other == pytest.approx(value, rel=1e-12, abs=1e-15, nan_ok=True), name
-            else:
-                assert other == value, name
+    assert_fits_as_in_process(fresh, stretches, found)

@@ -38,7 +38,7 @@ import math
 import statistics
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import msgspec
@@ -398,6 +398,25 @@ def _intake(config: Config, msgs: list[Any]) -> int:
     return len(msgs)
 
 
+def _wake_ups(
+    wire: list[tuple[float, str, bytes]],
+) -> Iterator[tuple[list[tuple[str, bytes]], bool]]:
+    """The wire in wake-ups of `WAKE_SIZES`: each wake-up's (key, payload) pairs, and whether
+    the status loop's delay block is due after it (every `STATUS_PERIOD_S` of stream time)."""
+    k = i = 0
+    next_feed = wire[0][0] + STATUS_PERIOD_S
+    while i < len(wire):
+        size = WAKE_SIZES[k % len(WAKE_SIZES)]
+        k += 1
+        batch = [(key, payload) for _s, key, payload in wire[i : i + size]]
+        stamp = wire[min(i + size, len(wire)) - 1][0]
+        i += size
+        due = stamp >= next_feed
+        if due:
+            next_feed += STATUS_PERIOD_S
+        yield batch, due
+
+
 def calls(config: Config, wire: list[tuple[float, str, bytes]]) -> dict[str, float]:
     """Calls per wire sample inside `_handle` (`sys.setprofile`: Python functions entered and
     C functions called), deterministic; the delay poll and the block intake outside it run
@@ -417,19 +436,11 @@ def calls(config: Config, wire: list[tuple[float, str, bytes]]) -> dict[str, flo
             block[event] += 1
 
     feed = getattr(service, "_feed_delay", None)
-    k = i = 0
-    next_feed = wire[0][0] + STATUS_PERIOD_S
-    while i < len(wire):
-        size = WAKE_SIZES[k % len(WAKE_SIZES)]
-        k += 1
-        batch = [(key, payload) for _s, key, payload in wire[i : i + size]]
-        stamp = wire[min(i + size, len(wire)) - 1][0]
-        i += size
+    for batch, feed_due in _wake_ups(wire):
         sys.setprofile(count)
         handle(batch)
         sys.setprofile(None)
-        if feed is not None and stamp >= next_feed:
-            next_feed += STATUS_PERIOD_S
+        if feed is not None and feed_due:
             sys.setprofile(count_block)
             feed()
             sys.setprofile(None)
@@ -461,19 +472,11 @@ def call_names(config: Config, wire: list[tuple[float, str, bytes]]) -> dict[str
             counts[f"{where}.{arg.__name__} (C)"] += 1
 
     feed = getattr(service, "_feed_delay", None)
-    k = i = 0
-    next_feed = wire[0][0] + STATUS_PERIOD_S
-    while i < len(wire):
-        size = WAKE_SIZES[k % len(WAKE_SIZES)]
-        k += 1
-        batch = [(key, payload) for _s, key, payload in wire[i : i + size]]
-        stamp = wire[min(i + size, len(wire)) - 1][0]
-        i += size
+    for batch, feed_due in _wake_ups(wire):
         sys.setprofile(count)
         handle(batch)
         sys.setprofile(None)
-        if feed is not None and stamp >= next_feed:
-            next_feed += STATUS_PERIOD_S
+        if feed is not None and feed_due:
             feed()
     counts.pop("sys.setprofile (C)", None)  # the counting's own
     estimates = max(1, service.estimator.counters["estimates"])
