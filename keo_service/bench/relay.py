@@ -21,6 +21,7 @@ from keo_service.core.kinematics import POSE_CHANNELS
 from keo_service.io.config import Config, load_config
 from keo_service.live.bus import AsyncSubscription, session_for_service
 from keo_service.live.messages import EstimateMessage, TrackerSample, decode, encode, topic
+from keo_service.live.sinks import estimate_publisher
 
 
 def relay_handler(pub: Any) -> Callable[[list[tuple[str, bytes]]], None]:
@@ -56,7 +57,8 @@ def relay_handler(pub: Any) -> Callable[[list[tuple[str, bytes]]], None]:
 
 async def relay(config: Config) -> None:
     session = session_for_service(config)
-    pub = session.declare_publisher(topic(config.cell, "estimate"), express=True)
+    # published as the service's own session does (its estimates not delivered back to it)
+    pub = estimate_publisher(session, config.cell, local_subscribers=False)
     sub = AsyncSubscription(session, [topic(config.cell, "encoder"), topic(config.cell, "tracker")])
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):

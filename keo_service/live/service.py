@@ -253,7 +253,8 @@ class KeoService:
         corrections that use it (sinks close in reverse). Without a correction output the
         correction's filter, its messages and its cycle are not run at all: they were half
         of the service's work per estimate (docs/performance.md)."""
-        self.sinks.add(EstimateBusSink(session, self.cell))
+        # a session of its own has no subscriber of the estimates in this process
+        self.sinks.add(EstimateBusSink(session, self.cell, local_subscribers=not self._own_session))
         ros2 = None
         if self.config.ros2.enabled:
             from keo_service.live.ros2_bridge import EstimateBridge

@@ -224,15 +224,30 @@ class _Base:
         pass
 
 
+def estimate_publisher(
+    session: zenoh.Session, cell: str, local_subscribers: bool = True
+) -> zenoh.Publisher:
+    """The publisher of keo/<cell>/estimate. Without `local_subscribers` the estimates go to
+    other sessions only: a session the service opened for itself has no subscriber of its
+    own for them, but its data subscription is a wildcard on the cell's prefix (for the
+    publishers' order across keys), which would get each estimate back on Zenoh's callback
+    thread only to drop it: a thread wake-up and the GIL taken once more per estimate."""
+    where = None if local_subscribers else zenoh.Locality.REMOTE
+    return session.declare_publisher(
+        topic(cell, "estimate"), express=True, allowed_destination=where
+    )
+
+
 class EstimateBusSink(_Base):
     """keo/<cell>/estimate: each estimate put on the bus, and the newest kept for a client
-    that joins late and asks (the queryable on the same key)."""
+    that joins late and asks (the queryable on the same key). `local_subscribers`: see
+    `estimate_publisher`."""
 
     name = "bus"
 
-    def __init__(self, session: zenoh.Session, cell: str) -> None:
+    def __init__(self, session: zenoh.Session, cell: str, local_subscribers: bool = True) -> None:
         self.cell = cell
-        self._pub = session.declare_publisher(topic(cell, "estimate"), express=True)
+        self._pub = estimate_publisher(session, cell, local_subscribers)
         self._latest = b""
         self._latest_q = session.declare_queryable(topic(cell, "estimate"), self._on_latest_query)
         self.published = 0
