@@ -6,6 +6,13 @@ It opens the bus as the service does, takes the encoder and tracker streams thro
 message (zeros) on the estimate topic. `keo bench` runs the whole chain once with the service
 and once with this relay: the difference is what keo's own work adds on that machine.
 Run as `python -m keo_service.bench.relay --config FILE`.
+
+`--math` makes it the naive floor of the math in the live chain: each tracker pose also gets
+the error transform the naive in-process floor computes (`bench.hot_path.floor_pass`: forward
+kinematics at the newest encoder sample's joints, the tool and sensor poses, the error and its
+rotation's log), published in the message. No interpolation, observer, delay tracking, status
+or validation: what any estimator in this stack must do per sample, and no more. Its CPU and
+latency over the plain relay's bound from below what the service can reach.
 """
 
 from __future__ import annotations
@@ -17,10 +24,21 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from keo_service.core.kinematics import POSE_CHANNELS
+import numpy as np
+import pinocchio as pin
+
+from keo_service.core.kinematics import POSE_CHANNELS, Cell
+from keo_service.io.cell import cell_from_config
 from keo_service.io.config import Config, load_config
 from keo_service.live.bus import AsyncSubscription, session_for_service
-from keo_service.live.messages import EstimateMessage, TrackerSample, decode, encode, topic
+from keo_service.live.messages import (
+    EstimateMessage,
+    JointSample,
+    TrackerSample,
+    decode,
+    encode,
+    topic,
+)
 from keo_service.live.sinks import estimate_publisher
 
 
@@ -55,7 +73,54 @@ def relay_handler(pub: Any) -> Callable[[list[tuple[str, bytes]]], None]:
     return handle
 
 
-async def relay(config: Config) -> None:
+def naive_math_handler(pub: Any, cell: Cell) -> Callable[[list[tuple[str, bytes]]], None]:
+    """`relay_handler` plus the naive floor's math per tracker pose (the module's `--math`):
+    the newest encoder sample's joints kept, and for each tracker pose after one the error
+    transform from the tool to the sensor frame, its translation and rotation vector published
+    as `measured` and `estimate`. A pose without orientation, or before any joints, gets zeros
+    as in the plain relay."""
+    channels = list(POSE_CHANNELS)
+    zeros = [0.0] * len(channels)
+    model, data = cell.robot.model, cell.robot.create_data()
+    flange, T_nt, T_bk = cell.robot.flange_frame_id, cell.T_nt, cell.T_bk
+    joints: np.ndarray | None = None
+    seq = 0
+
+    def handle(batch: list[tuple[str, bytes]]) -> None:
+        nonlocal seq, joints
+        for _key, payload in batch:
+            msg = decode(payload)
+            if isinstance(msg, JointSample):
+                joints = np.asarray(msg.joints, dtype=float)
+                continue
+            if not isinstance(msg, TrackerSample) or msg.position is None:
+                continue
+            seq += 1
+            error = zeros
+            quat = msg.quaternion
+            if joints is not None and quat is not None:
+                pin.framesForwardKinematics(model, data, joints)
+                T_bt = data.oMf[flange] * T_nt
+                xyzquat = np.array([*msg.position, quat[1], quat[2], quat[3], quat[0]])
+                err = T_bt.actInv(T_bk * pin.XYZQUATToSE3(xyzquat))
+                error = [*err.translation.tolist(), *pin.log3(err.rotation).tolist()]
+            out = EstimateMessage(
+                stamp=msg.stamp,
+                host_ns=time.time_ns(),
+                channels=channels,
+                measured=error,
+                estimate=error,
+                flags=[],
+                delay_s=0.0,
+                seq=seq,
+                device_stamp=msg.device_stamp,
+            )
+            pub.put(encode(out))
+
+    return handle
+
+
+async def relay(config: Config, math: bool = False) -> None:
     session = session_for_service(config)
     # published as the service's own session does (its estimates not delivered back to it)
     pub = estimate_publisher(session, config.cell, local_subscribers=False)
@@ -64,14 +129,19 @@ async def relay(config: Config) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, sub.close)
     # the service's own hand-off from Zenoh's thread to the loop
-    await sub.deliver(relay_handler(pub))
+    handler = naive_math_handler(pub, cell_from_config(config)) if math else relay_handler(pub)
+    await sub.deliver(handler)
     session.close()
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", required=True)
-    asyncio.run(relay(load_config(parser.parse_args().config)))
+    parser.add_argument(
+        "--math", action="store_true", help="the naive floor's math per tracker pose too"
+    )
+    args = parser.parse_args()
+    asyncio.run(relay(load_config(args.config), math=args.math))
 
 
 if __name__ == "__main__":
