@@ -483,3 +483,54 @@ def test_free_ports_are_not_handed_out_twice():
     256 it gave."""
     ports = [free_port() for _ in range(300)]
     assert len(set(ports[-256:])) == 256
+
+
+def test_math_floor_ratios_and_rows_pair_runs_within_their_round():
+    from keo_service.bench.table import _round_rows
+
+    rounds = [
+        {
+            "end_to_end": _e2e(1.0, 3.0, 30.0),
+            "transport_floor": _e2e(0.5, 1.0, 20.0),
+            "math_floor": _e2e(0.8, 2.0, 25.0),
+        },
+        {
+            "end_to_end": _e2e(1.0, 2.0, 36.0),
+            "transport_floor": _e2e(0.5, 2.0, 24.0),
+            "math_floor": _e2e(0.8, 2.0, 30.0),
+        },
+    ]
+    r = round_ratios(rounds)
+    # by hand: CPU 25/20, 30/24; 30/25, 36/30; p99 2/1, 2/2; 3/2, 2/2
+    assert r["math_cpu_over_relay"]["each"] == [1.25, 1.25]
+    assert r["service_cpu_over_math"]["each"] == [1.2, 1.2]
+    assert r["math_p99_over_relay"]["each"] == [2.0, 1.0]
+    assert r["p99_over_math"]["each"] == [1.5, 1.0]
+    rows = "\n".join(_round_rows({"end_to_end_rounds": rounds, "round_ratios": r}))
+    assert "over the transport floor | CPU x1.25 (median; each round: 1.25, 1.25)" in rows
+    assert "keo over that naive math floor | CPU x1.20" in rows
+    assert "naive math 2.00, 2.00" in rows  # its p99 in each round
+    # a bench without the math floor has no such ratio or row
+    plain = [{k: v for k, v in x.items() if k != "math_floor"} for x in rounds]
+    assert "math_cpu_over_relay" not in round_ratios(plain)
+    assert "naive math" not in "\n".join(
+        _round_rows({"end_to_end_rounds": plain, "round_ratios": round_ratios(plain)})
+    )
+
+
+def test_rounds_run_the_math_floor_only_when_asked(monkeypatch, demo_config):
+    from keo_service.bench import end_to_end as e2e_module
+
+    calls = []
+
+    def fake(config, seconds, relay_only=False, rrd=False, relay_math=False):
+        calls.append("math" if relay_math else "relay" if relay_only else "service")
+        return _e2e(1.0, 2.0, 30.0)
+
+    monkeypatch.setattr(e2e_module, "end_to_end", fake)
+    end_to_end_rounds(demo_config, 1.0, rounds=1, with_rerun=False)
+    assert calls == ["service", "relay"]
+    calls.clear()
+    done = end_to_end_rounds(demo_config, 1.0, rounds=2, with_rerun=False, with_math=True)
+    assert calls == ["service", "relay", "math", "relay", "math", "service"]
+    assert set(done[0]) == {"order", "end_to_end", "transport_floor", "math_floor"}

@@ -84,7 +84,12 @@ def run_bench(config: Config, quick: bool, rounds: int | None = None) -> dict[st
         analyze_whole=not quick,
     )
     done = end_to_end_rounds(
-        config, e2e_seconds, rounds, with_rerun=not quick, with_correction=not quick
+        config,
+        e2e_seconds,
+        rounds,
+        with_rerun=not quick,
+        with_correction=not quick,
+        with_math=not quick,
     )
     for kind in E2E_KINDS:  # the first round's runs in full, as before rounds
         if kind in done[0]:

@@ -124,10 +124,13 @@ def end_to_end(
     relay_only: bool = False,
     correction: bool = False,
     service_python: Sequence[str] = (),
+    relay_math: bool = False,
 ) -> dict[str, Any]:
     """Each component its own process; latency from the tracker line leaving the mock to the
     estimate arriving at a subscriber, split at the service's publish stamp. `relay_only`: the
-    transport floor, with a pass-through relay in the service's place. `correction`: the
+    transport floor, with a pass-through relay in the service's place; `relay_math`: that
+    relay doing the naive floor's math per tracker pose too (what any estimator in this
+    stack must do per sample: a bound from below for the service). `correction`: the
     service with a correction output configured (`robot.correction`, no controller reading
     it), and the correction path's latency measured. `service_python`: interpreter arguments
     for the service (a profiler).
@@ -144,9 +147,10 @@ def end_to_end(
             encoder_hz=encoder_hz,
             rrd=rrd,
             sample_every=sample_every,
-            relay_only=relay_only,
+            relay_only=relay_only or relay_math,
             correction=correction,
             service_python=service_python,
+            relay_math=relay_math,
         )
     except BaseException as exc:
         exc.add_note(f"the processes' logs: {work}")
@@ -183,6 +187,7 @@ def _end_to_end(
     relay_only: bool,
     correction: bool = False,
     service_python: Sequence[str] = (),
+    relay_math: bool = False,
 ) -> dict[str, Any]:
     if correction:  # the correction path runs only with an output configured
         robot = msgspec.structs.replace(config.robot, correction=CORRECTION_OUTPUT)
@@ -207,6 +212,7 @@ def _end_to_end(
             tracker=["--wall-clock-device-time"],
             relay_only=relay_only,
             service_python=service_python,
+            relay_math=relay_math,
         )
         collector = _Collector(config)
         pids = {n: procs.procs[n].pid for n in CHAIN}
@@ -408,16 +414,26 @@ E2E_KINDS: dict[str, dict[str, Any]] = {
     "transport_floor": {"relay_only": True},
     "end_to_end_rerun": {"rrd": True},
     "end_to_end_correction": {"correction": True},
+    # the relay with the naive floor's math per pose: where any estimator here starts
+    "math_floor": {"relay_math": True},
 }
 
 
 def end_to_end_rounds(
-    config: Config, seconds: float, rounds: int, with_rerun: bool, with_correction: bool = False
+    config: Config,
+    seconds: float,
+    rounds: int,
+    with_rerun: bool,
+    with_correction: bool = False,
+    with_math: bool = False,
 ) -> list[dict[str, Any]]:
     """`rounds` runs of each end-to-end kind, the order rotated every round so that no kind
     always runs first (a machine's load drifts over minutes; one run's p99 moves 1-5 ms).
-    `with_correction`: also the service with a correction output (its latency)."""
+    `with_correction`: also the service with a correction output (its latency); `with_math`:
+    also the relay with the naive floor's math (`math_floor`)."""
     skip = set()
+    if not with_math:
+        skip.add("math_floor")
     if not with_rerun:
         skip.add("end_to_end_rerun")
     if not with_correction:
@@ -472,6 +488,10 @@ def round_ratios(rounds: list[dict[str, Any]]) -> dict[str, Any]:
         "correction_p99_over_relay": ratio(
             "end_to_end_correction", "transport_floor", "latency_ms", "p99"
         ),
+        "math_cpu_over_relay": ratio("math_floor", "transport_floor", *cpu),
+        "math_p99_over_relay": ratio("math_floor", "transport_floor", "latency_ms", "p99"),
+        "service_cpu_over_math": ratio("end_to_end", "math_floor", *cpu),
+        "p99_over_math": ratio("end_to_end", "math_floor", "latency_ms", "p99"),
     }
     return {name: spread for name, spread in found.items() if spread is not None}
 

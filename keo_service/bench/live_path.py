@@ -494,13 +494,15 @@ def whole(
     cold_mb: float = 0.0,
 ) -> dict[str, Any]:
     """`passes` runs of a fresh service each, alternating with the bench's relay handler
-    (`bench.relay.relay_handler`, the transport floor's own work): the thread's CPU per wire
-    sample (us), and the service's over the relay's, pair by pair. `cold_mb`: a `Cooler` of
-    that size before each wake-up (0: none)."""
-    from keo_service.bench.relay import relay_handler
+    (`bench.relay.relay_handler`, the transport floor's own work) and the relay with the
+    naive floor's math (`bench.relay.naive_math_handler`, what any estimator in this stack
+    does per sample): the thread's CPU per wire sample (us), and the ratios pair by pair.
+    `cold_mb`: a `Cooler` of that size before each wake-up (0: none)."""
+    from keo_service.bench.relay import naive_math_handler, relay_handler
 
     cool = Cooler(cold_mb) if cold_mb > 0 else None
-    each, floor = [], []
+    cell = cell_from_config(config)
+    each, floor, math_floor = [], [], []
     for _ in range(passes):
         # each pass from a collected heap (the passes before left services behind), as the
         # service runs after its start-up's collection (`run_service`)
@@ -512,14 +514,23 @@ def whole(
         gc.collect()
         ran = drive(None, wire, paced, relay_handler(_Put()), cool=cool)
         floor.append(ran["cpu_s"] / ran["samples"] * 1e6)
-    ratios = [a / b for a, b in zip(each, floor, strict=True)]
+        ran = drive(None, wire, paced, naive_math_handler(_Put(), cell), cool=cool)
+        math_floor.append(ran["cpu_s"] / ran["samples"] * 1e6)
+
+    def pairs(a: list[float], b: list[float]) -> float:
+        return round(statistics.median(x / y for x, y in zip(a, b, strict=True)), 3)
+
     return {
         "us_per_sample_min": round(min(each), 2),
         "us_per_sample_median": round(statistics.median(each), 2),
         "each": [round(v, 2) for v in each],
         "relay_us_per_sample_median": round(statistics.median(floor), 2),
         "relay_each": [round(v, 2) for v in floor],
-        "over_relay_median": round(statistics.median(ratios), 3),
+        "math_us_per_sample_median": round(statistics.median(math_floor), 2),
+        "math_each": [round(v, 2) for v in math_floor],
+        "over_relay_median": pairs(each, floor),
+        "math_over_relay_median": pairs(math_floor, floor),
+        "over_math_median": pairs(each, math_floor),
     }
 
 

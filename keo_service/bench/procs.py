@@ -57,17 +57,20 @@ class ProcessGroup:
         tracker: Sequence[str] = (),
         relay_only: bool = False,
         robot: Sequence[str] = (),
+        relay_math: bool = False,
         service_python: Sequence[str] = (),
     ) -> None:
         """The whole chain of one cell: service, mock robot and tracker playing `play`, and
         both adapters (names: service, mock-robot, mock-tracker, adapter-encoder/-tracker).
-        `relay_only`: the bench's pass-through relay stands where the service would.
+        `relay_only`: the bench's pass-through relay stands where the service would;
+        `relay_math`: with the naive floor's math per tracker pose (`bench.relay --math`).
         `service_python`: the interpreter arguments that run keo's CLI in the service's
         process instead of `-m keo_service.cli` (a profiler: `["-c", CODE, ...]`); `run` and
         the service's arguments follow them."""
         cfg = ["--config", str(config)]
-        if relay_only:
-            self.start("service", cfg, module="keo_service.bench.relay")
+        if relay_only or relay_math:
+            math = ["--math"] if relay_math else []
+            self.start("service", [*cfg, *math], module="keo_service.bench.relay")
         elif service_python:
             args = [*service_python, "run", *cfg, *service]
             self.start("service", args, module=None)

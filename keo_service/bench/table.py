@@ -91,6 +91,16 @@ def _round_rows(r: dict[str, Any]) -> list[str]:
         f"CPU {_ratio(ratios.get('service_cpu_over_relay'))}; "
         f"p50 {_ratio(ratios.get('p50_over_relay'))}; p99 {_ratio(ratios.get('p99_over_relay'))} |"
     ]
+    if "math_cpu_over_relay" in ratios:
+        lines += [
+            "| the naive floor's math in the relay (per tracker pose: forward kinematics at "
+            "the newest joints, the error transform and its log; what any estimator here "
+            f"does) over the transport floor | CPU {_ratio(ratios['math_cpu_over_relay'])}; "
+            f"p99 {_ratio(ratios.get('math_p99_over_relay'))} |",
+            f"| keo over that naive math floor | CPU "
+            f"{_ratio(ratios.get('service_cpu_over_math'))}; "
+            f"p99 {_ratio(ratios.get('p99_over_math'))} |",
+        ]
     less_fits = _cpu_less_fits_over_relay(rounds)
     if less_fits is not None:
         lines.append(
@@ -103,6 +113,7 @@ def _round_rows(r: dict[str, Any]) -> list[str]:
             "transport_floor": "relay",
             "end_to_end_rerun": "--rrd",
             "end_to_end_correction": "with correction",
+            "math_floor": "naive math",
         }
 
         def each_run(path: tuple[str, ...], digits: int) -> str:
@@ -253,6 +264,7 @@ E2E_ROWS = (
     ("transport_floor", "transport floor (pass-through relay in the service's place)"),
     ("end_to_end_rerun", "end to end, --rrd"),
     ("end_to_end_correction", "end to end with a correction output"),
+    ("math_floor", "naive math floor (the relay with the floor's math per tracker pose)"),
 )
 
 
