@@ -26,7 +26,9 @@ it made most of the service's slowest estimates (docs/performance.md, Round 12b)
 priority any other runnable thread of its scheduling group (the service's session or
 cgroup) takes the core first. A fit that has not come back after `FIT_PATIENCE_S` (a machine
 kept busy by the service's own group would starve it) is run again in a worker at normal
-priority, which then takes every later fit: the result is the same, only later.
+priority, which then takes every later fit: the result is the same, only later. The starved
+worker is shut down, and killed if it has not exited `STARVED_GRACE_S` later (or when the
+worker is closed).
 
 A worker that dies is a failure of the service's delay task, as any task's
 (`concurrent.futures.process.BrokenProcessPool`).
@@ -39,6 +41,7 @@ import contextlib
 import ctypes
 import logging
 import multiprocessing
+import multiprocessing.connection
 import os
 import pickle
 import signal
@@ -50,6 +53,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from multiprocessing import Process
+
     import numpy as np
 
     from keo_service.fit.delay_online import (
@@ -92,6 +97,10 @@ SERVICE_CHECK_S = 1.0
 # how long a fit at idle priority may take before it runs again at normal priority (s): a fit
 # takes 50-150 ms of a core, a starved one has not come back after many times that
 FIT_PATIENCE_S = 2.0
+# how long the worker left behind at that fallback may take to finish its fit and exit before
+# it is killed (s): the fit takes 50-150 ms of a core once it gets one, and its outcome is
+# read by no one; a worker that still has no core after this holds about 100 MB for nothing
+STARVED_GRACE_S = 5.0
 
 log = logging.getLogger("keo.service")
 
@@ -216,6 +225,9 @@ class FitWorker:
 
     def __init__(self, tracker: OnlineDelayTracker, idle: bool = True) -> None:
         self._state = pickle.dumps(tracker)
+        # the worker left behind at the fallback, until it has exited or is killed
+        self._starved: list[Process] = []
+        self._starved_timer: asyncio.TimerHandle | None = None
         self._start_pool(idle)
 
     def _start_pool(self, idle: bool) -> None:
@@ -236,7 +248,8 @@ class FitWorker:
         arrays of the stretch's pool while the delay is not settled, the pooled fit too),
         and its CPU (s). A fit at idle priority not back within `FIT_PATIENCE_S` is made again
         by a new worker at normal priority, which makes every later one too (the starved
-        worker is shut down once its fit ends)."""
+        worker is shut down: it exits once its fit ends, or is killed `STARVED_GRACE_S`
+        after)."""
         loop = asyncio.get_running_loop()
         fit = loop.run_in_executor(self._pool, _measure, window, current, guess, pool)
         if not self.idle:
@@ -253,13 +266,42 @@ class FitWorker:
         )
         starved = self._pool
         self._start_pool(idle=False)
-        starved.shutdown(wait=False, cancel_futures=True)
+        self._leave(starved, loop)
         return await loop.run_in_executor(self._pool, _measure, window, current, guess, pool)
+
+    def _leave(self, starved: ProcessPoolExecutor, loop: asyncio.AbstractEventLoop) -> None:
+        """Shut the starved pool down, and kill its worker if it has not exited within
+        `STARVED_GRACE_S`: a timer on the loop, no thread or task, and at most one worker
+        waiting (an earlier one is ended at once)."""
+        # the pool's processes are in CPython's `_processes` (no public accessor), which its
+        # shutdown drops
+        processes = list((starved._processes or {}).values())
+        starved.shutdown(wait=False, cancel_futures=True)
+        self._end_starved()
+        self._starved = processes
+        self._starved_timer = loop.call_later(STARVED_GRACE_S, self._end_starved)
+
+    def _end_starved(self) -> None:
+        """Kill the worker left behind at the fallback, unless it has exited (its fit has no
+        reader). SIGKILL: the worker ignores SIGTERM."""
+        if self._starved_timer is not None:
+            self._starved_timer.cancel()
+            self._starved_timer = None
+        for process in self._starved:
+            # its end of file says it exited, without reaping it from under the pool's thread
+            if not multiprocessing.connection.wait([process.sentinel], 0):
+                log.warning(
+                    "the delay fits' starved worker (pid %s) had not exited: killed", process.pid
+                )
+                process.kill()
+        self._starved = []
 
     def pid(self, timeout: float = 30.0) -> int:
         """The worker's process id, once it runs (blocking: for tests and tools)."""
         return int(self._started.result(timeout))
 
     def close(self) -> None:
-        """Stop the worker without waiting for a fit it may be running (it exits after)."""
+        """Stop the worker without waiting for a fit it may be running (it exits after); a
+        worker left behind at the fallback is killed now."""
         self._pool.shutdown(wait=False, cancel_futures=True)
+        self._end_starved()
