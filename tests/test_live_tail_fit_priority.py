@@ -10,6 +10,7 @@ import contextlib
 import os
 import signal
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,7 @@ from tests.test_fit_worker import (
     _gone,
     _stretches,
     assert_fits_as_in_process,
+    inside_the_worker,
 )
 
 pytestmark = pytest.mark.skipif(
@@ -78,6 +80,41 @@ def test_a_starved_fit_is_made_again_at_normal_priority(
     assert second_pid != first_pid
     assert sum("normal priority" in r.getMessage() for r in caplog.records) == 1
     assert_fits_as_in_process(fresh, stretches, found)
+
+
+@contextlib.contextmanager
+def _this_thread_at(policy: int) -> Iterator[None]:
+    """The calling thread at scheduling `policy` meanwhile, its own restored after."""
+    previous = os.sched_getscheduler(0), os.sched_getparam(0)
+    os.sched_setscheduler(0, policy, os.sched_param(0))
+    try:
+        yield
+    finally:
+        os.sched_setscheduler(0, *previous)
+
+
+def test_the_fits_keep_no_policy_of_the_service(demo_cell):
+    """A process started by a service at another policy than the normal one inherits it (the
+    systemd unit's commented real-time line; here SCHED_BATCH, which an unprivileged process
+    may set and leave): the fits' thread of a worker at normal priority (the fallback's)
+    computes at SCHED_OTHER all the same, an idle worker's at SCHED_IDLE, and the watch of
+    either at SCHED_OTHER."""
+    from keo_service.fit.delay_online import OnlineDelayTracker
+    from keo_service.live.fit_worker import FitWorker
+
+    tracker = OnlineDelayTracker(demo_cell, None, 0.01, 0.001)
+    with _this_thread_at(os.SCHED_BATCH):
+        normal, idle = FitWorker(tracker, idle=False), FitWorker(tracker)  # started here
+    try:
+        normal_policies, idle_policies = _policies(normal.pid()), _policies(idle.pid())
+        inside = normal._pool.submit(inside_the_worker).result(30)
+    finally:
+        normal.close()
+        idle.close()
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the test's own, restored
+    assert inside["policy"] == os.SCHED_OTHER, inside
+    assert normal_policies == {"main": [os.SCHED_OTHER], "others": [os.SCHED_OTHER]}
+    assert idle_policies == {"main": [os.SCHED_IDLE], "others": [os.SCHED_OTHER]}
 
 
 def _stopped_idle_worker(demo_config, demo_cell, monkeypatch, grace_s: float):

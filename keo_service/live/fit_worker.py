@@ -28,7 +28,9 @@ cgroup) takes the core first. A fit that has not come back after `FIT_PATIENCE_S
 kept busy by the service's own group would starve it) is run again in a worker at normal
 priority, which then takes every later fit: the result is the same, only later. The starved
 worker is shut down, and killed if it has not exited `STARVED_GRACE_S` later (or when the
-worker is closed).
+worker is closed). "Normal" is `SCHED_OTHER` whatever the service runs at: a service at a
+real-time policy passes it on to the processes it starts, and a fit there would hold a core
+against everything else.
 
 A worker that dies is a failure of the service's delay task, as any task's
 (`concurrent.futures.process.BrokenProcessPool`).
@@ -109,12 +111,16 @@ _worker: dict[str, OnlineDelayTracker] = {}
 
 
 def _start(state: bytes, service_pid: int, idle: bool = False) -> None:
-    """The worker's initializer: the stop signals left to the service, BLAS on one thread and
-    the allocator's settings set here (never in the service: see `FitWorker`), its tracker, a
-    watch that ends the worker once the service is gone, and (`idle`) the fits' thread at idle
-    priority."""
+    """The worker's initializer: the stop signals left to the service, the normal scheduling
+    policy (whatever the service's is), BLAS on one thread and the allocator's settings set
+    here (never in the service: see `FitWorker`), its tracker, a watch that ends the worker
+    once the service is gone, and (`idle`) the fits' thread at idle priority."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # a service at a real-time policy (the systemd unit's commented line) would pass it on:
+    # fits of 50-150 ms would then hold a core against everything else. Set before the
+    # watch starts, which takes it over (Linux's policy is per thread)
+    _compute_at("SCHED_OTHER")
     numpy_loaded = "numpy" in sys.modules  # by the program's main module, run again here
     os.environ.update(dict.fromkeys(BLAS_THREADS, "1"))  # read as numpy loads, with the tracker
     _keep_freed_memory()
@@ -124,15 +130,15 @@ def _start(state: bytes, service_pid: int, idle: bool = False) -> None:
     watch = threading.Thread(
         target=_exit_with_service, args=(service_pid,), name="keo-service-watch", daemon=True
     )
-    watch.start()  # before the policy: the watch keeps the normal one (Linux's is per thread)
+    watch.start()  # before the idle policy: the watch keeps the normal one
     if idle:
-        _compute_at_idle_priority()
+        _compute_at("SCHED_IDLE")
 
 
-def _compute_at_idle_priority() -> None:
-    """The calling thread (the one that runs the fits) at `SCHED_IDLE`, where the system has
-    it (Linux); elsewhere, or where it is refused, the fits keep the normal priority."""
-    policy = getattr(os, "SCHED_IDLE", None)
+def _compute_at(policy_name: str) -> None:
+    """The calling thread (the one that runs the fits) at the scheduling policy `os.<name>`,
+    where the system has it (Linux); elsewhere, or where it is refused, it stays as it is."""
+    policy = getattr(os, policy_name, None)
     if policy is not None:
         with contextlib.suppress(OSError):
             os.sched_setscheduler(0, policy, os.sched_param(0))
