@@ -97,10 +97,48 @@ def assert_fits_as_in_process(fresh, stretches, found) -> None:
                 assert other == value, name
 
 
+OPENBLAS_GET_THREADS = (
+    "scipy_openblas_get_num_threads64_",
+    "openblas_get_num_threads64_",
+    "openblas_get_num_threads",
+)
+
+
+def blas_threads_here() -> int | None:
+    """The thread count numpy's OpenBLAS would compute with in this process (asked through
+    its own call in the library mapped here), None where there is no such library (another
+    BLAS, not Linux)."""
+    import ctypes
+
+    import numpy  # noqa: F401  (loads the library)
+
+    for line in Path("/proc/self/maps").read_text().splitlines():
+        fields = line.split(maxsplit=5)
+        if len(fields) == 6 and "openblas" in fields[5].lower():
+            library = ctypes.CDLL(fields[5])
+            for name in OPENBLAS_GET_THREADS:
+                if hasattr(library, name):
+                    return int(getattr(library, name)())
+    return None
+
+
+def inside_the_worker() -> dict[str, object]:
+    """Run in the worker: its own environment's BLAS thread counts, its OpenBLAS's thread
+    count and its fits' thread's scheduling policy."""
+    from keo_service.live.fit_worker import BLAS_THREADS
+
+    return {
+        "environ": {name: os.environ.get(name) for name in BLAS_THREADS},
+        "blas_threads": blas_threads_here(),
+        "policy": os.sched_getscheduler(0) if hasattr(os, "sched_getscheduler") else None,
+    }
+
+
 def test_the_worker_ignores_stop_signals_and_runs_blas_on_one_thread(demo_cell):
     """A SIGTERM or SIGINT to the worker (a supervisor signalling the whole group) leaves it
-    running: the service stops it. Its environment asks BLAS for one thread, the service's
-    own is left as it was."""
+    running: the service stops it. Inside the worker its environment asks BLAS for one
+    thread and its OpenBLAS computes on one; the service's own environment is left as it
+    was."""
     from keo_service.fit.delay_online import OnlineDelayTracker
     from keo_service.live.fit_worker import BLAS_THREADS, FitWorker
 
@@ -109,8 +147,9 @@ def test_the_worker_ignores_stop_signals_and_runs_blas_on_one_thread(demo_cell):
     try:
         pid = worker.pid()
         assert {name: os.environ.get(name) for name in BLAS_THREADS} == before
-        environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
-        assert b"OPENBLAS_NUM_THREADS=1" in environ
+        inside = worker._pool.submit(inside_the_worker).result(30)
+        assert inside["environ"] == dict.fromkeys(BLAS_THREADS, "1"), inside
+        assert inside["blas_threads"] in (1, None), inside
         os.kill(pid, signal.SIGTERM)
         os.kill(pid, signal.SIGINT)
         time.sleep(0.5)
@@ -128,6 +167,105 @@ def test_the_worker_ignores_stop_signals_and_runs_blas_on_one_thread(demo_cell):
             break
     state = Path(f"/proc/{pid}/stat")
     assert not state.exists() or state.read_text().rsplit(")", 1)[1].split()[0] == "Z"
+
+
+def _c_environ() -> tuple[int, list[bytes]]:
+    """The C library's `environ`: the address of its array (a new one whenever a variable is
+    added) and its entries."""
+    import ctypes
+
+    environ = ctypes.POINTER(ctypes.c_char_p).in_dll(ctypes.CDLL(None), "environ")
+    entries = []
+    while (entry := environ[len(entries)]) is not None:
+        entries.append(entry)
+    return ctypes.cast(environ, ctypes.c_void_p).value or 0, entries
+
+
+def test_the_services_environment_is_never_changed(demo_config, demo_cell, monkeypatch):
+    """Zenoh's native threads may read the service's environment at any time: starting the
+    worker and starting another at the fallback (no patience at all: the first fit falls
+    back) change none of it, not even for a moment. Every change of `os.environ` goes
+    through `os.putenv`/`os.unsetenv`, recorded here; the C library's own array is compared
+    before and after (adding a variable moves it)."""
+    from keo_service.live import fit_worker
+    from keo_service.live.fit_worker import FitWorker
+
+    monkeypatch.setattr(fit_worker, "FIT_PATIENCE_S", 0.0)
+    fresh, stretches = _stretches(demo_config, demo_cell, 1)
+    changes: list[tuple[str, tuple[object, ...]]] = []
+    real_putenv, real_unsetenv = os.putenv, os.unsetenv
+
+    def putenv(*args: object) -> None:
+        changes.append(("putenv", args))
+        real_putenv(*args)  # type: ignore[arg-type]
+
+    def unsetenv(*args: object) -> None:
+        changes.append(("unsetenv", args))
+        real_unsetenv(*args)  # type: ignore[arg-type]
+
+    python_before, c_before = dict(os.environ), _c_environ()
+    monkeypatch.setattr(os, "putenv", putenv)
+    monkeypatch.setattr(os, "unsetenv", unsetenv)
+    worker = FitWorker(fresh)
+
+    async def fit():
+        return await worker.measure(*stretches[0])
+
+    try:
+        worker.pid()
+        found = asyncio.run(fit())
+        assert not worker.idle  # the fallback happened
+        worker.pid()
+    finally:
+        worker.close()
+    monkeypatch.undo()
+    assert changes == []
+    assert dict(os.environ) == python_before
+    assert _c_environ() == c_before
+    assert_fits_as_in_process(fresh, stretches, [found])
+
+
+def test_numpy_loaded_by_the_main_module_still_computes_on_one_thread(demo_cell, tmp_path):
+    """The spawn runs the program's main module again in the worker before the worker's
+    initializer (keo's own entry points load no numpy there: `keo` imports only the command
+    line, `python -m` is not run again): a main module that imports numpy at its top has
+    loaded OpenBLAS with its own thread count before the worker sets its environment. The
+    worker's OpenBLAS computes on one thread all the same. Can fail only on a machine with
+    more than one core (OpenBLAS's own count is the cores')."""
+    import subprocess
+    import sys
+
+    from tests.conftest import DEMO
+
+    if blas_threads_here() is None:
+        pytest.skip("no OpenBLAS found in this process's libraries")
+    script = tmp_path / "embedding.py"
+    script.write_text(
+        "import numpy  # at the top: run again in the worker before its initializer\n"
+        "from keo_service.fit.delay_online import OnlineDelayTracker\n"
+        "from keo_service.io.cell import cell_from_config\n"
+        "from keo_service.io.config import load_config\n"
+        "from keo_service.live.fit_worker import FitWorker\n"
+        "from tests.test_fit_worker import inside_the_worker\n"
+        "if __name__ == '__main__':\n"
+        f"    cell = cell_from_config(load_config({str(DEMO)!r}))\n"
+        "    worker = FitWorker(OnlineDelayTracker(cell, None, 0.01, 0.001))\n"
+        "    print(worker._pool.submit(inside_the_worker).result(60)['blas_threads'])\n"
+        "    worker.close()\n"
+    )
+    repo = Path(__file__).resolve().parent.parent
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
+    env["PYTHONPATH"] = str(repo)
+    done = subprocess.run(
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        cwd=repo,
+        env=env,
+        timeout=120,
+        check=True,
+    )
+    assert done.stdout.split() == ["1"], done.stdout + done.stderr
 
 
 def test_the_bench_counts_the_services_workers_in_its_cpu():

@@ -11,10 +11,14 @@ worker process and awaits the result, which it folds in between samples as befor
 Bounded: one process, one fit at a time (the delay loop awaits each before it takes the next
 stretch), a stretch's arrays as its only input. The worker holds a copy of the tracker made
 when the service started (its settings: `OnlineDelayTracker.measure` reads nothing else once
-given the `guess` the service's tracker made), starts with numpy's BLAS on one thread and
-its allocator keeping freed memory for the next fit, and ignores SIGINT and SIGTERM (a
-supervisor that signals the whole group stops the service, which then shuts the worker
-down); when nothing shut it down, it exits by itself within a second of the service's death.
+given the `guess` the service's tracker made). It sets for itself, in its own process, numpy's
+BLAS on one thread (before numpy loads there, or through OpenBLAS's own call when the
+program's main module had loaded it) and glibc's allocator keeping freed memory for the next
+fit (`mallopt`; a setting the user made in the environment is kept): the service's
+environment is never changed, since Zenoh's native threads may read it at any time. It
+ignores SIGINT and SIGTERM (a supervisor that signals the whole group stops the service,
+which then shuts the worker down); when nothing shut it down, it exits by itself within a
+second of the service's death.
 
 The worker computes at the idle scheduling priority (Linux's `SCHED_IDLE`): a fit takes a
 core for 50-150 ms, and on a small machine the samples that meanwhile waited for a core behind
@@ -22,7 +26,11 @@ it made most of the service's slowest estimates (docs/performance.md, Round 12b)
 priority any other runnable thread of its scheduling group (the service's session or
 cgroup) takes the core first. A fit that has not come back after `FIT_PATIENCE_S` (a machine
 kept busy by the service's own group would starve it) is run again in a worker at normal
-priority, which then takes every later fit: the result is the same, only later.
+priority, which then takes every later fit: the result is the same, only later. The starved
+worker is shut down, and killed if it has not exited `STARVED_GRACE_S` later (or when the
+worker is closed). "Normal" is `SCHED_OTHER` whatever the service runs at: a service at a
+real-time policy passes it on to the processes it starts, and a fit there would hold a core
+against everything else.
 
 A worker that dies is a failure of the service's delay task, as any task's
 (`concurrent.futures.process.BrokenProcessPool`).
@@ -32,18 +40,23 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ctypes
 import logging
 import multiprocessing
+import multiprocessing.connection
 import os
 import pickle
 import signal
+import sys
 import threading
 import time
-from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from multiprocessing import Process
+
     import numpy as np
 
     from keo_service.fit.delay_online import (
@@ -56,19 +69,29 @@ if TYPE_CHECKING:
 
 __all__ = ["FitWorker"]
 
-# the thread counts numpy's BLAS builds read at their import: one, in the worker
+# the thread counts numpy's BLAS builds read when they load: one, in the worker
 BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-# glibc's allocator in the worker (read at its start; other C libraries ignore them): a fit's
-# arrays (up to a few MB each) from the heap, and up to 128 MB of freed heap kept for the next
-# fit, instead of each fit mapping fresh pages from the kernel and giving them back (a page
-# fault per 4 kB: docs/performance.md, Round 11). Bounded by the largest fit's peak. 32 MB is
-# the highest mmap threshold glibc before 2.35 accepts (half its 64-bit heap size); beyond it
-# those versions ignore the setting and keep the threshold at 128 kB for good. A value the
-# user set in the service's environment is left as it is.
+# glibc's `mallopt` parameters (its malloc.h)
+M_TRIM_THRESHOLD = -1
+M_MMAP_THRESHOLD = -3
+# glibc's allocator in the worker, set there by `mallopt` (other C libraries: nothing): a
+# fit's arrays (up to a few MB each) from the heap, and up to 128 MB of freed heap kept for
+# the next fit, instead of each fit mapping fresh pages from the kernel and giving them back
+# (a page fault per 4 kB: docs/performance.md, Round 11). Bounded by the largest fit's peak.
+# 32 MB is the highest mmap threshold glibc before 2.35 accepts (half its 64-bit heap size);
+# beyond it those versions refuse the setting. Keyed by the variable (and the tunable) by
+# which a user sets the same in the service's environment: a value set there is left as it is.
 WORKER_MALLOC = {
-    "MALLOC_MMAP_THRESHOLD_": str(32 * 2**20),
-    "MALLOC_TRIM_THRESHOLD_": str(128 * 2**20),
+    "MALLOC_MMAP_THRESHOLD_": ("glibc.malloc.mmap_threshold", M_MMAP_THRESHOLD, 32 * 2**20),
+    "MALLOC_TRIM_THRESHOLD_": ("glibc.malloc.trim_threshold", M_TRIM_THRESHOLD, 128 * 2**20),
 }
+# the calls that set the thread count of an OpenBLAS already loaded, by build: numpy's own
+# wheels (2.x, then 1.x), a system library
+OPENBLAS_SET_THREADS = (
+    "scipy_openblas_set_num_threads64_",
+    "openblas_set_num_threads64_",
+    "openblas_set_num_threads",
+)
 
 # how often the worker checks that the service is still there (s): a worker orphaned by a
 # service killed outright ends within this
@@ -76,6 +99,10 @@ SERVICE_CHECK_S = 1.0
 # how long a fit at idle priority may take before it runs again at normal priority (s): a fit
 # takes 50-150 ms of a core, a starved one has not come back after many times that
 FIT_PATIENCE_S = 2.0
+# how long the worker left behind at that fallback may take to finish its fit and exit before
+# it is killed (s): the fit takes 50-150 ms of a core once it gets one, and its outcome is
+# read by no one; a worker that still has no core after this holds about 100 MB for nothing
+STARVED_GRACE_S = 5.0
 
 log = logging.getLogger("keo.service")
 
@@ -84,27 +111,80 @@ _worker: dict[str, OnlineDelayTracker] = {}
 
 
 def _start(state: bytes, service_pid: int, idle: bool = False) -> None:
-    """The worker's initializer: its tracker, the stop signals left to the service, a watch
-    that ends the worker once the service is gone, and (`idle`) the fits' thread at idle
-    priority."""
+    """The worker's initializer: the stop signals left to the service, the normal scheduling
+    policy (whatever the service's is), BLAS on one thread and the allocator's settings set
+    here (never in the service: see `FitWorker`), its tracker, a watch that ends the worker
+    once the service is gone, and (`idle`) the fits' thread at idle priority."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # a service at a real-time policy (the systemd unit's commented line) would pass it on:
+    # fits of 50-150 ms would then hold a core against everything else. Set before the
+    # watch starts, which takes it over (Linux's policy is per thread)
+    _compute_at("SCHED_OTHER")
+    numpy_loaded = "numpy" in sys.modules  # by the program's main module, run again here
+    os.environ.update(dict.fromkeys(BLAS_THREADS, "1"))  # read as numpy loads, with the tracker
+    _keep_freed_memory()
     _worker["tracker"] = pickle.loads(state)
+    if numpy_loaded:
+        _one_thread_for_loaded_blas()
     watch = threading.Thread(
         target=_exit_with_service, args=(service_pid,), name="keo-service-watch", daemon=True
     )
-    watch.start()  # before the policy: the watch keeps the normal one (Linux's is per thread)
+    watch.start()  # before the idle policy: the watch keeps the normal one
     if idle:
-        _compute_at_idle_priority()
+        _compute_at("SCHED_IDLE")
 
 
-def _compute_at_idle_priority() -> None:
-    """The calling thread (the one that runs the fits) at `SCHED_IDLE`, where the system has
-    it (Linux); elsewhere, or where it is refused, the fits keep the normal priority."""
-    policy = getattr(os, "SCHED_IDLE", None)
+def _compute_at(policy_name: str) -> None:
+    """The calling thread (the one that runs the fits) at the scheduling policy `os.<name>`,
+    where the system has it (Linux); elsewhere, or where it is refused, it stays as it is."""
+    policy = getattr(os, policy_name, None)
     if policy is not None:
         with contextlib.suppress(OSError):
             os.sched_setscheduler(0, policy, os.sched_param(0))
+
+
+def _keep_freed_memory() -> None:
+    """In the worker: glibc's allocator as `WORKER_MALLOC` says, each setting the user has not
+    made in the environment. glibc reads its variables at the process's first allocation,
+    long before this, hence `mallopt`; other C libraries (musl, macOS) have other numbers or
+    none: nothing is set there."""
+    try:
+        libc_version = os.confstr("CS_GNU_LIBC_VERSION") or ""
+    except (ValueError, OSError):  # not a name this system knows
+        return
+    if not libc_version.startswith("glibc"):
+        return
+    mallopt = getattr(ctypes.CDLL(None), "mallopt", None)  # glibc's symbols are the program's
+    if mallopt is None:
+        return
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    for variable, (tunable, parameter, value) in WORKER_MALLOC.items():
+        if variable not in os.environ and f"{tunable}=" not in tunables:
+            mallopt(parameter, value)  # 0 where refused: the allocator as it was
+
+
+def _one_thread_for_loaded_blas() -> None:
+    """In the worker, when numpy loaded before `_start` (a program whose main module imports
+    it: the spawn runs that module again here) and so read its thread count before
+    `BLAS_THREADS` were set: its OpenBLAS told through its own call, found among the
+    process's mapped libraries (Linux; elsewhere, or for another BLAS, it stays as it is)."""
+    try:
+        maps = Path("/proc/self/maps").read_text()
+    except OSError:
+        return
+    fields = (line.split(maxsplit=5) for line in maps.splitlines())
+    libraries = {f[5] for f in fields if len(f) == 6 and "openblas" in f[5].lower()}
+    for library in sorted(libraries):
+        with contextlib.suppress(OSError):
+            loaded = ctypes.CDLL(library)
+            for name in OPENBLAS_SET_THREADS:
+                set_threads = getattr(loaded, name, None)
+                if set_threads is not None:
+                    set_threads.argtypes = (ctypes.c_int,)
+                    set_threads(1)
+                    break
 
 
 def _exit_with_service(service_pid: int) -> None:
@@ -140,44 +220,32 @@ def _forget(fit: asyncio.Future[Any]) -> None:
         fit.exception()
 
 
-@contextlib.contextmanager
-def _worker_environment() -> Iterator[None]:
-    """The environment a process started meanwhile inherits: BLAS on one thread, the
-    allocator's settings (`WORKER_MALLOC`)."""
-    malloc = {name: value for name, value in WORKER_MALLOC.items() if name not in os.environ}
-    settings = {**dict.fromkeys(BLAS_THREADS, "1"), **malloc}
-    saved = {name: os.environ.get(name) for name in settings}
-    os.environ.update(settings)
-    try:
-        yield
-    finally:
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
-
-
 class FitWorker:
     """One worker process for the delay fits (see the module). `tracker`: the service's
     tracker, copied as it is now (at start: its settings, empty buffers). `idle`: the fits at
-    idle priority, until one of them is starved (`FIT_PATIENCE_S`)."""
+    idle priority, until one of them is starved (`FIT_PATIENCE_S`).
+
+    The service's environment is never changed, at start or at the fallback: Zenoh's native
+    threads may read it meanwhile, and a concurrent change can free what they read. What the
+    worker needs it sets in its own process (`_start`)."""
 
     def __init__(self, tracker: OnlineDelayTracker, idle: bool = True) -> None:
         self._state = pickle.dumps(tracker)
+        # the worker left behind at the fallback, until it has exited or is killed
+        self._starved: list[Process] = []
+        self._starved_timer: asyncio.TimerHandle | None = None
         self._start_pool(idle)
 
     def _start_pool(self, idle: bool) -> None:
         self.idle = idle
         context = multiprocessing.get_context("spawn")  # not fork: Zenoh runs threads here
-        with _worker_environment():  # the process starts at the first submit
-            self._pool = ProcessPoolExecutor(
-                1,
-                mp_context=context,
-                initializer=_start,
-                initargs=(self._state, os.getpid(), idle),
-            )
-            self._started = self._pool.submit(_ready)
+        self._pool = ProcessPoolExecutor(
+            1,
+            mp_context=context,
+            initializer=_start,
+            initargs=(self._state, os.getpid(), idle),
+        )
+        self._started = self._pool.submit(_ready)  # the process starts here
 
     async def measure(
         self, window: Window, current: float, guess: float, pool: Window | None = None
@@ -186,7 +254,8 @@ class FitWorker:
         arrays of the stretch's pool while the delay is not settled, the pooled fit too),
         and its CPU (s). A fit at idle priority not back within `FIT_PATIENCE_S` is made again
         by a new worker at normal priority, which makes every later one too (the starved
-        worker is shut down once its fit ends)."""
+        worker is shut down: it exits once its fit ends, or is killed `STARVED_GRACE_S`
+        after)."""
         loop = asyncio.get_running_loop()
         fit = loop.run_in_executor(self._pool, _measure, window, current, guess, pool)
         if not self.idle:
@@ -203,13 +272,42 @@ class FitWorker:
         )
         starved = self._pool
         self._start_pool(idle=False)
-        starved.shutdown(wait=False, cancel_futures=True)
+        self._leave(starved, loop)
         return await loop.run_in_executor(self._pool, _measure, window, current, guess, pool)
+
+    def _leave(self, starved: ProcessPoolExecutor, loop: asyncio.AbstractEventLoop) -> None:
+        """Shut the starved pool down, and kill its worker if it has not exited within
+        `STARVED_GRACE_S`: a timer on the loop, no thread or task, and at most one worker
+        waiting (an earlier one is ended at once)."""
+        # the pool's processes are in CPython's `_processes` (no public accessor), which its
+        # shutdown drops
+        processes = list((starved._processes or {}).values())
+        starved.shutdown(wait=False, cancel_futures=True)
+        self._end_starved()
+        self._starved = processes
+        self._starved_timer = loop.call_later(STARVED_GRACE_S, self._end_starved)
+
+    def _end_starved(self) -> None:
+        """Kill the worker left behind at the fallback, unless it has exited (its fit has no
+        reader). SIGKILL: the worker ignores SIGTERM."""
+        if self._starved_timer is not None:
+            self._starved_timer.cancel()
+            self._starved_timer = None
+        for process in self._starved:
+            # its end of file says it exited, without reaping it from under the pool's thread
+            if not multiprocessing.connection.wait([process.sentinel], 0):
+                log.warning(
+                    "the delay fits' starved worker (pid %s) had not exited: killed", process.pid
+                )
+                process.kill()
+        self._starved = []
 
     def pid(self, timeout: float = 30.0) -> int:
         """The worker's process id, once it runs (blocking: for tests and tools)."""
         return int(self._started.result(timeout))
 
     def close(self) -> None:
-        """Stop the worker without waiting for a fit it may be running (it exits after)."""
+        """Stop the worker without waiting for a fit it may be running (it exits after); a
+        worker left behind at the fallback is killed now."""
         self._pool.shutdown(wait=False, cancel_futures=True)
+        self._end_starved()
