@@ -1,12 +1,15 @@
-"""The service's own estimates do not come back to it (issue 48): its data subscription is a
-wildcard on the cell's prefix, and an estimate delivered to its own session would wake Zenoh's
-callback thread once more per estimate, only to be dropped there. Other processes still get
-every estimate."""
+"""The service's own estimates and corrections do not come back to it (issue 48): its data
+subscription is a wildcard on the cell's prefix, and a message delivered to its own session
+would wake Zenoh's callback thread once more per message, only to be dropped there. Other
+processes still get every one."""
 
 from __future__ import annotations
 
 import asyncio
 import time
+
+import msgspec
+import pytest
 
 from keo_service.bench.demo import loopback_config
 from keo_service.bench.live_path import wire_samples
@@ -14,12 +17,16 @@ from keo_service.live.bus import AsyncSubscription, session_for_client
 from keo_service.live.messages import topic
 
 
-async def test_the_service_gets_no_estimate_back_and_other_sessions_get_them(
-    demo_config, monkeypatch
+@pytest.mark.parametrize("output", ["estimate", "correction"])
+async def test_the_service_gets_none_of_its_output_back_and_other_sessions_get_it(
+    demo_config, monkeypatch, output
 ):
     from keo_service.live.service import KeoService
 
     config = loopback_config(demo_config)
+    if output == "correction":  # the correction path runs only with an output configured
+        robot = msgspec.structs.replace(config.robot, correction="rtde_registers")
+        config = msgspec.structs.replace(config, robot=robot)
     wire = wire_samples(config, 1.0)
     keys_seen: list[str] = []
     on_sample = AsyncSubscription._on_sample
@@ -34,7 +41,7 @@ async def test_the_service_gets_no_estimate_back_and_other_sessions_get_them(
         client = session_for_client(config)
         try:
             listener = client.declare_subscriber(
-                topic(config.cell, "estimate"), lambda _sample: received.append(1)
+                topic(config.cell, output), lambda _sample: received.append(1)
             )
             await asyncio.sleep(0.5)  # the sessions meet
             for _stamp, key, payload in wire:
@@ -50,6 +57,6 @@ async def test_the_service_gets_no_estimate_back_and_other_sessions_get_them(
             client.close()
     assert estimates >= 900, estimates  # ~1000 tracker samples in the second of wire
     assert len(received) >= 900, len(received)  # another session got them
-    own = [k for k in keys_seen if k.endswith("/estimate")]
-    assert not own, f"{len(own)} of the service's own estimates came back to it"
+    own = [k for k in keys_seen if k.endswith(f"/{output}")]
+    assert not own, f"{len(own)} of the service's own {output} messages came back to it"
     assert sum(k.endswith("/tracker") for k in keys_seen) >= 900

@@ -92,9 +92,17 @@ class CorrectionPublisher:
     With a model, `on_joints` also publishes at every encoder sample: the feedforward at
     those (the current) joints with the newest estimate's feedback and validity, so the
     model's part follows the arm at the encoder rate instead of a tracker delay late. The
-    limits' rate is per second of the host's monotonic clock (how fast the robot is moved)."""
+    limits' rate is per second of the host's monotonic clock (how fast the robot is moved).
+    Without `local_subscribers` the corrections go to other sessions only (a service that
+    opened its session itself has no subscriber of them in its process)."""
 
-    def __init__(self, config: Config, session: zenoh.Session, ros2_node: Any = None) -> None:
+    def __init__(
+        self,
+        config: Config,
+        session: zenoh.Session,
+        ros2_node: Any = None,
+        local_subscribers: bool = True,
+    ) -> None:
         self.cell = config.cell
         from keo_service.io.cell import probe_in_tool
 
@@ -102,7 +110,12 @@ class CorrectionPublisher:
             config.compensation.limits(), _feedforward(config), probe_in_tool(config)
         )
         self._max_age_s = config.compensation.max_age_s
-        self._pub = session.declare_publisher(topic(config.cell, "correction"), express=True)
+        # a session the service opened for itself: its wildcard data subscription would get
+        # each correction back only to drop it (as the estimates, `sinks.estimate_publisher`)
+        where = None if local_subscribers else zenoh.Locality.REMOTE
+        self._pub = session.declare_publisher(
+            topic(config.cell, "correction"), express=True, allowed_destination=where
+        )
         self._ros2 = None
         self._types: Any = None
         if ros2_node is not None:

@@ -266,9 +266,9 @@ class KeoService:
             from keo_service.live.compensation import CorrectionPublisher, CorrectionSink
 
             node = None if ros2 is None else ros2.bridge.node
-            self.sinks.add(
-                CorrectionSink(CorrectionPublisher(self.config, session, node), self.estimator)
-            )
+            local = not self._own_session
+            publisher = CorrectionPublisher(self.config, session, node, local_subscribers=local)
+            self.sinks.add(CorrectionSink(publisher, self.estimator))
         if ros2 is not None:
             self.sinks.add(ros2)
         if self._viz is not None:
