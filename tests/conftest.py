@@ -79,6 +79,22 @@ def keo(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
     )
 
 
+def run_script(script: Path, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    """Run a Python script from the repository's root as a process of its own, with `env`
+    and the repository first on its path (so it can import the tests' helpers); raises on a
+    non-zero exit."""
+    repo = Path(__file__).resolve().parent.parent
+    return subprocess.run(
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        cwd=repo,
+        env={**env, "PYTHONPATH": str(repo)},
+        timeout=120,
+        check=True,
+    )
+
+
 def wait_for_status(config, timeout: float = 20.0) -> None:
     """Until the service answers a status query, through the client API."""
     with SyncClient.from_config(config, connect_timeout_s=timeout) as keo:

@@ -232,10 +232,7 @@ def test_numpy_loaded_by_the_main_module_still_computes_on_one_thread(demo_cell,
     loaded OpenBLAS with its own thread count before the worker sets its environment. The
     worker's OpenBLAS computes on one thread all the same. Can fail only on a machine with
     more than one core (OpenBLAS's own count is the cores')."""
-    import subprocess
-    import sys
-
-    from tests.conftest import DEMO
+    from tests.conftest import DEMO, run_script
 
     if blas_threads_here() is None:
         pytest.skip("no OpenBLAS found in this process's libraries")
@@ -253,18 +250,8 @@ def test_numpy_loaded_by_the_main_module_still_computes_on_one_thread(demo_cell,
         "    print(worker._pool.submit(inside_the_worker).result(60)['blas_threads'])\n"
         "    worker.close()\n"
     )
-    repo = Path(__file__).resolve().parent.parent
     env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
-    env["PYTHONPATH"] = str(repo)
-    done = subprocess.run(
-        [sys.executable, str(script)],
-        capture_output=True,
-        text=True,
-        cwd=repo,
-        env=env,
-        timeout=120,
-        check=True,
-    )
+    done = run_script(script, env)
     assert done.stdout.split() == ["1"], done.stdout + done.stderr
 
 

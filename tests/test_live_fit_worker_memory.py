@@ -59,10 +59,7 @@ def test_the_users_allocator_settings_are_left_as_they_are(tmp_path, chosen):
     larger arrays are mapped fresh each time and the two fits after the first fault
     thousands of pages in (40 000 when this was written), where the worker's own settings
     make it fewer than a thousand (the test above)."""
-    import subprocess
-    import sys
-
-    from tests.conftest import DEMO
+    from tests.conftest import DEMO, run_script
 
     script = tmp_path / "service.py"
     script.write_text(
@@ -85,16 +82,5 @@ def test_the_users_allocator_settings_are_left_as_they_are(tmp_path, chosen):
         "    print(_minor_faults(worker.pid()) - first)\n"
         "    worker.close()\n"
     )
-    repo = Path(__file__).resolve().parent.parent
-    env = {**os.environ, "PYTHONPATH": str(repo)}
-    env.update(chosen)
-    done = subprocess.run(
-        [sys.executable, str(script)],
-        capture_output=True,
-        text=True,
-        cwd=repo,
-        env=env,
-        timeout=120,
-        check=True,
-    )
+    done = run_script(script, {**os.environ, **chosen})
     assert int(done.stdout.split()[-1]) > 1000, done.stdout + done.stderr

@@ -42,10 +42,36 @@ from keo_service.live.messages import (
 from keo_service.live.sinks import estimate_publisher
 
 
-def relay_handler(pub: Any) -> Callable[[list[tuple[str, bytes]]], None]:
+class NaiveMath:
+    """The naive floor's math per tracker pose (the module's `--math`): the newest encoder
+    sample's joints kept (`joints`), and for a pose the error transform from the tool to the
+    sensor frame, its translation and rotation vector; zeros for a pose without orientation
+    or before any joints, as the plain relay publishes."""
+
+    def __init__(self, cell: Cell) -> None:
+        self._model, self._data = cell.robot.model, cell.robot.create_data()
+        self._flange, self._T_nt, self._T_bk = cell.robot.flange_frame_id, cell.T_nt, cell.T_bk
+        self._zeros = [0.0] * len(POSE_CHANNELS)
+        self.joints: np.ndarray | None = None
+
+    def error(self, msg: TrackerSample) -> list[float]:
+        quat = msg.quaternion
+        if self.joints is None or quat is None or msg.position is None:
+            return self._zeros
+        pin.framesForwardKinematics(self._model, self._data, self.joints)
+        T_bt = self._data.oMf[self._flange] * self._T_nt
+        xyzquat = np.array([*msg.position, quat[1], quat[2], quat[3], quat[0]])
+        err = T_bt.actInv(self._T_bk * pin.XYZQUATToSE3(xyzquat))
+        return [*err.translation.tolist(), *pin.log3(err.rotation).tolist()]
+
+
+def relay_handler(
+    pub: Any, math: NaiveMath | None = None
+) -> Callable[[list[tuple[str, bytes]]], None]:
     """The relay's work per wake-up: decode each sample, and for each tracker pose put a
     zero estimate message on `pub` (anything with `put(bytes)`). Also what
-    `bench.live_path` runs in process as the floor beside the service's `_handle`."""
+    `bench.live_path` runs in process as the floor beside the service's `_handle`. `math`:
+    the naive floor's error in the message instead of zeros (`naive_math_handler`)."""
     channels = list(POSE_CHANNELS)
     zeros = [0.0] * len(channels)
     seq = 0
@@ -55,14 +81,17 @@ def relay_handler(pub: Any) -> Callable[[list[tuple[str, bytes]]], None]:
         for _key, payload in batch:
             msg = decode(payload)
             if not isinstance(msg, TrackerSample) or msg.position is None:
+                if math is not None and isinstance(msg, JointSample):
+                    math.joints = np.asarray(msg.joints, dtype=float)
                 continue
             seq += 1
+            values = zeros if math is None else math.error(msg)
             out = EstimateMessage(
                 stamp=msg.stamp,
                 host_ns=time.time_ns(),
                 channels=channels,
-                measured=zeros,
-                estimate=zeros,
+                measured=values,
+                estimate=values,
                 flags=[],
                 delay_s=0.0,
                 seq=seq,
@@ -74,50 +103,9 @@ def relay_handler(pub: Any) -> Callable[[list[tuple[str, bytes]]], None]:
 
 
 def naive_math_handler(pub: Any, cell: Cell) -> Callable[[list[tuple[str, bytes]]], None]:
-    """`relay_handler` plus the naive floor's math per tracker pose (the module's `--math`):
-    the newest encoder sample's joints kept, and for each tracker pose after one the error
-    transform from the tool to the sensor frame, its translation and rotation vector published
-    as `measured` and `estimate`. A pose without orientation, or before any joints, gets zeros
-    as in the plain relay."""
-    channels = list(POSE_CHANNELS)
-    zeros = [0.0] * len(channels)
-    model, data = cell.robot.model, cell.robot.create_data()
-    flange, T_nt, T_bk = cell.robot.flange_frame_id, cell.T_nt, cell.T_bk
-    joints: np.ndarray | None = None
-    seq = 0
-
-    def handle(batch: list[tuple[str, bytes]]) -> None:
-        nonlocal seq, joints
-        for _key, payload in batch:
-            msg = decode(payload)
-            if isinstance(msg, JointSample):
-                joints = np.asarray(msg.joints, dtype=float)
-                continue
-            if not isinstance(msg, TrackerSample) or msg.position is None:
-                continue
-            seq += 1
-            error = zeros
-            quat = msg.quaternion
-            if joints is not None and quat is not None:
-                pin.framesForwardKinematics(model, data, joints)
-                T_bt = data.oMf[flange] * T_nt
-                xyzquat = np.array([*msg.position, quat[1], quat[2], quat[3], quat[0]])
-                err = T_bt.actInv(T_bk * pin.XYZQUATToSE3(xyzquat))
-                error = [*err.translation.tolist(), *pin.log3(err.rotation).tolist()]
-            out = EstimateMessage(
-                stamp=msg.stamp,
-                host_ns=time.time_ns(),
-                channels=channels,
-                measured=error,
-                estimate=error,
-                flags=[],
-                delay_s=0.0,
-                seq=seq,
-                device_stamp=msg.device_stamp,
-            )
-            pub.put(encode(out))
-
-    return handle
+    """`relay_handler` with the naive floor's math per tracker pose (`NaiveMath`): what any
+    estimator in this stack does per sample, and no more."""
+    return relay_handler(pub, NaiveMath(cell))
 
 
 async def relay(config: Config, math: bool = False) -> None:
