@@ -534,3 +534,20 @@ def test_rounds_run_the_math_floor_only_when_asked(monkeypatch, demo_config):
     done = end_to_end_rounds(demo_config, 1.0, rounds=2, with_rerun=False, with_math=True)
     assert calls == ["service", "relay", "math", "relay", "math", "service"]
     assert set(done[0]) == {"order", "end_to_end", "transport_floor", "math_floor"}
+
+
+def test_bytecode_cached_tells_a_compiled_module_from_one_compiled_at_each_import(tmp_path):
+    import importlib.util
+    import py_compile
+    import types
+
+    from keo_service.bench.machine import bytecode_cached
+
+    source = tmp_path / "some_module.py"
+    source.write_text("x = 1\n")
+    module = types.ModuleType("some_module")
+    module.__file__ = str(source)
+    assert not bytecode_cached(module)
+    py_compile.compile(str(source), cfile=importlib.util.cache_from_source(str(source)))
+    assert bytecode_cached(module)
+    assert not bytecode_cached(types.ModuleType("built_in_like"))  # no file at all

@@ -25,7 +25,29 @@ def machine() -> dict[str, Any]:
         "cores": os.cpu_count(),
         "python": platform.python_version(),
         "system": platform.platform(),
+        "keo_bytecode_cached": keo_bytecode_cached(),
     }
+
+
+def keo_bytecode_cached() -> bool:
+    """Whether keo's own modules load from compiled bytecode (`__pycache__`), as after a
+    package install (pip compiles them): without it (an editable install where
+    PYTHONDONTWRITEBYTECODE is set) every command compiles each keo module it imports anew,
+    a cost a user's install does not pay, in every timed command."""
+    import keo_service.cli
+
+    return bytecode_cached(keo_service.cli)
+
+
+def bytecode_cached(module: Any) -> bool:
+    """Whether `module`'s source has its compiled bytecode beside it, where the import system
+    looks for it."""
+    import importlib.util
+
+    source = getattr(module, "__file__", None)
+    if source is None:
+        return False
+    return Path(importlib.util.cache_from_source(source)).exists()
 
 
 def stat_fields(pid: int | str) -> list[str]:

@@ -360,6 +360,11 @@ def bench_table(r: dict[str, Any]) -> str:
     m = r["machine"]
     lines = [
         f"machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}"
+        + (
+            f"; keo's modules from compiled bytecode: {'yes' if m['keo_bytecode_cached'] else 'no'}"
+            if "keo_bytecode_cached" in m
+            else ""
+        )
         + (" (quick run)" if r["quick"] else ""),
         "",
         "| measure | value |",
