@@ -551,3 +551,47 @@ def test_bytecode_cached_tells_a_compiled_module_from_one_compiled_at_each_impor
     py_compile.compile(str(source), cfile=importlib.util.cache_from_source(str(source)))
     assert bytecode_cached(module)
     assert not bytecode_cached(types.ModuleType("built_in_like"))  # no file at all
+
+
+def test_a_worker_that_ends_or_is_replaced_during_a_run_is_measured_not_fatal():
+    """The fit worker is replaced when a busy machine starves it, and the one left behind is
+    killed: the run's measure keeps the ended one's CPU as last read, lists it, and counts
+    the new one (found among the service's children by its command line)."""
+    import subprocess
+    import sys
+
+    from keo_service.bench.end_to_end import _fold_service_workers, _measure_run
+
+    # the "service": after 0.5 s it starts a second "worker" (the marker in its arguments)
+    service = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import subprocess, sys, time\n"
+            "time.sleep(0.5)\n"
+            "w = subprocess.Popen([sys.executable, '-c', 'import time\\n"
+            "t = time.process_time()\\nwhile time.process_time() - t < 0.3: pass\\n"
+            "time.sleep(5)', 'multiprocessing.spawn'])\n"
+            "time.sleep(5)\n"
+            "w.kill()\n",
+        ]
+    )
+    first = subprocess.Popen(
+        [sys.executable, "-c", "import time; time.sleep(0.3)", "multiprocessing.spawn"]
+    )
+    try:
+        t0 = time.time() - 0.5
+        measured = _measure_run(
+            {"service": service.pid, "service-fit-worker": first.pid}, t0, 2.0, None
+        )
+    finally:
+        service.kill()
+        first.kill()
+        service.wait()
+        first.wait()
+    procs = measured["processes"]
+    assert measured["ended"] == ["service-fit-worker"]
+    assert "service-fit-worker#2" in procs
+    assert procs["service-fit-worker#2"]["cpu_pct"] > 10.0  # 0.3 s of CPU over 1.5 s
+    folded = _fold_service_workers(measured)["processes"]["service"]
+    assert folded["cpu_pct"] >= folded["own_cpu_pct"] + procs["service-fit-worker#2"]["cpu_pct"]

@@ -11,7 +11,7 @@ import shutil
 import tempfile
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +27,7 @@ from keo_service.bench.machine import (
     open_fds,
     proc_cpu_s,
     proc_mem_kb,
+    stat_fields,
     thread_cpu_s,
 )
 from keo_service.bench.procs import process_group
@@ -269,7 +270,7 @@ def _fold_service_workers(measured: dict[str, Any]) -> dict[str, Any]:
     `own_cpu_pct`): the fits are the service's work wherever they run. The workers stay
     listed with their own figures."""
     procs = measured["processes"]
-    workers = [p["cpu_pct"] for n, p in procs.items() if n in SERVICE_WORKERS]
+    workers = [p["cpu_pct"] for n, p in procs.items() if n.split("#")[0] in SERVICE_WORKERS]
     if workers:  # the relay has none
         service = procs["service"]
         service["own_cpu_pct"] = service["cpu_pct"]
@@ -282,12 +283,18 @@ def _measure_run(
 ) -> dict[str, Any]:
     """While the play runs (from 0.5 s in, its warm-up, to its end): each process's CPU time
     and memory at both ends and a third of the way, the machine's ticks, and every
-    `sample_every` s (a soak) each process's RSS and open files."""
-    warm_cpu = {n: proc_cpu_s(p) for n, p in pids.items()}
+    `sample_every` s (a soak) each process's RSS and open files.
+
+    A process may end during the run: the service's fit worker is replaced when a busy machine
+    starves it (`live.fit_worker`). The one that ended keeps the CPU time last read (a lower
+    bound) and is listed in `ended`; a worker the service started meanwhile is counted from
+    its start, under its kind's name with "#2" (and so on) after it."""
+    warm_cpu = {n: _or(proc_cpu_s, p, 0.0) for n, p in pids.items()}
     warm_threads = thread_cpu_s(pids["service"])
     warm_machine = machine_ticks()
     time.sleep(max(0.0, seconds / 3))
-    warm_mem = {n: proc_mem_kb(p) for n, p in pids.items()}
+    warm_mem = {n: _or(proc_mem_kb, p, {}) for n, p in pids.items()}
+    mid_cpu = {n: _or(proc_cpu_s, p, warm_cpu[n]) for n, p in pids.items()}
     trace = []
     while sample_every is not None and time.time() + sample_every < t0 + seconds:
         time.sleep(sample_every)
@@ -299,10 +306,15 @@ def _measure_run(
             }
         )
     time.sleep(max(0.0, t0 + seconds - time.time()))
-    end_cpu = {n: proc_cpu_s(p) for n, p in pids.items()}
+    pids = {**pids, **_new_workers(pids)}
+    warm_cpu = {n: warm_cpu.get(n, 0.0) for n in pids}  # a new worker: from its start
+    end_cpu = {n: _or(proc_cpu_s, p, mid_cpu.get(n, 0.0)) for n, p in pids.items()}
     end_threads = thread_cpu_s(pids["service"])
     end_machine = machine_ticks()
-    end_mem = {n: proc_mem_kb(p) for n, p in pids.items()}
+    end_mem = {n: _or(proc_mem_kb, p, warm_mem.get(n, {})) for n, p in pids.items()}
+    # gone, or a zombie its parent has not reaped yet (state Z; X: being removed)
+    ended = sorted(n for n, p in pids.items() if _or(stat_fields, p, ["X"])[0] in "ZX")
+    warm_mem = {n: warm_mem.get(n, end_mem[n]) for n in pids}
     run_s = seconds - 0.5
     procs_out: dict[str, dict[str, Any]] = {
         n: {
@@ -319,7 +331,35 @@ def _measure_run(
         "processes": procs_out,
         "machine": machine_share(warm_machine, end_machine),
         "trace": trace,
+        "ended": ended,
     }
+
+
+def _or(read: Callable[[int], Any], pid: int, last: Any) -> Any:
+    """`read(pid)`, or `last` once the process has ended."""
+    try:
+        return read(pid)
+    except (OSError, IndexError, ValueError):
+        return last
+
+
+def _new_workers(pids: dict[str, int]) -> dict[str, int]:
+    """The service's workers started since `pids` was taken (a fit worker replaced), named
+    after their kind with "#2", "#3", ... (none for the relay)."""
+    known = set(pids.values())
+    found: dict[str, int] = {}
+    for pid in _or(children, pids["service"], []):
+        if pid in known:
+            continue
+        line = _or(cmdline, pid, "")
+        for kind, marker in SERVICE_WORKERS.items():
+            if marker in line:
+                n = 2
+                while f"{kind}#{n}" in pids or f"{kind}#{n}" in found:
+                    n += 1
+                found[f"{kind}#{n}"] = pid
+                break
+    return found
 
 
 def _results(
@@ -341,6 +381,7 @@ def _results(
         "processes": measured["processes"],
         "machine": measured["machine"],
         "trace": measured["trace"],
+        "ended_during_run": measured["ended"],
     }
 
 
