@@ -34,9 +34,9 @@ def keo_bytecode_cached() -> bool:
     package install (pip compiles them): without it (an editable install where
     PYTHONDONTWRITEBYTECODE is set) every command compiles each keo module it imports anew,
     a cost a user's install does not pay, in every timed command."""
-    import keo_service.cli
+    import keo_service.io.config  # imported by every command
 
-    return bytecode_cached(keo_service.cli)
+    return bytecode_cached(keo_service.io.config)
 
 
 def bytecode_cached(module: Any) -> bool:
