@@ -196,6 +196,19 @@ def session_for_service(config: Any) -> zenoh.Session:
     return open_session(bus.mode, bus.listen, bus.connect, bus.multicast_scouting, bus, access)
 
 
+def output_publisher(
+    session: zenoh.Session, key: str, local_subscribers: bool = True
+) -> zenoh.Publisher:
+    """An express publisher of the service's output on `key` (its estimates, corrections).
+    Without `local_subscribers` it sends to other sessions only: a session the service opened
+    for itself has no subscriber of its own outputs, but its data subscription is a wildcard
+    on the cell's prefix (for the publishers' order across keys), which would get each
+    message back on Zenoh's callback thread only to drop it: a thread wake-up and the GIL
+    taken once more per message."""
+    where = None if local_subscribers else zenoh.Locality.REMOTE
+    return session.declare_publisher(key, express=True, allowed_destination=where)
+
+
 class AsyncSubscription:
     """Samples of several key expressions, in arrival order: handed to a function on the
     event loop (`deliver`), or as an async iterator of (key, payload bytes).

@@ -36,6 +36,7 @@ from keo_service.core.estimator import Estimate
 from keo_service.core.kinematics import error_as_pose
 from keo_service.core.rules import OUTSIDE_CALIBRATED_RANGE
 from keo_service.io.config import CompensationConfig, Config
+from keo_service.live.bus import output_publisher
 from keo_service.live.messages import (
     CorrectionMessage,
     JointSample,
@@ -110,12 +111,7 @@ class CorrectionPublisher:
             config.compensation.limits(), _feedforward(config), probe_in_tool(config)
         )
         self._max_age_s = config.compensation.max_age_s
-        # a session the service opened for itself: its wildcard data subscription would get
-        # each correction back only to drop it (as the estimates, `sinks.estimate_publisher`)
-        where = None if local_subscribers else zenoh.Locality.REMOTE
-        self._pub = session.declare_publisher(
-            topic(config.cell, "correction"), express=True, allowed_destination=where
-        )
+        self._pub = output_publisher(session, topic(config.cell, "correction"), local_subscribers)
         self._ros2 = None
         self._types: Any = None
         if ros2_node is not None:

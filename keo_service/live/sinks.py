@@ -25,6 +25,7 @@ from keo_service.core.errors import KeoError
 from keo_service.core.estimator import Estimate
 from keo_service.core.observer import NoiseMeter, covariance_noise, tracker_noise_floor
 from keo_service.io.config import Config
+from keo_service.live.bus import output_publisher
 from keo_service.live.messages import (
     ENCODER,
     EstimateMessage,
@@ -227,15 +228,9 @@ class _Base:
 def estimate_publisher(
     session: zenoh.Session, cell: str, local_subscribers: bool = True
 ) -> zenoh.Publisher:
-    """The publisher of keo/<cell>/estimate. Without `local_subscribers` the estimates go to
-    other sessions only: a session the service opened for itself has no subscriber of its
-    own for them, but its data subscription is a wildcard on the cell's prefix (for the
-    publishers' order across keys), which would get each estimate back on Zenoh's callback
-    thread only to drop it: a thread wake-up and the GIL taken once more per estimate."""
-    where = None if local_subscribers else zenoh.Locality.REMOTE
-    return session.declare_publisher(
-        topic(cell, "estimate"), express=True, allowed_destination=where
-    )
+    """The publisher of keo/<cell>/estimate (`bus.output_publisher`: without
+    `local_subscribers`, to other sessions only)."""
+    return output_publisher(session, topic(cell, "estimate"), local_subscribers)
 
 
 class EstimateBusSink(_Base):
