@@ -267,7 +267,8 @@ def stages(  # noqa: C901
 
     cell = cell_from_config(config)
     payloads = [payload for _s, _k, payload in wire]
-    msgs = [DECODER.decode(p) for p in payloads]
+    # tracker and joint samples only (the wire a run gave); the loops below dispatch on type
+    msgs: list[Any] = [DECODER.decode(p) for p in payloads]
     n = len(wire)
     out: dict[str, float] = {}
 
