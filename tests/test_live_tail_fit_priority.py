@@ -9,6 +9,7 @@ import asyncio
 import contextlib
 import os
 import signal
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -184,3 +185,90 @@ def test_closing_kills_a_starved_worker_at_once(demo_config, demo_cell, monkeypa
         with contextlib.suppress(ProcessLookupError):
             os.kill(starved_pid, signal.SIGKILL)
         worker.close()
+
+
+def _spawns_recorded(monkeypatch, delay_s: float = 0.0) -> list[dict[str, object]]:
+    """Each worker spawned from now on: the thread that spawned it (is it the main one, which
+    runs the loop?), its priority and its processes; `delay_s`: the spawn starts that late."""
+    from keo_service.live import fit_worker
+
+    real = fit_worker._spawn
+    spawns: list[dict[str, object]] = []
+
+    def spawn(state: bytes, idle: bool):
+        time.sleep(delay_s)
+        pool, started = real(state, idle)
+        spawns.append(
+            {
+                "on_main_thread": threading.current_thread() is threading.main_thread(),
+                "idle": idle,
+                "pids": [p.pid for p in (pool._processes or {}).values()],
+                "pool": pool,  # held here: its worker must end on a shutdown, not on its GC
+            }
+        )
+        return pool, started
+
+    monkeypatch.setattr(fit_worker, "_spawn", spawn)
+    return spawns
+
+
+def test_the_fallbacks_worker_is_spawned_off_the_loop(demo_config, demo_cell, monkeypatch):
+    """The worker at normal priority that the fallback starts is spawned on another thread
+    than the loop's, and the fit comes back from it as the tracker makes it here."""
+    worker, _starved_pid, fresh, stretches = _stopped_idle_worker(
+        demo_config, demo_cell, monkeypatch, grace_s=600.0
+    )
+    spawns = _spawns_recorded(monkeypatch)
+
+    async def fit():
+        return await worker.measure(*stretches[0])
+
+    try:
+        found = asyncio.run(fit())
+    finally:
+        worker.close()
+    assert [(s["on_main_thread"], s["idle"]) for s in spawns] == [(False, False)], spawns
+    assert worker.pid() in spawns[0]["pids"]  # type: ignore[operator]
+    assert_fits_as_in_process(fresh, stretches, [found])
+
+
+def test_a_service_stopping_during_the_fallbacks_spawn_leaves_no_worker(
+    demo_config, demo_cell, monkeypatch
+):
+    """The service stops (its delay task cancelled, the worker closed) while the fallback's
+    new worker is still being spawned: both that worker and the starved one end, and the
+    loop is not held by the spawn meanwhile."""
+    worker, starved_pid, _fresh, stretches = _stopped_idle_worker(
+        demo_config, demo_cell, monkeypatch, grace_s=600.0
+    )
+    spawns = _spawns_recorded(monkeypatch, delay_s=1.5)
+
+    async def stop_during_the_spawn() -> float:
+        fit = asyncio.create_task(worker.measure(*stretches[0]))
+        ticks = time.monotonic()
+        for _ in range(10):  # the loop turns while the spawn waits on its thread
+            await asyncio.sleep(0.03)
+        loop_free_s = time.monotonic() - ticks
+        fit.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await fit
+        worker.close()
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and not (
+            spawns and all(_gone(pid) for pid in [starved_pid, *spawns[0]["pids"]])  # type: ignore[misc]
+        ):
+            await asyncio.sleep(0.05)
+        return loop_free_s
+
+    try:
+        loop_free_s = asyncio.run(stop_during_the_spawn())
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(starved_pid, signal.SIGKILL)
+        worker.close()
+    assert loop_free_s < 1.2  # 0.3 s of sleeps: the 1.5 s spawn did not hold the loop
+    assert len(spawns) == 1, spawns
+    assert spawns[0]["pids"], spawns
+    assert _gone(starved_pid), f"the starved worker {starved_pid} is still there"
+    left = [pid for pid in spawns[0]["pids"] if not _gone(pid)]  # type: ignore[attr-defined]
+    assert left == [], f"the fallback's worker {left} is still there"

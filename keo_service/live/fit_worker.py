@@ -20,17 +20,18 @@ ignores SIGINT and SIGTERM (a supervisor that signals the whole group stops the 
 which then shuts the worker down); when nothing shut it down, it exits by itself within a
 second of the service's death.
 
-The worker computes at the idle scheduling priority (Linux's `SCHED_IDLE`): a fit takes a
-core for 50-150 ms, and on a small machine the samples that meanwhile waited for a core behind
-it made most of the service's slowest estimates (docs/performance.md, Round 12b). At idle
-priority any other runnable thread of its scheduling group (the service's session or
-cgroup) takes the core first. A fit that has not come back after `FIT_PATIENCE_S` (a machine
-kept busy by the service's own group would starve it) is run again in a worker at normal
-priority, which then takes every later fit: the result is the same, only later. The starved
-worker is shut down, and killed if it has not exited `STARVED_GRACE_S` later (or when the
-worker is closed). "Normal" is `SCHED_OTHER` whatever the service runs at: a service at a
-real-time policy passes it on to the processes it starts, and a fit there would hold a core
-against everything else.
+The worker computes at the idle scheduling priority (Linux's `SCHED_IDLE`): a fit takes a core
+for 50-150 ms, and on a small machine the samples that meanwhile waited for a core behind it
+made most of the service's slowest estimates (docs/performance.md, Round 12b). At idle priority
+any other runnable thread of its scheduling group (the service's session or cgroup) takes the
+core first. A fit that has not come back after `FIT_PATIENCE_S` (a machine kept busy by the
+service's own group would starve it) is run again in a worker at normal priority, which then
+takes every later fit: the result is the same, only later. That worker is spawned on a thread
+of its own, not the loop's (its start holds the caller for milliseconds, on a machine that is
+busy already); the starved worker is shut down, and killed if it has not exited
+`STARVED_GRACE_S` later (or when the worker is closed). "Normal" is `SCHED_OTHER` whatever the
+service runs at: a service at a real-time policy passes it on to the processes it starts, and a
+fit there would hold a core against everything else.
 
 A worker that dies is a failure of the service's delay task, as any task's
 (`concurrent.futures.process.BrokenProcessPool`).
@@ -50,7 +51,7 @@ import signal
 import sys
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -214,6 +215,25 @@ def _measure(
     return found, time.process_time() - start
 
 
+def _spawn(state: bytes, idle: bool) -> tuple[ProcessPoolExecutor, Future[int]]:
+    """A pool of one worker for the fits, its process started (spawn, not fork: Zenoh runs
+    threads in the service), and the future of its pid, answered once it runs."""
+    pool = ProcessPoolExecutor(
+        1,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_start,
+        initargs=(state, os.getpid(), idle),
+    )
+    return pool, pool.submit(_ready)  # the process starts here
+
+
+def _shut_down(spawn: asyncio.Future[tuple[ProcessPoolExecutor, Future[int]]]) -> None:
+    """A pool spawned for a fallback that no one will use (the service stopped meanwhile):
+    its worker exits now."""
+    if not spawn.cancelled() and spawn.exception() is None:
+        spawn.result()[0].shutdown(wait=False, cancel_futures=True)
+
+
 def _forget(fit: asyncio.Future[Any]) -> None:
     """Reads a superseded fit's outcome, so that nothing reports it as never retrieved."""
     if not fit.cancelled():
@@ -234,18 +254,8 @@ class FitWorker:
         # the worker left behind at the fallback, until it has exited or is killed
         self._starved: list[Process] = []
         self._starved_timer: asyncio.TimerHandle | None = None
-        self._start_pool(idle)
-
-    def _start_pool(self, idle: bool) -> None:
         self.idle = idle
-        context = multiprocessing.get_context("spawn")  # not fork: Zenoh runs threads here
-        self._pool = ProcessPoolExecutor(
-            1,
-            mp_context=context,
-            initializer=_start,
-            initargs=(self._state, os.getpid(), idle),
-        )
-        self._started = self._pool.submit(_ready)  # the process starts here
+        self._pool, self._started = _spawn(self._state, idle)
 
     async def measure(
         self, window: Window, current: float, guess: float, pool: Window | None = None
@@ -271,8 +281,17 @@ class FitWorker:
             FIT_PATIENCE_S,
         )
         starved = self._pool
-        self._start_pool(idle=False)
-        self._leave(starved, loop)
+        # the new worker spawned off the loop: its start (fork, exec, its state sent) holds
+        # the calling thread 3-12 ms, more on the busy machine that caused the fallback
+        spawn = loop.run_in_executor(None, _spawn, self._state, False)
+        try:
+            self._pool, self._started = await asyncio.shield(spawn)
+            self.idle = False
+        except asyncio.CancelledError:  # the service stops: the new worker is shut down too
+            spawn.add_done_callback(_shut_down)
+            raise
+        finally:
+            self._leave(starved, loop)
         return await loop.run_in_executor(self._pool, _measure, window, current, guess, pool)
 
     def _leave(self, starved: ProcessPoolExecutor, loop: asyncio.AbstractEventLoop) -> None:
