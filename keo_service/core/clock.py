@@ -68,7 +68,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ClockMapper", "ClockState", "ReceiptStamps", "pairwise_median_slope"]
+__all__ = [
+    "RECEIPT_GAP_FACTOR",
+    "RECEIPT_GAP_MIN_S",
+    "ClockMapper",
+    "ClockState",
+    "ReceiptStamps",
+    "pairwise_median_slope",
+]
 
 MIN_STEP_S = 1e-6
 # the offset's quantile of the newest blocks while the drift is held (see ClockMapper._fit)
@@ -365,6 +372,24 @@ class ClockMapper:
         )
 
 
+# A read whose gap since the previous one exceeds this many times the stream's usual time per
+# frame came after a stall (of the host, the network or the sender): its frames were sent
+# somewhere in that gap, and where is not known. A sender that stalled and then sends its
+# missed frames back to back (each with the joints of its sending) arrives as one read that
+# the even spread misplaces by tens of ms (the outside check's MotoROS runs on a loaded host:
+# up to 61 ms, 12 mm of tool travel at 0.2 m/s). Jitter of a regular sender (MotoROS: a
+# frame every 22-28 ms) stays well within 1.5 times.
+RECEIPT_GAP_FACTOR = 1.5
+# ... and only a gap beyond the usual by more than this (s) is flagged: receipt times jitter by
+# about a millisecond whatever the rate (the host's wake-ups), which a 1 kHz stream's gaps
+# would exceed 1.5 times without any stall
+RECEIPT_GAP_MIN_S = 0.005
+# the usual time per frame: the median over this many recent reads (every read counts, so a
+# stream whose rate changes is learned anew), judged once this many have come
+RECEIPT_USUAL_READS = 32
+RECEIPT_USUAL_MIN_READS = 8
+
+
 class ReceiptStamps:
     """Host stamps for a device that gives none (MotoROS leaves its time at 0): receipt time.
 
@@ -372,25 +397,45 @@ class ReceiptStamps:
     earlier ones arrived somewhere after the previous read, so they are spread evenly between
     the previous stamp and this receipt (the last frame keeps the receipt time). A stamp never
     repeats or goes back (a host clock stepped back): it is placed just after its
-    predecessor, and counted."""
+    predecessor, and counted. A read after a gap longer than `RECEIPT_GAP_FACTOR` times the
+    usual time per frame (and `RECEIPT_GAP_MIN_S` beyond it) sets `uncertain_s` (else 0): by
+    how much its stamps may be off."""
 
     def __init__(self) -> None:
         self._last = -math.inf
         self.held_back = 0
+        self.uncertain_s = 0.0  # the last read's: its gap beyond the usual time per frame (s)
+        self.usual_s = math.nan  # the usual time per frame (s), once known
+        self._per_frame: collections.deque[float] = collections.deque(maxlen=RECEIPT_USUAL_READS)
 
     def place(self, receipt_t: float, count: int) -> list[float]:
         """Stamps for `count` frames received together at `receipt_t`, oldest first."""
         if count <= 0:
             return []
         last = self._last
+        self.uncertain_s = 0.0
         if receipt_t <= last:
             self.held_back += 1
             receipt_t = last + MIN_STEP_S * count
+        elif math.isfinite(last):
+            self._judge(receipt_t - last, count)
         start = last if math.isfinite(last) else receipt_t - MIN_STEP_S * count
         step = (receipt_t - start) / count
         stamps = [start + step * (i + 1) for i in range(count - 1)] + [receipt_t]
         self._last = receipt_t
         return stamps
+
+    def _judge(self, gap: float, count: int) -> None:
+        """The read's gap against the usual time per frame, then the usual one updated (a
+        median: a few stalls do not move it)."""
+        usual = self.usual_s
+        # False while the usual one is not known (nan)
+        if gap > RECEIPT_GAP_FACTOR * usual and gap - usual > RECEIPT_GAP_MIN_S:
+            self.uncertain_s = gap - usual
+        per_frame = self._per_frame
+        per_frame.append(gap / count)
+        if len(per_frame) >= RECEIPT_USUAL_MIN_READS:
+            self.usual_s = sorted(per_frame)[len(per_frame) // 2]
 
 
 # ---- clock domains: which rule turns a device stamp into a sample's `t` ------------------------
@@ -522,14 +567,14 @@ class Stamper:
         """The stamp of one sample the device stamped `device_stamp` (None: it gives none) and
         the host received at `receipt_t`."""
         if self.domain == "receipt":
-            return Stamp(self.receipt.place(receipt_t, 1)[0])
+            return self._received(receipt_t, 1)[0]
         if device_stamp is None:
             self._note(
                 "no_device_time",
                 f"a sample without device time in the {self.domain!r} "
                 "clock domain: stamped on receipt",
             )
-            return Stamp(self.receipt.place(receipt_t, 1)[0], ("no_device_time",))
+            return self._received(receipt_t, 1, ("no_device_time",))[0]
         if self.domain == "device":
             return self._mapped(device_stamp, receipt_t)
         return self._shared(device_stamp, receipt_t)
@@ -537,7 +582,27 @@ class Stamper:
     def stamp_received_together(self, count: int, receipt_t: float) -> list[Stamp]:
         """Stamps for `count` samples without device time that arrived in one read (receipt
         domain only): spread between the previous stamp and this receipt."""
-        return [Stamp(t) for t in self.receipt.place(receipt_t, count)]
+        return self._received(receipt_t, count)
+
+    def _received(self, receipt_t: float, count: int, flags: tuple[str, ...] = ()) -> list[Stamp]:
+        """Receipt stamps (`ReceiptStamps`) for `count` samples read together; after a stall
+        each is flagged "receipt_gap" (a consumer leaves such samples out of what needs their
+        exact time: the delay fits), counted, and said, naming the stall rather than the
+        motion."""
+        receipt = self.receipt
+        stamps = receipt.place(receipt_t, count)
+        if receipt.uncertain_s > 0.0:
+            usual = receipt.usual_s
+            self._note(
+                "receipt_gap",
+                f"{count} sample(s) received {(receipt.uncertain_s + usual) * 1e3:.0f} ms "
+                f"after the previous read, against {usual * 1e3:.0f} ms per sample usually: "
+                "the host, the network or the sender stalled, and receipt times cannot say "
+                f"when they were sent: stamps uncertain by up to "
+                f"{receipt.uncertain_s * 1e3:.0f} ms, flagged receipt_gap",
+            )
+            flags = (*flags, "receipt_gap")
+        return [Stamp(t, flags) for t in stamps]
 
     def _mapped(self, device_stamp: float, receipt_t: float) -> Stamp:
         steps = self.mapper.steps
