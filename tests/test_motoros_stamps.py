@@ -125,6 +125,25 @@ def test_the_stamper_flags_names_and_counts_a_stall():
     assert stamper.stamp(None, 20 * 0.025 + 0.091 + 0.025).flags == ()
 
 
+def test_a_reconnection_is_no_stall():
+    """The first read on a new connection, 5 s after the last one on the old, is not flagged
+    (the time without a connection is no stall), and its stamp still comes after the old
+    ones; a stall after it is flagged again."""
+    from keo_service.core.clock import Stamper
+
+    stamper = Stamper("receipt")
+    for k in range(21):
+        stamper.stamp(None, k * 0.025)
+    stamper.restart()
+    after = stamper.stamp(None, 5.5)
+    assert after.flags == ()
+    assert after.stamp == 5.5
+    for k in range(1, 4):
+        assert stamper.stamp(None, 5.5 + k * 0.025).flags == ()
+    assert stamper.stamp(None, 5.5 + 3 * 0.025 + 0.1).flags == ("receipt_gap",)
+    assert stamper.counters["receipt_gap"] == 1
+
+
 async def test_adapter_stamps_coalesced_frames_apart_over_tcp(demo_config):
     """A controller that writes three JOINT_FEEDBACK frames (and a status) in one TCP write,
     then single frames 40 ms apart: every published sample has its own increasing stamp."""

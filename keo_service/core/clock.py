@@ -407,6 +407,12 @@ class ReceiptStamps:
         self.uncertain_s = 0.0  # the last read's: its gap beyond the usual time per frame (s)
         self.usual_s = math.nan  # the usual time per frame (s), once known
         self._per_frame: collections.deque[float] = collections.deque(maxlen=RECEIPT_USUAL_READS)
+        self._reconnected = False  # the next read's gap is a reconnection's, not a stall
+
+    def restart(self) -> None:
+        """A new connection: its first read is not judged (the time without a connection is
+        no stall of the stream); its stamps still go on after the previous ones."""
+        self._reconnected = True
 
     def place(self, receipt_t: float, count: int) -> list[float]:
         """Stamps for `count` frames received together at `receipt_t`, oldest first."""
@@ -417,8 +423,9 @@ class ReceiptStamps:
         if receipt_t <= last:
             self.held_back += 1
             receipt_t = last + MIN_STEP_S * count
-        elif math.isfinite(last):
+        elif math.isfinite(last) and not self._reconnected:
             self._judge(receipt_t - last, count)
+        self._reconnected = False
         start = last if math.isfinite(last) else receipt_t - MIN_STEP_S * count
         step = (receipt_t - start) / count
         stamps = [start + step * (i + 1) for i in range(count - 1)] + [receipt_t]
@@ -520,6 +527,7 @@ class Stamper:
         epoch) and keeps its epoch; otherwise, or when the caller knows that the device's
         time base starts anew (`fresh`: a controller that restarted), a new epoch."""
         self._last_shared = -math.inf
+        self.receipt.restart()
         if self.domain == "device" and self.mapper.state().blocks > 0 and not fresh:
             self.mapper.reconnect()
             return
