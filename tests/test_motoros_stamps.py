@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import time
+from collections.abc import Awaitable, Callable
 
 import msgspec
 import pytest
@@ -144,9 +145,12 @@ def test_a_reconnection_is_no_stall():
     assert stamper.counters["receipt_gap"] == 1
 
 
-async def test_adapter_stamps_coalesced_frames_apart_over_tcp(demo_config):
-    """A controller that writes three JOINT_FEEDBACK frames (and a status) in one TCP write,
-    then single frames 40 ms apart: every published sample has its own increasing stamp."""
+async def _published_over_tcp(
+    demo_config, send: Callable[[asyncio.StreamWriter], Awaitable[None]], count: int
+) -> tuple[list[JointSample], dict]:
+    """An encoder adapter on a MotoROS controller over loopback TCP that runs `send` 0.5 s
+    after the adapter connects: the joint samples the adapter published (once `count` came,
+    or 5 s after `send` ended) and its status then."""
     robot = msgspec.structs.replace(demo_config.robot, port=free_port(), host="127.0.0.1")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     bus = msgspec.structs.replace(demo_config.bus, listen=[endpoint], connect=[])
@@ -155,13 +159,7 @@ async def test_adapter_stamps_coalesced_frames_apart_over_tcp(demo_config):
 
     async def controller(_r: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         await asyncio.sleep(0.5)
-        burst = b"".join(encode_joint_feedback([0.01 * k] * 6) for k in range(3))
-        writer.write(burst + encode_robot_status())
-        await writer.drain()
-        for k in range(3, 8):
-            await asyncio.sleep(0.04)
-            writer.write(encode_joint_feedback([0.01 * k] * 6))
-            await writer.drain()
+        await send(writer)
         sent.set()
         await asyncio.sleep(1.0)
         writer.close()
@@ -176,13 +174,30 @@ async def test_adapter_stamps_coalesced_frames_apart_over_tcp(demo_config):
         async with EncoderAdapter(config, 6) as adapter:
             await asyncio.wait_for(sent.wait(), timeout=15)
             deadline = time.time() + 5
-            while len(samples) < 8 and time.time() < deadline:
+            while len(samples) < count and time.time() < deadline:
                 await asyncio.sleep(0.05)
             status = adapter.status()
     finally:
         sub.undeclare()
         service_side.close()
         server.close()
+    return samples, status
+
+
+async def test_adapter_stamps_coalesced_frames_apart_over_tcp(demo_config):
+    """A controller that writes three JOINT_FEEDBACK frames (and a status) in one TCP write,
+    then single frames 40 ms apart: every published sample has its own increasing stamp."""
+
+    async def send(writer: asyncio.StreamWriter) -> None:
+        burst = b"".join(encode_joint_feedback([0.01 * k] * 6) for k in range(3))
+        writer.write(burst + encode_robot_status())
+        await writer.drain()
+        for k in range(3, 8):
+            await asyncio.sleep(0.04)
+            writer.write(encode_joint_feedback([0.01 * k] * 6))
+            await writer.drain()
+
+    samples, status = await _published_over_tcp(demo_config, send, 8)
     assert [round(s.joints[0], 3) for s in samples] == [0.01 * k for k in range(8)]
     stamps = [s.stamp for s in samples]
     assert all(b > a for a, b in itertools.pairwise(stamps)), stamps
@@ -195,15 +210,9 @@ async def test_adapter_flags_the_frames_a_stalled_controller_sends_at_once(demo_
     missed frames at once (each with the joints of its sending): the published samples of
     that write carry "receipt_gap", the adapter's clock status counts it, and the samples
     before the stall carry no flag."""
-    robot = msgspec.structs.replace(demo_config.robot, port=free_port(), host="127.0.0.1")
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    bus = msgspec.structs.replace(demo_config.bus, listen=[endpoint], connect=[])
-    config = msgspec.structs.replace(demo_config, robot=robot, bus=bus)
-    sent = asyncio.Event()
     regular = 16
 
-    async def controller(_r: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        await asyncio.sleep(0.5)
+    async def send(writer: asyncio.StreamWriter) -> None:
         for k in range(regular):
             writer.write(encode_joint_feedback([0.01 * k] * 6))
             await writer.drain()
@@ -212,27 +221,8 @@ async def test_adapter_flags_the_frames_a_stalled_controller_sends_at_once(demo_
         burst = b"".join(encode_joint_feedback([0.01 * k] * 6) for k in range(regular, regular + 4))
         writer.write(burst)
         await writer.drain()
-        sent.set()
-        await asyncio.sleep(1.0)
-        writer.close()
 
-    server = await asyncio.start_server(controller, "127.0.0.1", robot.port)
-    service_side = open_session("peer", listen=[endpoint])
-    samples: list[JointSample] = []
-    sub = service_side.declare_subscriber(
-        topic(config.cell, "encoder"), lambda s: samples.append(decode(s.payload.to_bytes()))
-    )
-    try:
-        async with EncoderAdapter(config, 6) as adapter:
-            await asyncio.wait_for(sent.wait(), timeout=15)
-            deadline = time.time() + 5
-            while len(samples) < regular + 4 and time.time() < deadline:
-                await asyncio.sleep(0.05)
-            status = adapter.status()
-    finally:
-        sub.undeclare()
-        service_side.close()
-        server.close()
+    samples, status = await _published_over_tcp(demo_config, send, regular + 4)
     assert len(samples) == regular + 4
     first_of_burst = samples[regular]
     assert round(first_of_burst.joints[0], 3) == 0.01 * regular
