@@ -376,9 +376,8 @@ class ClockMapper:
 # frame came after a stall (of the host, the network or the sender): its frames were sent
 # somewhere in that gap, and where is not known. A sender that stalled and then sends its
 # missed frames back to back (each with the joints of its sending) arrives as one read that
-# the even spread misplaces by tens of ms (the outside check's MotoROS runs on a loaded host:
-# up to 61 ms, 12 mm of tool travel at 0.2 m/s). Jitter of a regular sender (MotoROS: a
-# frame every 22-28 ms) stays well within 1.5 times.
+# the even spread misplaces by tens of ms (docs/timing.md has the measured case). Jitter of a
+# regular sender (MotoROS: a frame every 22-28 ms) stays well within 1.5 times.
 RECEIPT_GAP_FACTOR = 1.5
 # ... and only a gap beyond the usual by more than this (s) is flagged: receipt times jitter by
 # about a millisecond whatever the rate (the host's wake-ups), which a 1 kHz stream's gaps
