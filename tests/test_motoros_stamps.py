@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import re
 import time
 from collections.abc import Awaitable, Callable
 
@@ -211,6 +212,7 @@ async def test_adapter_flags_the_frames_a_stalled_controller_sends_at_once(demo_
     that write carry "receipt_gap", the adapter's clock status counts it, and the samples
     before the stall carry no flag."""
     regular = 16
+    burst_sent_at: list[float] = []
 
     async def send(writer: asyncio.StreamWriter) -> None:
         for k in range(regular):
@@ -219,6 +221,7 @@ async def test_adapter_flags_the_frames_a_stalled_controller_sends_at_once(demo_
             await asyncio.sleep(0.025)
         await asyncio.sleep(0.15)  # the stall
         burst = b"".join(encode_joint_feedback([0.01 * k] * 6) for k in range(regular, regular + 4))
+        burst_sent_at.append(time.time())  # the host clock the adapter stamps receipts on
         writer.write(burst)
         await writer.drain()
 
@@ -228,6 +231,12 @@ async def test_adapter_flags_the_frames_a_stalled_controller_sends_at_once(demo_
     assert round(first_of_burst.joints[0], 3) == 0.01 * regular
     assert "receipt_gap" in first_of_burst.flags, [s.flags for s in samples]
     assert status["clock"]["counters"]["receipt_gap"] >= 1, status["clock"]
+    # the bound said covers the truth: every frame of the burst was sent at one known time
+    said = [m for m in status["clock"]["messages"] if "receipt_gap" in m]
+    bound_s = float(re.search(r"up to (\d+) ms", said[-1]).group(1)) * 1e-3 + 0.0005  # rounded
+    burst = [s for s in samples[regular:] if "receipt_gap" in s.flags]
+    off_s = max(abs(s.stamp - burst_sent_at[0]) for s in burst)
+    assert off_s <= bound_s, (off_s, said[-1])
     # before the stall the usual time per frame was being learned or met: no sample flagged
     # but where this machine itself stalled the test's sender
     flagged_before = sum("receipt_gap" in s.flags for s in samples[:regular])
